@@ -1,0 +1,34 @@
+"""Tolerances in one place, each with its reason (SI units: m, rad, s)."""
+
+#: Relative tolerance on |R_ii| / |R_00| below which a regressor column counts as
+#: linearly dependent in the QR of the base-parameter analysis. The columns mix m and
+#: rad, but for a 0.8 m arm the smallest genuine singular values sit around 1e-3 of the
+#: largest, while numerically dependent ones fall to ~1e-14.
+BASE_PARAM_RANK_RTOL = 1e-8
+
+#: Coefficients of a base-parameter combination smaller than this are printed as zero
+#: (they are round-off of the QR, not geometry).
+BASE_PARAM_COEFF_ATOL = 1e-9
+
+#: Gauss-Newton stops when the step in the base parameters is this small (m or rad).
+IDENT_STEP_TOL = 1e-12
+
+#: ... or when the relative decrease of the weighted cost is below this.
+IDENT_COST_RTOL = 1e-12
+
+#: Base parameters whose correlation coefficient exceeds this are reported as a pair.
+STRONG_CORRELATION = 0.95
+
+#: Below this angle (rad) rotation-vector formulas switch to their Taylor series.
+SMALL_ANGLE = 1e-6
+
+#: A CSV angle column whose magnitude exceeds this is taken to be in degrees, not rad
+#: (no joint of a 6R arm turns more than 2*pi in one direction).
+RADIANS_MAX_ABS = 2.0 * 3.141592653589793 + 1e-9
+
+#: A position column whose magnitude exceeds this is taken to be in mm, not m
+#: (no point of a cell is 20 m from F_I).
+METRES_MAX_ABS = 20.0
+
+#: Joint-limit slack (rad) when validating measured joint values (encoder rounding).
+JOINT_LIMIT_SLACK = 1e-6
