@@ -17,6 +17,7 @@ from campaign.errors import CampaignError
 COMMAND_MODULES = (
     "campaign.model.commands",
     "campaign.identify.commands",
+    "campaign.sim.commands",
 )
 
 

@@ -1,0 +1,231 @@
+"""`campaign calibrate`: from a run's measurements to a calibrated model and its metrics.
+
+Stages, each evaluated on the same fixed 80/20 split (campaign.identify.split):
+``nominal`` (p_e = 0), ``geometric`` (base parameters), ``geometric+<effect>+...`` (when
+effects are enabled), then the neural residual stages when the ANN is enabled.
+
+Writes ``RUN/calibration/metrics.json`` (DESIGN.md), ``params.yaml`` and appends the
+model's held-out errors to ``RUN/calibration/history.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from campaign.effects.base import parse_effect_list
+from campaign.errors import ConfigError, DataError
+from campaign.identify.metrics import error_stats, format_table6
+from campaign.identify.solver import CalibrationModel
+from campaign.identify.split import train_test_split
+from campaign.measure.store import open_run
+from campaign.model.kinematics import PARAM_NAMES, forward, pose_error
+from campaign.model.robot import RobotModel
+
+CALIBRATION_DIR = "calibration"
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What `calibrate` produced: the stages' metrics and the fitted geometric model."""
+
+    run_dir: Path
+    stages: dict
+    order: list
+    model: CalibrationModel
+    is_test: np.ndarray
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def metrics(self) -> dict:
+        return {"stages": self.stages, "order": self.order}
+
+
+def run_config(run_dir) -> dict:
+    """The run's own ``campaign.yaml`` (copied there by `plan`/`run`), or {}."""
+    path = Path(run_dir) / "campaign.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        cfg = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(cfg, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return cfg
+
+
+def configured_effects(run_dir) -> tuple:
+    """Effects enabled in the run's campaign.yaml (``effects:`` list or ``calibrate: effects:``)."""
+    cfg = run_config(run_dir)
+    eff = cfg.get("effects")
+    if eff is None and isinstance(cfg.get("calibrate"), dict):
+        eff = cfg["calibrate"].get("effects")
+    if isinstance(eff, dict):
+        eff = [k for k, v in eff.items() if v]
+    return parse_effect_list(eff)
+
+
+def load_robot_for_run(run_dir) -> RobotModel:
+    cfg = run_config(run_dir)
+    return RobotModel.load(cfg.get("robot", "comau_racer5_080"))
+
+
+def stage_name(effects) -> str:
+    return "+".join(["geometric", *effects])
+
+
+def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
+              ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
+              write: bool = True) -> CalibrationResult:
+    """Identify the model of a run and write its calibration folder.
+
+    effects: names of physical effects to identify jointly with the geometric parameters
+    (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
+    compensator (campaign.ann). progress: optional callable(str) for status lines.
+    """
+    run_dir = Path(run_dir)
+    say = progress or (lambda msg: None)
+    robot = robot or load_robot_for_run(run_dir)
+    effects = configured_effects(run_dir) if effects is None else parse_effect_list(effects)
+    with open_run(run_dir) as store:
+        poses = store.load_measured()
+    if len(poses) < 20:
+        raise DataError(f"{run_dir}: only {len(poses)} measured poses; at least 20 are needed")
+    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=1e-6)
+    is_test = train_test_split(poses.pose_id)
+    tr, te = ~is_test, is_test
+    if tr.sum() < 10 or te.sum() < 2:
+        raise DataError(f"{run_dir}: too few poses for an 80/20 split ({len(poses)})")
+    ctx_tr = {k: v[tr] for k, v in poses.context.items()}
+    ctx_te = {k: v[te] for k, v in poses.context.items()}
+
+    stages, order = {}, []
+
+    def add_stage(name, dz_train, dz_test):
+        stages[name] = {"train": error_stats(dz_train), "test": error_stats(dz_test)}
+        order.append(name)
+
+    T_nom = forward(robot, poses.q)
+    dz_nom = pose_error(T_nom, poses.T_IE)
+    add_stage("nominal", dz_nom[tr], dz_nom[te])
+
+    say(f"geometric identification on {int(tr.sum())} training poses")
+    t0 = time.perf_counter()
+    geo = CalibrationModel(robot=robot, position_only=position_only).fit(poses.q[tr], poses.T_IE[tr])
+    t_geo = time.perf_counter() - t0
+    dz_geo = geo.residuals(poses.q, poses.T_IE)
+    add_stage("geometric", dz_geo[tr], dz_geo[te])
+    model = geo
+    dz_model = dz_geo
+    if effects:
+        say(f"identifying geometric + {', '.join(effects)}")
+        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only).fit(
+            poses.q[tr], poses.T_IE[tr], ctx_tr)
+        dz_model = model.residuals(poses.q, poses.T_IE, poses.context)
+        add_stage(stage_name(effects), dz_model[tr], dz_model[te])
+    extra = {"identification_time_s": t_geo, "effects": list(effects)}
+
+    if ann:
+        from campaign.identify.ann_stage import run_ann_stages
+
+        ann_stages, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, dz_nom, dz_model,
+                                               stage_name(effects), options=ann_options or {}, progress=progress)
+        for name, st in ann_stages.items():
+            stages[name] = st
+            order.append(name)
+        extra.update(ann_extra)
+
+    result = CalibrationResult(run_dir, stages, order, model, is_test, extra)
+    if write:
+        _write(result, robot, geo, poses, ctx_te)
+    return result
+
+
+def _param_block(model: CalibrationModel) -> dict:
+    base = model.base_
+    out = {
+        "base_parameters": [
+            {"index": j + 1, "name": base.names[j], "unit": base.units[j], "combination": base.expression(j),
+             "value": float(model.base_params_[j]), "sigma": float(model.base_sigma_[j])}
+            for j in range(base.n_base)
+        ],
+        "p_e": [float(v) for v in model.params_],
+        "p_e_min_norm": [float(v) for v in model.params_min_norm_],
+        "p_e_names": list(PARAM_NAMES),
+        "effects": {},
+        "absorbed_effect_parameters": [model.unknown_names_[i] for i in model.absorbed_],
+        "noise_sigma": model.noise_sigma_,
+        "condition_number": model.condition_number_,
+        "iterations": model.n_iter_,
+        "strongly_correlated": [{"a": a, "b": b, "r": r} for a, b, r in model.correlated_pairs_],
+    }
+    i0 = base.n_base
+    for e, th in zip(model.effect_set_.effects, model.effect_set_.split(model.effect_params_)):
+        out["effects"][e.name] = {
+            "description": e.description,
+            "parameters": [
+                {"name": pn, "unit": pu, "value": float(v), "sigma": float(model.sigma_[i0 + k])}
+                for k, (pn, pu, v) in enumerate(zip(e.param_names, e.param_units, th))
+            ],
+        }
+        i0 += e.n_params
+    return out
+
+
+def _write(result: CalibrationResult, robot, geo, poses, ctx_te) -> None:
+    out = result.run_dir / CALIBRATION_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    model = result.model
+    params = {"robot": robot.name, "model_stage": result.order[-1] if not result.extra.get("ann_stage")
+              else result.extra.get("model_stage_before_ann", result.order[-1])}
+    params.update(_param_block(model))
+    if model is not geo:
+        params["geometric_only"] = _param_block(geo)
+    _atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
+    _atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
+    # history: one entry per calibrate run, so a report can show the error falling
+    hist_path = out / "history.json"
+    history = []
+    if hist_path.is_file():
+        try:
+            history = json.loads(hist_path.read_text()).get("runs", [])
+        except (json.JSONDecodeError, AttributeError):
+            history = []
+    history.append({
+        "time_unix_s": time.time(),
+        "effects": result.extra.get("effects", []),
+        "stages": {name: result.stages[name]["test"] for name in result.order},
+        "order": result.order,
+    })
+    _atomic_write(hist_path, json.dumps({"runs": history}, indent=2))
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def summary_text(result: CalibrationResult) -> str:
+    """The printed outcome: Table 6 for the test set, then the training set, then parameters."""
+    m = result.model
+    lines = [format_table6(result.stages, result.order, "test"), "",
+             format_table6(result.stages, result.order, "train"), ""]
+    lines.append(f"identified {m.base_.n_base} base parameters"
+                 + (f" + {m.effect_set_.n_params} effect parameters" if m.effect_set_.n_params else "")
+                 + f" in {m.n_iter_} iterations; condition number {m.condition_number_:.3g}; "
+                 f"noise σ {m.noise_sigma_['position_m'] * 1e6:.2f} µm"
+                 + (f", {m.noise_sigma_['orientation_rad'] * 1e6:.1f} µrad" if m.noise_sigma_['orientation_rad'] else ""))
+    if m.absorbed_:
+        lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "
+                     + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
+    if m.correlated_pairs_:
+        lines.append("strongly correlated: " + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in m.correlated_pairs_))
+    lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml")
+    return "\n".join(lines)

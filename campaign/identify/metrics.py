@@ -1,0 +1,40 @@
+"""Error statistics in the shape of the paper's Table 6."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def error_stats(dz) -> dict:
+    """Table 6 statistics of pose errors Δz (n, 6) (m, rad).
+
+    Returns ``{"position_mm": {"max", "mean", "q90"}, "orientation_mrad": {...}, "n_poses"}``.
+    """
+    dz = np.asarray(dz, dtype=float)
+    pos = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+    rot = np.linalg.norm(dz[:, 3:6], axis=1) * 1e3
+
+    def s(v):
+        return {"max": float(np.max(v)), "mean": float(np.mean(v)), "q90": float(np.quantile(v, 0.9))}
+
+    return {"position_mm": s(pos), "orientation_mrad": s(rot), "n_poses": int(len(dz))}
+
+
+def format_table6(stages: dict, order, split: str = "test") -> str:
+    """Stages side by side, like the paper's Table 6, with the ratio to the first stage."""
+    cols = [name for name in order if name in stages]
+    w = max(12, *(len(c) + 2 for c in cols))
+    head = f"{'error (' + split + ' set)':<28}" + "".join(f"{c:>{w}}" for c in cols)
+    lines = [head, "-" * len(head)]
+    first = stages[cols[0]][split]
+    for block, unit in (("position_mm", "‖Δt‖ mm"), ("orientation_mrad", "‖Δφ‖ mrad")):
+        for stat, label in (("max", "max"), ("mean", "mean"), ("q90", "Q0.9")):
+            row = f"{label + ' ' + unit:<28}"
+            for c in cols:
+                row += f"{stages[c][split][block][stat]:>{w}.3f}"
+            lines.append(row)
+    lines.append(f"{'ratio of mean ‖Δt‖ to ' + cols[0]:<28}" + "".join(
+        f"{100 * stages[c][split]['position_mm']['mean'] / max(first['position_mm']['mean'], 1e-300):>{w - 1}.2f}%"
+        for c in cols))
+    lines.append(f"{'n poses':<28}" + "".join(f"{stages[c][split]['n_poses']:>{w}d}" for c in cols))
+    return "\n".join(lines)

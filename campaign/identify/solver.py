@@ -1,0 +1,281 @@
+"""Geometric identification (eqs. 13-19), jointly with any enabled physical effects.
+
+:class:`CalibrationModel` is an estimator in the scikit-learn shape: hyperparameters in a
+keyword-only ``__init__``, ``fit`` returns ``self``, what was learned ends in ``_``,
+``predict`` gives the model's pose.
+
+The unknowns are the identifiable base parameters of the 48 geometric error parameters
+(:mod:`campaign.model.base_params`) and the parameters θ of the enabled effects. The
+identifiability analysis runs on the combined regressor: an effect parameter whose
+column the geometric base parameters already span is reported in ``absorbed_`` and
+held at zero rather than silently fitted.
+
+Rows are weighted by the noise of their block (position in m, orientation in rad),
+estimated from the residuals (variance components), so σ of every parameter is in its
+own unit. Levenberg-Marquardt steps from zero (eq. 19 with damping).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from campaign.effects.base import EffectSet, make_effect, model_pose
+from campaign.errors import DataError, IdentificationError, NotFittedError
+from campaign.model.base_params import BaseParameters, base_parameters
+from campaign.model.kinematics import JOINT_OFFSET_INDEX, error_jacobian, forward, pose_error
+from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
+
+#: finite-difference step for effect parameters, relative to a typical magnitude of 1
+_FD_STEP = 1e-6
+
+
+class CalibrationModel:
+    """Kinematic model with geometric base parameters and optional physical effects.
+
+    Parameters
+    ----------
+    robot : RobotModel
+    effects : sequence of effect names or Effect objects
+    position_only : fit positions only (orientation rows dropped)
+    max_iter : Levenberg-Marquardt iterations at most
+    sigma_position_m, sigma_orientation_rad : initial noise guesses for row weights
+    estimate_noise : re-estimate the block noise from the residuals (variance components)
+    """
+
+    def __init__(self, *, robot, effects=(), position_only=False, max_iter=50,
+                 sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True):
+        self.robot = robot
+        self.effects = effects
+        self.position_only = position_only
+        self.max_iter = max_iter
+        self.sigma_position_m = sigma_position_m
+        self.sigma_orientation_rad = sigma_orientation_rad
+        self.estimate_noise = estimate_noise
+
+    # -- helpers ----------------------------------------------------------------------
+    def _effect_set(self) -> EffectSet:
+        return EffectSet(tuple(make_effect(e, self.robot) if isinstance(e, str) else e for e in self.effects))
+
+    def _rows(self):
+        return slice(0, 3) if self.position_only else slice(0, 6)
+
+    def _model_T(self, q, p_e, theta, context):
+        return model_pose(self.robot, q, p_e, self.effect_set_, theta, context)
+
+    def _jacobian(self, q, p_e, theta, context, T_meas):
+        """Columns for the base parameters and every effect parameter: (n, 6, r + k)."""
+        es = self.effect_set_
+        dq = es.joint_offset(theta, q, context) if es.effects else 0.0
+        qq = q + dq
+        J_geo = error_jacobian(self.robot, qq, p_e, T_meas if not es.effects else None)
+        T_chain = forward(self.robot, qq, p_e)
+        if not es.effects:
+            return J_geo[:, :, list(self.base_.independent)]
+        # pose maps after the chain: propagate the chain's derivative through them, and
+        # differentiate the effects numerically (no kinematics re-run)
+        T0 = es.pose_map(theta, T_chain, q, context)
+        dz0 = pose_error(T0, T_meas)
+        eps = 1e-7
+        # derivative of the pose maps w.r.t. the chain pose, applied to J_geo columns: the
+        # maps are near-identity rigid maps, so we propagate with a left perturbation test
+        J_map = np.empty((len(q), 6, 6))
+        from campaign.model.rotations import rotvec_to_matrix
+
+        for a in range(6):
+            d = np.zeros(6)
+            d[a] = eps
+            Tp = T_chain.copy()
+            if a < 3:
+                Tp[:, :3, 3] += d[:3]
+            else:
+                Tp[:, :3, :3] = rotvec_to_matrix(d[3:]) @ Tp[:, :3, :3]
+                Tp[:, :3, 3] = (rotvec_to_matrix(d[3:]) @ (Tp[:, :3, 3, None]))[..., 0]
+                # a rotation of the chain's end about F_I's origin; undo the translation part
+                # so the column is a pure rotation of the pose about the tool point:
+                Tp[:, :3, 3] = T_chain[:, :3, 3]
+            J_map[:, :, a] = (pose_error(es.pose_map(theta, Tp, q, context), T_meas) - dz0) / eps
+        # J_geo (at Δφ-free convention) gives d(t, ω) of the chain pose per parameter
+        J_chain = error_jacobian(self.robot, qq, p_e)
+        J_b = J_map @ J_chain[:, :, list(self.base_.independent)]
+        cols = [J_b]
+        if es.n_params:
+            J_th = np.empty((len(q), 6, es.n_params))
+            J_q = J_map @ J_chain[:, :, list(JOINT_OFFSET_INDEX)]  # d dz / d q
+            for k in range(es.n_params):
+                th = theta.copy()
+                th[k] += _FD_STEP
+                th_m = theta.copy()
+                th_m[k] -= _FD_STEP
+                ddq = (es.joint_offset(th, q, context) - es.joint_offset(th_m, q, context)) / (2 * _FD_STEP)
+                col = np.einsum("nij,nj->ni", J_q, ddq)
+                Tp = es.pose_map(th, T_chain, q, context)
+                Tm = es.pose_map(th_m, T_chain, q, context)
+                col = col + (pose_error(Tp, T_meas) - pose_error(Tm, T_meas)) / (2 * _FD_STEP)
+                J_th[:, :, k] = col
+            cols.append(J_th)
+        return np.concatenate(cols, axis=2)
+
+    # -- estimator API ----------------------------------------------------------------
+    def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None):
+        """Identify the base parameters (and effect parameters) from measured poses.
+
+        q: (n, 6) rad; T_meas: (n, 4, 4) measured T_IE (m); context: per-pose values.
+        """
+        q = np.asarray(q, dtype=float)
+        T_meas = np.asarray(T_meas, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 6 or T_meas.shape != (len(q), 4, 4):
+            raise DataError(f"fit: expected q (n, 6) and T_meas (n, 4, 4), got {q.shape} and {T_meas.shape}")
+        context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
+        self.effect_set_ = self._effect_set()
+        self.effect_set_.check_context(context, len(q))
+        self.base_ = base or base_parameters(self.robot, position_only=self.position_only)
+        r = self.base_.n_base
+        k = self.effect_set_.n_params
+        n_unknown = r + k
+        rows = self._rows()
+        n_rows = len(q) * (3 if self.position_only else 6)
+        if n_rows < n_unknown:
+            raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_unknown} unknowns")
+
+        x = np.zeros(n_unknown)
+        theta0 = self.effect_set_.initial_params()
+        x[r:] = theta0
+        sig = np.array([self.sigma_position_m] * 3 + [self.sigma_orientation_rad] * 3)[rows]
+
+        def unpack(x):
+            return self.base_.expand(x[:r]), x[r:]
+
+        def residual(x):
+            p_e, th = unpack(x)
+            return pose_error(self._model_T(q, p_e, th, context), T_meas)[:, rows]
+
+        # identifiability of the combined regressor at the start point
+        J0 = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :] / sig[None, :, None]
+        self.absorbed_ = self._absorbed(J0.reshape(-1, n_unknown), r)
+        free = np.array([i for i in range(n_unknown) if i not in self.absorbed_], dtype=int)
+
+        lam = 1e-6
+        res = residual(x)
+        cost = float(np.sum((res / sig) ** 2))
+        history = [cost]
+        n_iter = 0
+        for outer in range(3 if self.estimate_noise else 1):
+            for n_iter_inner in range(self.max_iter):
+                n_iter += 1
+                J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :][:, :, free] / sig[None, :, None]
+                J2 = J.reshape(-1, len(free))
+                g = J2.T @ (res / sig).reshape(-1)
+                H = J2.T @ J2
+                step_ok = False
+                for _ in range(20):
+                    A = H + lam * np.diag(np.diag(H))
+                    try:
+                        dx = -np.linalg.solve(A, g)
+                    except np.linalg.LinAlgError:
+                        lam *= 10
+                        continue
+                    x_new = x.copy()
+                    x_new[free] += dx
+                    res_new = residual(x_new)
+                    cost_new = float(np.sum((res_new / sig) ** 2))
+                    if cost_new <= cost:
+                        step_ok = True
+                        break
+                    lam *= 10
+                if not step_ok:
+                    break
+                rel = (cost - cost_new) / max(cost, 1e-300)
+                x, res, cost = x_new, res_new, cost_new
+                lam = max(lam / 10, 1e-12)
+                history.append(cost)
+                if np.max(np.abs(dx)) < IDENT_STEP_TOL or rel < IDENT_COST_RTOL:
+                    break
+            if not self.estimate_noise:
+                break
+            # variance components: re-estimate each block's noise from its residuals, giving
+            # each block its share of the degrees of freedom
+            dof = max(n_rows - len(free), 1)
+            new_sig = sig.copy()
+            share = dof / n_rows
+            new_sig[:3] = np.sqrt(np.sum(res[:, :3] ** 2) / (res[:, :3].size * share))
+            if not self.position_only:
+                new_sig[3:] = np.sqrt(np.sum(res[:, 3:] ** 2) / (res[:, 3:].size * share))
+            new_sig = np.maximum(new_sig, 1e-12)
+            if np.allclose(new_sig, sig, rtol=0.05):
+                sig = new_sig
+                break
+            sig = new_sig
+            cost = float(np.sum((res / sig) ** 2))
+            history.append(cost)
+            lam = 1e-6
+
+        J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :][:, :, free] / sig[None, :, None]
+        J2 = J.reshape(-1, len(free))
+        H = J2.T @ J2
+        dof = max(n_rows - len(free), 1)
+        s2 = cost / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
+        cov_free = np.linalg.pinv(H) * s2
+        cov = np.zeros((n_unknown, n_unknown))
+        cov[np.ix_(free, free)] = cov_free
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = cov / np.outer(sd, sd)
+        corr[~np.isfinite(corr)] = 0.0
+        svals = np.linalg.svd(J2 / np.linalg.norm(J2, axis=0), compute_uv=False)
+
+        self.x_ = x
+        self.base_params_ = x[:r].copy()
+        self.params_ = self.base_.expand(self.base_params_)
+        self.params_min_norm_ = self.base_.min_norm(self.base_params_)
+        self.effect_params_ = x[r:].copy()
+        self.covariance_ = cov
+        self.sigma_ = sd
+        self.base_sigma_ = sd[:r]
+        self.effect_sigma_ = sd[r:]
+        self.correlation_ = corr
+        self.condition_number_ = float(svals[0] / svals[-1]) if svals[-1] > 0 else float("inf")
+        self.noise_sigma_ = {"position_m": float(sig[0]),
+                             "orientation_rad": float(sig[3]) if not self.position_only else None}
+        self.n_iter_ = n_iter
+        self.cost_history_ = history
+        self.unknown_names_ = self.base_.names + self.effect_set_.param_names
+        self.unknown_units_ = self.base_.units + self.effect_set_.param_units
+        iu = np.triu_indices(n_unknown, 1)
+        strong = np.abs(corr[iu]) > STRONG_CORRELATION
+        self.correlated_pairs_ = [(self.unknown_names_[i], self.unknown_names_[j], float(corr[i, j]))
+                                  for i, j in zip(iu[0][strong], iu[1][strong])]
+        return self
+
+    def _absorbed(self, J, r):
+        """Effect columns that the geometric base columns (and earlier effect columns) span."""
+        if J.shape[1] == r:
+            return []
+        norms = np.linalg.norm(J, axis=0)
+        Js = J / np.where(norms > 0, norms, 1.0)
+        import scipy.linalg
+
+        _, R = scipy.linalg.qr(Js, mode="economic")
+        d = np.abs(np.diag(R))
+        ref = d[:r].max() if r else d.max()
+        # a looser bound than for exact dependence: effects nearly spanned are not identifiable
+        tol = max(BASE_PARAM_RANK_RTOL, 1e-6)
+        return [i for i in range(r, J.shape[1]) if d[i] < tol * ref or norms[i] == 0]
+
+    def _check(self):
+        if not hasattr(self, "x_"):
+            raise NotFittedError("CalibrationModel is not fitted; call fit() first")
+
+    def predict(self, q, context=None) -> np.ndarray:
+        """Model pose T_IE (n, 4, 4) for joint coordinates q (n, 6) rad."""
+        self._check()
+        return self._model_T(np.asarray(q, dtype=float), self.params_, self.effect_params_, context or {})
+
+    def residuals(self, q, T_meas, context=None) -> np.ndarray:
+        """Δz (n, 6) of the fitted model against measured poses."""
+        return pose_error(self.predict(q, context), T_meas)
+
+    def parameter_table(self) -> list:
+        """Rows (name, unit, value, sigma) for every unknown, base parameters first."""
+        self._check()
+        return [(n, u, float(v), float(s)) for n, u, v, s in
+                zip(self.unknown_names_, self.unknown_units_, self.x_, self.sigma_)]

@@ -1,0 +1,26 @@
+"""The fixed train/test split of a run (80/20, seeded), shared by every stage."""
+
+from __future__ import annotations
+
+import numpy as np
+
+SPLIT_SEED = 20200101
+TEST_FRACTION = 0.2
+
+
+def train_test_split(pose_id, *, seed: int = SPLIT_SEED, test_fraction: float = TEST_FRACTION):
+    """Boolean mask ``is_test`` (n,) for poses with these ids.
+
+    A pose's side depends only on its id and the seed, not on which other poses are
+    present, so a resumed or extended run keeps every earlier pose on its side.
+    """
+    pose_id = np.asarray(pose_id, dtype=np.uint64)
+    # splitmix64 of (id ^ seed): a fixed, well-mixed hash per pose
+    with np.errstate(over="ignore"):
+        z = pose_id ^ np.uint64(seed)
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    u = (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+    return u < test_fraction

@@ -1,0 +1,57 @@
+"""Measured poses: the data object that crosses from `run`/`import` to `calibrate`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from campaign.model.rotations import matrix_to_rotvec, rotvec_to_matrix
+
+#: Columns of the measured-pose CSV (DESIGN.md), in order.
+CSV_COLUMNS = ("pose_id", "time_s", "q1", "q2", "q3", "q4", "q5", "q6", "x", "y", "z", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class MeasuredPoses:
+    """n measured poses.
+
+    pose_id: (n,) int; time_s: (n,) s since campaign start; q: (n, 6) commanded joint
+    coordinates, rad; T_IE: (n, 4, 4) measured pose of F_E in F_I, m; context: extra
+    named per-pose values (e.g. ``temperature_c``), each (n,).
+    """
+
+    pose_id: np.ndarray
+    time_s: np.ndarray
+    q: np.ndarray
+    T_IE: np.ndarray
+    context: dict = field(default_factory=dict)
+    #: pose of F_I in F_L used to derive T_IE (from the set-up points), if known
+    T_LI: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.pose_id.shape[0])
+
+    @classmethod
+    def from_vectors(cls, pose_id, time_s, q, xyz, rotvec, context=None) -> "MeasuredPoses":
+        n = len(pose_id)
+        T = np.zeros((n, 4, 4))
+        T[:, :3, :3] = rotvec_to_matrix(np.asarray(rotvec, dtype=float).reshape(n, 3))
+        T[:, :3, 3] = np.asarray(xyz, dtype=float).reshape(n, 3)
+        T[:, 3, 3] = 1.0
+        return cls(np.asarray(pose_id, dtype=np.int64), np.asarray(time_s, dtype=float),
+                   np.asarray(q, dtype=float).reshape(n, 6), T,
+                   {k: np.asarray(v) for k, v in (context or {}).items()})
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.T_IE[:, :3, 3]
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        return matrix_to_rotvec(self.T_IE[:, :3, :3])
+
+    def subset(self, index) -> "MeasuredPoses":
+        index = np.asarray(index)
+        return MeasuredPoses(self.pose_id[index], self.time_s[index], self.q[index], self.T_IE[index],
+                             {k: v[index] for k, v in self.context.items()}, self.T_LI)

@@ -1,0 +1,99 @@
+"""From laser-tracker points to poses.
+
+* :func:`frame_from_setup_points` — ``T_LI`` from the base-frame set-up points (the origin
+  of F_I, a point on its x axis and a point on its y axis, measured in F_L), as in the paper.
+* :func:`kabsch` — the least-squares rigid transform that maps points given in one frame
+  onto the same points measured in another (Kabsch / Horn), batched.
+* :func:`pose_from_reflectors` — the pose of F_E in F_I from the three reflectors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from campaign.errors import DataError
+
+
+def frame_from_setup_points(origin_L, x_point_L, y_point_L) -> np.ndarray:
+    """``T_LI`` (4, 4): pose of F_I in F_L from three points measured in F_L (m).
+
+    x_I points from the origin to ``x_point``; y_I is the part of (``y_point`` − origin)
+    orthogonal to x_I; z_I = x_I × y_I.
+    """
+    o = np.asarray(origin_L, dtype=float)
+    px = np.asarray(x_point_L, dtype=float) - o
+    py = np.asarray(y_point_L, dtype=float) - o
+    nx = np.linalg.norm(px)
+    if nx < 1e-3:
+        raise DataError(f"set-up points: the x point is {nx * 1e3:.3f} mm from the origin (need >= 1 mm)")
+    x = px / nx
+    y = py - (py @ x) * x
+    ny = np.linalg.norm(y)
+    if ny < 1e-3:
+        raise DataError("set-up points: the y point is (nearly) on the x axis")
+    y = y / ny
+    z = np.cross(x, y)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = o
+    return T
+
+
+def invert(T) -> np.ndarray:
+    """Inverse of homogeneous transforms (..., 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T, P) -> np.ndarray:
+    """Apply transforms (..., 4, 4) to points (..., k, 3)."""
+    T = np.asarray(T, dtype=float)
+    P = np.asarray(P, dtype=float)
+    return P @ np.swapaxes(T[..., :3, :3], -1, -2) + T[..., None, :3, 3]
+
+
+def kabsch(P_local, P_world) -> np.ndarray:
+    """Rigid transforms T (n, 4, 4) minimising Σ‖T·p_local − p_world‖².
+
+    P_local: (k, 3) points in the body frame (same for all n); P_world: (n, k, 3).
+    """
+    A = np.asarray(P_local, dtype=float)
+    B = np.asarray(P_world, dtype=float)
+    if B.ndim == 2:
+        B = B[None]
+    ca = A.mean(axis=0)
+    cb = B.mean(axis=1)
+    H = np.einsum("ki,nkj->nij", A - ca, B - cb[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.zeros((B.shape[0], 3, 3))
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    T = np.zeros((B.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = cb - (R @ ca)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def pose_from_reflectors(T_LI, reflectors_in_E, reflectors_in_L):
+    """Pose of F_E in F_I, (n, 4, 4), and the fit residual RMS per pose (n,), m.
+
+    T_LI: (4, 4) pose of F_I in F_L; reflectors_in_E: (3, 3) nominal centres in F_E;
+    reflectors_in_L: (n, 3, 3) measured centres in F_L.
+    """
+    P_L = np.asarray(reflectors_in_L, dtype=float)
+    if P_L.ndim == 2:
+        P_L = P_L[None]
+    P_I = transform_points(invert(T_LI), P_L)
+    T_IE = kabsch(reflectors_in_E, P_I)
+    fitted = transform_points(T_IE, np.broadcast_to(reflectors_in_E, P_I.shape))
+    rms = np.sqrt(np.mean(np.sum((fitted - P_I) ** 2, axis=-1), axis=-1))
+    return T_IE, rms

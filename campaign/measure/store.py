@@ -1,0 +1,202 @@
+"""The measurement log of a run: ``runs/<name>/measurements.sqlite``.
+
+One committed transaction per pose, so nothing measured is lost when a campaign stops.
+Tables (units in the column names where they are not SI base units):
+
+* ``meta(key, value)``: JSON values (``source``, ``robot``, ``T_LI`` as a 4x4 list, ...).
+* ``poses``: one row per pose attempted to the end: ``pose_id`` (primary key), ``seq``
+  (visiting order), ``status`` (``measured`` or ``failed``), ``reason``, ``time_s``
+  (campaign clock, simulated or real), ``wall_time_unix_s``, commanded ``q1..q6`` (rad),
+  encoder ``qe1..qe6`` (rad), derived pose of F_E in F_I ``x, y, z`` (m) and
+  ``rx, ry, rz`` (rotation vector, rad), ``fit_rms_m`` (Kabsch residual), ``retries``,
+  ``context`` (JSON object of extra named values).
+* ``reflector_readings``: raw tracker coordinates in F_L per pose and reflector
+  (``x_L_m, y_L_m, z_L_m``) with the tracker's status.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import DataError
+from campaign.measure.data import MeasuredPoses
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS poses (
+    pose_id INTEGER PRIMARY KEY,
+    seq INTEGER,
+    status TEXT NOT NULL CHECK (status IN ('measured', 'failed')),
+    reason TEXT,
+    time_s REAL,
+    wall_time_unix_s REAL,
+    q1 REAL NOT NULL, q2 REAL NOT NULL, q3 REAL NOT NULL,
+    q4 REAL NOT NULL, q5 REAL NOT NULL, q6 REAL NOT NULL,
+    qe1 REAL, qe2 REAL, qe3 REAL, qe4 REAL, qe5 REAL, qe6 REAL,
+    x REAL, y REAL, z REAL, rx REAL, ry REAL, rz REAL,
+    fit_rms_m REAL,
+    retries INTEGER NOT NULL DEFAULT 0,
+    context TEXT NOT NULL DEFAULT '{}'
+);
+CREATE TABLE IF NOT EXISTS reflector_readings (
+    pose_id INTEGER NOT NULL REFERENCES poses(pose_id),
+    name TEXT NOT NULL,
+    x_L_m REAL, y_L_m REAL, z_L_m REAL,
+    status TEXT NOT NULL,
+    PRIMARY KEY (pose_id, name)
+);
+"""
+
+MEASUREMENTS_FILE = "measurements.sqlite"
+
+
+@dataclass(frozen=True)
+class PoseRecord:
+    """Everything stored for one pose. Angles in rad, lengths in m, times in s."""
+
+    pose_id: int
+    status: str
+    q: tuple
+    seq: int | None = None
+    reason: str | None = None
+    time_s: float | None = None
+    wall_time_unix_s: float | None = None
+    q_encoder: tuple | None = None
+    xyz: tuple | None = None
+    rotvec: tuple | None = None
+    fit_rms_m: float | None = None
+    retries: int = 0
+    context: dict = field(default_factory=dict)
+    #: name -> ((x, y, z) in F_L, m, or None, status)
+    reflectors: dict = field(default_factory=dict)
+
+
+class MeasurementStore:
+    """A run's SQLite measurement log. Use as a context manager or call :meth:`close`."""
+
+    def __init__(self, path, *, create: bool = True):
+        self.path = Path(path)
+        if not create and not self.path.is_file():
+            raise DataError(f"{self.path}: no measurement log here")
+        try:
+            self._db = sqlite3.connect(str(self.path), timeout=30.0)
+            self._db.executescript(SCHEMA)
+        except sqlite3.DatabaseError as exc:
+            raise DataError(f"{self.path}: not a measurement log ({exc})") from None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        self._db.close()
+
+    # -- meta -------------------------------------------------------------------------
+    def set_meta(self, key: str, value) -> None:
+        with self._db:
+            self._db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value)))
+
+    def get_meta(self, key: str, default=None):
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    # -- poses ------------------------------------------------------------------------
+    def add_pose(self, rec: PoseRecord) -> None:
+        """Store one pose in one committed transaction; a pose is never stored twice."""
+        self.add_poses([rec])
+
+    def add_poses(self, records) -> None:
+        """Store several poses in one transaction (used by import)."""
+        rows, refl = [], []
+        for rec in records:
+            if rec.status not in ("measured", "failed"):
+                raise DataError(f"pose {rec.pose_id}: status must be 'measured' or 'failed', not {rec.status!r}")
+            qe = rec.q_encoder if rec.q_encoder is not None else (None,) * 6
+            xyz = rec.xyz if rec.xyz is not None else (None,) * 3
+            rv = rec.rotvec if rec.rotvec is not None else (None,) * 3
+            rows.append((int(rec.pose_id), rec.seq, rec.status, rec.reason, rec.time_s, rec.wall_time_unix_s,
+                         *map(float, rec.q), *qe, *xyz, *rv, rec.fit_rms_m, int(rec.retries),
+                         json.dumps(rec.context, sort_keys=True)))
+            for name, (p, st) in rec.reflectors.items():
+                p = p if p is not None else (None, None, None)
+                refl.append((int(rec.pose_id), name, *p, st))
+        try:
+            with self._db:
+                self._db.executemany(
+                    "INSERT INTO poses VALUES (" + ",".join("?" * 27) + ")", rows)
+                self._db.executemany("INSERT INTO reflector_readings VALUES (?,?,?,?,?,?)", refl)
+        except sqlite3.IntegrityError as exc:
+            raise DataError(f"{self.path}: a pose is already stored ({exc})") from None
+
+    def stored_ids(self) -> set:
+        """pose_ids with a stored outcome (measured or failed)."""
+        return {r[0] for r in self._db.execute("SELECT pose_id FROM poses")}
+
+    def counts(self) -> dict:
+        return dict(self._db.execute("SELECT status, COUNT(*) FROM poses GROUP BY status").fetchall())
+
+    def failures(self) -> list:
+        return self._db.execute("SELECT pose_id, reason FROM poses WHERE status='failed' ORDER BY pose_id").fetchall()
+
+    def load_measured(self) -> MeasuredPoses:
+        """All measured poses, ordered by pose_id."""
+        cur = self._db.execute(
+            "SELECT pose_id, time_s, q1, q2, q3, q4, q5, q6, x, y, z, rx, ry, rz, context "
+            "FROM poses WHERE status = 'measured' ORDER BY pose_id")
+        rows = cur.fetchall()
+        if not rows:
+            raise DataError(f"{self.path}: no measured poses")
+        pid = np.array([r[0] for r in rows], dtype=np.int64)
+        num = np.array([[np.nan if v is None else v for v in r[1:14]] for r in rows], dtype=float)
+        contexts = [json.loads(r[14]) for r in rows]
+        keys = sorted(set().union(*contexts))
+        context = {k: np.array([c.get(k, np.nan) for c in contexts], dtype=float) for k in keys}
+        return MeasuredPoses.from_vectors(pid, num[:, 0], num[:, 1:7], num[:, 7:10], num[:, 10:13], context)
+
+
+def open_run(run_dir, *, create: bool = False) -> MeasurementStore:
+    """The measurement log of a run folder."""
+    run_dir = Path(run_dir)
+    if not create and not (run_dir / MEASUREMENTS_FILE).is_file():
+        raise DataError(f"{run_dir}: no {MEASUREMENTS_FILE} (run `campaign run` or `campaign import` first)")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return MeasurementStore(run_dir / MEASUREMENTS_FILE)
+
+
+def import_csv(csv_path, run_dir, robot=None) -> int:
+    """Create ``run_dir/measurements.sqlite`` from a measured-pose CSV. Returns the pose count.
+
+    The CSV is validated whole before anything is written; the log is written to a
+    temporary file and moved into place, so a failure leaves the run folder untouched.
+    """
+    from campaign.measure.csvio import read_measured_csv
+
+    run_dir = Path(run_dir)
+    poses = read_measured_csv(csv_path, robot)
+    target = run_dir / MEASUREMENTS_FILE
+    if target.exists():
+        raise DataError(f"{run_dir}: already holds {MEASUREMENTS_FILE}; import into a new run folder")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tmp = run_dir / (MEASUREMENTS_FILE + ".partial")
+    tmp.unlink(missing_ok=True)
+    rv = poses.rotvec
+    records = [
+        PoseRecord(pose_id=int(poses.pose_id[i]), seq=i, status="measured", q=tuple(poses.q[i]),
+                   time_s=float(poses.time_s[i]), xyz=tuple(poses.xyz[i]), rotvec=tuple(rv[i]),
+                   context={k: float(v[i]) for k, v in poses.context.items()})
+        for i in range(len(poses))
+    ]
+    with MeasurementStore(tmp) as store:
+        store.set_meta("source", {"kind": "import", "csv": str(Path(csv_path).resolve())})
+        if robot is not None:
+            store.set_meta("robot", robot.name)
+        store.add_poses(records)
+    tmp.replace(target)
+    return len(records)
