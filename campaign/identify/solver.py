@@ -23,6 +23,7 @@ from campaign.effects.base import EffectSet, make_effect, model_pose
 from campaign.errors import DataError, IdentificationError, NotFittedError
 from campaign.model.base_params import BaseParameters, base_parameters
 from campaign.model.kinematics import JOINT_OFFSET_INDEX, error_jacobian, forward, pose_error
+from campaign.model.rotations import rotvec_to_matrix
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
 
 #: finite-difference step for effect parameters, relative to a typical magnitude of 1
@@ -65,36 +66,27 @@ class CalibrationModel:
     def _jacobian(self, q, p_e, theta, context, T_meas):
         """Columns for the base parameters and every effect parameter: (n, 6, r + k)."""
         es = self.effect_set_
-        dq = es.joint_offset(theta, q, context) if es.effects else 0.0
-        qq = q + dq
-        J_geo = error_jacobian(self.robot, qq, p_e, T_meas if not es.effects else None)
-        T_chain = forward(self.robot, qq, p_e)
         if not es.effects:
-            return J_geo[:, :, list(self.base_.independent)]
+            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, list(self.base_.independent)]
+        qq = q + es.joint_offset(theta, q, context)
+        T_chain = forward(self.robot, qq, p_e)
         # pose maps after the chain: propagate the chain's derivative through them, and
         # differentiate the effects numerically (no kinematics re-run)
         T0 = es.pose_map(theta, T_chain, q, context)
         dz0 = pose_error(T0, T_meas)
         eps = 1e-7
-        # derivative of the pose maps w.r.t. the chain pose, applied to J_geo columns: the
-        # maps are near-identity rigid maps, so we propagate with a left perturbation test
+        # J_map: derivative of Δz w.r.t. a perturbation (dt, ω) of the chain's pose, the
+        # rotation taken about the tool point, which is the convention of error_jacobian
         J_map = np.empty((len(q), 6, 6))
-        from campaign.model.rotations import rotvec_to_matrix
-
         for a in range(6):
-            d = np.zeros(6)
-            d[a] = eps
             Tp = T_chain.copy()
             if a < 3:
-                Tp[:, :3, 3] += d[:3]
+                Tp[:, a, 3] += eps
             else:
-                Tp[:, :3, :3] = rotvec_to_matrix(d[3:]) @ Tp[:, :3, :3]
-                Tp[:, :3, 3] = (rotvec_to_matrix(d[3:]) @ (Tp[:, :3, 3, None]))[..., 0]
-                # a rotation of the chain's end about F_I's origin; undo the translation part
-                # so the column is a pure rotation of the pose about the tool point:
-                Tp[:, :3, 3] = T_chain[:, :3, 3]
+                w = np.zeros(3)
+                w[a - 3] = eps
+                Tp[:, :3, :3] = rotvec_to_matrix(w) @ Tp[:, :3, :3]
             J_map[:, :, a] = (pose_error(es.pose_map(theta, Tp, q, context), T_meas) - dz0) / eps
-        # J_geo (at Δφ-free convention) gives d(t, ω) of the chain pose per parameter
         J_chain = error_jacobian(self.robot, qq, p_e)
         J_b = J_map @ J_chain[:, :, list(self.base_.independent)]
         cols = [J_b]
