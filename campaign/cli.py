@@ -15,6 +15,7 @@ from campaign.errors import CampaignError
 
 #: Modules that contribute sub-commands, in the order they appear in ``--help``.
 COMMAND_MODULES = (
+    "campaign.demo",
     "campaign.model.commands",
     "campaign.identify.commands",
     "campaign.sim.commands",
