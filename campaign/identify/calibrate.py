@@ -103,24 +103,24 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     if tr.sum() < 10 or te.sum() < 2:
         raise DataError(f"{run_dir}: too few poses for an 80/20 split ({len(poses)})")
     ctx_tr = {k: v[tr] for k, v in poses.context.items()}
-    ctx_te = {k: v[te] for k, v in poses.context.items()}
 
-    stages, order = {}, []
+    stages, order, residuals = {}, [], {}
 
-    def add_stage(name, dz_train, dz_test):
-        stages[name] = {"train": error_stats(dz_train), "test": error_stats(dz_test)}
+    def add_stage(name, dz):
+        stages[name] = {"train": error_stats(dz[tr]), "test": error_stats(dz[te])}
         order.append(name)
+        residuals[name] = dz
 
     T_nom = forward(robot, poses.q)
     dz_nom = pose_error(T_nom, poses.T_IE)
-    add_stage("nominal", dz_nom[tr], dz_nom[te])
+    add_stage("nominal", dz_nom)
 
     say(f"geometric identification on {int(tr.sum())} training poses")
     t0 = time.perf_counter()
     geo = CalibrationModel(robot=robot, position_only=position_only).fit(poses.q[tr], poses.T_IE[tr])
     t_geo = time.perf_counter() - t0
     dz_geo = geo.residuals(poses.q, poses.T_IE)
-    add_stage("geometric", dz_geo[tr], dz_geo[te])
+    add_stage("geometric", dz_geo)
     model = geo
     dz_model = dz_geo
     if effects:
@@ -128,23 +128,37 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         model = CalibrationModel(robot=robot, effects=effects, position_only=position_only).fit(
             poses.q[tr], poses.T_IE[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, poses.context)
-        add_stage(stage_name(effects), dz_model[tr], dz_model[te])
+        add_stage(stage_name(effects), dz_model)
     extra = {"identification_time_s": t_geo, "effects": list(effects)}
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
 
-        ann_stages, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, dz_nom, dz_model,
-                                               stage_name(effects), options=ann_options or {}, progress=progress)
-        for name, st in ann_stages.items():
-            stages[name] = st
-            order.append(name)
+        ann_residuals, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, dz_nom, dz_model,
+                                                  stage_name(effects), options=ann_options or {}, progress=progress)
+        for name, dz in ann_residuals.items():
+            add_stage(name, dz)
         extra.update(ann_extra)
 
     result = CalibrationResult(run_dir, stages, order, model, is_test, extra)
     if write:
-        _write(result, robot, geo, poses, ctx_te)
+        _write(result, robot, geo)
+        from campaign.identify.report import write_report
+
+        say("writing the report")
+        result.extra["report"] = str(write_report(run_dir, stages, order, residuals, poses.q, poses.xyz, is_test,
+                                                  param_text=parameter_text(model),
+                                                  extra_html=result.extra.get("report_html", "")))
     return result
+
+
+def parameter_text(model: CalibrationModel) -> str:
+    """Identified parameters with σ, one per line, units in the header."""
+    lines = [f"{'#':>3} {'parameter':<34} {'value':>14} {'sigma':>12}  unit"]
+    for i, (name, unit, value, sigma) in enumerate(model.parameter_table()):
+        label = model.base_.expression(i) if i < model.base_.n_base else name
+        lines.append(f"{i + 1:>3} {label[:34]:<34} {value:>14.6g} {sigma:>12.3g}  {unit}")
+    return "\n".join(lines)
 
 
 def _param_block(model: CalibrationModel) -> dict:
@@ -178,7 +192,7 @@ def _param_block(model: CalibrationModel) -> dict:
     return out
 
 
-def _write(result: CalibrationResult, robot, geo, poses, ctx_te) -> None:
+def _write(result: CalibrationResult, robot, geo) -> None:
     out = result.run_dir / CALIBRATION_DIR
     out.mkdir(parents=True, exist_ok=True)
     model = result.model
@@ -227,5 +241,5 @@ def summary_text(result: CalibrationResult) -> str:
                      + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
     if m.correlated_pairs_:
         lines.append("strongly correlated: " + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in m.correlated_pairs_))
-    lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml")
+    lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml, report.html")
     return "\n".join(lines)
