@@ -43,7 +43,15 @@ class CalibrationResult:
 
     @property
     def metrics(self) -> dict:
-        return {"stages": self.stages, "order": self.order}
+        out = {"stages": self.stages, "order": self.order}
+        first = self.stages[self.order[0]]["test"]
+        out["ratio_to_nominal_test"] = {
+            name: {block: {k: st["test"][block][k] / max(first[block][k], 1e-300) for k in ("max", "mean", "q90")}
+                   for block in ("position_mm", "orientation_mrad")}
+            for name, st in self.stages.items()}
+        if "ann_cv" in self.extra:
+            out["ann_cross_validation"] = self.extra["ann_cv"]
+        return out
 
 
 def run_config(run_dir) -> dict:
@@ -134,8 +142,9 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
 
-        ann_residuals, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, dz_nom, dz_model,
-                                                  stage_name(effects), options=ann_options or {}, progress=progress)
+        T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, poses.context)}
+        ann_residuals, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
+                                                  options=ann_options or {}, progress=progress)
         for name, dz in ann_residuals.items():
             add_stage(name, dz)
         extra.update(ann_extra)
@@ -229,8 +238,11 @@ def _atomic_write(path: Path, text: str) -> None:
 def summary_text(result: CalibrationResult) -> str:
     """The printed outcome: Table 6 for the test set, then the training set, then parameters."""
     m = result.model
-    lines = [format_table6(result.stages, result.order, "test"), "",
-             format_table6(result.stages, result.order, "train"), ""]
+    lines = []
+    if "table5" in result.extra:
+        lines += ["cross-validation on the training set (Table 5)", result.extra["table5"], ""]
+    lines += [format_table6(result.stages, result.order, "test"), "",
+              format_table6(result.stages, result.order, "train"), ""]
     lines.append(f"identified {m.base_.n_base} base parameters"
                  + (f" + {m.effect_set_.n_params} effect parameters" if m.effect_set_.n_params else "")
                  + f" in {m.n_iter_} iterations; condition number {m.condition_number_:.3g}; "
