@@ -60,7 +60,10 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     e.g. {"nominal": ..., "geometric": ...}. The ANN stage after "nominal" is called
     ``ann``; after any other model ``<model>+ann``.
     """
-    from campaign.ann import compensate_pose, fit_ann_stage
+    try:
+        from campaign.ann import compensate_pose, fit_ann_stage
+    except ImportError as exc:
+        raise ConfigError(f"the neural compensator is unavailable ({exc}); run with --no-ann") from None
 
     out = Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
