@@ -177,6 +177,13 @@ class EffectSet:
         return T_IE
 
 
+def effect_context(context, time_s) -> dict:
+    """The per-pose context an effect sees: the measured extra columns plus ``time_s``."""
+    out = dict(context or {})
+    out["time_s"] = np.asarray(time_s, dtype=float)
+    return out
+
+
 def model_pose(robot, q, p_e=None, effects: EffectSet = EffectSet(), theta=None, context=None):
     """The full model: ``pose_map(FK(q + Δq, p_e))``, (n, 4, 4)."""
     from campaign.model.kinematics import forward

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import parse_effect_list
+from campaign.effects.base import effect_context, parse_effect_list
 from campaign.errors import ConfigError, DataError
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
@@ -110,7 +110,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     tr, te = ~is_test, is_test
     if tr.sum() < 10 or te.sum() < 2:
         raise DataError(f"{run_dir}: too few poses for an 80/20 split ({len(poses)})")
-    ctx_tr = {k: v[tr] for k, v in poses.context.items()}
+    context = effect_context(poses.context, poses.time_s)
+    ctx_tr = {k: v[tr] for k, v in context.items()}
 
     stages, order, residuals = {}, [], {}
 
@@ -135,14 +136,14 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         say(f"identifying geometric + {', '.join(effects)}")
         model = CalibrationModel(robot=robot, effects=effects, position_only=position_only).fit(
             poses.q[tr], poses.T_IE[tr], ctx_tr)
-        dz_model = model.residuals(poses.q, poses.T_IE, poses.context)
+        dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model)
     extra = {"identification_time_s": t_geo, "effects": list(effects)}
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
 
-        T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, poses.context)}
+        T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, context)}
         ann_residuals, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
                                                   options=ann_options or {}, progress=progress)
         for name, dz in ann_residuals.items():

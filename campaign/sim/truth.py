@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import EffectSet, make_effect, model_pose
+from campaign.effects.base import EffectSet, effect_context, make_effect, model_pose
 from campaign.measure.data import MeasuredPoses
 from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors, transform_points
 from campaign.model.base_params import base_parameters
@@ -69,6 +69,10 @@ class TruthRobot:
         from campaign.measure.reflectors import invert
 
         return invert(T_LI_measured) @ self.T_LI @ self.pose(q, context)
+
+    def pose_of(self, poses) -> np.ndarray:
+        """True poses of measured poses (MeasuredPoses) in their own set-up frame, (n, 4, 4)."""
+        return self.pose_in_measured_frame(poses.q, poses.T_LI, effect_context(poses.context, poses.time_s))
 
     def expected_base_params(self, T_LI_measured, n_poses: int = 500, seed: int = 0) -> np.ndarray:
         """The base parameters that reproduce this truth's geometry in frame I' exactly
@@ -161,10 +165,10 @@ def synthesize(truth: TruthRobot, q, *, seed: int = 0, time_s=None, context=None
     q = np.asarray(q, dtype=float)
     n = len(q)
     context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
-    T_LI_measured = frame_from_setup_points(*truth.setup_points_in_L(rng))
-    P_L = truth.reflectors_in_L(q, rng, context)
-    T_IE, _ = pose_from_reflectors(T_LI_measured, truth.robot.reflector_positions_in_E, P_L)
     t = np.arange(n, dtype=float) * 20.0 if time_s is None else np.asarray(time_s, dtype=float)
+    T_LI_measured = frame_from_setup_points(*truth.setup_points_in_L(rng))
+    P_L = truth.reflectors_in_L(q, rng, effect_context(context, t))
+    T_IE, _ = pose_from_reflectors(T_LI_measured, truth.robot.reflector_positions_in_E, P_L)
     return MeasuredPoses(np.arange(1, n + 1, dtype=np.int64), t, q, T_IE, context, T_LI_measured)
 
 

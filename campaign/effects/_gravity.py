@@ -1,0 +1,88 @@
+"""Gravity loads from the URDF's inertias via Pinocchio, cached per joint array.
+
+The solver evaluates effect hooks many times on the same joint array (finite differences
+in the effect parameters), so the loads are cached by a digest of the array's bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+
+import numpy as np
+
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def _key(robot, q, what):
+    q = np.ascontiguousarray(q, dtype=float)
+    return (robot.name, str(robot.urdf_path), what, q.shape, hashlib.blake2b(q.tobytes(), digest_size=16).digest())
+
+
+def _cached(robot, q, what, compute):
+    key = _key(robot, q, what)
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    value = compute()
+    value.setflags(write=False)
+    _CACHE[key] = value
+    if len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return value
+
+
+def gravity_torques(robot, q) -> np.ndarray:
+    """Joint torques τ (n, 6) N·m that hold the arm against gravity (Pinocchio, URDF inertias)."""
+    import pinocchio as pin
+
+    def compute():
+        model = robot.pinocchio_model
+        data = model.createData()
+        qq = np.asarray(q, dtype=float).reshape(-1, 6)
+        return np.array([pin.computeGeneralizedGravity(model, data, qi) for qi in qq])
+
+    return _cached(robot, q, "tau", compute)
+
+
+def weight_and_com(robot, q):
+    """Moving mass (kg) and its centre of mass in F_I, (n, 3) m."""
+    import pinocchio as pin
+
+    def compute():
+        model = robot.pinocchio_model
+        data = model.createData()
+        qq = np.asarray(q, dtype=float).reshape(-1, 6)
+        return np.array([pin.centerOfMass(model, data, qi) for qi in qq])
+
+    com = _cached(robot, q, "com", compute)
+    return moving_mass(robot), com
+
+
+def moving_mass(robot) -> float:
+    """Mass of the bodies that joint 1 carries, kg."""
+    import pinocchio as pin
+
+    model = robot.pinocchio_model
+    data = model.createData()
+    pin.centerOfMass(model, data, np.zeros(6))
+    return float(data.mass[0])
+
+
+def overturning_moment(robot, q, payload_kg=None, tool_position=None) -> np.ndarray:
+    """Moment of the moving arm's (and payload's) weight about the base axis, (n, 3) N·m in F_I.
+
+    The base axis is the vertical through F_I's origin; gravity is ``robot.gravity_in_I``.
+    A payload (kg, per pose) acts at ``tool_position`` (n, 3) m.
+    """
+    mass, com = weight_and_com(robot, q)
+    g = np.asarray(robot.gravity_in_I, dtype=float)
+    vertical = g / np.linalg.norm(g)
+    lever = com - (com @ vertical)[:, None] * vertical
+    M = np.cross(lever, mass * g)
+    if payload_kg is not None and tool_position is not None:
+        p = np.asarray(tool_position, dtype=float)
+        lever_p = p - (p @ vertical)[:, None] * vertical
+        M = M + np.cross(lever_p, np.asarray(payload_kg, dtype=float)[:, None] * g)
+    return M
