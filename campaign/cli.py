@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "campaign.model.commands",
     "campaign.identify.commands",
     "campaign.sim.commands",
+    "campaign.diagnose.commands",
 )
 
 

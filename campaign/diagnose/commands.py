@@ -1,0 +1,44 @@
+"""`campaign diagnose RUN [--json]`."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(sub):
+    p = sub.add_parser("diagnose", help="show where the model fails and which physical effect is missing")
+    p.add_argument("run", metavar="DIR", help="run folder with measurements.sqlite")
+    p.add_argument("--json", action="store_true", help="print the ranking as JSON on stdout")
+    p.add_argument("--effects", metavar="NAME,...", default=None,
+                   help="effects already in the model (default: those in DIR/campaign.yaml)")
+    p.add_argument("--candidates", metavar="NAME,...", default=None, help="candidate effects (default: all registered)")
+    p.add_argument("--folds", type=int, default=5, help="held-out folds on the training set (default: %(default)s)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report and plots")
+    p.set_defaults(func=_diagnose)
+
+
+def _diagnose(args):
+    from campaign.diagnose.engine import diagnose
+    from campaign.errors import ConfigError
+
+    if args.folds < 2:
+        raise ConfigError(f"--folds must be at least 2, got {args.folds}")
+    progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
+    report = None
+    if not args.no_report:
+        from campaign.diagnose.report import write_report
+        from campaign.identify.calibrate import load_robot_for_run
+        from campaign.measure.store import open_run
+
+        with open_run(args.run) as store:
+            poses = store.load_measured()
+        report = write_report(d, poses, load_robot_for_run(args.run))
+    if args.json:
+        print(json.dumps(d.as_json(), indent=2))
+    else:
+        print(d.text())
+        if report:
+            print(f"report: {report}")
+    return 0
