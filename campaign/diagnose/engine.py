@@ -136,7 +136,13 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     fold = _folds(poses.pose_id[tr], folds)
     base = base_parameters(robot)
 
+    ctx_tr = {key: v[tr] for key, v in context.items()}
+    say("current model on the whole training set")
+    full = CalibrationModel(robot=robot, effects=list(current)).fit(poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
+    noise = full.noise_sigma_
+
     def heldout_errors(effs):
+        """Fold fits start from the full fit and keep its noise weights: a few LM steps each."""
         err = np.empty(len(tr))
         dz_all = np.empty((len(tr), 3))
         absorbed = set()
@@ -144,8 +150,10 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
             fit_idx, out_idx = tr[fold != k], tr[fold == k]
             ctx_fit = {key: v[fit_idx] for key, v in context.items()}
             ctx_out = {key: v[out_idx] for key, v in context.items()}
-            m = CalibrationModel(robot=robot, effects=effs).fit(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit,
-                                                                 base=base)
+            m = CalibrationModel(robot=robot, effects=effs, estimate_noise=False,
+                                 sigma_position_m=noise["position_m"],
+                                 sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
+            m.fit(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit, base=base, init=full.values_)
             absorbed |= {m.unknown_names_[i] for i in m.absorbed_}
             dz = m.residuals(poses.q[out_idx], poses.T_IE[out_idx], ctx_out)
             err[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
@@ -178,7 +186,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
                                      float(r2), absorbed, cls.description))
     scores.sort(key=lambda c: (not c.significant, c.heldout_mean_position_mm_after))
     verdict = scores[0].effect if scores and scores[0].significant else None
-    model = CalibrationModel(robot=robot, effects=list(current)).fit(
-        poses.q[tr], poses.T_IE[tr], {k: v[tr] for k, v in context.items()}, base=base)
-    residuals = model.residuals(poses.q, poses.T_IE, context)
+    residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test)

@@ -108,10 +108,12 @@ class CalibrationModel:
         return np.concatenate(cols, axis=2)
 
     # -- estimator API ----------------------------------------------------------------
-    def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None):
+    def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None, init: dict | None = None):
         """Identify the base parameters (and effect parameters) from measured poses.
 
         q: (n, 6) rad; T_meas: (n, 4, 4) measured T_IE (m); context: per-pose values.
+        init: optional start values by unknown name (e.g. another fit's ``values_``);
+        unknowns not named start at 0 (the paper's start point).
         """
         q = np.asarray(q, dtype=float)
         T_meas = np.asarray(T_meas, dtype=float)
@@ -130,8 +132,11 @@ class CalibrationModel:
             raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_unknown} unknowns")
 
         x = np.zeros(n_unknown)
-        theta0 = self.effect_set_.initial_params()
-        x[r:] = theta0
+        x[r:] = self.effect_set_.initial_params()
+        if init:
+            for i, name in enumerate(self.base_.names + self.effect_set_.param_names):
+                if name in init:
+                    x[i] = init[name]
         sig = np.array([self.sigma_position_m] * 3 + [self.sigma_orientation_rad] * 3)[rows]
 
         def unpack(x):
@@ -213,7 +218,10 @@ class CalibrationModel:
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = cov / np.outer(sd, sd)
         corr[~np.isfinite(corr)] = 0.0
-        svals = np.linalg.svd(J2 / np.linalg.norm(J2, axis=0), compute_uv=False)
+        # condition number of the column-scaled regressor, from its small normal matrix
+        d = np.sqrt(np.clip(np.diag(H), 1e-300, None))
+        ev = np.clip(np.linalg.eigvalsh(H / np.outer(d, d)), 0.0, None)
+        svals = np.sqrt(ev[::-1])
 
         self.x_ = x
         self.base_params_ = x[:r].copy()
@@ -232,6 +240,7 @@ class CalibrationModel:
         self.cost_history_ = history
         self.unknown_names_ = self.base_.names + self.effect_set_.param_names
         self.unknown_units_ = self.base_.units + self.effect_set_.param_units
+        self.values_ = dict(zip(self.unknown_names_, (float(v) for v in x)))
         iu = np.triu_indices(n_unknown, 1)
         strong = np.abs(corr[iu]) > STRONG_CORRELATION
         self.correlated_pairs_ = [(self.unknown_names_[i], self.unknown_names_[j], float(corr[i, j]))
