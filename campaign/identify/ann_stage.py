@@ -76,7 +76,8 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
         stage = "ann" if prior == "nominal" else f"{prior}+ann"
         dz = pose_error(T_model, poses.T_IE)
         say = (lambda msg, _s=stage: progress(f"[{_s}] {msg}")) if progress else None
-        net, cv = fit_ann_stage(poses.q[tr], dz[tr], sizes=sizes, folds=folds, progress=say, **fit_kwargs)
+        net, cv = fit_ann_stage(poses.q[tr], dz[tr], sizes=sizes, folds=folds, progress=say,
+                                q_lower=robot.q_lower, q_upper=robot.q_upper, **fit_kwargs)
         dz_hat = net.predict(poses.q)
         residuals[stage] = pose_error(compensate_pose(T_model, dz_hat), poses.T_IE)
         cv_all[prior] = cv

@@ -1,0 +1,388 @@
+"""The residual network of the paper's section 5, trained with Bayesian regularisation.
+
+Architecture: 6 inputs (joint coordinates), two tanh hidden layers (N1, N2), 6 linear
+outputs (the residual Δz after a kinematic model). Inputs are mapped to mean 0 / variance 1
+with the joint limits (a uniform distribution over eq. 17's ranges); targets to mean 0 /
+variance 1 on the training set (paper 5.1).
+
+Training minimises ``F = β E_D + α E_W`` (MacKay 1992; Foresee & Hagan 1997) with
+Levenberg-Marquardt steps on the Gauss-Newton Hessian ``H = 2β JᵀJ + 2α I``, re-estimating
+``γ = N_w − 2α tr(H⁻¹)``, ``α = γ / (2 E_W)``, ``β = (N_d − γ) / (2 E_D)`` as training goes.
+
+Speed (docs/ann.md has the measurements): J is never formed. For a two-layer tanh net the
+products ``J v`` and ``Jᵀ u`` are a handful of small matrix products (written out below,
+checked against torch.func in the tests), so each LM step is solved by conjugate gradients
+preconditioned with the exact diagonal of JᵀJ (also cheap in closed form), and tr(H⁻¹) by a
+Hutchinson estimate with the same solver. A plain full-Jacobian LM (:func:`jacobian`,
+``solver="full"``) is kept as the reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from campaign.errors import ConfigError, DataError, NotFittedError
+
+
+@dataclass(frozen=True)
+class Mapping:
+    """Affine normalisation ``(x - mean) / scale`` per column."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+
+    def apply(self, x):
+        return (np.asarray(x, dtype=float) - self.mean) / self.scale
+
+    def invert(self, y):
+        return np.asarray(y, dtype=float) * self.scale + self.mean
+
+
+def joint_mapping(q_lower, q_upper) -> Mapping:
+    """Mean 0 / variance 1 for joint values uniformly distributed over their limits."""
+    lo, hi = np.asarray(q_lower, dtype=float), np.asarray(q_upper, dtype=float)
+    return Mapping(0.5 * (lo + hi), (hi - lo) / math.sqrt(12.0))
+
+
+# -- the network as flat parameters, with structured Jacobian products -----------------------
+
+class MLP:
+    """Shapes and slicing of the flat parameter vector w = (W1, b1, W2, b2, W3, b3)."""
+
+    def __init__(self, n_in: int, hidden: tuple, n_out: int):
+        self.n_in, self.n1, self.n2, self.n_out = n_in, int(hidden[0]), int(hidden[1]), n_out
+        shapes = [(self.n1, n_in), (self.n1,), (self.n2, self.n1), (self.n2,), (n_out, self.n2), (n_out,)]
+        self.shapes = shapes
+        self.sizes = [int(np.prod(s)) for s in shapes]
+        self.n_weights = sum(self.sizes)
+
+    def unpack(self, w):
+        out, i = [], 0
+        for s, n in zip(self.shapes, self.sizes):
+            out.append(w[i : i + n].view(s))
+            i += n
+        return out
+
+    def init(self, generator, dtype):
+        """Nguyen-Widrow-like uniform initialisation (tanh layers), zero output layer bias."""
+        parts = []
+        for s in self.shapes:
+            fan_in = s[1] if len(s) == 2 else 1
+            bound = 1.0 / math.sqrt(fan_in) if len(s) == 2 else 0.5
+            parts.append((torch.rand(s, generator=generator, dtype=dtype) * 2 - 1).reshape(-1) * bound)
+        parts[-1].zero_()
+        return torch.cat(parts)
+
+    def forward(self, w, x):
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        h1 = torch.tanh(x @ W1.T + b1)
+        h2 = torch.tanh(h1 @ W2.T + b2)
+        return h2 @ W3.T + b3, (h1, h2)
+
+    def jvp(self, w, x, cache, v):
+        """J v: (n, n_out), the change of the outputs along parameter direction v."""
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        dW1, db1, dW2, db2, dW3, db3 = self.unpack(v)
+        h1, h2 = cache
+        dh1 = (1 - h1 * h1) * (x @ dW1.T + db1)
+        dh2 = (1 - h2 * h2) * (dh1 @ W2.T + h1 @ dW2.T + db2)
+        return dh2 @ W3.T + h2 @ dW3.T + db3
+
+    def vjp(self, w, x, cache, u):
+        """Jᵀ u: (n_weights,), for output cotangents u (n, n_out)."""
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        h1, h2 = cache
+        g_a2 = (u @ W3) * (1 - h2 * h2)
+        g_a1 = (g_a2 @ W2) * (1 - h1 * h1)
+        return torch.cat([(g_a1.T @ x).reshape(-1), g_a1.sum(0), (g_a2.T @ h1).reshape(-1), g_a2.sum(0),
+                          (u.T @ h2).reshape(-1), u.sum(0)])
+
+    def jtj_diagonal(self, w, x, cache):
+        """diag(JᵀJ) (n_weights,), exactly, without forming J."""
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        h1, h2 = cache
+        n = x.shape[0]
+        s2 = 1 - h2 * h2  # (n, n2)
+        s1 = 1 - h1 * h1
+        # per output k: g_a2[k] = W3[k] * s2  -> (n, k, n2); g_a1[k] = (g_a2[k] @ W2) * s1
+        g_a2 = W3[None, :, :] * s2[:, None, :]
+        g_a1 = (g_a2 @ W2) * s1[:, None, :]
+        q1 = (g_a1 * g_a1).sum(1)  # (n, n1): Σ_k g_a1²
+        q2 = (g_a2 * g_a2).sum(1)
+        return torch.cat([(q1.T @ (x * x)).reshape(-1), q1.sum(0), (q2.T @ (h1 * h1)).reshape(-1), q2.sum(0),
+                          ((h2 * h2).sum(0)[None, :].expand(self.n_out, -1)).reshape(-1),
+                          torch.full((self.n_out,), float(n), dtype=x.dtype)])
+
+    def jacobian(self, w, x):
+        """The full Jacobian (n·n_out, n_weights), rows ordered sample-major. Reference only."""
+        _, cache = self.forward(w, x)
+        n = x.shape[0]
+        rows = torch.empty((n, self.n_out, self.n_weights), dtype=x.dtype)
+        for k in range(self.n_out):
+            u = torch.zeros((n, self.n_out), dtype=x.dtype)
+            u[:, k] = 1.0
+            # per-sample gradients of output k: outer products per layer
+            W1, b1, W2, b2, W3, b3 = self.unpack(w)
+            h1, h2 = cache
+            g_a2 = W3[k][None, :] * (1 - h2 * h2)
+            g_a1 = (g_a2 @ W2) * (1 - h1 * h1)
+            e = torch.zeros((n, self.n_out), dtype=x.dtype)
+            e[:, k] = 1.0
+            rows[:, k, :] = torch.cat([
+                (g_a1[:, :, None] * x[:, None, :]).reshape(n, -1), g_a1,
+                (g_a2[:, :, None] * h1[:, None, :]).reshape(n, -1), g_a2,
+                (e[:, :, None] * h2[:, None, :]).reshape(n, -1), e], dim=1)
+        return rows.reshape(n * self.n_out, self.n_weights)
+
+
+# -- Bayesian regularisation -----------------------------------------------------------------
+
+def br_update(gamma_trace_inv, n_weights, n_data, alpha, E_D, E_W):
+    """One MacKay / Foresee-Hagan update: returns (gamma, alpha, beta).
+
+    gamma_trace_inv: tr(H⁻¹) with H = 2β JᵀJ + 2α I at the current point.
+    """
+    gamma = n_weights - 2.0 * alpha * gamma_trace_inv
+    gamma = float(min(max(gamma, 1e-6), n_weights))
+    alpha = gamma / (2.0 * max(E_W, 1e-300))
+    beta = (n_data - gamma) / (2.0 * max(E_D, 1e-300))
+    return gamma, alpha, beta
+
+
+def _pcg(apply_A, b, diag, x0=None, tol=1e-3, maxiter=50):
+    """Preconditioned conjugate gradients for SPD A (Jacobi preconditioner). Returns (x, iterations)."""
+    x = torch.zeros_like(b) if x0 is None else x0.clone()
+    r = b - apply_A(x) if x0 is not None else b.clone()
+    z = r / diag
+    p = z.clone()
+    rz = r @ z
+    bnorm = torch.linalg.vector_norm(b)
+    it = 0
+    for it in range(1, maxiter + 1):
+        Ap = apply_A(p)
+        a = rz / (p @ Ap)
+        x = x + a * p
+        r = r - a * Ap
+        if torch.linalg.vector_norm(r) <= tol * bnorm:
+            break
+        z = r / diag
+        rz_new = r @ z
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x, it
+
+
+class ResidualNetwork:
+    """The paper's residual compensator: q (rad) -> Δz (m, rad), trained with Bayesian regularisation.
+
+    Parameters
+    ----------
+    hidden : (N1, N2) hidden layer sizes
+    q_lower, q_upper : joint limits (rad) for the input mapping; None: taken from the data's range
+    max_epochs : LM epochs at most (the paper: 2048)
+    solver : "cg" (matrix-free, default) or "full" (explicit Jacobian, the reference)
+    gamma_every : epochs between re-estimates of α, β, γ
+    probes : Hutchinson probes for tr(H⁻¹) (cg solver)
+    cg_maxiter : conjugate-gradient iterations per LM step at most (warm-started)
+    product_dtype : precision of the Jacobian products inside CG ("float32" or "float64"); weights,
+        errors and the objective are always float64
+    min_rel_improvement, patience : converged when an LM step lowers F by less than this fraction
+        for ``patience`` epochs in a row
+    seed : initialisation seed
+    """
+
+    def __init__(self, *, hidden=(64, 32), q_lower=None, q_upper=None, max_epochs=2048, solver="cg",
+                 gamma_every=20, probes=4, cg_maxiter=25, product_dtype="float32", seed=0,
+                 min_rel_improvement=1e-5, patience=15, mu_max=1e10, progress=None):
+        self.hidden = hidden
+        self.q_lower = q_lower
+        self.q_upper = q_upper
+        self.max_epochs = max_epochs
+        self.solver = solver
+        self.gamma_every = gamma_every
+        self.probes = probes
+        self.cg_maxiter = cg_maxiter
+        self.product_dtype = product_dtype
+        self.seed = seed
+        self.min_rel_improvement = min_rel_improvement
+        self.patience = patience
+        self.mu_max = mu_max
+        self.progress = progress
+
+    # -- fitting ----------------------------------------------------------------------------
+    def fit(self, q, dz):
+        """Train on joint coordinates q (n, 6) rad and residuals dz (n, 6) (m, rad)."""
+        q = np.asarray(q, dtype=float)
+        dz = np.asarray(dz, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 6 or dz.shape != (len(q), 6):
+            raise DataError(f"ResidualNetwork.fit: expected q (n, 6) and dz (n, 6), got {q.shape}, {dz.shape}")
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dz))):
+            raise DataError("ResidualNetwork.fit: q and dz must be finite")
+        if self.solver not in ("cg", "full"):
+            raise ConfigError(f"solver must be 'cg' or 'full', not {self.solver!r}")
+        dtype = torch.float64
+        if self.product_dtype not in ("float32", "float64"):
+            raise ConfigError(f"product_dtype must be 'float32' or 'float64', not {self.product_dtype!r}")
+        lo = np.min(q, axis=0) if self.q_lower is None else np.asarray(self.q_lower, dtype=float)
+        hi = np.max(q, axis=0) if self.q_upper is None else np.asarray(self.q_upper, dtype=float)
+        self.input_mapping_ = joint_mapping(lo, hi)
+        std = dz.std(axis=0)
+        self.target_mapping_ = Mapping(dz.mean(axis=0), np.where(std > 0, std, 1.0))
+        x = torch.as_tensor(self.input_mapping_.apply(q), dtype=dtype)
+        t = torch.as_tensor(self.target_mapping_.apply(dz), dtype=dtype)
+        self.net_ = MLP(6, tuple(self.hidden), 6)
+        gen = torch.Generator().manual_seed(int(self.seed))
+        w = self.net_.init(gen, dtype)
+        self._train(w, x, t, gen)
+        return self
+
+    def _train(self, w, x, t, gen):
+        net = self.net_
+        N = net.n_weights
+        n_data = t.numel()
+        pdt = torch.float32 if self.product_dtype == "float32" else torch.float64
+        x_p = x.to(pdt)
+        y, cache = net.forward(w, x)
+        e = y - t
+        E_D, E_W = float((e * e).sum()), float((w * w).sum())
+        # MATLAB trainbr's start: γ = N, α and β from the current errors
+        gamma = float(N)
+        alpha = gamma / (2 * max(E_W, 1e-12))
+        beta = (n_data - gamma) / (2 * max(E_D, 1e-12)) if n_data > gamma else n_data / (2 * max(E_D, 1e-12))
+        mu = 5e-3
+        history = []
+        stall = 0
+        delta = None
+        epoch = 0
+        stop = "max_epochs"
+        for epoch in range(1, self.max_epochs + 1):
+            F = beta * E_D + alpha * E_W
+            grad = 2 * beta * net.vjp(w, x, cache, e) + 2 * alpha * w
+            if self.solver == "full":
+                J = net.jacobian(w, x)
+                JtJ = J.T @ J
+            else:
+                w_p, cache_p = w.to(pdt), tuple(c.to(pdt) for c in cache)
+                if epoch % 5 == 1:  # the preconditioner need not be fresh every epoch
+                    jtj_diag = net.jtj_diagonal(w_p, x_p, cache_p).to(torch.float64)
+                diag = 2 * beta * jtj_diag + 2 * alpha
+            accepted = False
+            while mu <= self.mu_max:
+                if self.solver == "full":
+                    A = 2 * beta * JtJ + (2 * alpha + mu) * torch.eye(N, dtype=x.dtype)
+                    step = -torch.linalg.solve(A, grad)
+                else:
+                    def apply_A(v, _mu=mu):
+                        vp = v.to(pdt)
+                        JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, vp)).to(torch.float64)
+                        return 2 * beta * JtJv + (2 * alpha + _mu) * v
+                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta, maxiter=self.cg_maxiter)
+                w_new = w + step
+                y_new, cache_new = net.forward(w_new, x)
+                e_new = y_new - t
+                E_D_new, E_W_new = float((e_new * e_new).sum()), float((w_new * w_new).sum())
+                F_new = beta * E_D_new + alpha * E_W_new
+                if F_new < F:
+                    accepted = True
+                    break
+                mu *= 10
+                delta = None
+            if not accepted:
+                stop = "mu_max"
+                break
+            rel = (F - F_new) / max(F, 1e-300)
+            delta = step
+            w, cache, e, E_D, E_W = w_new, cache_new, e_new, E_D_new, E_W_new
+            mu = max(mu / 10, 1e-20)
+            if epoch % self.gamma_every == 0 or epoch == 1:
+                tr_inv = self._trace_inverse(w, x, cache, alpha, beta, gen, JtJ if self.solver == "full" else None)
+                gamma, alpha, beta = br_update(tr_inv, N, n_data, alpha, E_D, E_W)
+            history.append((epoch, E_D / n_data, gamma, alpha, beta))
+            if self.progress is not None and (epoch % 10 == 0 or epoch == 1):
+                self.progress(epoch=epoch, mse=E_D / n_data, gamma=gamma)
+            stall = stall + 1 if rel < self.min_rel_improvement else 0
+            if stall >= self.patience:
+                stop = "converged"
+                break
+        self.weights_ = w
+        self.alpha_, self.beta_, self.gamma_ = float(alpha), float(beta), float(gamma)
+        self.n_epochs_ = epoch
+        self.stop_reason_ = stop
+        self.mse_normalised_ = E_D / n_data
+        self.loss_history_ = history
+        return self
+
+    def _trace_inverse(self, w, x, cache, alpha, beta, gen, JtJ=None):
+        """tr(H⁻¹), H = 2β JᵀJ + 2α I: exact with the full Jacobian, else Hutchinson + PCG."""
+        net = self.net_
+        N = net.n_weights
+        if JtJ is not None:
+            H = 2 * beta * JtJ + 2 * alpha * torch.eye(N, dtype=x.dtype)
+            return float(torch.trace(torch.linalg.inv(H)))
+        pdt = torch.float32 if self.product_dtype == "float32" else torch.float64
+        w_p, x_p, cache_p = w.to(pdt), x.to(pdt), tuple(c.to(pdt) for c in cache)
+        diag = (2 * beta * net.jtj_diagonal(w_p, x_p, cache_p) + 2 * alpha).to(torch.float64)
+
+        def apply_H(v):
+            JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, v.to(pdt))).to(torch.float64)
+            return 2 * beta * JtJv + 2 * alpha * v
+
+        # zᵀ H⁻¹ z from a truncated CG solve (CG's energy-norm optimality makes zᵀx_k converge fast)
+        total = 0.0
+        for _ in range(self.probes):
+            z = (torch.randint(0, 2, (N,), generator=gen) * 2 - 1).to(torch.float64)
+            s, _ = _pcg(apply_H, z, diag, tol=1e-3, maxiter=2 * self.cg_maxiter)
+            total += float(z @ s)
+        return total / self.probes
+
+    # -- use --------------------------------------------------------------------------------
+    def _check(self):
+        if not hasattr(self, "weights_"):
+            raise NotFittedError("ResidualNetwork is not fitted; call fit() first")
+
+    def predict(self, q) -> np.ndarray:
+        """Predicted residual Δz (n, 6) (m, rad) for joint coordinates q (n, 6) rad."""
+        self._check()
+        x = torch.as_tensor(self.input_mapping_.apply(np.asarray(q, dtype=float).reshape(-1, 6)),
+                            dtype=self.weights_.dtype)
+        with torch.no_grad():
+            y, _ = self.net_.forward(self.weights_, x)
+        return self.target_mapping_.invert(y.numpy().astype(float))
+
+    # -- safe persistence: tensors and plain values only, loaded with weights_only=True ---------
+    def save(self, path) -> None:
+        self._check()
+        state = {
+            "format": "campaign.ResidualNetwork/1",
+            "hidden": torch.tensor(list(self.hidden), dtype=torch.int64),
+            "weights": self.weights_.detach().clone(),
+            "input_mean": torch.tensor(self.input_mapping_.mean), "input_scale": torch.tensor(self.input_mapping_.scale),
+            "target_mean": torch.tensor(self.target_mapping_.mean),
+            "target_scale": torch.tensor(self.target_mapping_.scale),
+            "alpha": self.alpha_, "beta": self.beta_, "gamma": self.gamma_, "n_epochs": self.n_epochs_,
+        }
+        torch.save(state, str(path))
+
+    @classmethod
+    def load(cls, path) -> "ResidualNetwork":
+        try:
+            state = torch.load(str(path), weights_only=True)
+        except Exception as exc:  # torch raises several types for a bad file
+            raise DataError(f"{path}: not a saved residual network ({exc.__class__.__name__})") from None
+        if not isinstance(state, dict) or state.get("format") != "campaign.ResidualNetwork/1":
+            raise DataError(f"{path}: not a saved residual network (unknown format)")
+        hidden = tuple(int(v) for v in state["hidden"])
+        net = cls(hidden=hidden)
+        net.net_ = MLP(6, hidden, 6)
+        net.weights_ = state["weights"]
+        if net.weights_.numel() != net.net_.n_weights:
+            raise DataError(f"{path}: weights do not match hidden sizes {hidden}")
+        net.input_mapping_ = Mapping(state["input_mean"].numpy(), state["input_scale"].numpy())
+        net.target_mapping_ = Mapping(state["target_mean"].numpy(), state["target_scale"].numpy())
+        net.alpha_, net.beta_, net.gamma_ = float(state["alpha"]), float(state["beta"]), float(state["gamma"])
+        net.n_epochs_ = int(state["n_epochs"])
+        return net
