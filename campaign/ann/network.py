@@ -197,7 +197,7 @@ class ResidualNetwork:
 
     def __init__(self, *, hidden=(64, 32), q_lower=None, q_upper=None, max_epochs=2048, solver="cg",
                  gamma_every=20, probes=4, cg_maxiter=25, product_dtype="float32", seed=0,
-                 min_rel_improvement=1e-5, patience=15, mu_max=1e10, progress=None):
+                 min_rel_improvement=1e-5, patience=15, mu_max=1e10, warm_start=False, progress=None):
         self.hidden = hidden
         self.q_lower = q_lower
         self.q_upper = q_upper
@@ -211,6 +211,7 @@ class ResidualNetwork:
         self.min_rel_improvement = min_rel_improvement
         self.patience = patience
         self.mu_max = mu_max
+        self.warm_start = warm_start
         self.progress = progress
 
     # -- fitting ----------------------------------------------------------------------------
@@ -280,7 +281,8 @@ class ResidualNetwork:
                         vp = v.to(pdt)
                         JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, vp)).to(torch.float64)
                         return 2 * beta * JtJv + (2 * alpha + _mu) * v
-                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta, maxiter=self.cg_maxiter)
+                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta if self.warm_start else None,
+                                   maxiter=self.cg_maxiter)
                 w_new = w + step
                 y_new, cache_new = net.forward(w_new, x)
                 e_new = y_new - t
