@@ -17,6 +17,7 @@ from campaign.errors import CampaignError
 COMMAND_MODULES = (
     "campaign.demo",
     "campaign.model.commands",
+    "campaign.plan.commands",
     "campaign.identify.commands",
     "campaign.sim.commands",
     "campaign.diagnose.commands",

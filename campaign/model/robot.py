@@ -46,7 +46,7 @@ def _read_only(a):
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RobotModel:
     """A serial 6R arm described by a URDF whose chain follows the paper's frames.
 

@@ -1,0 +1,138 @@
+"""Collision geometry of the robot (from the URDF) and the scene, for FCL and for bounds.
+
+Two representations of the same primitives:
+
+* FCL objects (python-fcl) for exact distances;
+* enclosing spheres (each box or cylinder cut along its long axis into pieces, each piece
+  inside one sphere) for vectorised, conservative lower bounds: if the spheres are clear by
+  d, the real geometry is clear by at least d.
+"""
+
+from __future__ import annotations
+
+import functools
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+
+import numpy as np
+
+from campaign.model.rotations import urdf_rpy
+
+#: frame index of each URDF link in campaign.model.kinematics.frames (0 = F_0, ..., 7 = F_E)
+LINK_FRAME = {"link0": 0, "link1": 1, "link2": 2, "link3": 3, "link4": 4, "link5": 5, "link6": 6, "E": 7}
+
+
+@dataclass(frozen=True)
+class Primitive:
+    """A box (size = 3 edges) or cylinder (size = radius, height; axis z) fixed in a frame."""
+
+    frame: int
+    kind: str
+    size: tuple
+    T: np.ndarray  # pose in its frame (4, 4)
+
+
+def robot_primitives(robot) -> tuple:
+    """The URDF's collision primitives of links link0..link6 and E."""
+    root = ET.parse(robot.urdf_path).getroot()
+    out = []
+    for link in root.findall("link"):
+        name = link.get("name")
+        if name not in LINK_FRAME:
+            continue
+        for col in link.findall("collision"):
+            T = np.eye(4)
+            origin = col.find("origin")
+            if origin is not None:
+                T[:3, 3] = [float(v) for v in origin.get("xyz", "0 0 0").split()]
+                T[:3, :3] = urdf_rpy(*[float(v) for v in origin.get("rpy", "0 0 0").split()])
+            geom = col.find("geometry")
+            box, cyl = geom.find("box"), geom.find("cylinder")
+            if box is not None:
+                out.append(Primitive(LINK_FRAME[name], "box", tuple(float(v) for v in box.get("size").split()), T))
+            elif cyl is not None:
+                out.append(Primitive(LINK_FRAME[name], "cylinder",
+                                     (float(cyl.get("radius")), float(cyl.get("length"))), T))
+    return tuple(out)
+
+
+def fcl_geometry(kind, size):
+    import fcl
+
+    if kind == "box":
+        return fcl.Box(*size)
+    if kind == "cylinder":
+        return fcl.Cylinder(size[0], size[1])
+    raise ValueError(kind)
+
+
+def enclosing_spheres(kind, size, T, max_aspect: float = 1.0):
+    """Spheres (centres in the primitive's frame (k, 3), radii (k,)) enclosing the primitive."""
+    if kind == "box":
+        ext = np.asarray(size, dtype=float)
+        axis = int(np.argmax(ext))
+        others = np.delete(ext, axis)
+        k = max(1, int(np.ceil(ext[axis] / (max_aspect * max(others.max(), 1e-6)))))
+        piece = ext.copy()
+        piece[axis] = ext[axis] / k
+        r = 0.5 * np.linalg.norm(piece)
+        offs = (np.arange(k) + 0.5) * piece[axis] - 0.5 * ext[axis]
+        c = np.zeros((k, 3))
+        c[:, axis] = offs
+    else:
+        radius, height = size
+        k = max(1, int(np.ceil(height / (2 * radius * max_aspect))))
+        h = height / k
+        r = np.hypot(radius, h / 2)
+        c = np.zeros((k, 3))
+        c[:, 2] = (np.arange(k) + 0.5) * h - 0.5 * height
+    centres = c @ T[:3, :3].T + T[:3, 3]
+    return centres, np.full(len(centres), r)
+
+
+@dataclass(frozen=True)
+class RobotSpheres:
+    frame: np.ndarray  # (S,) frame index
+    centre: np.ndarray  # (S, 3) in the frame
+    radius: np.ndarray  # (S,)
+    primitive: np.ndarray  # (S,) index into robot_primitives
+
+
+@functools.lru_cache(maxsize=4)
+def robot_spheres(robot) -> RobotSpheres:
+    frames, centres, radii, prims = [], [], [], []
+    for i, p in enumerate(robot_primitives(robot)):
+        c, r = enclosing_spheres(p.kind, p.size, p.T)
+        frames += [p.frame] * len(r)
+        centres.append(c)
+        radii.append(r)
+        prims += [i] * len(r)
+    return RobotSpheres(np.array(frames), np.concatenate(centres), np.concatenate(radii), np.array(prims))
+
+
+def world_spheres(spheres: RobotSpheres, R, t):
+    """Sphere centres in F_I for poses with frame rotations R (n, 8, 3, 3), origins t (n, 8, 3): (n, S, 3)."""
+    Rf = R[:, spheres.frame]  # (n, S, 3, 3)
+    return np.einsum("nsij,sj->nsi", Rf, spheres.centre) + t[:, spheres.frame]
+
+
+def point_box_distance(p, obstacle):
+    """Distance (…,) from points (…, 3) in F_I to a box obstacle (0 inside)."""
+    T = obstacle.T_I
+    local = (p - T[:3, 3]) @ T[:3, :3]
+    half = 0.5 * np.asarray(obstacle.size)
+    d = np.maximum(np.abs(local) - half, 0.0)
+    return np.linalg.norm(d, axis=-1)
+
+
+def point_cylinder_distance(p, obstacle):
+    T = obstacle.T_I
+    local = (p - T[:3, 3]) @ T[:3, :3]
+    radius, height = obstacle.size
+    dr = np.maximum(np.linalg.norm(local[..., :2], axis=-1) - radius, 0.0)
+    dz = np.maximum(np.abs(local[..., 2]) - 0.5 * height, 0.0)
+    return np.hypot(dr, dz)
+
+
+def point_obstacle_distance(p, obstacle):
+    return point_box_distance(p, obstacle) if obstacle.kind == "box" else point_cylinder_distance(p, obstacle)

@@ -1,0 +1,294 @@
+"""`campaign plan`: candidates → suitable poses → an ordered, collision-free tour.
+
+Writes ``RUN/plan/poses.csv`` (``pose_id,q1..q6``, rad, visiting order; pose_id is the
+candidate's grid index), ``RUN/plan/vias.csv`` (via poses to pass before a pose),
+``RUN/plan/dropped.csv`` (poses dropped from the tour, with the reason),
+``RUN/plan/summary.json`` and ``RUN/plan/tour.png``, and copies the configuration to
+``RUN/campaign.yaml``.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from campaign.config import load_config, resolve, write_run_config
+from campaign.model.kinematics import frames
+from campaign.model.robot import RobotModel
+from campaign.plan import checks
+from campaign.plan.grid import Grid, tool_frames
+from campaign.plan.scene import load_scene
+from campaign.plan.tour import GridTimes, nearest_neighbour, path_time, rest_to_rest_time, segment_samples, two_opt
+from campaign.progress import Progress
+
+#: the paper's campaign: 13,919 poses measured in about 3.5 days
+PAPER_POSES = 13919
+PAPER_DURATION_S = 3.5 * 86400.0
+#: joints 2 and 3 of the via posture that lifts the arm clear of the wall (rad)
+VIA_Q2, VIA_Q3 = 0.0, -np.pi / 2
+CHUNK = 200_000
+
+
+def _filter_grid(robot, scene, grid, clearance, progress):
+    """Stage 2 over the whole grid; returns (suitable candidate indices, counts)."""
+    counts = {"candidates": grid.size}
+    bar = Progress("stage 1-2: tool poses", grid.size, progress, " poses")
+    R_E, t_E = tool_frames(robot, grid)
+    survivors = []
+    removed = {"tracker_range": 0, "reflector_cone": 0, "line_of_sight_scene": 0, "line_of_sight_robot": 0,
+               "clearance_fcl": 0}
+    cand_after_visibility = []
+    for s in range(0, grid.size, CHUNK):
+        idx = np.arange(s, min(s + CHUNK, grid.size))
+        P, A = checks.reflector_geometry(robot, R_E[idx], t_E[idx])
+        ok = checks.range_ok(scene, P)
+        removed["tracker_range"] += int((~ok).sum())
+        idx, P, A = idx[ok], P[ok], A[ok]
+        ok = checks.cone_ok(robot, scene, P, A)
+        removed["reflector_cone"] += int((~ok).sum())
+        idx, P = idx[ok], P[ok]
+        ok = checks.scene_line_of_sight_ok(scene, P)
+        removed["line_of_sight_scene"] += int((~ok).sum())
+        cand_after_visibility.append(idx[ok])
+        bar.update(min(CHUNK, grid.size - s))
+    bar.close()
+    del R_E, t_E
+    idx = np.concatenate(cand_after_visibility)
+    checker = checks.ClearanceChecker(robot, scene, clearance)
+    bar = Progress("stage 2: LOS + FCL", len(idx), progress, " poses")
+    for s in range(0, len(idx), 4096):
+        sub = idx[s : s + 4096]
+        R, t = frames(robot, grid.q(sub))
+        P, _ = checks.reflector_geometry(robot, R[:, 7], t[:, 7])
+        ok = checks.robot_line_of_sight_ok(robot, scene, P, R, t)
+        removed["line_of_sight_robot"] += int((~ok).sum())
+        sub, R, t = sub[ok], R[ok], t[ok]
+        ok = checker.clear(R, t)
+        removed["clearance_fcl"] += int((~ok).sum())
+        survivors.append(sub[ok])
+        bar.update(min(4096, len(idx) - s))
+    bar.close()
+    suitable = np.concatenate(survivors) if survivors else np.zeros(0, dtype=np.int64)
+    counts["removed_by_filter"] = removed
+    counts["filter_order"] = list(removed)
+    counts["suitable"] = int(len(suitable))
+    return suitable, counts, checker
+
+
+def _check_segments(robot, checker, Q_from, Q_to, max_step, clearance):
+    """(m,) bool: each straight joint-space motion clear by ``clearance`` at every sample."""
+    ok = np.ones(len(Q_from), dtype=bool)
+    batch_q, batch_seg = [], []
+    n_batch = 0
+
+    def flush():
+        nonlocal batch_q, batch_seg, n_batch
+        if not batch_q:
+            return
+        q = np.concatenate(batch_q)
+        seg = np.concatenate(batch_seg)
+        R, t = frames(robot, q)
+        good = checker.clear(R, t, clearance)
+        bad = np.unique(seg[~good])
+        ok[bad] = False
+        batch_q, batch_seg, n_batch = [], [], 0
+
+    for m in range(len(Q_from)):
+        samples = segment_samples(Q_from[m], Q_to[m], max_step)[1:-1]
+        if len(samples):
+            batch_q.append(samples)
+            batch_seg.append(np.full(len(samples), m))
+            n_batch += len(samples)
+        if n_batch > 20000:
+            flush()
+    flush()
+    return ok
+
+
+def _order_group(times, grid, members, start_cells):
+    if len(members) == 0:
+        return members
+    C = grid.cell_indices(members)
+    start = int(np.argmin(times.from_one(start_cells, C)))
+    order = nearest_neighbour(times, C, start)
+    order = two_opt(times, C, order)
+    return members[order]
+
+
+def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False) -> dict:
+    """Plan a campaign; write the run's plan folder; return the summary (also in summary.json)."""
+    t_start = time.perf_counter()
+    cfg = config if isinstance(config, dict) else load_config(config)
+    pc = cfg["plan"]
+    robot = RobotModel.load(resolve(cfg, cfg["robot"]) if (Path(cfg["_dir"]) / str(cfg["robot"])).is_dir()
+                            else cfg["robot"])
+    scene = load_scene(resolve(cfg, cfg["scene"]))
+    cells = np.maximum(1, np.round(np.asarray(pc["grid_cells"], dtype=float) * float(grid_scale))).astype(int)
+    grid = Grid.for_robot(robot, cells)
+    run_dir = Path(run_dir)
+    out = run_dir / "plan"
+    out.mkdir(parents=True, exist_ok=True)
+    write_run_config(cfg, run_dir)
+
+    suitable, counts, checker = _filter_grid(robot, scene, grid, float(pc["clearance_m"]), progress)
+    t_filter = time.perf_counter() - t_start
+
+    # stage 3: groups, order, check
+    times = GridTimes(robot, grid)
+    _, t_all = (None, None)
+    R_E, t_E = frames(robot, grid.q(suitable))[0][:, 7], frames(robot, grid.q(suitable))[1][:, 7]
+    front = scene.side_of_wall(t_E)
+    bar = Progress("stage 3: ordering", 2, progress, " groups")
+    home = np.array(grid.cells) // 2
+    groups = {}
+    for name, mask in (("front", front), ("behind", ~front)):
+        groups[name] = _order_group(times, grid, suitable[mask], home)
+        bar.update(1)
+    bar.close()
+    # visit the group whose first pose is nearer the middle of the grid first
+    first = min(groups, key=lambda g: times.from_one(home, grid.cell_indices(groups[g][:1]))[0]
+                if len(groups[g]) else np.inf)
+    order = np.concatenate([groups[first], groups["behind" if first == "front" else "front"]])
+    Q = grid.q(order)
+    max_step = np.deg2rad(float(pc["motion_sample_deg"]))
+    mc = float(pc["motion_clearance_m"])
+    bar = Progress("stage 3: motion check", len(order), progress, " segments")
+    ok = _check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
+    bar.update(len(order))
+    bar.close()
+    # fix colliding segments: via postures that lift the arm, else drop the pose
+    vias, dropped = {}, []
+    keep = np.ones(len(order), dtype=bool)
+    bad = list(np.flatnonzero(~ok))
+    prev_of = lambda k: max(i for i in range(k + 1) if keep[i])  # noqa: E731
+    for m in bad:
+        k = m + 1  # pose that the colliding motion reaches
+        a = Q[prev_of(m)]
+        b = Q[k]
+        v1 = np.array([a[0], VIA_Q2, VIA_Q3, a[3], a[4], a[5]])
+        v2 = np.array([b[0], VIA_Q2, VIA_Q3, b[3], b[4], b[5]])
+        path = np.array([a, v1, v2, b])
+        if checker.clear(*frames(robot, path[1:3]), mc).all() and \
+                _check_segments(robot, checker, path[:-1], path[1:], max_step, mc).all():
+            vias[int(order[k])] = [v1, v2]
+        else:
+            keep[k] = False
+            dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"))
+    # segments after a dropped pose start elsewhere: re-check those and repeat until clean
+    for _ in range(5):
+        kept = np.flatnonzero(keep)
+        Qk = Q[kept]
+        starts = []
+        for i in range(1, len(kept)):
+            if int(order[kept[i]]) in vias:
+                continue
+            starts.append(i)
+        if not starts:
+            break
+        starts = np.array(starts)
+        seg_ok = _check_segments(robot, checker, Qk[starts - 1], Qk[starts], max_step, mc)
+        if seg_ok.all():
+            break
+        for i in starts[~seg_ok]:
+            keep[kept[i]] = False
+            dropped.append((int(order[kept[i]]), "no collision-free motion after re-ordering"))
+    order_final = order[keep]
+    Q_final = grid.q(order_final)
+    # travel time including vias
+    path = [Q_final[0]] if len(Q_final) else []
+    for i in range(1, len(order_final)):
+        for v in vias.get(int(order_final[i]), []):
+            path.append(v)
+        path.append(Q_final[i])
+    tour_time = path_time(robot, np.array(path)) if len(path) > 1 else 0.0
+    n = len(order_final)
+    per_pose = float(pc["settle_time_s"]) + 3 * float(pc["tracker_time_per_reflector_s"])
+    duration = tour_time + n * per_pose
+
+    _write_outputs(out, order_final, Q_final, vias, dropped)
+    front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, 7]) if n else np.zeros(0, bool)
+    summary = {
+        "robot": robot.name, "scene": str(scene.path), "grid_cells": [int(c) for c in cells],
+        "candidates": counts["candidates"],
+        "removed_by_filter": counts["removed_by_filter"], "filter_order": counts["filter_order"],
+        "suitable": counts["suitable"], "suitable_fraction": counts["suitable"] / counts["candidates"],
+        "groups": {"front_of_wall": int(front_final.sum()), "behind_wall": int((~front_final).sum())},
+        "tour": {"poses": n, "via_poses": int(sum(len(v) for v in vias.values())), "dropped": len(dropped),
+                 "motion_time_s": tour_time, "clearance_m": float(pc["clearance_m"]), "motion_clearance_m": mc,
+                 "motion_sample_deg": float(pc["motion_sample_deg"])},
+        "estimated_campaign": {
+            "motion_s": tour_time, "settle_s": n * float(pc["settle_time_s"]),
+            "tracker_s": n * 3 * float(pc["tracker_time_per_reflector_s"]), "total_s": duration,
+            "total_days": duration / 86400.0,
+            "paper": {"poses": PAPER_POSES, "duration_days": PAPER_DURATION_S / 86400.0,
+                      "seconds_per_pose": PAPER_DURATION_S / PAPER_POSES},
+            "seconds_per_pose": duration / n if n else None,
+        },
+        "disabled_link_pairs": [list(p) for p in checker.disabled_pairs],
+        "timing_s": {"filters": t_filter, "total": time.perf_counter() - t_start},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    try:
+        _plot(out / "tour.png", robot, scene, Q_final, front_final)
+    except Exception as exc:  # a plot must never lose a plan
+        summary["plot_error"] = str(exc)
+    return summary
+
+
+def _write_outputs(out, order, Q, vias, dropped):
+    lines = ["pose_id,q1,q2,q3,q4,q5,q6"]
+    lines += [f"{int(p)}," + ",".join(repr(float(v)) for v in q) for p, q in zip(order, Q)]
+    tmp = out / "poses.csv.partial"
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(out / "poses.csv")
+    vl = ["before_pose_id,q1,q2,q3,q4,q5,q6"]
+    for pid in order:
+        for v in vias.get(int(pid), []):
+            vl.append(f"{int(pid)}," + ",".join(repr(float(x)) for x in v))
+    (out / "vias.csv").write_text("\n".join(vl) + "\n")
+    dl = ["pose_id,reason"] + [f"{p},{r}" for p, r in dropped]
+    (out / "dropped.csv").write_text("\n".join(dl) + "\n")
+
+
+def _plot(path, robot, scene, Q, front):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from campaign.model.kinematics import forward
+
+    t = forward(robot, Q)[:, :3, 3] if len(Q) else np.zeros((0, 3))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
+                                         (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))):
+        sign = -1 if b == 1 else 1
+        ax.scatter(t[front, a], sign * t[front, b], s=2, c="C0", label=f"in front of the wall ({front.sum()})")
+        ax.scatter(t[~front, a], sign * t[~front, b], s=2, c="C1", label=f"behind the wall ({(~front).sum()})")
+        o = scene.tracker_position
+        ax.plot([o[a]], [sign * o[b]], "k^", ms=10, label="tracker")
+        for obs in scene.obstacles:
+            if obs.name == "floor":
+                continue
+            ext = np.asarray(obs.size if obs.kind == "box" else (2 * obs.size[0], 2 * obs.size[0], obs.size[1]))
+            corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * ext
+            w = corners @ obs.T_I[:3, :3].T + obs.T_I[:3, 3]
+            color = "r" if obs.name == scene.wall_name else "0.6"
+            ax.add_patch(plt.Rectangle((w[:, a].min(), (sign * w[:, b]).min()), np.ptp(w[:, a]), np.ptp(w[:, b]),
+                                       fill=obs.name == scene.wall_name, alpha=0.35, color=color))
+            ax.annotate(obs.name, (w[:, a].mean(), (sign * w[:, b]).max()), fontsize=7, ha="center")
+        ax.plot([0], [0], "ks", ms=6, label="robot base")
+        ax.set_xlabel(la)
+        ax.set_ylabel(lb)
+        ax.set_aspect("equal")
+    axes[0].set_title("tool positions, top view")
+    axes[1].set_title("side view")
+    axes[1].legend(fontsize=8, loc="upper right", markerscale=4)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,201 @@
+"""The cell: obstacles, the wall, the tracker. Loaded from YAML, validated, immutable.
+
+Every error names the file and the field. Positions in F_I, m (y vertical, up = -y).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from campaign.errors import ConfigError
+from campaign.model.rotations import cardan_xyz
+
+_TOP_KEYS = {"name", "obstacles", "tracker", "wall"}
+_TRACKER_KEYS = {"position_m", "rotation_cardan_deg", "min_range_m", "max_range_m", "beam_radius_m"}
+_WALL_KEYS = {"obstacle", "normal_in_I", "offset_m"}
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A box (``size`` = (x, y, z) edge lengths) or a cylinder (``size`` = (radius, height))
+    whose axis is z of its frame; ``T_I`` is its pose in F_I (4, 4)."""
+
+    name: str
+    kind: str
+    size: tuple
+    T_I: np.ndarray
+
+
+@dataclass(frozen=True)
+class Scene:
+    path: Path
+    name: str
+    obstacles: tuple
+    #: pose of the tracker frame F_L in F_I (4, 4)
+    T_IL: np.ndarray
+    min_range_m: float
+    max_range_m: float
+    beam_radius_m: float
+    wall_name: str
+    wall_normal: np.ndarray
+    wall_offset_m: float
+
+    @property
+    def tracker_pose_in_I(self) -> np.ndarray:
+        return self.T_IL
+
+    @property
+    def T_LI(self) -> np.ndarray:
+        from campaign.measure.reflectors import invert
+
+        return invert(self.T_IL)
+
+    @property
+    def tracker_position(self) -> np.ndarray:
+        return self.T_IL[:3, 3]
+
+    def side_of_wall(self, points) -> np.ndarray:
+        """True where points (n, 3) lie in front of the wall (the tracker's side)."""
+        return np.asarray(points) @ self.wall_normal > self.wall_offset_m
+
+
+def _vec(value, n, where):
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: expected {n} numbers, got {value!r}") from None
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise ConfigError(f"{where}: expected {n} finite numbers, got {value!r}")
+    return v
+
+
+def _positive(value, where):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ConfigError(f"{where}: must be positive, got {value!r}")
+    return v
+
+
+def _unknown(d, allowed, where):
+    extra = sorted(set(d) - set(allowed))
+    if extra:
+        raise ConfigError(f"{where}: unknown key '{extra[0]}' (allowed: {', '.join(sorted(allowed))})")
+
+
+def _missing(d, required, where):
+    for key in required:
+        if key not in d:
+            raise ConfigError(f"{where}: missing field '{key}'")
+
+
+def load_scene(path) -> Scene:
+    """Read and validate a scene YAML file."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the scene ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    _unknown(doc, _TOP_KEYS, str(path))
+    _missing(doc, ("obstacles", "tracker", "wall"), str(path))
+    obstacles = []
+    if not isinstance(doc["obstacles"], list) or not doc["obstacles"]:
+        raise ConfigError(f"{path}: obstacles: expected a non-empty list")
+    names = set()
+    for i, o in enumerate(doc["obstacles"]):
+        where = f"{path}: obstacles[{i}]"
+        if not isinstance(o, dict):
+            raise ConfigError(f"{where}: expected a mapping")
+        _unknown(o, {"name", "box", "cylinder", "mesh"}, where)
+        _missing(o, ("name",), where)
+        name = str(o["name"])
+        where = f"{path}: obstacle '{name}'"
+        if name in names:
+            raise ConfigError(f"{where}: duplicate name")
+        names.add(name)
+        shapes = [k for k in ("box", "cylinder", "mesh") if k in o]
+        if len(shapes) != 1:
+            raise ConfigError(f"{where}: give exactly one of box, cylinder, mesh")
+        kind = shapes[0]
+        spec = o[kind]
+        if not isinstance(spec, dict):
+            raise ConfigError(f"{where}.{kind}: expected a mapping")
+        T = np.eye(4)
+        if kind == "box":
+            _unknown(spec, {"center_m", "size_m", "rotation_cardan_deg"}, f"{where}.box")
+            _missing(spec, ("center_m", "size_m"), f"{where}.box")
+            T[:3, 3] = _vec(spec["center_m"], 3, f"{where}.box.center_m")
+            size = _vec(spec["size_m"], 3, f"{where}.box.size_m")
+            if np.any(size <= 0):
+                raise ConfigError(f"{where}.box.size_m: sizes must be positive")
+            if "rotation_cardan_deg" in spec:
+                T[:3, :3] = cardan_xyz(*np.deg2rad(_vec(spec["rotation_cardan_deg"], 3, f"{where}.box.rotation_cardan_deg")))
+            obstacles.append(Obstacle(name, "box", tuple(size), T))
+        elif kind == "cylinder":
+            _unknown(spec, {"center_m", "radius_m", "height_m", "axis"}, f"{where}.cylinder")
+            _missing(spec, ("center_m", "radius_m", "height_m"), f"{where}.cylinder")
+            T[:3, 3] = _vec(spec["center_m"], 3, f"{where}.cylinder.center_m")
+            axis = str(spec.get("axis", "z"))
+            if axis not in ("x", "y", "z"):
+                raise ConfigError(f"{where}.cylinder.axis: must be x, y or z, not {axis!r}")
+            # FCL's cylinder axis is z: rotate z onto the requested axis
+            T[:3, :3] = {"x": cardan_xyz(0, np.pi / 2, 0), "y": cardan_xyz(-np.pi / 2, 0, 0), "z": np.eye(3)}[axis]
+            obstacles.append(Obstacle(name, "cylinder", (_positive(spec["radius_m"], f"{where}.cylinder.radius_m"),
+                                                         _positive(spec["height_m"], f"{where}.cylinder.height_m")), T))
+        else:
+            _unknown(spec, {"file", "center_m"}, f"{where}.mesh")
+            _missing(spec, ("file",), f"{where}.mesh")
+            mesh_path = (path.parent / str(spec["file"])).resolve()
+            if not mesh_path.is_file():
+                raise ConfigError(f"{where}.mesh.file: {mesh_path} does not exist")
+            import trimesh
+
+            try:
+                mesh = trimesh.load(str(mesh_path), force="mesh")
+            except Exception as exc:  # trimesh raises many kinds
+                raise ConfigError(f"{where}.mesh.file: {mesh_path} is not a readable mesh ({exc})") from None
+            if "center_m" in spec:
+                T[:3, 3] = _vec(spec["center_m"], 3, f"{where}.mesh.center_m")
+            # conservative: the mesh's oriented bounding box stands for it
+            obb = mesh.bounding_box_oriented
+            T = T @ np.asarray(obb.primitive.transform)
+            obstacles.append(Obstacle(name, "box", tuple(np.asarray(obb.primitive.extents, dtype=float)), T))
+
+    tr = doc["tracker"]
+    if not isinstance(tr, dict):
+        raise ConfigError(f"{path}: tracker: expected a mapping")
+    _unknown(tr, _TRACKER_KEYS, f"{path}: tracker")
+    _missing(tr, ("position_m", "rotation_cardan_deg", "min_range_m", "max_range_m"), f"{path}: tracker")
+    T_IL = np.eye(4)
+    T_IL[:3, 3] = _vec(tr["position_m"], 3, f"{path}: tracker.position_m")
+    T_IL[:3, :3] = cardan_xyz(*np.deg2rad(_vec(tr["rotation_cardan_deg"], 3, f"{path}: tracker.rotation_cardan_deg")))
+    rmin = _positive(tr["min_range_m"], f"{path}: tracker.min_range_m")
+    rmax = _positive(tr["max_range_m"], f"{path}: tracker.max_range_m")
+    if rmax <= rmin:
+        raise ConfigError(f"{path}: tracker.max_range_m must exceed min_range_m")
+    beam = _positive(tr.get("beam_radius_m", 0.004), f"{path}: tracker.beam_radius_m")
+
+    wall = doc["wall"]
+    if not isinstance(wall, dict):
+        raise ConfigError(f"{path}: wall: expected a mapping")
+    _unknown(wall, _WALL_KEYS, f"{path}: wall")
+    _missing(wall, ("obstacle", "normal_in_I", "offset_m"), f"{path}: wall")
+    if wall["obstacle"] not in names:
+        raise ConfigError(f"{path}: wall.obstacle: no obstacle named '{wall['obstacle']}'")
+    normal = _vec(wall["normal_in_I"], 3, f"{path}: wall.normal_in_I")
+    if np.linalg.norm(normal) < 1e-9:
+        raise ConfigError(f"{path}: wall.normal_in_I must not be zero")
+    for a in (T_IL,):
+        a.setflags(write=False)
+    return Scene(path, str(doc.get("name", path.stem)), tuple(obstacles), T_IL, rmin, rmax, beam,
+                 str(wall["obstacle"]), normal / np.linalg.norm(normal), float(wall["offset_m"]))

@@ -1,0 +1,158 @@
+"""Stage 3: order the suitable poses into a short tour in Ruckig travel time, and check it.
+
+Travel time between two poses is Ruckig's time-optimal, jerk-limited rest-to-rest duration:
+each joint's minimum time for its distance under (v, a, j) limits, the motion synchronised to
+the slowest joint (:func:`rest_to_rest_time`; the tests compare it with Ruckig itself). With
+phase synchronisation every joint follows the same normalised profile, so the motion is a
+straight line in joint space; segments are re-checked by sampling that line at ≤ 1° of joint
+motion (:func:`segment_samples`, tests compare with Ruckig's own trajectory).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def joint_min_time(d, v, a, j):
+    """Minimum rest-to-rest time (s) to move a distance d ≥ 0 (rad) with limits v, a, j. Vectorised."""
+    d = np.abs(np.asarray(d, dtype=float))
+    # peak velocity when both acceleration and cruise phases exist
+    if v >= a * a / j:
+        t_acc = v / a + a / j
+    else:
+        t_acc = 2.0 * np.sqrt(v / j)
+    d_acc = v * t_acc / 2.0  # distance of a full acceleration phase up to v
+    cruise = d >= 2 * d_acc
+    out = np.empty_like(d)
+    out[cruise] = 2 * t_acc + (d[cruise] - 2 * d_acc) / v
+    short = ~cruise
+    ds = d[short]
+    # no cruise: peak velocity vp with d = 2 * dist_acc(vp)
+    vp = 0.5 * a * (-a / j + np.sqrt((a / j) ** 2 + 4 * ds / a))  # when vp ≥ a²/j
+    full_acc = vp >= a * a / j
+    t = np.where(full_acc, 2 * (vp / a + a / j), 0.0)
+    vp2 = (ds * np.sqrt(j) / 2.0) ** (2.0 / 3.0)  # triangular acceleration
+    t = np.where(full_acc, t, 4.0 * np.sqrt(vp2 / j))
+    out[short] = t
+    return out
+
+
+def rest_to_rest_time(robot, qa, qb):
+    """Synchronised rest-to-rest duration (s) between joint vectors qa, qb (…, 6)."""
+    dq = np.abs(np.asarray(qb, dtype=float) - np.asarray(qa, dtype=float))
+    times = [joint_min_time(dq[..., i].reshape(-1), robot.max_velocity[i], robot.max_acceleration[i],
+                            robot.max_jerk[i]).reshape(dq.shape[:-1]) for i in range(6)]
+    return np.max(np.stack(times, axis=-1), axis=-1)
+
+
+def ruckig_time(robot, qa, qb) -> float:
+    """The same duration computed by Ruckig (for tests and for the segments' plan)."""
+    from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
+
+    otg = Ruckig(6)
+    inp = InputParameter(6)
+    inp.current_position = list(map(float, qa))
+    inp.target_position = list(map(float, qb))
+    inp.max_velocity = list(map(float, robot.max_velocity))
+    inp.max_acceleration = list(map(float, robot.max_acceleration))
+    inp.max_jerk = list(map(float, robot.max_jerk))
+    inp.synchronization = Synchronization.Phase
+    traj = Trajectory(6)
+    res = otg.calculate(inp, traj)
+    if res not in (Result.Working, Result.Finished):
+        raise RuntimeError(f"ruckig failed: {res}")
+    return traj.duration, traj
+
+
+class GridTimes:
+    """Travel times between grid poses by lookup: for grid poses, |Δq_i| is a whole number of
+    cells, so each joint's time is a table indexed by the cell difference."""
+
+    def __init__(self, robot, grid):
+        self.lut = [joint_min_time(np.arange(grid.cells[i]) * grid.step[i], robot.max_velocity[i],
+                                   robot.max_acceleration[i], robot.max_jerk[i]) for i in range(6)]
+
+    def from_one(self, c, C):
+        """Times from cell vector c (6,) to cell vectors C (m, 6)."""
+        t = self.lut[0][np.abs(C[:, 0] - c[0])]
+        for i in range(1, 6):
+            t = np.maximum(t, self.lut[i][np.abs(C[:, i] - c[i])])
+        return t
+
+    def pair(self, A, B):
+        d = np.abs(A - B)
+        t = self.lut[0][d[..., 0]]
+        for i in range(1, 6):
+            t = np.maximum(t, self.lut[i][d[..., i]])
+        return t
+
+
+def nearest_neighbour(times: GridTimes, C, start: int = 0):
+    """Greedy tour over cell vectors C (n, 6); returns the visiting order (n,)."""
+    n = len(C)
+    remaining = np.ones(n, dtype=bool)
+    order = np.empty(n, dtype=np.int64)
+    cur = start
+    idx_all = np.arange(n)
+    for k in range(n):
+        order[k] = cur
+        remaining[cur] = False
+        if k == n - 1:
+            break
+        cand = idx_all[remaining]
+        t = times.from_one(C[cur], C[cand])
+        cur = cand[int(np.argmin(t))]
+    return order
+
+
+def two_opt(times: GridTimes, C, order, neighbours: int = 8, passes: int = 3):
+    """2-opt on an open path with candidate lists of the nearest poses in travel time."""
+    order = np.array(order)
+    n = len(order)
+    if n < 4:
+        return order
+    # candidate lists (by time) from a block-wise computation
+    near = np.empty((n, neighbours), dtype=np.int64)
+    k = min(neighbours, n - 1)
+    for s in range(0, n, 512):
+        block = C[s : s + 512]
+        t = times.pair(block[:, None, :], C[None, :, :])
+        t[np.arange(len(block)), np.arange(s, s + len(block))] = np.inf
+        near[s : s + len(block), :k] = np.argpartition(t, k, axis=1)[:, :k]
+    near = near[:, :k]
+    pos = np.empty(n, dtype=np.int64)
+    for p in range(passes):
+        pos[order] = np.arange(n)
+        improved = 0
+        for i in range(n - 1):
+            a, b = order[i], order[i + 1]
+            d_ab = times.pair(C[a], C[b])
+            for c in near[a]:
+                j = pos[c]
+                if j <= i + 1 or j >= n - 1:
+                    continue
+                d = order[j + 1]
+                gain = d_ab + times.pair(C[c], C[d]) - times.pair(C[a], C[c]) - times.pair(C[b], C[d])
+                if gain > 1e-9:
+                    order[i + 1 : j + 1] = order[i + 1 : j + 1][::-1]
+                    pos[order[i + 1 : j + 1]] = np.arange(i + 1, j + 1)
+                    improved += 1
+                    break
+        if not improved:
+            break
+    return order
+
+
+def segment_samples(qa, qb, max_step_rad):
+    """Configurations along the straight joint-space motion qa→qb, ≤ max_step_rad apart (k, 6)."""
+    qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
+    k = max(1, int(np.ceil(np.max(np.abs(qb - qa)) / max_step_rad)))
+    s = np.linspace(0.0, 1.0, k + 1)[:, None]
+    return qa + s * (qb - qa)
+
+
+def path_time(robot, Q) -> float:
+    """Total travel time (s) of a path through joint vectors Q (n, 6)."""
+    if len(Q) < 2:
+        return 0.0
+    return float(np.sum(rest_to_rest_time(robot, Q[:-1], Q[1:])))
