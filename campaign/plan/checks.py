@@ -13,8 +13,7 @@ import itertools
 
 import numpy as np
 
-from campaign.plan.geometry import (RobotSpheres, fcl_geometry, point_obstacle_distance, robot_primitives,
-                                    robot_spheres, world_spheres)
+from campaign.plan.geometry import RobotSpheres, fcl_geometry, point_obstacle_distance, robot_primitives, robot_spheres
 
 #: frames whose primitives may occlude the tracker's beams (the tool plate and flange lie
 #: behind the reflectors' cones, so frames 6 and 7 cannot block a beam that passed the cone test)
@@ -134,13 +133,13 @@ class ClearanceChecker:
         dropped = [(self.prims[i].frame, self.prims[j].frame) for (i, j), c in zip(pairs, near) if c == n]
         return keep, dropped
 
-    def _place(self, R, t):
+    def _place(self, R, t, which=None):
+        """Put the robot's FCL objects (all, or the primitive indices ``which``) at a pose."""
         import fcl
 
-        for obj, p in zip(self.robot_objs, self.prims):
-            Rw = R[p.frame] @ p.T[:3, :3]
-            tw = R[p.frame] @ p.T[:3, 3] + t[p.frame]
-            obj.setTransform(fcl.Transform(Rw, tw))
+        for i in range(len(self.prims)) if which is None else which:
+            p = self.prims[i]
+            self.robot_objs[i].setTransform(fcl.Transform(R[p.frame] @ p.T[:3, :3], R[p.frame] @ p.T[:3, 3] + t[p.frame]))
 
     @staticmethod
     def _dist(a, b):
@@ -160,32 +159,51 @@ class ClearanceChecker:
         c = self.clearance if clearance is None else float(clearance)
         n = len(R)
         S = self.spheres
-        W = world_spheres(S, R, t)  # (n, S, 3)
-        # lower bounds per (primitive, obstacle) pair from the primitive's spheres
+        # coarse level: one sphere per primitive, for every pose
+        Cw = np.einsum("npij,pj->npi", R[:, S.coarse_frame], S.coarse_centre) + t[:, S.coarse_frame]
         need_scene = np.zeros((n, len(self.scene_pairs)), dtype=bool)
         for m, (i, j) in enumerate(self.scene_pairs):
-            sel = S.primitive == i
-            lb = np.min(point_obstacle_distance(W[:, sel], self.scene.obstacles[j]) - S.radius[sel], axis=1)
-            need_scene[:, m] = lb < c
+            need_scene[:, m] = point_obstacle_distance(Cw[:, i], self.scene.obstacles[j]) - S.coarse_radius[i] < c
         need_self = np.zeros((n, len(self.self_pairs)), dtype=bool)
         for m, (i, j) in enumerate(self.self_pairs):
+            d = np.linalg.norm(Cw[:, i] - Cw[:, j], axis=-1)
+            need_self[:, m] = d - S.coarse_radius[i] - S.coarse_radius[j] < c
+        # fine level: the primitives' sphere sets, only where the coarse bound could not decide
+        for m, (i, j) in enumerate(self.scene_pairs):
+            rows = np.flatnonzero(need_scene[:, m])
+            if len(rows) == 0:
+                continue
+            sel = S.primitive == i
+            W = np.einsum("nij,sj->nsi", R[rows][:, S.frame[sel][0]], S.centre[sel]) + t[rows][:, S.frame[sel][0]][:, None]
+            lb = np.min(point_obstacle_distance(W, self.scene.obstacles[j]) - S.radius[sel], axis=1)
+            need_scene[rows, m] = lb < c
+        for m, (i, j) in enumerate(self.self_pairs):
+            rows = np.flatnonzero(need_self[:, m])
+            if len(rows) == 0:
+                continue
             si, sj = S.primitive == i, S.primitive == j
-            d = np.linalg.norm(W[:, si][:, :, None, :] - W[:, sj][:, None, :, :], axis=-1)
-            lb = np.min(d - S.radius[si][:, None] - S.radius[sj][None, :], axis=(1, 2))
-            need_self[:, m] = lb < c
+            Wi = np.einsum("nij,sj->nsi", R[rows][:, S.frame[si][0]], S.centre[si]) + t[rows][:, S.frame[si][0]][:, None]
+            Wj = np.einsum("nij,sj->nsi", R[rows][:, S.frame[sj][0]], S.centre[sj]) + t[rows][:, S.frame[sj][0]][:, None]
+            lb = np.full(len(rows), np.inf)
+            for a in range(Wi.shape[1]):  # bounded memory: one sphere of i against all of j
+                d = np.linalg.norm(Wj - Wi[:, a : a + 1], axis=-1) - S.radius[sj][None, :] - S.radius[si][a]
+                lb = np.minimum(lb, d.min(axis=1))
+            need_self[rows, m] = lb < c
         ok = np.ones(n, dtype=bool)
         todo = np.flatnonzero(need_scene.any(axis=1) | need_self.any(axis=1))
+        scene_pairs = np.array(self.scene_pairs).reshape(-1, 2)
+        self_pairs = np.array(self.self_pairs).reshape(-1, 2)
         for k in todo:
-            self._place(R[k], t[k])
-            for m in np.flatnonzero(need_scene[k]):
-                i, j = self.scene_pairs[m]
+            ms, mo = np.flatnonzero(need_scene[k]), np.flatnonzero(need_self[k])
+            which = set(scene_pairs[ms, 0]) | set(self_pairs[mo, 0]) | set(self_pairs[mo, 1])
+            self._place(R[k], t[k], which)
+            for i, j in scene_pairs[ms]:
                 if self._dist(self.robot_objs[i], self.scene_objs[j]) < c:
                     ok[k] = False
                     break
             if not ok[k]:
                 continue
-            for m in np.flatnonzero(need_self[k]):
-                i, j = self.self_pairs[m]
+            for i, j in self_pairs[mo]:
                 if self._dist(self.robot_objs[i], self.robot_objs[j]) < c:
                     ok[k] = False
                     break

@@ -66,22 +66,24 @@ def fcl_geometry(kind, size):
     raise ValueError(kind)
 
 
-def enclosing_spheres(kind, size, T, max_aspect: float = 1.0):
-    """Spheres (centres in the primitive's frame (k, 3), radii (k,)) enclosing the primitive."""
+def enclosing_spheres(kind, size, T, max_aspect: float = 0.5):
+    """Spheres (centres in the primitive's frame (k, 3), radii (k,)) enclosing the primitive.
+
+    A box is cut into near-cubes whose side is about its smallest edge (times ``max_aspect``),
+    each inside the sphere through its corners; a cylinder into slices no taller than
+    ``max_aspect`` times its radius, each inside the sphere through its rim.
+    """
     if kind == "box":
         ext = np.asarray(size, dtype=float)
-        axis = int(np.argmax(ext))
-        others = np.delete(ext, axis)
-        k = max(1, int(np.ceil(ext[axis] / (max_aspect * max(others.max(), 1e-6)))))
-        piece = ext.copy()
-        piece[axis] = ext[axis] / k
+        side = max_aspect * ext.min()
+        k = np.maximum(1, np.ceil(ext / side - 1e-9)).astype(int)
+        piece = ext / k
         r = 0.5 * np.linalg.norm(piece)
-        offs = (np.arange(k) + 0.5) * piece[axis] - 0.5 * ext[axis]
-        c = np.zeros((k, 3))
-        c[:, axis] = offs
+        axes = [(np.arange(k[a]) + 0.5) * piece[a] - 0.5 * ext[a] for a in range(3)]
+        c = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     else:
         radius, height = size
-        k = max(1, int(np.ceil(height / (2 * radius * max_aspect))))
+        k = max(1, int(np.ceil(height / (radius * max_aspect))))
         h = height / k
         r = np.hypot(radius, h / 2)
         c = np.zeros((k, 3))
@@ -96,18 +98,27 @@ class RobotSpheres:
     centre: np.ndarray  # (S, 3) in the frame
     radius: np.ndarray  # (S,)
     primitive: np.ndarray  # (S,) index into robot_primitives
+    #: one sphere per primitive (centre in its frame (P, 3), radius (P,), frame (P,)): the coarse level
+    coarse_centre: np.ndarray = None
+    coarse_radius: np.ndarray = None
+    coarse_frame: np.ndarray = None
 
 
 @functools.lru_cache(maxsize=4)
 def robot_spheres(robot) -> RobotSpheres:
     frames, centres, radii, prims = [], [], [], []
+    cc, cr, cf = [], [], []
     for i, p in enumerate(robot_primitives(robot)):
         c, r = enclosing_spheres(p.kind, p.size, p.T)
         frames += [p.frame] * len(r)
         centres.append(c)
         radii.append(r)
         prims += [i] * len(r)
-    return RobotSpheres(np.array(frames), np.concatenate(centres), np.concatenate(radii), np.array(prims))
+        cc.append(p.T[:3, 3])
+        cr.append(0.5 * np.linalg.norm(p.size) if p.kind == "box" else np.hypot(p.size[0], p.size[1] / 2))
+        cf.append(p.frame)
+    return RobotSpheres(np.array(frames), np.concatenate(centres), np.concatenate(radii), np.array(prims),
+                        np.array(cc), np.array(cr), np.array(cf))
 
 
 def world_spheres(spheres: RobotSpheres, R, t):
