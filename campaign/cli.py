@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "campaign.demo",
     "campaign.model.commands",
     "campaign.plan.commands",
+    "campaign.measure.commands",
     "campaign.identify.commands",
     "campaign.sim.commands",
     "campaign.diagnose.commands",

@@ -6,6 +6,13 @@ from pathlib import Path
 
 
 def register(sub):
+    s = sub.add_parser("sim", help="run the simulated cell alone (controller and tracker ports), for a real driver test")
+    s.add_argument("--config", metavar="FILE", default=None, help="configuration (default: the embedded one)")
+    s.add_argument("--run", metavar="DIR", default="runs/sim", help="where the simulator keeps its truth (default: %(default)s)")
+    s.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
+    s.add_argument("--controller-port", type=int, default=0, help="controller port (default: any free port)")
+    s.add_argument("--tracker-port", type=int, default=0, help="tracker port (default: any free port)")
+    s.set_defaults(func=_sim)
     p = sub.add_parser("synth", help="write a measured-pose CSV from a seeded simulated truth (truth in a separate file)")
     p.add_argument("--csv", required=True, metavar="OUT", help="measured-pose CSV to write")
     p.add_argument("--truth", metavar="FILE", default=None, help="where to write the truth (default: OUT with .truth.yaml)")
@@ -46,3 +53,20 @@ def _synth(args):
     write_truth(truth, truth_path)
     print(f"wrote {len(poses)} poses to {out}; truth to {truth_path}")
     return 0
+
+
+def _sim(args):
+    import time
+
+    from campaign.config import load_config
+    from campaign.sim.cell import start_cell
+
+    cfg = load_config(args.config)
+    world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port)
+    print(f"simulated cell: controller {args.host}:{ctrl.port}, tracker {args.host}:{trk.port} "
+          f"(truth in {world.truth_path}); Ctrl-C stops", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 0

@@ -1,0 +1,260 @@
+"""The wire protocol between the campaign driver and the robot controller / laser tracker.
+
+Framing: a 4-byte big-endian length, then that many bytes of UTF-8 JSON holding one object.
+Frames above :data:`MAX_FRAME` bytes are refused. Every request carries an integer ``id``;
+a peer that sees an id again answers with its first reply and does not act twice, so a
+retry after a lost reply is idempotent. docs/protocol.md describes every message.
+
+Parsing is pure: :func:`decode` turns bytes into a typed, validated message or raises
+:class:`campaign.errors.ProtocolError` naming what is wrong. No pickle, no eval.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import struct
+from dataclasses import asdict, dataclass, field
+
+from campaign.errors import PeerError, ProtocolError, TrackerTimeout
+
+MAX_FRAME = 64 * 1024
+_HEADER = struct.Struct(">I")
+
+#: target names the tracker knows: the tool's reflectors and the base-frame set-up points
+SETUP_TARGETS = ("setup_origin", "setup_x", "setup_y")
+TARGET_STATUS = ("ok", "beam_lost", "out_of_range")
+
+
+# -- messages ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Move:
+    """Controller request: move to joint coordinates ``q`` (rad)."""
+    id: int
+    q: tuple
+    type: str = "move"
+
+
+@dataclass(frozen=True)
+class Reached:
+    """Controller reply: the pose is reached; ``q_encoder`` rad, ``time_s`` campaign clock."""
+    id: int
+    q_encoder: tuple
+    time_s: float
+    type: str = "reached"
+
+
+@dataclass(frozen=True)
+class Fault:
+    """Controller reply: the robot stopped with a fault."""
+    id: int
+    code: str
+    message: str
+    type: str = "fault"
+
+
+@dataclass(frozen=True)
+class Measure:
+    """Tracker request: measure the named targets."""
+    id: int
+    targets: tuple
+    type: str = "measure"
+
+
+@dataclass(frozen=True)
+class Reading:
+    target: str
+    status: str
+    xyz_m: tuple | None = None
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Tracker reply: one reading per target, coordinates in F_L (m)."""
+    id: int
+    time_s: float
+    readings: tuple = field(default_factory=tuple)
+    type: str = "measurement"
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    id: int
+    type: str = "heartbeat"
+
+
+@dataclass(frozen=True)
+class HeartbeatAck:
+    id: int
+    time_s: float
+    peer: str
+    type: str = "heartbeat_ack"
+
+
+@dataclass(frozen=True)
+class ErrorReply:
+    """Either peer: the request could not be understood."""
+    id: int
+    message: str
+    type: str = "error"
+
+
+def _num(obj, key, what):
+    v = obj.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ProtocolError(f"{what}: field '{key}' must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _id(obj, what):
+    v = obj.get("id")
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0 or v >= 2**63:
+        raise ProtocolError(f"{what}: field 'id' must be a non-negative integer, got {v!r}")
+    return v
+
+
+def _vec(obj, key, n, what):
+    v = obj.get(key)
+    if not isinstance(v, list) or len(v) != n:
+        raise ProtocolError(f"{what}: field '{key}' must be a list of {n} numbers")
+    out = []
+    for x in v:
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise ProtocolError(f"{what}: field '{key}' must hold finite numbers, got {x!r}")
+        out.append(float(x))
+    return tuple(out)
+
+
+def _str(obj, key, what, max_len=200):
+    v = obj.get(key)
+    if not isinstance(v, str) or len(v) > max_len:
+        raise ProtocolError(f"{what}: field '{key}' must be a string of at most {max_len} characters")
+    return v
+
+
+def from_dict(obj) -> object:
+    """Validate a decoded JSON object into a message dataclass."""
+    if not isinstance(obj, dict):
+        raise ProtocolError("message must be a JSON object")
+    kind = obj.get("type")
+    what = f"message '{kind}'"
+    if kind == "move":
+        return Move(_id(obj, what), _vec(obj, "q", 6, what))
+    if kind == "reached":
+        return Reached(_id(obj, what), _vec(obj, "q_encoder", 6, what), _num(obj, "time_s", what))
+    if kind == "fault":
+        return Fault(_id(obj, what), _str(obj, "code", what), _str(obj, "message", what, 2000))
+    if kind == "measure":
+        t = obj.get("targets")
+        if not isinstance(t, list) or not 1 <= len(t) <= 16 or not all(isinstance(x, str) and len(x) <= 64 for x in t):
+            raise ProtocolError(f"{what}: field 'targets' must be a list of 1-16 target names")
+        return Measure(_id(obj, what), tuple(t))
+    if kind == "measurement":
+        rs = obj.get("readings")
+        if not isinstance(rs, list) or len(rs) > 16:
+            raise ProtocolError(f"{what}: field 'readings' must be a list")
+        readings = []
+        for r in rs:
+            if not isinstance(r, dict):
+                raise ProtocolError(f"{what}: each reading must be an object")
+            status = _str(r, "status", what)
+            if status not in TARGET_STATUS:
+                raise ProtocolError(f"{what}: reading status must be one of {', '.join(TARGET_STATUS)}, got {status!r}")
+            xyz = _vec(r, "xyz_m", 3, what) if status == "ok" else None
+            readings.append(Reading(_str(r, "target", what, 64), status, xyz))
+        return Measurement(_id(obj, what), _num(obj, "time_s", what), tuple(readings))
+    if kind == "heartbeat":
+        return Heartbeat(_id(obj, what))
+    if kind == "heartbeat_ack":
+        return HeartbeatAck(_id(obj, what), _num(obj, "time_s", what), _str(obj, "peer", what))
+    if kind == "error":
+        return ErrorReply(_id(obj, what) if "id" in obj else 0, _str(obj, "message", what, 2000))
+    raise ProtocolError(f"unknown message type {kind!r}")
+
+
+def to_dict(msg) -> dict:
+    d = asdict(msg)
+    if isinstance(msg, Measurement):
+        d["readings"] = [{k: v for k, v in asdict(r).items() if v is not None} for r in msg.readings]
+    for key in ("q", "q_encoder", "targets"):
+        if key in d:
+            d[key] = list(d[key])
+    return d
+
+
+def encode(msg) -> bytes:
+    body = json.dumps(to_dict(msg), separators=(",", ":")).encode()
+    if len(body) > MAX_FRAME:
+        raise ProtocolError(f"message of {len(body)} bytes exceeds the {MAX_FRAME}-byte limit")
+    return _HEADER.pack(len(body)) + body
+
+
+def decode(body: bytes):
+    try:
+        obj = json.loads(body.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ProtocolError(f"frame is not UTF-8 JSON ({exc.__class__.__name__})") from None
+    return from_dict(obj)
+
+
+# -- a framed connection ----------------------------------------------------------------------
+
+class Connection:
+    """A TCP connection that sends and receives whole frames, with a per-call timeout."""
+
+    def __init__(self, sock: socket.socket, peer: str):
+        self.sock, self.peer = sock, peer
+        self._buf = b""
+
+    @classmethod
+    def connect(cls, host: str, port: int, timeout_s: float, name: str) -> "Connection":
+        peer = f"{name} {host}:{port}"
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout_s)
+        except ConnectionRefusedError:
+            raise PeerError(f"{peer}: connection refused") from None
+        except socket.timeout:
+            raise PeerError(f"{peer}: no answer to connect within {timeout_s:g} s") from None
+        except OSError as exc:
+            raise PeerError(f"{peer}: cannot connect ({exc.strerror or exc})") from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return cls(sock, peer)
+
+    def send(self, msg) -> None:
+        self.send_raw(encode(msg))
+
+    def send_raw(self, data: bytes) -> None:
+        try:
+            self.sock.sendall(data)
+        except OSError as exc:
+            raise PeerError(f"{self.peer}: connection lost while sending ({exc.strerror or exc})") from None
+
+    def _read_exact(self, n, timeout_s):
+        self.sock.settimeout(timeout_s)
+        while len(self._buf) < n:
+            try:
+                chunk = self.sock.recv(max(65536, n - len(self._buf)))
+            except socket.timeout:
+                raise TrackerTimeout(f"{self.peer}: no reply within {timeout_s:g} s") from None
+            except OSError as exc:
+                raise PeerError(f"{self.peer}: connection lost ({exc.strerror or exc})") from None
+            if not chunk:
+                raise PeerError(f"{self.peer}: connection closed by the peer")
+            self._buf += chunk
+        out, self._buf = self._buf[:n], self._buf[n:]
+        return out
+
+    def receive(self, timeout_s: float):
+        """The next message; ProtocolError for a bad frame (the connection is then unusable)."""
+        (length,) = _HEADER.unpack(self._read_exact(4, timeout_s))
+        if length > MAX_FRAME:
+            raise ProtocolError(f"{self.peer}: frame of {length} bytes exceeds the {MAX_FRAME}-byte limit")
+        return decode(self._read_exact(length, timeout_s))
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass

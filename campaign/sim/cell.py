@@ -1,0 +1,248 @@
+"""The simulated cell: one process serving a robot controller and a laser tracker over TCP.
+
+Both ports share one world: a truth robot (nominal + hidden geometric errors + hidden
+physical effects), the true pose of the tracker (from the scene), tracker noise, motion that
+takes Ruckig's time plus a settle time, tracker time per target, and a simulated clock. The
+truth is drawn from a seed and written to the simulator's own file (``RUN/sim/truth.yaml``),
+which `plan`, `calibrate` and `diagnose` never read.
+
+Faults are injected with configurable rates; each decision is drawn from a generator seeded
+by (seed, request id), so a campaign re-run with the same requests meets the same faults.
+
+    python -m campaign.sim.cell --config RUN/campaign.yaml --run RUN [--watch-stdin]
+
+prints one JSON line ``{"controller": PORT, "tracker": PORT, "truth": PATH}`` when ready.
+With ``--watch-stdin`` it exits when its standard input closes (its parent died or is done).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import sys
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from campaign.config import load_config, resolve
+from campaign.effects.base import make_effect
+from campaign.errors import CampaignError, PeerError, ProtocolError, TrackerTimeout
+from campaign.measure import protocol as P
+from campaign.measure.reflectors import transform_points
+from campaign.model.robot import RobotModel
+from campaign.plan.scene import load_scene
+from campaign.plan.tour import rest_to_rest_time
+from campaign.sim.truth import make_truth, write_truth
+
+FAULT_KINDS = ("drop", "late", "garble", "beam_lost", "robot_fault", "estop")
+_KIND_CODE = {k: i + 1 for i, k in enumerate(FAULT_KINDS)}
+#: distances of the base-frame set-up points from F_I's origin along x and y (m)
+SETUP_SPACING_M = 0.3
+
+
+class World:
+    """The physical state shared by both ports. All methods hold the lock."""
+
+    def __init__(self, cfg, run_dir):
+        sc = cfg["sim"]
+        robot_ref = resolve(cfg, cfg["robot"])
+        self.robot = RobotModel.load(robot_ref if robot_ref.is_dir() else cfg["robot"])
+        self.scene = load_scene(resolve(cfg, cfg["scene"]))
+        self.seed = int(sc["seed"])
+        hidden = {}
+        for name in sc.get("hidden_effects") or []:
+            e = make_effect(name, self.robot)
+            hidden[name] = e.typical_params(self.seed)
+        self.truth = make_truth(self.robot, seed=self.seed, noise_m=float(sc["noise_m"]), effects=hidden,
+                                T_LI=self.scene.T_LI)
+        self.settle_s = float(cfg["plan"]["settle_time_s"])
+        self.tracker_s = float(cfg["plan"]["tracker_time_per_reflector_s"])
+        self.time_factor = float(sc["time_factor"])
+        self.faults = {k: float(v) for k, v in (sc.get("faults") or {}).items() if k in FAULT_KINDS}
+        self.late_delay_s = float((sc.get("faults") or {}).get("late_delay_s", 1.0)) if isinstance(sc.get("faults"), dict) else 1.0
+        self.clock_s = 0.0
+        self.q = np.array(self.robot.q_mid)
+        self.lock = threading.Lock()
+        self.truth_path = Path(run_dir) / "sim" / "truth.yaml"
+        self.truth_path.parent.mkdir(parents=True, exist_ok=True)
+        write_truth(self.truth, self.truth_path)
+        self.setup_I = {"setup_origin": np.zeros(3), "setup_x": np.array([SETUP_SPACING_M, 0, 0]),
+                        "setup_y": np.array([0, SETUP_SPACING_M, 0])}
+        self.reflectors = {r.name: np.array(r.position_in_E) for r in self.robot.reflectors}
+
+    def fault(self, kind, request_id) -> bool:
+        rate = self.faults.get(kind, 0.0)
+        if rate <= 0:
+            return False
+        return np.random.default_rng([self.seed, _KIND_CODE[kind], int(request_id)]).random() < rate
+
+    def _advance(self, dt):
+        self.clock_s += dt
+        if self.time_factor > 0:
+            time.sleep(dt * self.time_factor)
+
+    def context(self):
+        ctx = {"time_s": np.array([self.clock_s])}
+        ctx["temperature_c"] = np.array([20.0 + 5.0 * np.sin(2 * np.pi * self.clock_s / 86400.0)])
+        return ctx
+
+    def move(self, msg: P.Move):
+        q = np.array(msg.q)
+        if np.any(q < self.robot.q_lower - 1e-9) or np.any(q > self.robot.q_upper + 1e-9):
+            return P.Fault(msg.id, "joint_limit", "target outside the joint limits")
+        if self.fault("estop", msg.id):
+            return P.Fault(msg.id, "emergency_stop", "emergency stop pressed")
+        if self.fault("robot_fault", msg.id):
+            return P.Fault(msg.id, "move_rejected", "drive reported a following error; move not executed")
+        with self.lock:
+            dt = float(rest_to_rest_time(self.robot, self.q[None], q[None])[0]) + self.settle_s
+            self._advance(dt)
+            self.q = q
+            return P.Reached(msg.id, tuple(float(v) for v in q), self.clock_s)
+
+    def measure(self, msg: P.Measure):
+        with self.lock:
+            rng = np.random.default_rng([self.seed, 99, int(msg.id)])
+            T_LE = self.truth.T_LI @ self.truth.pose(self.q[None], self.context())[0]
+            readings = []
+            for k, target in enumerate(msg.targets):
+                self._advance(self.tracker_s)
+                if target in self.reflectors:
+                    p = transform_points(T_LE, self.reflectors[target][None])[0]
+                elif target in self.setup_I:
+                    p = transform_points(self.truth.T_LI, self.setup_I[target][None])[0]
+                else:
+                    return P.ErrorReply(msg.id, f"unknown target {target!r}")
+                if self.fault("beam_lost", msg.id * 16 + k):
+                    readings.append(P.Reading(target, "beam_lost"))
+                    continue
+                dist = np.linalg.norm(p - 0.0)
+                if not self.scene.min_range_m <= dist <= self.scene.max_range_m:
+                    readings.append(P.Reading(target, "out_of_range"))
+                    continue
+                if self.truth.noise_m > 0:
+                    p = p + rng.normal(0.0, self.truth.noise_m, 3)
+                if self.truth.resolution_m > 0 and self.truth.noise_m > 0:
+                    p = np.round(p / self.truth.resolution_m) * self.truth.resolution_m
+                readings.append(P.Reading(target, "ok", tuple(float(v) for v in p)))
+            return P.Measurement(msg.id, self.clock_s, tuple(readings))
+
+
+class Port:
+    """One listening port (controller or tracker) with a reply cache for idempotent retries."""
+
+    def __init__(self, world: World, name: str, host: str, port: int):
+        self.world, self.name = world, name
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind((host, port))
+        self.sock.listen(8)
+        self.port = self.sock.getsockname()[1]
+        self.cache: OrderedDict = OrderedDict()
+        self.cache_lock = threading.Lock()
+
+    def serve_forever(self):
+        while True:
+            try:
+                conn, addr = self.sock.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._handle, args=(conn,), daemon=True).start()
+
+    def _reply_for(self, msg):
+        if isinstance(msg, P.Heartbeat):
+            return P.HeartbeatAck(msg.id, self.world.clock_s, self.name)
+        with self.cache_lock:
+            if msg.id in self.cache:
+                return self.cache[msg.id]
+        if self.name == "controller" and isinstance(msg, P.Move):
+            reply = self.world.move(msg)
+        elif self.name == "tracker" and isinstance(msg, P.Measure):
+            reply = self.world.measure(msg)
+        else:
+            return P.ErrorReply(msg.id, f"the {self.name} does not accept '{msg.type}'")
+        with self.cache_lock:
+            self.cache[msg.id] = reply
+            while len(self.cache) > 4096:
+                self.cache.popitem(last=False)
+        return reply
+
+    def _handle(self, conn):
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        c = P.Connection(conn, f"driver at {self.name}")
+        try:
+            while True:
+                try:
+                    msg = c.receive(timeout_s=300.0)
+                except ProtocolError as exc:
+                    try:
+                        c.send(P.ErrorReply(0, str(exc)))
+                    except CampaignError:
+                        pass
+                    return
+                reply = self._reply_for(msg)
+                w = self.world
+                if w.fault("drop", msg.id * 8 + 1):
+                    return  # the reply is cached: a retry with the same id gets it
+                if w.fault("late", msg.id * 8 + 2):
+                    time.sleep(w.late_delay_s)
+                if w.fault("garble", msg.id * 8 + 3):
+                    c.send_raw(b"\x00\x00\x00\x10{not json at all")
+                    return
+                c.send(reply)
+        except (PeerError, TrackerTimeout, OSError):
+            return
+        finally:
+            c.close()
+
+
+def start_cell(cfg, run_dir, host="127.0.0.1", controller_port=0, tracker_port=0):
+    """Start both ports in this process (threads); returns (world, controller Port, tracker Port)."""
+    world = World(cfg, run_dir)
+    ports = (Port(world, "controller", host, controller_port), Port(world, "tracker", host, tracker_port))
+    for p in ports:
+        threading.Thread(target=p.serve_forever, daemon=True).start()
+    return (world,) + ports
+
+
+def _watch_stdin():
+    try:
+        while sys.stdin.buffer.read(1024):
+            pass
+    finally:
+        os._exit(0)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m campaign.sim.cell", description="the simulated robot cell")
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--run", default="runs/sim")
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--controller-port", type=int, default=0)
+    ap.add_argument("--tracker-port", type=int, default=0)
+    ap.add_argument("--watch-stdin", action="store_true")
+    args = ap.parse_args(argv)
+    try:
+        cfg = load_config(args.config)
+        world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port)
+    except CampaignError as exc:
+        print(json.dumps({"error": str(exc)}), flush=True)
+        return 1
+    print(json.dumps({"controller": ctrl.port, "tracker": trk.port, "host": args.host,
+                      "truth": str(world.truth_path)}), flush=True)
+    if args.watch_stdin:
+        _watch_stdin()
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
