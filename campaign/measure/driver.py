@@ -96,7 +96,8 @@ class Peer:
                     # a stale reply to an earlier request: keep reading
             except (PeerError, TrackerTimeout, ProtocolError) as exc:
                 last = exc
-                self.log(f"{self.name}: {exc}; retrying ({attempt + 1}/{self.opts.retries})")
+                if attempt < self.opts.retries:
+                    self.log(f"{exc}; retry {attempt + 1} of {self.opts.retries}")
                 self.close()
                 time.sleep(self.opts.backoff_s * (attempt + 1))
         raise PeerError(f"{self.name} {self.host}:{self.port}: no valid reply after {self.opts.retries + 1} attempts "

@@ -145,6 +145,8 @@ class Port:
         self.port = self.sock.getsockname()[1]
         self.cache: OrderedDict = OrderedDict()
         self.cache_lock = threading.Lock()
+        #: how often each request id was seen: transport faults are drawn per (id, attempt)
+        self.seen: dict = {}
 
     def serve_forever(self):
         while True:
@@ -187,11 +189,15 @@ class Port:
                     return
                 reply = self._reply_for(msg)
                 w = self.world
-                if w.fault("drop", msg.id * 8 + 1):
+                with self.cache_lock:
+                    attempt = self.seen.get(msg.id, 0)
+                    self.seen[msg.id] = attempt + 1
+                key = (msg.id * 8 + attempt) * 4
+                if w.fault("drop", key + 1):
                     return  # the reply is cached: a retry with the same id gets it
-                if w.fault("late", msg.id * 8 + 2):
+                if w.fault("late", key + 2):
                     time.sleep(w.late_delay_s)
-                if w.fault("garble", msg.id * 8 + 3):
+                if w.fault("garble", key + 3):
                     c.send_raw(b"\x00\x00\x00\x10{not json at all")
                     return
                 c.send(reply)

@@ -174,3 +174,16 @@ def synthesize(truth: TruthRobot, q, *, seed: int = 0, time_s=None, context=None
 
 def write_truth(truth: TruthRobot, path) -> None:
     Path(path).write_text(truth.to_yaml())
+
+
+def read_truth(path, robot: RobotModel | None = None) -> TruthRobot:
+    """Load a truth file written by :func:`write_truth` (for evaluation after the fact)."""
+    doc = yaml.safe_load(Path(path).read_text())
+    robot = robot or RobotModel.load()
+    effs, thetas = [], []
+    for name, th in (doc.get("effects") or {}).items():
+        effs.append(make_effect(name, robot))
+        thetas.append(np.asarray(th, dtype=float))
+    return TruthRobot(robot, np.asarray(doc["p_e"], dtype=float), np.asarray(doc["T_LI"], dtype=float),
+                      float(doc["noise_m"]), float(doc["resolution_m"]), EffectSet(tuple(effs)),
+                      np.concatenate(thetas) if thetas else np.zeros(0))

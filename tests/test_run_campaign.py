@@ -1,0 +1,181 @@
+"""`campaign run` against the simulated cell: real processes, real sockets."""
+
+import os
+import signal
+import socket
+import sqlite3
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from campaign.cli import main
+from campaign.measure import protocol as P
+from campaign.measure.store import open_run
+from campaign.model.robot import REPO_ROOT
+from campaign.sim.truth import random_joint_poses, read_truth
+
+
+def make_run(tmp_path, robot, n=60, seed=0, sim=None, run=None, name="run"):
+    """A run folder with a random plan and a campaign.yaml for the simulated cell."""
+    run_dir = tmp_path / name
+    (run_dir / "plan").mkdir(parents=True)
+    q = random_joint_poses(robot, n, seed=seed)
+    lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{1000 + i}," + ",".join(repr(float(v)) for v in q[i]) for i in range(n)]
+    (run_dir / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
+    cfg = {"robot": "comau_racer5_080", "scene": str(REPO_ROOT / "scene" / "default_cell.yaml"),
+           "run": {"timeout_s": 0.5, "retries": 3, "backoff_s": 0.01, "drift_check_every": 20, **(run or {})},
+           "sim": {"seed": seed, "time_factor": 0.0, **(sim or {})}}
+    (run_dir / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    return run_dir
+
+
+def stored(run_dir):
+    with sqlite3.connect(run_dir / "measurements.sqlite") as db:
+        return db.execute("SELECT pose_id, status, reason FROM poses ORDER BY pose_id").fetchall()
+
+
+def test_messages_round_trip_and_bad_ones_are_named():
+    for msg in (P.Move(3, (0.1,) * 6), P.Reached(3, (0.2,) * 6, 12.5), P.Fault(4, "x", "y"),
+                P.Measure(5, ("rrr1", "brr")), P.Heartbeat(6), P.HeartbeatAck(6, 1.0, "tracker"),
+                P.Measurement(7, 2.0, (P.Reading("rrr1", "ok", (1.0, 2.0, 3.0)), P.Reading("brr", "beam_lost")))):
+        assert P.decode(P.encode(msg)[4:]) == msg
+    with pytest.raises(P.ProtocolError, match="unknown message type 'teleport'"):
+        P.decode(b'{"type": "teleport", "id": 1}')
+    with pytest.raises(P.ProtocolError, match="'q' must be a list of 6 numbers"):
+        P.decode(b'{"type": "move", "id": 1, "q": [0, 0]}')
+    with pytest.raises(P.ProtocolError, match="finite"):
+        P.decode(b'{"type": "move", "id": 1, "q": [0, 0, 0, 0, 0, NaN]}')
+    with pytest.raises(P.ProtocolError, match="not UTF-8 JSON"):
+        P.decode(b"\xff\xfe garbage")
+    with pytest.raises(P.ProtocolError, match="exceeds"):
+        P.encode(P.ErrorReply(1, "x" * (P.MAX_FRAME + 10)))
+
+
+def test_zero_noise_campaign_derives_the_truth_poses_to_1e9_m(tmp_path, robot):
+    run = make_run(tmp_path, robot, n=40, sim={"noise_m": 0.0, "hidden_effects": ["ground_compliance", "joint_compliance"]})
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    with open_run(run) as store:
+        poses = store.load_measured()
+        assert len(poses) == 40
+    truth = read_truth(run / "sim" / "truth.yaml", robot)  # only now, after the run
+    from campaign.effects.base import effect_context
+
+    T_true = truth.pose(poses.q, effect_context(poses.context, poses.time_s))
+    assert np.max(np.abs(T_true[:, :3, 3] - poses.xyz)) < 1e-9
+    assert np.max(np.abs(T_true[:, :3, :3] - poses.T_IE[:, :3, :3])) < 1e-9
+
+
+def test_every_fault_at_a_few_percent_leaves_no_pose_lost_or_duplicated(tmp_path, robot, capsys):
+    faults = {"drop": 0.03, "late": 0.01, "late_delay_s": 0.7, "garble": 0.03, "beam_lost": 0.03, "robot_fault": 0.03}
+    run = make_run(tmp_path, robot, n=500, sim={"faults": faults}, run={"timeout_s": 0.4})
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    rows = stored(run)
+    ids = [r[0] for r in rows]
+    assert sorted(ids) == list(range(1000, 1500))  # each pose exactly once
+    failed = [r for r in rows if r[1] == "failed"]
+    assert all(r[2] for r in failed)  # each failure has its reason
+    assert 0 < len(failed) < 60
+    assert sum(r[1] == "measured" for r in rows) > 440
+
+
+def _cell_pids(run_dir):
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except OSError:
+                continue
+            if "campaign.sim.cell" in cmd and str(run_dir) in cmd:
+                pids.append(int(d.name))
+    return pids
+
+
+def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, robot):
+    sim = {"faults": {"beam_lost": 0.05, "robot_fault": 0.03}, "time_factor": 2e-4}
+    ref = make_run(tmp_path, robot, n=150, sim=sim, name="reference")
+    assert main(["run", str(ref), "--sim", "--quiet"]) == 0
+    run = make_run(tmp_path, robot, n=150, sim=sim, name="killed")
+    proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        if (run / "measurements.sqlite").exists():
+            try:
+                if len(stored(run)) >= 40:
+                    break
+            except sqlite3.OperationalError:
+                pass
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    partial = len(stored(run))
+    assert 0 < partial < 150
+    for _ in range(100):  # the cell notices its parent is gone
+        if not _cell_pids(run):
+            break
+        time.sleep(0.05)
+    assert _cell_pids(run) == []
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    a, b = stored(ref), stored(run)
+    assert [r[0] for r in a if r[1] == "measured"] == [r[0] for r in b if r[1] == "measured"]
+    assert len(b) == 150
+
+
+def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot):
+    from campaign.measure.driver import SimulatedCell
+
+    run = make_run(tmp_path, robot, n=10)
+    with SimulatedCell(run / "campaign.yaml", run) as cell:
+        for port in (cell.controller[1], cell.tracker[1]):
+            for payload in (b"GET / HTTP/1.0\r\n\r\n", struct.pack(">I", 10**9) + b"x" * 100,
+                            struct.pack(">I", 50) + b'{"type": "move"', struct.pack(">I", 20) + b"\xff" * 20,
+                            struct.pack(">I", 30) + b'{"type":"move","id":1,"q":[1]}'):
+                s = socket.create_connection(("127.0.0.1", port), timeout=2)
+                s.sendall(payload)
+                s.close()
+        assert cell.proc.poll() is None
+        from campaign.measure.driver import RunOptions, run_campaign
+
+        res = run_campaign(run, robot, cell.controller, cell.tracker, RunOptions(timeout_s=2.0))
+        assert res.measured == 10
+
+
+def test_an_emergency_stop_ends_the_campaign_cleanly_and_a_rerun_resumes(tmp_path, robot, capsys):
+    run = make_run(tmp_path, robot, n=80, seed=3, sim={"faults": {"estop": 0.05}})  # first stop at pose 29
+    assert main(["run", str(run), "--sim", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "emergency_stop" in err[-1] and "re-run to resume" in err[-1]
+    n_before = len(stored(run))
+    assert 0 < n_before < 80
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    cfg["sim"]["faults"] = {}
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    assert [r[0] for r in stored(run)] == list(range(1000, 1080))
+
+
+def test_refused_connection_names_the_peer(tmp_path, robot, capsys):
+    run = make_run(tmp_path, robot, n=3, run={"reconnect_attempts": 1, "retries": 0})
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    assert main(["run", str(run), "--controller", f"127.0.0.1:{port}", "--tracker", f"127.0.0.1:{port}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"127.0.0.1:{port}" in err[0] and "refused" in err[0]
+
+
+def test_export_of_a_measured_run_is_the_measured_pose_csv(tmp_path, robot):
+    run = make_run(tmp_path, robot, n=20)
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    out = tmp_path / "out.csv"
+    assert main(["export", str(run), "--csv", str(out)]) == 0
+    assert out.read_text().splitlines()[0] == "pose_id,time_s,q1,q2,q3,q4,q5,q6,x,y,z,rx,ry,rz"
+    assert len(out.read_text().splitlines()) == 21
