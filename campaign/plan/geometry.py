@@ -66,7 +66,7 @@ def fcl_geometry(kind, size):
     raise ValueError(kind)
 
 
-def enclosing_spheres(kind, size, T, max_aspect: float = 0.5):
+def enclosing_spheres(kind, size, T, max_aspect: float = 1.0):
     """Spheres (centres in the primitive's frame (k, 3), radii (k,)) enclosing the primitive.
 
     A box is cut into near-cubes whose side is about its smallest edge (times ``max_aspect``),

@@ -1,0 +1,46 @@
+"""Benchmark of `campaign plan` (issue 3) at full size on the default cell.
+
+    python benchmarks/bench_plan.py [--grid-scale 1.0]
+
+Runs `campaign plan` in a separate process and reports its wall time and peak memory
+(max RSS of the child), the counts per filter, the tour and the estimated duration.
+Writes benchmarks/results/plan.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--grid-scale", type=float, default=1.0)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "campaign.cli", "plan", "--run", tmp, "--quiet",
+                        "--grid-scale", str(args.grid_scale)], check=True, stdout=subprocess.DEVNULL)
+        wall = time.perf_counter() - t0
+        peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        summary = json.loads((Path(tmp) / "plan" / "summary.json").read_text())
+    res = {"wall_s": wall, "peak_rss_mb": peak_mb, "load_average": os.getloadavg(), "summary": summary}
+    print(f"candidates {summary['candidates']:,}; suitable {summary['suitable']:,} "
+          f"({100 * summary['suitable_fraction']:.2f} %); removed per filter {summary['removed_by_filter']}")
+    print(f"tour {summary['tour']['poses']:,} poses, {summary['tour']['via_poses']} vias, {summary['tour']['dropped']} dropped, "
+          f"motion {summary['tour']['motion_time_s'] / 3600:.2f} h; estimated campaign "
+          f"{summary['estimated_campaign']['total_days']:.2f} days (paper 3.5 days / 13,919 poses)")
+    print(f"stage timings {summary['timing_s']}")
+    print(f"campaign plan: {wall:.1f} s wall, peak memory {peak_mb:.0f} MB; load average {res['load_average'][0]:.2f}")
+    (Path(__file__).parent / "results" / "plan.json").write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
