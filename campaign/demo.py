@@ -1,22 +1,30 @@
-"""`campaign demo`: the whole story on the embedded defaults, as the README's first command."""
+"""`campaign demo`: the whole story on the embedded defaults, as the README's first command.
+
+plan → simulated campaign with a hidden physical effect → calibrate → diagnose → add the
+suggested effect → calibrate again with the neural compensator → the error, step by step.
+"""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
+
+import yaml
 
 from campaign.cli import main as cli
 
 
 def register(sub):
     p = sub.add_parser("demo", help="the whole story on the embedded defaults (simulated hardware)")
-    p.add_argument("--run", default="runs/demo", metavar="DIR", help="run folder (default: %(default)s)")
-    p.add_argument("--poses", type=int, default=2000, help="simulated poses (default: %(default)s)")
+    p.add_argument("--run", default="runs/demo", metavar="DIR", help="run folder (default: %(default)s; replaced)")
+    p.add_argument("--grid-scale", type=float, default=1.0, help="plan grid scale (default: 1 = 1,428,000 candidates)")
+    p.add_argument("--ann-epochs", type=int, default=150, help="epochs of each network training (default: %(default)s)")
     p.set_defaults(func=_demo)
 
 
 def _step(title, *argv):
-    print(f"\n$ campaign {' '.join(str(a) for a in argv)}    # {title}", flush=True)
+    print(f"\n=== {title}\n$ campaign {' '.join(str(a) for a in argv)}", flush=True)
     rc = cli([str(a) for a in argv])
     if rc != 0:
         print(f"campaign demo: step '{title}' failed", file=sys.stderr)
@@ -26,12 +34,29 @@ def _step(title, *argv):
 def _demo(args):
     import shutil
 
+    from campaign.identify.report import history_table
+
     run = Path(args.run)
     if run.exists():
         shutil.rmtree(run)
-    csv = run.parent / (run.name + "_measured.csv")
-    _step("simulate measurements with hidden geometric errors", "synth", "--csv", csv, "--poses", args.poses,
-          "--truth", run.parent / (run.name + "_truth.yaml"))
-    _step("import them as a run", "import", csv, "--run", run)
-    _step("identify the geometric model", "calibrate", run, "--no-ann")
+    _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run,
+          "--grid-scale", args.grid_scale)
+    _step("2. measure it on the simulated cell (hidden: geometric errors + the elastic ground)", "run", run, "--sim")
+    _step("3. calibrate the geometric model", "calibrate", run, "--no-ann")
+    print(f"\n=== 4. where does the model fail, and which effect is missing?\n$ campaign diagnose {run}", flush=True)
+    rc = cli(["diagnose", str(run)])
+    if rc != 0:
+        sys.exit(rc)
+    verdict = json.loads((run / "diagnose" / "diagnosis.json").read_text())["verdict"]
+    if verdict:
+        cfg_path = run / "campaign.yaml"
+        cfg = yaml.safe_load(cfg_path.read_text())
+        cfg["effects"] = sorted(set(cfg.get("effects") or []) | {verdict})
+        cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+        print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(cfg['effects'])}]` in {cfg_path}")
+    _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
+          "--sizes", "32x16,64x32", "--folds", "3", "--epochs", args.ann_epochs, "--quiet")
+    print("\n=== 7. watch the error fall (held-out test set)")
+    print(history_table(run))
+    print(f"\nreports: {run}/calibration/report.html, {run}/diagnose/report.html, {run}/plan/tour.png")
     return 0

@@ -23,18 +23,19 @@ def error_stats(dz) -> dict:
 def format_table6(stages: dict, order, split: str = "test") -> str:
     """Stages side by side, like the paper's Table 6, with the ratio to the first stage."""
     cols = [name for name in order if name in stages]
-    w = max(12, *(len(c) + 2 for c in cols))
-    head = f"{'error (' + split + ' set)':<28}" + "".join(f"{c:>{w}}" for c in cols)
+    widths = [max(11, len(c) + 2) for c in cols]
+    head = f"{'error (' + split + ' set)':<28}" + "".join(f"{c:>{w}}" for c, w in zip(cols, widths))
     lines = [head, "-" * len(head)]
     first = stages[cols[0]][split]
     for block, unit in (("position_mm", "‖Δt‖ mm"), ("orientation_mrad", "‖Δφ‖ mrad")):
         for stat, label in (("max", "max"), ("mean", "mean"), ("q90", "Q0.9")):
             row = f"{label + ' ' + unit:<28}"
-            for c in cols:
+            for c, w in zip(cols, widths):
                 row += f"{stages[c][split][block][stat]:>{w}.3f}"
             lines.append(row)
-    lines.append(f"{'ratio of mean ‖Δt‖ to ' + cols[0]:<28}" + "".join(
-        f"{100 * stages[c][split]['position_mm']['mean'] / max(first['position_mm']['mean'], 1e-300):>{w - 1}.2f}%"
-        for c in cols))
-    lines.append(f"{'n poses':<28}" + "".join(f"{stages[c][split]['n_poses']:>{w}d}" for c in cols))
+    for block, unit in (("position_mm", "‖Δt‖"), ("orientation_mrad", "‖Δφ‖")):
+        lines.append(f"{'mean ' + unit + ' / ' + cols[0]:<28}" + "".join(
+            f"{100 * stages[c][split][block]['mean'] / max(first[block]['mean'], 1e-300):>{w - 1}.2f}%"
+            for c, w in zip(cols, widths)))
+    lines.append(f"{'n poses':<28}" + "".join(f"{stages[c][split]['n_poses']:>{w}d}" for c, w in zip(cols, widths)))
     return "\n".join(lines)

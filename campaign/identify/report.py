@@ -179,3 +179,20 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
     tmp.write_text("\n".join(parts))
     tmp.replace(path)
     return path
+
+
+def history_table(run_dir) -> str:
+    """The held-out (test-set) mean errors of every calibrate run, one row per model stage as added."""
+    rows = history_rows(Path(run_dir) / "calibration" / "history.json")
+    if not rows:
+        return "no calibrate runs yet"
+    lines = [f"{'calibrate run':<14}{'model stage':<44}{'mean ‖Δt‖ mm':>13}{'mean ‖Δφ‖ mrad':>15}"]
+    seen = set()
+    for idx, effects, order, stages in rows:
+        for stage in order:
+            if stage in seen:
+                continue
+            seen.add(stage)
+            st = stages[stage]
+            lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{st['orientation_mrad']['mean']:>15.4f}")
+    return "\n".join(lines)
