@@ -15,7 +15,12 @@ def _hostport(text, name):
 
 
 def register(sub):
-    p = sub.add_parser("run", help="run the measurement campaign of a planned run (simulated or real cell)")
+    p = sub.add_parser(
+        "run", help="run the measurement campaign of a planned run (simulated or real cell)",
+        description="Measure every pose of RUN/plan/poses.csv that has no stored outcome yet: base-frame set-up "
+                    "(T_LI), then move -> reached -> measure the three reflectors -> store, one SQLite transaction "
+                    "per pose in RUN/measurements.sqlite. Re-running resumes; Ctrl-C stops after the current pose. "
+                    "--sim starts the simulated cell (see `campaign sim`) and stops it at the end.")
     p.add_argument("run", metavar="RUN", help="run folder with plan/poses.csv (from `campaign plan`)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--sim", action="store_true", help="start the simulated cell, drive it, stop it")
@@ -23,8 +28,13 @@ def register(sub):
     p.add_argument("--tracker", metavar="HOST:PORT", help="the laser tracker (with --controller)")
     p.add_argument("--config", metavar="FILE", default=None,
                    help="configuration (default: RUN/campaign.yaml, else the embedded one)")
+    p.add_argument("--poses", metavar="CSV", default=None,
+                   help="pose list to measure instead of RUN/plan/poses.csv (same header: pose_id,q1..q6, rad)")
     p.add_argument("--max-poses", type=int, default=None, help="stop after this many poses (the rest stays for a re-run)")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="forget the poses stored as failed and measure them again")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--verbose", action="store_true", help="print every retry and reconnect on stderr")
     p.set_defaults(func=_run)
 
 
@@ -32,7 +42,7 @@ def _run(args):
     from pathlib import Path
 
     from campaign.config import load_config, resolve
-    from campaign.errors import ConfigError
+    from campaign.errors import ConfigError, PeerError, RobotFault
     from campaign.measure.driver import RunOptions, SimulatedCell, run_campaign
     from campaign.model.robot import RobotModel
 
@@ -44,25 +54,30 @@ def _run(args):
     opts = RunOptions.from_config(cfg["run"])
     log = lambda msg: print(f"\n{msg}", file=sys.stderr, flush=True)  # noqa: E731
     progress = not args.quiet and sys.stderr.isatty()
+    if args.max_poses is not None and args.max_poses < 0:
+        raise ConfigError(f"--max-poses must be >= 0, got {args.max_poses}")
+    kw = dict(progress=progress, log=log, max_poses=args.max_poses, poses_csv=args.poses,
+              retry_failed=args.retry_failed, verbose=args.verbose)
     if args.sim:
+        if args.tracker:
+            raise ConfigError("--tracker goes with --controller, not with --sim")
         with SimulatedCell(cfg["_path"], run) as cell:
-            res = run_campaign(run, robot, cell.controller, cell.tracker, opts, progress=progress, log=log,
-                               max_poses=args.max_poses)
+            res = run_campaign(run, robot, cell.controller, cell.tracker, opts, **kw)
     else:
         if not args.tracker:
             raise ConfigError("--controller needs --tracker HOST:PORT too")
         res = run_campaign(run, robot, _hostport(args.controller, "controller"), _hostport(args.tracker, "tracker"),
-                           opts, progress=progress, log=log, max_poses=args.max_poses)
+                           opts, **kw)
     h = res.simulated_duration_s / 3600
-    print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}); "
-          f"campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"
+    print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
+          f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"
           + (f"; {res.drift_warnings} drift warnings" if res.drift_warnings else ""))
     print(f"written: {run}/measurements.sqlite")
-    if res.stopped:
-        from campaign.errors import RobotFault
-
-        if res.stopped.startswith("robot fault"):
-            raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, re-run to resume")
-        print(f"stopped: {res.stopped}", file=sys.stderr)
+    if res.stopped_kind == "interrupted":
+        print(f"campaign run: {res.stopped}; everything measured is stored, re-run to resume", file=sys.stderr)
         return 130
+    if res.stopped_kind == "robot_fault":
+        raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, re-run to resume")
+    if res.stopped:
+        raise PeerError(f"campaign stopped: {res.stopped}; everything measured is stored, re-run to resume")
     return 0

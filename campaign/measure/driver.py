@@ -3,12 +3,15 @@
 The same code drives a real cell and the simulated one. Unattended: every request has a
 timeout; a lost connection is re-opened with back-off and the request retried with the
 same id (the peers answer a repeated id with their first reply); a pose whose measurement
-keeps failing is stored as failed with its reason and the campaign goes on; an emergency
-stop ends the campaign cleanly. Each pose is one committed SQLite transaction, so a
-re-run resumes at the first pose without a stored outcome and never stores a pose twice.
+keeps failing is stored as failed with its reason and the campaign goes on; a robot fault
+that is not specific to the pose (an emergency stop, an unknown fault code), a peer that
+cannot be reached at all, or too many failed poses in a row stop the campaign cleanly.
+Each pose is one committed SQLite transaction, so a re-run resumes at the first pose
+without a stored outcome and never stores a pose twice.
 
-Request ids are derived from the pose id and the attempt, so a re-run sends the same
-requests as the first run did.
+Request ids are derived from the pose id, the attempt and an epoch kept in the run's meta
+(raised only by ``retry_failed``), so a re-run sends the same requests as the first run did.
+docs/protocol.md gives the id layout.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import CampaignError, DataError, PeerError, ProtocolError, RobotFault, TrackerTimeout
+from campaign.errors import CampaignError, DataError, PeerError, ProtocolError, RobotFault
 from campaign.measure import protocol as P
 from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors
 from campaign.measure.store import PoseRecord, open_run
@@ -28,13 +31,26 @@ from campaign.model.rotations import matrix_to_rotvec
 from campaign.progress import Progress
 
 REFLECTORS = ("rrr1", "rrr2", "brr")
+#: request ids: pose requests are ``pose_id * 64 + slot`` (slot 0 the move, 1.. the measure
+#: attempts, 32.. the via moves); these bases lie above every pose id < 2**34
 _SETUP_ID = 1 << 40
 _DRIFT_ID = 1 << 41
 _HEARTBEAT_ID = 1 << 42
+_EPOCH_ID = 1 << 44
+MAX_POSE_ID = 1 << 34
+#: controller fault codes that concern only the requested pose: the pose is marked failed
+#: and the campaign goes on. Any other code (``emergency_stop``, ...) stops the campaign.
+POSE_FAULT_CODES = ("joint_limit", "move_rejected", "unreachable")
+
+
+class PeerUnreachable(PeerError):
+    """A peer could not be connected to after every reconnect attempt; the campaign stops."""
 
 
 @dataclass(frozen=True)
 class RunOptions:
+    """How the driver waits and retries. Times in s; ``drift_threshold_mm`` in mm."""
+
     timeout_s: float = 5.0
     move_timeout_s: float = 120.0
     retries: int = 3
@@ -43,6 +59,8 @@ class RunOptions:
     drift_check_every: int = 500
     drift_threshold_mm: float = 0.05
     setup_repeats: int = 10
+    #: stop the campaign when this many poses in a row fail (something systematic is wrong)
+    max_consecutive_failures: int = 50
 
     @classmethod
     def from_config(cls, section: dict) -> "RunOptions":
@@ -57,19 +75,21 @@ class Peer:
         self.host, self.port, self.name, self.opts, self.log = host, int(port), name, opts, log
         self.conn = None
         self.reconnects = 0
+        self._heartbeats = 0
 
     def _connect(self):
         delay = self.opts.backoff_s
         last = None
-        for attempt in range(self.opts.reconnect_attempts):
+        for attempt in range(max(self.opts.reconnect_attempts, 1)):
+            if attempt:
+                time.sleep(delay)
+                delay = min(delay * 2, 5.0)
             try:
                 self.conn = P.Connection.connect(self.host, self.port, self.opts.timeout_s, self.name)
                 return
             except PeerError as exc:
                 last = exc
-                time.sleep(delay)
-                delay = min(delay * 2, 5.0)
-        raise last
+        raise PeerUnreachable(str(last))
 
     def close(self):
         if self.conn is not None:
@@ -77,7 +97,11 @@ class Peer:
             self.conn = None
 
     def request(self, msg, timeout_s: float):
-        """Send ``msg`` and return the reply with its id; retried with the same id on failures."""
+        """Send ``msg`` and return the reply with its id; retried with the same id on failures.
+
+        Raises PeerUnreachable when the peer cannot be connected to, PeerError when no
+        valid reply came after ``retries + 1`` attempts.
+        """
         last = None
         for attempt in range(self.opts.retries + 1):
             try:
@@ -94,21 +118,40 @@ class Peer:
                     if isinstance(reply, P.ErrorReply) and reply.id == 0:
                         raise ProtocolError(f"{self.name}: {reply.message}")
                     # a stale reply to an earlier request: keep reading
-            except (PeerError, TrackerTimeout, ProtocolError) as exc:
+            except PeerUnreachable:
+                raise
+            except (PeerError, ProtocolError) as exc:
                 last = exc
+                self.close()
                 if attempt < self.opts.retries:
                     self.log(f"{exc}; retry {attempt + 1} of {self.opts.retries}")
-                self.close()
-                time.sleep(self.opts.backoff_s * (attempt + 1))
+                    time.sleep(self.opts.backoff_s * (attempt + 1))
         raise PeerError(f"{self.name} {self.host}:{self.port}: no valid reply after {self.opts.retries + 1} attempts "
                         f"({last})")
 
+    def heartbeat(self) -> "P.HeartbeatAck":
+        """Ask the peer who it is; PeerError when it is not the peer this client expects."""
+        self._heartbeats += 1
+        ack = self.request(P.Heartbeat(_HEARTBEAT_ID + (time.time_ns() // 1000 + self._heartbeats) % (1 << 40)),
+                           self.opts.timeout_s)
+        if not isinstance(ack, P.HeartbeatAck):
+            raise PeerError(f"{self.name} {self.host}:{self.port}: answered '{ack.type}' to a heartbeat")
+        if ack.peer != self.name:
+            raise PeerError(f"{self.name} {self.host}:{self.port}: the peer there is a {ack.peer!r}, not the "
+                            f"{self.name} (are --controller and --tracker swapped?)")
+        return ack
 
-def read_plan(run_dir):
-    """(pose_ids (n,), q (n, 6), vias {pose_id: [q...]}) from RUN/plan/poses.csv and vias.csv."""
+
+def read_plan(run_dir, poses_csv=None):
+    """(pose_ids (n,), q (n, 6) rad, vias {pose_id: [q...]}) from RUN/plan/poses.csv and vias.csv.
+
+    ``poses_csv`` replaces RUN/plan/poses.csv (vias are then not read).
+    """
     plan = Path(run_dir) / "plan"
-    path = plan / "poses.csv"
+    path = Path(poses_csv) if poses_csv is not None else plan / "poses.csv"
     if not path.is_file():
+        if poses_csv is not None:
+            raise DataError(f"{path}: no such pose list")
         raise DataError(f"{run_dir}: no plan/poses.csv (run `campaign plan --run {run_dir}` first)")
     lines = path.read_text().splitlines()
     if not lines or lines[0].strip() != "pose_id,q1,q2,q3,q4,q5,q6":
@@ -126,13 +169,17 @@ def read_plan(run_dir):
             raise DataError(f"{path}: line {k}: not a number") from None
         if not np.all(np.isfinite(vals)) or vals[0] != int(vals[0]):
             raise DataError(f"{path}: line {k}: pose_id must be an integer and q finite")
+        if not 0 <= vals[0] < MAX_POSE_ID:
+            raise DataError(f"{path}: line {k}: pose_id {int(vals[0])} outside 0..{MAX_POSE_ID - 1}")
         ids.append(int(vals[0]))
         qs.append(vals[1:])
+    if not ids:
+        raise DataError(f"{path}: no poses")
     if len(set(ids)) != len(ids):
         raise DataError(f"{path}: duplicate pose_id")
     vias = {}
     vpath = plan / "vias.csv"
-    if vpath.is_file():
+    if poses_csv is None and vpath.is_file():
         for line in vpath.read_text().splitlines()[1:]:
             if line.strip():
                 c = [float(x) for x in line.split(",")]
@@ -142,6 +189,10 @@ def read_plan(run_dir):
 
 @dataclass(frozen=True)
 class RunResult:
+    """The outcome of one `campaign run` session. ``stopped_kind``: None (every pose has an
+    outcome or ``max_poses`` was reached), ``interrupted``, ``robot_fault``, ``unreachable``
+    or ``failures`` (too many failed poses in a row); ``stopped`` says why in words."""
+
     measured: int
     failed: int
     stored_before: int
@@ -149,101 +200,170 @@ class RunResult:
     simulated_duration_s: float
     wall_s: float
     drift_warnings: int
+    stopped_kind: str | None = None
+    remaining: int = 0
 
 
 def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOptions(), *, progress=False,
-                 log=None, max_poses=None) -> RunResult:
+                 log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False) -> RunResult:
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
-    controller, tracker: (host, port). Returns counts and the campaign clock at the end.
+    controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
+    warnings (one line each), and with ``verbose`` every retry too. ``retry_failed`` forgets the failed poses first so they are
+    measured again. Returns counts and the campaign clock (s) at the end. Ctrl-C (SIGINT)
+    stops after the current pose; a second one stops at once (the pose in flight is not stored).
     """
     run_dir = Path(run_dir)
     say = log or (lambda msg: None)
-    ids, Q, vias = read_plan(run_dir)
-    robot.check_joints(Q, field=f"{run_dir}/plan/poses.csv")
+    ids, Q, vias = read_plan(run_dir, poses_csv)
+    robot.check_joints(Q, field=str(poses_csv or f"{run_dir}/plan/poses.csv"))
     stop = {"flag": None}
     old_handler = None
 
     def on_sigint(signum, frame):
+        if stop["flag"]:
+            raise KeyboardInterrupt
         stop["flag"] = "interrupted (Ctrl-C): stopped after the current pose"
 
     try:
         old_handler = signal.signal(signal.SIGINT, on_sigint)
     except ValueError:  # not in the main thread
         old_handler = None
-    ctrl = Peer(*controller, "controller", opts, say)
-    trk = Peer(*tracker, "tracker", opts, say)
     t_wall = time.perf_counter()
     clock = 0.0
     drift_warnings = 0
-    with open_run(run_dir, create=True) as store:
-        store._db.execute("PRAGMA journal_mode=WAL")
-        store._db.execute("PRAGMA synchronous=NORMAL")
-        done = store.stored_ids()
-        stored_before = len(done)
-        # base-frame set-up: T_LI from the set-up points, measured once and kept
-        T_LI = store.get_meta("T_LI")
-        if T_LI is None:
-            pts = {t: [] for t in P.SETUP_TARGETS}
-            for k in range(opts.setup_repeats):
-                reply = trk.request(P.Measure(_SETUP_ID + k, P.SETUP_TARGETS), opts.timeout_s)
-                for r in reply.readings:
-                    if r.status == "ok" and r.target in pts:
-                        pts[r.target].append(r.xyz_m)
-            if any(len(v) == 0 for v in pts.values()):
-                raise PeerError("tracker: the base-frame set-up points could not be measured")
-            T_LI = frame_from_setup_points(*[np.mean(pts[t], axis=0) for t in P.SETUP_TARGETS])
-            store.set_meta("T_LI", [[float(v) for v in row] for row in T_LI])
-            store.set_meta("setup_points_L", {t: np.mean(v, axis=0).tolist() for t, v in pts.items()})
-        T_LI = np.array(T_LI, dtype=float)
-        P_E = robot.reflector_positions_in_E
-        todo = [k for k in range(len(ids)) if int(ids[k]) not in done]
-        if max_poses is not None:
-            todo = todo[:max_poses]
-        bar = Progress("measuring", len(todo), progress, " poses")
-        n_ok = n_fail = 0
-        reference = None
-        stopped = None
-        try:
-            for n, k in enumerate(todo):
-                pid = int(ids[k])
-                q = Q[k]
-                rec, clock = _measure_pose(pid, n, q, vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, say)
-                store.add_pose(rec)
-                if rec.status == "measured":
-                    n_ok += 1
-                    if reference is None:
-                        reference = (q, np.array(rec.xyz))
-                else:
-                    n_fail += 1
-                if reference is not None and opts.drift_check_every and n and n % opts.drift_check_every == 0:
-                    drift = _drift_check(n, reference, ctrl, trk, opts, T_LI, P_E)
-                    if drift is not None and drift * 1e3 > opts.drift_threshold_mm:
-                        drift_warnings += 1
-                        say(f"warning: drift check after {n} poses: reference pose moved {drift * 1e3:.3f} mm "
-                            f"(threshold {opts.drift_threshold_mm} mm)")
-                    store.set_meta(f"drift_check_{n}", {"drift_mm": None if drift is None else drift * 1e3,
-                                                        "time_s": clock})
-                bar.update(1, extra=f"ok {n_ok} failed {n_fail} sim {clock / 3600:.1f} h")
-                if stop["flag"]:
-                    stopped = stop["flag"]
-                    break
-        except RobotFault as exc:
-            stopped = f"robot fault: {exc}"
-        finally:
-            bar.close()
-            ctrl.close()
-            trk.close()
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
+    ctrl = trk = None
+    try:
+        with open_run(run_dir, create=True) as store:
+            store._db.execute("PRAGMA journal_mode=WAL")
+            store._db.execute("PRAGMA synchronous=NORMAL")
+            epoch = int(store.get_meta("id_epoch", 0))
+            if retry_failed:
+                forgotten = store.forget_failed()
+                if forgotten:
+                    epoch += 1
+                    store.set_meta("id_epoch", epoch)
+                    store.add_event("retry_failed", {"pose_ids": forgotten, "id_epoch": epoch})
+            base = epoch * _EPOCH_ID
+            done = store.stored_ids()
+            stored_before = len(done)
+            chatter = say if verbose else (lambda msg: None)
+            ctrl = Peer(*controller, "controller", opts, chatter)
+            trk = Peer(*tracker, "tracker", opts, chatter)
+            ctrl.heartbeat()
+            trk.heartbeat()
+            store.add_event("session_start", {"controller": f"{ctrl.host}:{ctrl.port}",
+                                              "tracker": f"{trk.host}:{trk.port}", "stored_before": stored_before,
+                                              "planned": len(ids)})
+            T_LI = store.get_meta("T_LI")
+            if T_LI is None:
+                T_LI = _setup(store, trk, opts, base)
+            T_LI = np.array(T_LI, dtype=float)
+            P_E = robot.reflector_positions_in_E
+            todo = [k for k in range(len(ids)) if int(ids[k]) not in done]
+            remaining_total = len(todo)
+            if max_poses is not None:
+                todo = todo[:max_poses]
+            result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
+                           stored_before)
+            n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             store.set_meta("campaign_clock_s", clock)
-    return RunResult(n_ok, n_fail, stored_before, stopped, clock, time.perf_counter() - t_wall, drift_warnings)
+            store.add_event("session_end", {"measured": n_ok, "failed": n_fail, "stopped": stopped,
+                                            "reconnects": ctrl.reconnects + trk.reconnects}, time_s=clock)
+    finally:
+        for peer in (ctrl, trk):
+            if peer is not None:
+                peer.close()
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+    return RunResult(n_ok, n_fail, stored_before, stopped, clock, time.perf_counter() - t_wall, drift_warnings,
+                     kind, remaining_total - n_ok - n_fail)
+
+
+def _setup(store, trk, opts, base):
+    """Base-frame set-up: the three set-up points, each averaged over repeats → T_LI, kept in meta."""
+    pts = {t: [] for t in P.SETUP_TARGETS}
+    for k in range(opts.setup_repeats):
+        reply = trk.request(P.Measure(base + _SETUP_ID + k, P.SETUP_TARGETS), opts.timeout_s)
+        if not isinstance(reply, P.Measurement):
+            raise PeerError(f"tracker: answered '{reply.type}' to the set-up measurement")
+        for r in reply.readings:
+            if r.status == "ok" and r.target in pts:
+                pts[r.target].append(r.xyz_m)
+    if any(len(v) == 0 for v in pts.values()):
+        missing = ", ".join(t for t, v in pts.items() if not v)
+        raise PeerError(f"tracker: the base-frame set-up points could not be measured ({missing})")
+    T_LI = frame_from_setup_points(*[np.mean(pts[t], axis=0) for t in P.SETUP_TARGETS])
+    T_LI = [[float(v) for v in row] for row in T_LI]
+    store.set_meta("T_LI", T_LI)
+    store.set_meta("setup_points_L", {t: np.mean(v, axis=0).tolist() for t, v in pts.items()})
+    store.add_event("setup", {"T_LI": T_LI, "readings": {t: len(v) for t, v in pts.items()}})
+    return T_LI
+
+
+def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before):
+    bar = Progress("measuring", len(todo), progress, " poses")
+    n_ok = n_fail = drift_warnings = in_a_row = 0
+    clock = clock0 = 0.0
+    stopped = kind = None
+    reference = store.get_meta("drift_reference")
+    try:
+        for n, k in enumerate(todo):
+            pid = int(ids[k])
+            rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base)
+            store.add_pose(rec)
+            clock = max(clock, c)
+            if n == 0:
+                clock0 = clock
+            if rec.status == "measured":
+                n_ok += 1
+                in_a_row = 0
+                if reference is None:
+                    reference = {"pose_id": pid, "q": list(map(float, Q[k])), "xyz": list(rec.xyz)}
+                    store.set_meta("drift_reference", reference)
+            else:
+                n_fail += 1
+                in_a_row += 1
+            n_stored = stored_before + n + 1
+            every = opts.drift_check_every
+            if reference is not None and every and n_stored % every == 0 and n + 1 < len(todo):
+                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E)
+                clock = max(clock, c)
+                over = drift is not None and drift * 1e3 > opts.drift_threshold_mm
+                store.add_event("drift_check", {"reference_pose_id": reference["pose_id"],
+                                                "drift_mm": None if drift is None else drift * 1e3,
+                                                "over_threshold": over}, pose_id=pid, time_s=clock)
+                if over:
+                    drift_warnings += 1
+                    msg = (f"warning: drift check after {n_stored} poses: reference pose {reference['pose_id']} "
+                           f"moved {drift * 1e3:.3f} mm (threshold {opts.drift_threshold_mm} mm)")
+                    store.add_event("warning", {"message": msg}, pose_id=pid, time_s=clock)
+                    say(msg)
+            per_pose = (clock - clock0) / n if n else 0.0
+            bar.update(1, extra=f"ok {n_ok} failed {n_fail} | sim {clock / 3600:.1f} h, "
+                                f"~{per_pose * (len(todo) - n - 1) / 3600:.1f} h to go")
+            if opts.max_consecutive_failures and in_a_row >= opts.max_consecutive_failures:
+                stopped, kind = (f"{in_a_row} poses in a row failed (last: {rec.reason}); "
+                                 "check the cell, then re-run (`--retry-failed` measures them again)"), "failures"
+                break
+            if stop["flag"]:
+                stopped, kind = stop["flag"], "interrupted"
+                break
+    except RobotFault as exc:
+        stopped, kind = f"robot fault: {exc}", "robot_fault"
+    except PeerUnreachable as exc:
+        stopped, kind = f"peer unreachable: {exc}", "unreachable"
+    finally:
+        bar.close()
+    if stopped:
+        store.add_event("stop", {"reason": stopped, "kind": kind}, time_s=clock)
+    return n_ok, n_fail, clock, drift_warnings, stopped, kind
 
 
 def _move(ctrl, msg, opts):
     reply = ctrl.request(msg, opts.move_timeout_s)
     if isinstance(reply, P.Fault):
-        if reply.code == "emergency_stop":
+        if reply.code not in POSE_FAULT_CODES:
             raise RobotFault(f"{reply.code}: {reply.message}")
         return None, f"robot fault {reply.code}: {reply.message}"
     if not isinstance(reply, P.Reached):
@@ -251,25 +371,28 @@ def _move(ctrl, msg, opts):
     return reply, None
 
 
-def _measure_pose(pid, n, q, vias, ctrl, trk, opts, T_LI, P_E, say):
-    """One pose, start to stored record. Returns (PoseRecord, campaign clock)."""
+def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base):
+    """One pose, start to stored record. Returns (PoseRecord, campaign clock s)."""
     retries = 0
     clock = 0.0
+    rid = base + pid * 64
     try:
-        for v, qv in enumerate(vias):
-            reply, err = _move(ctrl, P.Move(pid * 64 + 32 + v, tuple(map(float, qv))), opts)
+        for v, qv in enumerate(vias[:31]):
+            reply, err = _move(ctrl, P.Move(rid + 32 + v, tuple(map(float, qv))), opts)
             if err:
-                return PoseRecord(pid, "failed", tuple(q), seq=n, reason=f"via {v}: {err}"), clock
-        reply, err = _move(ctrl, P.Move(pid * 64, tuple(map(float, q))), opts)
+                return PoseRecord(pid, "failed", tuple(q), seq=seq, reason=f"via {v}: {err}"), clock
+        reply, err = _move(ctrl, P.Move(rid, tuple(map(float, q))), opts)
         if err:
-            return PoseRecord(pid, "failed", tuple(q), seq=n, reason=err), clock
+            return PoseRecord(pid, "failed", tuple(q), seq=seq, reason=err), clock
         q_enc = reply.q_encoder
         clock = reply.time_s
         last_reason = None
         for attempt in range(opts.retries + 1):
-            m = trk.request(P.Measure(pid * 64 + 1 + attempt, REFLECTORS), opts.timeout_s)
+            if attempt:
+                retries += 1
+            m = trk.request(P.Measure(rid + 1 + attempt, REFLECTORS), opts.timeout_s)
             if not isinstance(m, P.Measurement):
-                last_reason = f"tracker answered '{m.type}'"
+                last_reason = f"tracker answered '{m.type}'" + (f": {m.message}" if isinstance(m, P.ErrorReply) else "")
                 continue
             clock = m.time_s
             by = {r.target: r for r in m.readings}
@@ -277,73 +400,97 @@ def _measure_pose(pid, n, q, vias, ctrl, trk, opts, T_LI, P_E, say):
                    if t not in by or by[t].status != "ok"]
             if bad:
                 last_reason = "; ".join(bad)
-                retries += 1
                 continue
             P_L = np.array([by[t].xyz_m for t in REFLECTORS])
             T_IE, rms = pose_from_reflectors(T_LI, P_E, P_L[None])
-            return PoseRecord(pid, "measured", tuple(q), seq=n, time_s=clock, wall_time_unix_s=time.time(),
-                              q_encoder=tuple(q_enc), xyz=tuple(T_IE[0, :3, 3]),
-                              rotvec=tuple(matrix_to_rotvec(T_IE[0, :3, :3])), fit_rms_m=float(rms[0]),
+            return PoseRecord(pid, "measured", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
+                              q_encoder=tuple(q_enc), xyz=tuple(map(float, T_IE[0, :3, 3])),
+                              rotvec=tuple(map(float, matrix_to_rotvec(T_IE[0, :3, :3]))), fit_rms_m=float(rms[0]),
                               retries=retries,
                               reflectors={t: (by[t].xyz_m, by[t].status) for t in REFLECTORS}), clock
-        return PoseRecord(pid, "failed", tuple(q), seq=n, time_s=clock, retries=retries,
+        return PoseRecord(pid, "failed", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
+                          q_encoder=tuple(q_enc), retries=retries,
                           reason=f"tracker after {opts.retries + 1} attempts: {last_reason}"), clock
-    except RobotFault:
+    except (RobotFault, PeerUnreachable):
         raise
     except PeerError as exc:
-        return PoseRecord(pid, "failed", tuple(q), seq=n, time_s=clock, retries=retries, reason=str(exc)), clock
+        return PoseRecord(pid, "failed", tuple(q), seq=seq, time_s=clock or None, wall_time_unix_s=time.time(),
+                          retries=retries, reason=str(exc)), clock
 
 
-def _drift_check(n, reference, ctrl, trk, opts, T_LI, P_E):
-    """Re-measure the reference pose; the distance (m) of its derived position from the first time."""
-    q, xyz0 = reference
+def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E):
+    """Re-measure the reference pose: (distance (m) of its derived position from the first
+    time or None when it could not be measured, campaign clock s)."""
+    clock = 0.0
     try:
-        reply, err = _move(ctrl, P.Move(_DRIFT_ID + n * 4, tuple(map(float, q))), opts)
+        reply, err = _move(ctrl, P.Move(rid, tuple(map(float, reference["q"]))), opts)
         if err:
-            return None
-        m = trk.request(P.Measure(_DRIFT_ID + n * 4 + 1, REFLECTORS), opts.timeout_s)
+            return None, clock
+        clock = reply.time_s
+        m = trk.request(P.Measure(rid + 1, REFLECTORS), opts.timeout_s)
+        if not isinstance(m, P.Measurement):
+            return None, clock
+        clock = m.time_s
         by = {r.target: r for r in m.readings}
         if any(t not in by or by[t].status != "ok" for t in REFLECTORS):
-            return None
+            return None, clock
         T_IE, _ = pose_from_reflectors(T_LI, P_E, np.array([[by[t].xyz_m for t in REFLECTORS]]))
-        return float(np.linalg.norm(T_IE[0, :3, 3] - xyz0))
+        return float(np.linalg.norm(T_IE[0, :3, 3] - np.array(reference["xyz"]))), clock
+    except (RobotFault, PeerUnreachable):
+        raise
     except PeerError:
-        return None
+        return None, clock
 
 
 class SimulatedCell:
-    """The simulated cell as a child process of the driver; it exits when the driver dies."""
+    """The simulated cell (``python -m campaign.sim.cell``) as a child process of the driver.
+
+    It runs in its own session, so a Ctrl-C at the terminal reaches only the driver (which
+    finishes the current pose); it watches its standard input, a pipe from this process,
+    and exits when that closes: after :meth:`stop`, or when the driver dies, even by kill -9.
+    Its stderr goes to ``RUN/sim/cell.log``.
+    """
 
     def __init__(self, config_path, run_dir):
         import json
         import subprocess
         import sys
 
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "campaign.sim.cell", "--config", str(config_path), "--run", str(run_dir),
-             "--watch-stdin"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        log_path = Path(run_dir) / "sim" / "cell.log"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.log_path = log_path
+        with open(log_path, "ab") as err:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "campaign.sim.cell", "--config", str(config_path), "--run", str(run_dir),
+                 "--watch-stdin"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
+                start_new_session=True)
         line = self.proc.stdout.readline().decode()
         try:
             info = json.loads(line)
         except json.JSONDecodeError:
-            err = self.proc.stderr.read().decode().strip().splitlines()
             self.stop()
-            raise PeerError(f"the simulated cell did not start: {err[-1] if err else 'no output'}") from None
+            tail = log_path.read_text(errors="replace").strip().splitlines()
+            raise PeerError(f"the simulated cell did not start: {tail[-1] if tail else 'no output'} "
+                            f"(see {log_path})") from None
         if "error" in info:
             self.stop()
             raise CampaignError(f"simulated cell: {info['error']}")
         self.host = info["host"]
-        self.controller = (self.host, info["controller"])
-        self.tracker = (self.host, info["tracker"])
+        self.controller = (self.host, int(info["controller"]))
+        self.tracker = (self.host, int(info["tracker"]))
         self.truth_path = info["truth"]
 
     def stop(self):
+        """Close the cell's stdin and wait for it to exit (killed after 10 s)."""
         try:
-            if self.proc.stdin:
+            if self.proc.stdin and not self.proc.stdin.closed:
                 self.proc.stdin.close()
             self.proc.wait(timeout=10)
         except Exception:
             self.proc.kill()
+            self.proc.wait()
+        if self.proc.stdout:
+            self.proc.stdout.close()
 
     def __enter__(self):
         return self

@@ -12,6 +12,10 @@ Tables (units in the column names where they are not SI base units):
   ``context`` (JSON object of extra named values).
 * ``reflector_readings``: raw tracker coordinates in F_L per pose and reflector
   (``x_L_m, y_L_m, z_L_m``) with the tracker's status.
+* ``events``: what happened besides the poses, in order (written by `campaign run`):
+  ``kind`` (``session_start``, ``setup``, ``drift_check``, ``warning``, ``stop``,
+  ``session_end``, ``retry_failed``), ``pose_id`` where it concerns one, ``time_s``
+  (campaign clock), ``wall_time_unix_s`` and ``detail`` (a JSON object).
 """
 
 from __future__ import annotations
@@ -49,6 +53,14 @@ CREATE TABLE IF NOT EXISTS reflector_readings (
     x_L_m REAL, y_L_m REAL, z_L_m REAL,
     status TEXT NOT NULL,
     PRIMARY KEY (pose_id, name)
+);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    kind TEXT NOT NULL,
+    pose_id INTEGER,
+    time_s REAL,
+    wall_time_unix_s REAL NOT NULL,
+    detail TEXT NOT NULL DEFAULT '{}'
 );
 """
 
@@ -134,6 +146,31 @@ class MeasurementStore:
                 self._db.executemany("INSERT INTO reflector_readings VALUES (?,?,?,?,?,?)", refl)
         except sqlite3.IntegrityError as exc:
             raise DataError(f"{self.path}: a pose is already stored ({exc})") from None
+
+    def add_event(self, kind: str, detail: dict | None = None, *, pose_id: int | None = None,
+                  time_s: float | None = None) -> None:
+        """Append one event (its own committed transaction); ``time_s`` is the campaign clock."""
+        import time
+
+        with self._db:
+            self._db.execute("INSERT INTO events(kind, pose_id, time_s, wall_time_unix_s, detail) VALUES (?,?,?,?,?)",
+                             (kind, pose_id, time_s, time.time(), json.dumps(detail or {}, sort_keys=True)))
+
+    def events(self, kind: str | None = None) -> list:
+        """[(kind, pose_id, time_s, detail dict), ...] in the order they happened."""
+        sql = "SELECT kind, pose_id, time_s, detail FROM events"
+        rows = self._db.execute(sql + " WHERE kind = ? ORDER BY seq" if kind else sql + " ORDER BY seq",
+                                (kind,) if kind else ()).fetchall()
+        return [(k, p, t, json.loads(d)) for k, p, t, d in rows]
+
+    def forget_failed(self) -> list:
+        """Delete the failed poses (one transaction) so a re-run measures them again; their ids."""
+        with self._db:
+            ids = [r[0] for r in self._db.execute("SELECT pose_id FROM poses WHERE status = 'failed'")]
+            self._db.execute("DELETE FROM reflector_readings WHERE pose_id IN "
+                             "(SELECT pose_id FROM poses WHERE status = 'failed')")
+            self._db.execute("DELETE FROM poses WHERE status = 'failed'")
+        return ids
 
     def stored_ids(self) -> set:
         """pose_ids with a stored outcome (measured or failed)."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import socket
 import sys
 import threading
@@ -31,7 +32,7 @@ import numpy as np
 
 from campaign.config import load_config, resolve
 from campaign.effects.base import make_effect
-from campaign.errors import CampaignError, PeerError, ProtocolError, TrackerTimeout
+from campaign.errors import CampaignError, PeerError, ProtocolError
 from campaign.measure import protocol as P
 from campaign.measure.reflectors import transform_points
 from campaign.model.robot import RobotModel
@@ -43,6 +44,34 @@ FAULT_KINDS = ("drop", "late", "garble", "beam_lost", "robot_fault", "estop")
 _KIND_CODE = {k: i + 1 for i, k in enumerate(FAULT_KINDS)}
 #: distances of the base-frame set-up points from F_I's origin along x and y (m)
 SETUP_SPACING_M = 0.3
+#: replies kept for repeated ids (a retry comes within seconds; a resumed run repeats only the pose in flight)
+CACHE_SIZE = 4096
+#: a connection silent this long (s) is closed
+IDLE_TIMEOUT_S = 300.0
+
+
+def parse_faults(section, where="campaign.yaml"):
+    """({kind: rate per request in [0, 1]}, late_delay_s) from the ``sim.faults`` mapping."""
+    from campaign.errors import ConfigError
+
+    section = section or {}
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: sim.faults must be a mapping of fault kind to rate")
+    rates, late_delay_s = {}, 1.0
+    for key, value in section.items():
+        if key == "late_delay_s":
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 3600:
+                raise ConfigError(f"{where}: sim.faults.late_delay_s must be a number of seconds in 0..3600, "
+                                  f"got {value!r}")
+            late_delay_s = float(value)
+            continue
+        if key not in FAULT_KINDS:
+            raise ConfigError(f"{where}: unknown fault 'sim.faults.{key}' (allowed: {', '.join(FAULT_KINDS)}, "
+                              "late_delay_s)")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+            raise ConfigError(f"{where}: sim.faults.{key} must be a rate in 0..1, got {value!r}")
+        rates[key] = float(value)
+    return rates, late_delay_s
 
 
 class World:
@@ -63,8 +92,7 @@ class World:
         self.settle_s = float(cfg["plan"]["settle_time_s"])
         self.tracker_s = float(cfg["plan"]["tracker_time_per_reflector_s"])
         self.time_factor = float(sc["time_factor"])
-        self.faults = {k: float(v) for k, v in (sc.get("faults") or {}).items() if k in FAULT_KINDS}
-        self.late_delay_s = float((sc.get("faults") or {}).get("late_delay_s", 1.0)) if isinstance(sc.get("faults"), dict) else 1.0
+        self.faults, self.late_delay_s = parse_faults(sc.get("faults"), cfg.get("_path", "campaign.yaml"))
         self.clock_s = 0.0
         self.q = np.array(self.robot.q_mid)
         self.lock = threading.Lock()
@@ -170,7 +198,7 @@ class Port:
             return P.ErrorReply(msg.id, f"the {self.name} does not accept '{msg.type}'")
         with self.cache_lock:
             self.cache[msg.id] = reply
-            while len(self.cache) > 4096:
+            while len(self.cache) > CACHE_SIZE:
                 self.cache.popitem(last=False)
         return reply
 
@@ -180,8 +208,9 @@ class Port:
         try:
             while True:
                 try:
-                    msg = c.receive(timeout_s=300.0)
+                    msg = c.receive(timeout_s=IDLE_TIMEOUT_S)
                 except ProtocolError as exc:
+                    # the stream cannot be trusted after a bad frame: say why, then hang up
                     try:
                         c.send(P.ErrorReply(0, str(exc)))
                     except CampaignError:
@@ -192,6 +221,8 @@ class Port:
                 with self.cache_lock:
                     attempt = self.seen.get(msg.id, 0)
                     self.seen[msg.id] = attempt + 1
+                    while len(self.seen) > 4 * CACHE_SIZE:
+                        self.seen.pop(next(iter(self.seen)))
                 key = (msg.id * 8 + attempt) * 4
                 if w.fault("drop", key + 1):
                     return  # the reply is cached: a retry with the same id gets it
@@ -201,7 +232,10 @@ class Port:
                     c.send_raw(b"\x00\x00\x00\x10{not json at all")
                     return
                 c.send(reply)
-        except (PeerError, TrackerTimeout, OSError):
+        except (PeerError, OSError):
+            return
+        except Exception as exc:  # a bug must cost one connection, never the cell
+            print(f"cell {self.name}: {exc.__class__.__name__}: {exc}", file=sys.stderr, flush=True)
             return
         finally:
             c.close()
@@ -242,6 +276,8 @@ def main(argv=None):
     print(json.dumps({"controller": ctrl.port, "tracker": trk.port, "host": args.host,
                       "truth": str(world.truth_path)}), flush=True)
     if args.watch_stdin:
+        # a child of the driver: Ctrl-C is the driver's to handle (it finishes the current pose)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         _watch_stdin()
     try:
         while True:
