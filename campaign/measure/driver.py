@@ -16,6 +16,7 @@ docs/protocol.md gives the id layout.
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -267,6 +268,11 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
                            stored_before)
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
+            if kind not in ("unreachable", "robot_fault"):
+                try:  # the clock after the last measurement's tracker time
+                    clock = max(clock, trk.heartbeat().time_s)
+                except PeerError:
+                    pass
             store.set_meta("campaign_clock_s", clock)
             store.add_event("session_end", {"measured": n_ok, "failed": n_fail, "stopped": stopped,
                                             "reconnects": ctrl.reconnects + trk.reconnects}, time_s=clock)
@@ -407,6 +413,7 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base):
                               q_encoder=tuple(q_enc), xyz=tuple(map(float, T_IE[0, :3, 3])),
                               rotvec=tuple(map(float, matrix_to_rotvec(T_IE[0, :3, :3]))), fit_rms_m=float(rms[0]),
                               retries=retries,
+                              context={} if m.temperature_c is None else {"temperature_c": m.temperature_c},
                               reflectors={t: (by[t].xyz_m, by[t].status) for t in REFLECTORS}), clock
         return PoseRecord(pid, "failed", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
                           q_encoder=tuple(q_enc), retries=retries,
@@ -459,11 +466,14 @@ class SimulatedCell:
         log_path = Path(run_dir) / "sim" / "cell.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
         self.log_path = log_path
+        # one BLAS thread: the cell's algebra is tiny, and idle OpenBLAS threads spinning on a
+        # loaded machine make its start-up seconds instead of milliseconds
+        env = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", **os.environ}
         with open(log_path, "ab") as err:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "campaign.sim.cell", "--config", str(config_path), "--run", str(run_dir),
                  "--watch-stdin"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
-                start_new_session=True)
+                start_new_session=True, env=env)
         line = self.proc.stdout.readline().decode()
         try:
             info = json.loads(line)

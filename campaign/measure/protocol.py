@@ -72,10 +72,12 @@ class Reading:
 
 @dataclass(frozen=True)
 class Measurement:
-    """Tracker reply: one reading per target, coordinates in F_L (m)."""
+    """Tracker reply: one reading per target, coordinates in F_L (m); the tracker's air
+    temperature sensor (°C) when it has one."""
     id: int
     time_s: float
     readings: tuple = field(default_factory=tuple)
+    temperature_c: float | None = None
     type: str = "measurement"
 
 
@@ -164,7 +166,10 @@ def from_dict(obj) -> object:
                 raise ProtocolError(f"{what}: reading status must be one of {', '.join(TARGET_STATUS)}, got {status!r}")
             xyz = _vec(r, "xyz_m", 3, what) if status == "ok" else None
             readings.append(Reading(_str(r, "target", what, 64), status, xyz))
-        return Measurement(_id(obj, what), _num(obj, "time_s", what), tuple(readings))
+        temp = _num(obj, "temperature_c", what) if obj.get("temperature_c") is not None else None
+        if temp is not None and not -50.0 <= temp <= 100.0:
+            raise ProtocolError(f"{what}: field 'temperature_c' must lie in -50..100, got {temp!r}")
+        return Measurement(_id(obj, what), _num(obj, "time_s", what), tuple(readings), temp)
     if kind == "heartbeat":
         return Heartbeat(_id(obj, what))
     if kind == "heartbeat_ack":
@@ -178,6 +183,8 @@ def to_dict(msg) -> dict:
     d = asdict(msg)
     if isinstance(msg, Measurement):
         d["readings"] = [{k: v for k, v in asdict(r).items() if v is not None} for r in msg.readings]
+        if msg.temperature_c is None:
+            del d["temperature_c"]
     for key in ("q", "q_encoder", "targets"):
         if key in d:
             d[key] = list(d[key])

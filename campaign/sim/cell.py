@@ -134,18 +134,22 @@ class World:
             return P.Reached(msg.id, tuple(float(v) for v in q), self.clock_s)
 
     def measure(self, msg: P.Measure):
+        unknown = [t for t in msg.targets if t not in self.reflectors and t not in self.setup_I]
+        if unknown:
+            return P.ErrorReply(msg.id, f"unknown target {unknown[0]!r}")
         with self.lock:
             rng = np.random.default_rng([self.seed, 99, int(msg.id)])
-            T_LE = self.truth.T_LI @ self.truth.pose(self.q[None], self.context())[0]
+            # the pose is sampled when the measurement starts; its time and temperature are reported
+            ctx = self.context()
+            t_sample = self.clock_s
+            T_LE = self.truth.T_LI @ self.truth.pose(self.q[None], ctx)[0]
             readings = []
             for k, target in enumerate(msg.targets):
                 self._advance(self.tracker_s)
                 if target in self.reflectors:
                     p = transform_points(T_LE, self.reflectors[target][None])[0]
-                elif target in self.setup_I:
-                    p = transform_points(self.truth.T_LI, self.setup_I[target][None])[0]
                 else:
-                    return P.ErrorReply(msg.id, f"unknown target {target!r}")
+                    p = transform_points(self.truth.T_LI, self.setup_I[target][None])[0]
                 if self.fault("beam_lost", msg.id * 16 + k):
                     readings.append(P.Reading(target, "beam_lost"))
                     continue
@@ -158,7 +162,7 @@ class World:
                 if self.truth.resolution_m > 0 and self.truth.noise_m > 0:
                     p = np.round(p / self.truth.resolution_m) * self.truth.resolution_m
                 readings.append(P.Reading(target, "ok", tuple(float(v) for v in p)))
-            return P.Measurement(msg.id, self.clock_s, tuple(readings))
+            return P.Measurement(msg.id, t_sample, tuple(readings), float(ctx["temperature_c"][0]))
 
 
 class Port:
