@@ -193,3 +193,19 @@ def test_a_measurement_carries_the_tracker_temperature_into_the_export(tmp_path,
     with pytest.raises(P.ProtocolError, match="temperature_c"):
         P.decode(json.dumps({"type": "measurement", "id": 1, "time_s": 0, "readings": [],
                              "temperature_c": 400}).encode())
+
+
+def test_the_protocol_document_names_every_message_status_target_and_fault():
+    import dataclasses
+    from pathlib import Path
+
+    from campaign.measure.driver import POSE_FAULT_CODES, REFLECTORS
+    from campaign.sim.cell import FAULT_KINDS
+
+    doc = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
+    types = [f.default for cls in vars(P).values() if dataclasses.is_dataclass(cls)
+             for f in dataclasses.fields(cls) if f.name == "type"]
+    assert len(types) == 8
+    for name in (*types, *P.TARGET_STATUS, *P.SETUP_TARGETS, *REFLECTORS, *FAULT_KINDS, *POSE_FAULT_CODES):
+        assert f"`{name}`" in doc, name
+    assert f"{P.MAX_FRAME:,}" in doc

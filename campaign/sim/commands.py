@@ -1,4 +1,5 @@
-"""`campaign synth`: a measured-pose CSV from a seeded truth, the truth kept apart."""
+"""`campaign sim`: the simulated cell alone (for a real driver test); `campaign synth`: a
+measured-pose CSV from a seeded truth, the truth kept apart."""
 
 from __future__ import annotations
 
@@ -6,7 +7,11 @@ from pathlib import Path
 
 
 def register(sub):
-    s = sub.add_parser("sim", help="run the simulated cell alone (controller and tracker ports), for a real driver test")
+    s = sub.add_parser(
+        "sim", help="run the simulated cell alone (controller and tracker ports), for a real driver test",
+        description="Serve the simulated robot controller and laser tracker (docs/protocol.md) on two TCP ports "
+                    "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml. "
+                    "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`.")
     s.add_argument("--config", metavar="FILE", default=None, help="configuration (default: the embedded one)")
     s.add_argument("--run", metavar="DIR", default="runs/sim", help="where the simulator keeps its truth (default: %(default)s)")
     s.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
