@@ -132,7 +132,7 @@ def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, r
     np.testing.assert_array_equal(p1.rotvec, p2.rotvec)
 
 
-def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot):
+def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot, capsys):
     from campaign.measure.driver import SimulatedCell
 
     run = make_run(tmp_path, robot, n=10)
@@ -147,8 +147,10 @@ def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path
         assert cell.proc.poll() is None
         from campaign.measure.driver import RunOptions, run_campaign
 
-        res = run_campaign(run, robot, cell.controller, cell.tracker, RunOptions(timeout_s=2.0))
+        res = run_campaign(run, robot, cell.controller, cell.tracker, RunOptions(timeout_s=2.0), progress=True)
         assert res.measured == 10
+    bar = capsys.readouterr().err.rsplit("\r", 1)[-1]  # the progress bar's last state
+    assert "10/10 poses" in bar and "ok 10 failed 0" in bar and "sim 0.1 h" in bar and "h to go" in bar
 
 
 def test_an_emergency_stop_ends_the_campaign_cleanly_and_a_rerun_resumes(tmp_path, robot, capsys):
@@ -184,3 +186,18 @@ def test_export_of_a_measured_run_is_the_measured_pose_csv(tmp_path, robot):
     header = out.read_text().splitlines()[0]
     assert header.startswith("pose_id,time_s,q1,q2,q3,q4,q5,q6,x,y,z,rx,ry,rz")  # then the context columns
     assert len(out.read_text().splitlines()) == 21
+
+
+def test_retry_failed_measures_the_failed_poses_again_and_stores_each_once(tmp_path, robot):
+    run = make_run(tmp_path, robot, n=30, sim={"faults": {"beam_lost": 0.4}}, run={"retries": 1})
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    failed = [r[0] for r in stored(run) if r[1] == "failed"]
+    assert failed
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    cfg["sim"]["faults"] = {}
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(["run", str(run), "--sim", "--quiet", "--retry-failed"]) == 0
+    rows = stored(run)
+    assert [r[0] for r in rows] == list(range(1000, 1030)) and all(r[1] == "measured" for r in rows)
+    with open_run(run) as store:
+        assert store.get_meta("id_epoch") == 1 and store.events("retry_failed")[0][3]["pose_ids"] == failed

@@ -301,8 +301,8 @@ def _setup(store, trk, opts, base):
         raise PeerError(f"tracker: the base-frame set-up points could not be measured ({missing})")
     T_LI = frame_from_setup_points(*[np.mean(pts[t], axis=0) for t in P.SETUP_TARGETS])
     T_LI = [[float(v) for v in row] for row in T_LI]
-    store.set_meta("T_LI", T_LI)
     store.set_meta("setup_points_L", {t: np.mean(v, axis=0).tolist() for t, v in pts.items()})
+    store.set_meta("T_LI", T_LI)  # last: its presence marks the set-up as done
     store.add_event("setup", {"T_LI": T_LI, "readings": {t: len(v) for t, v in pts.items()}})
     return T_LI
 
