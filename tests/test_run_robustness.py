@@ -6,6 +6,7 @@ simulated cell is a real separate process.
 
 import json
 import os
+import re
 import signal
 import socket
 import sqlite3
@@ -17,7 +18,6 @@ import time
 
 import numpy as np
 import pytest
-import yaml
 
 from campaign.cli import main
 from campaign.errors import ConfigError
@@ -142,12 +142,11 @@ def test_ctrl_c_stops_after_the_current_pose_with_everything_stored(tmp_path, ro
 def test_the_cell_alone_serves_a_driver_given_its_ports(tmp_path, robot):
     run = make_run(tmp_path, robot, n=15)
     cell = subprocess.Popen([sys.executable, "-m", "campaign.cli", "sim", "--config", str(run / "campaign.yaml"),
-                             "--run", str(tmp_path / "cell")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--run", str(tmp_path / "cell")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        line = cell.stdout.readline()
-        ports = dict(
-            (name, int(port)) for name, port in
-            [(w, line.split(f"{w} 127.0.0.1:")[1].split(",")[0].split(" ")[0]) for w in ("controller", "tracker")])
+        line = cell.stdout.readline()  # "simulated cell: controller 127.0.0.1:P, tracker 127.0.0.1:P ..."
+        ports = {name: int(port) for name, port in re.findall(r"(controller|tracker) 127\.0\.0\.1:(\d+)", line)}
         assert main(["run", str(run), "--controller", f"127.0.0.1:{ports['controller']}",
                      "--tracker", f"127.0.0.1:{ports['tracker']}", "--quiet"]) == 0
     finally:

@@ -30,7 +30,8 @@ def register(sub):
                    help="configuration (default: RUN/campaign.yaml, else the embedded one)")
     p.add_argument("--poses", metavar="CSV", default=None,
                    help="pose list to measure instead of RUN/plan/poses.csv (same header: pose_id,q1..q6, rad)")
-    p.add_argument("--max-poses", type=int, default=None, help="stop after this many poses (the rest stays for a re-run)")
+    p.add_argument("--max-poses", type=int, default=None,
+                   help="measure at most this many poses (the rest stays for a re-run)")
     p.add_argument("--retry-failed", action="store_true",
                    help="forget the poses stored as failed and measure them again")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -210,9 +210,11 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
     controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
-    warnings (one line each), and with ``verbose`` every retry too. ``retry_failed`` forgets the failed poses first so they are
-    measured again. Returns counts and the campaign clock (s) at the end. Ctrl-C (SIGINT)
-    stops after the current pose; a second one stops at once (the pose in flight is not stored).
+    warnings (one line each), and with ``verbose`` every retry too. ``retry_failed`` forgets
+    the failed poses first so they are measured again. ``poses_csv`` replaces
+    RUN/plan/poses.csv. Returns counts and the campaign clock (s) at the end. Ctrl-C
+    (SIGINT) stops after the current pose; a second one stops at once (the pose in flight is
+    not stored).
     """
     run_dir = Path(run_dir)
     say = log or (lambda msg: None)
