@@ -34,6 +34,7 @@ BAD_REPLIES = {
     "half_sent": struct.pack(">I", 200) + b'{"type": "reached", "id": ',
     "not_utf8": struct.pack(">I", 8) + b"\xff\xfe\xfd\xfc\xfb\xfa\xf9\xf8",
     "wrong_schema": P._HEADER.pack(30) + b'{"type":"reached","id":1,"q":1}',
+    "trickled": None,  # a valid reply, one byte every 20 ms: complete only long after the timeout
 }
 
 
@@ -68,6 +69,13 @@ class BadPeer:
                     c.send(P.Measurement(msg.id, 0.0, tuple(P.Reading(t, "ok", pts[t]) for t in msg.targets)))
                 elif isinstance(msg, P.Move) and self.name == "controller" and self.kind is None:
                     c.send(P.Reached(msg.id, msg.q, 0.0))
+                elif self.kind == "trickled":
+                    self.bad_sent += 1
+                    reply = (P.Reached(msg.id, msg.q, 0.0) if isinstance(msg, P.Move) else
+                             P.Measurement(msg.id, 0.0, tuple(P.Reading(t, "ok", (1.0, 1.0, 1.0)) for t in msg.targets)))
+                    for byte in P.encode(reply):
+                        c.send_raw(bytes([byte]))
+                        time.sleep(0.02)
                 else:
                     self.bad_sent += 1
                     c.send_raw(BAD_REPLIES[self.kind])

@@ -15,6 +15,7 @@ import json
 import math
 import socket
 import struct
+import time
 from dataclasses import asdict, dataclass, field
 
 from campaign.errors import PeerError, ProtocolError, TrackerTimeout
@@ -65,6 +66,7 @@ class Measure:
 
 @dataclass(frozen=True)
 class Reading:
+    """One target of a measurement: ``status`` in TARGET_STATUS; ``xyz_m`` in F_L (m) when ok."""
     target: str
     status: str
     xyz_m: tuple | None = None
@@ -83,12 +85,14 @@ class Measurement:
 
 @dataclass(frozen=True)
 class Heartbeat:
+    """Either peer: are you there, and who are you?"""
     id: int
     type: str = "heartbeat"
 
 
 @dataclass(frozen=True)
 class HeartbeatAck:
+    """Reply to a heartbeat: the peer's clock (s) and its role, "controller" or "tracker"."""
     id: int
     time_s: float
     peer: str
@@ -238,9 +242,12 @@ class Connection:
         except OSError as exc:
             raise PeerError(f"{self.peer}: connection lost while sending ({exc.strerror or exc})") from None
 
-    def _read_exact(self, n, timeout_s):
-        self.sock.settimeout(timeout_s)
+    def _read_exact(self, n, deadline, timeout_s):
         while len(self._buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TrackerTimeout(f"{self.peer}: no complete reply within {timeout_s:g} s")
+            self.sock.settimeout(left)
             try:
                 chunk = self.sock.recv(max(65536, n - len(self._buf)))
             except socket.timeout:
@@ -254,11 +261,16 @@ class Connection:
         return out
 
     def receive(self, timeout_s: float):
-        """The next message; ProtocolError for a bad frame (the connection is then unusable)."""
-        (length,) = _HEADER.unpack(self._read_exact(4, timeout_s))
+        """The next message, whole within ``timeout_s`` (a peer trickling bytes times out too).
+
+        ProtocolError for a bad frame (the connection is then unusable), TrackerTimeout when
+        no complete frame arrived in time, PeerError when the connection is lost.
+        """
+        deadline = time.monotonic() + timeout_s
+        (length,) = _HEADER.unpack(self._read_exact(4, deadline, timeout_s))
         if length > MAX_FRAME:
             raise ProtocolError(f"{self.peer}: frame of {length} bytes exceeds the {MAX_FRAME}-byte limit")
-        return decode(self._read_exact(length, timeout_s))
+        return decode(self._read_exact(length, deadline, timeout_s))
 
     def close(self) -> None:
         try:
