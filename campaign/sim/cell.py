@@ -99,6 +99,9 @@ class World:
         self.truth_path = Path(run_dir) / "sim" / "truth.yaml"
         self.truth_path.parent.mkdir(parents=True, exist_ok=True)
         write_truth(self.truth, self.truth_path)
+        # an emergency stop happens once: the operator resets it, and the re-run passes that move
+        self.estops_path = self.truth_path.parent / "estops.json"
+        self.estops = set(json.loads(self.estops_path.read_text())) if self.estops_path.is_file() else set()
         self.setup_I = {"setup_origin": np.zeros(3), "setup_x": np.array([SETUP_SPACING_M, 0, 0]),
                         "setup_y": np.array([0, SETUP_SPACING_M, 0])}
         self.reflectors = {r.name: np.array(r.position_in_E) for r in self.robot.reflectors}
@@ -123,7 +126,10 @@ class World:
         q = np.array(msg.q)
         if np.any(q < self.robot.q_lower - 1e-9) or np.any(q > self.robot.q_upper + 1e-9):
             return P.Fault(msg.id, "joint_limit", "target outside the joint limits")
-        if self.fault("estop", msg.id):
+        if msg.id not in self.estops and self.fault("estop", msg.id):
+            with self.lock:
+                self.estops.add(msg.id)
+                self.estops_path.write_text(json.dumps(sorted(self.estops)))
             return P.Fault(msg.id, "emergency_stop", "emergency stop pressed")
         if self.fault("robot_fault", msg.id):
             return P.Fault(msg.id, "move_rejected", "drive reported a following error; move not executed")
