@@ -141,6 +141,21 @@ class MLP:
 
 # -- Bayesian regularisation -----------------------------------------------------------------
 
+class _threads:
+    """Context manager: torch intra-op threads set to n (None: unchanged), restored on exit."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def __enter__(self):
+        self.before = torch.get_num_threads()
+        if self.n is not None:
+            torch.set_num_threads(int(self.n))
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.before)
+
+
 def br_update(gamma_trace_inv, n_weights, n_data, alpha, E_D, E_W):
     """One MacKay / Foresee-Hagan update: returns (gamma, alpha, beta).
 
@@ -192,12 +207,19 @@ class ResidualNetwork:
         errors and the objective are always float64
     min_rel_improvement, patience : converged when an LM step lowers F by less than this fraction
         for ``patience`` epochs in a row
-    seed : initialisation seed
+    window, window_rtol : also converged when the training MSE fell by less than ``window_rtol``
+        (relative) over the last ``window`` epochs and γ moved by less than 10 × that
+    seed : initialisation seed (weights and Hutchinson probes); training is deterministic
+    n_threads : torch intra-op threads during fit/predict (None: leave torch's setting); on a
+        shared 2-core machine 1 thread avoids OpenMP oversubscription (docs/ann.md)
+    cg_warm_start : start each LM step's CG at the previous accepted step
+    progress : optional callable(epoch=, max_epochs=, mse=, gamma=) every ``progress_every`` epochs
     """
 
     def __init__(self, *, hidden=(64, 32), q_lower=None, q_upper=None, max_epochs=2048, solver="cg",
                  gamma_every=20, probes=4, cg_maxiter=25, product_dtype="float32", seed=0,
-                 min_rel_improvement=1e-5, patience=15, mu_max=1e10, warm_start=False, progress=None):
+                 min_rel_improvement=1e-5, patience=15, window=100, window_rtol=2e-3, mu_max=1e10,
+                 n_threads=None, cg_warm_start=False, progress=None, progress_every=10):
         self.hidden = hidden
         self.q_lower = q_lower
         self.q_upper = q_upper
@@ -210,9 +232,13 @@ class ResidualNetwork:
         self.seed = seed
         self.min_rel_improvement = min_rel_improvement
         self.patience = patience
+        self.window = window
+        self.window_rtol = window_rtol
         self.mu_max = mu_max
-        self.warm_start = warm_start
+        self.n_threads = n_threads
+        self.cg_warm_start = cg_warm_start
         self.progress = progress
+        self.progress_every = progress_every
 
     # -- fitting ----------------------------------------------------------------------------
     def fit(self, q, dz):
@@ -228,8 +254,14 @@ class ResidualNetwork:
         dtype = torch.float64
         if self.product_dtype not in ("float32", "float64"):
             raise ConfigError(f"product_dtype must be 'float32' or 'float64', not {self.product_dtype!r}")
-        lo = np.min(q, axis=0) if self.q_lower is None else np.asarray(self.q_lower, dtype=float)
-        hi = np.max(q, axis=0) if self.q_upper is None else np.asarray(self.q_upper, dtype=float)
+        if self.q_lower is None or self.q_upper is None:
+            from campaign.model.robot import RobotModel
+
+            robot = RobotModel.load()  # eq. 17's limits of the embedded default robot
+        lo = np.asarray(robot.q_lower if self.q_lower is None else self.q_lower, dtype=float)
+        hi = np.asarray(robot.q_upper if self.q_upper is None else self.q_upper, dtype=float)
+        if lo.shape != (6,) or hi.shape != (6,) or not np.all(hi > lo):
+            raise ConfigError(f"joint limits must be 6 values each with q_upper > q_lower, got {lo}, {hi}")
         self.input_mapping_ = joint_mapping(lo, hi)
         std = dz.std(axis=0)
         self.target_mapping_ = Mapping(dz.mean(axis=0), np.where(std > 0, std, 1.0))
@@ -238,7 +270,9 @@ class ResidualNetwork:
         self.net_ = MLP(6, tuple(self.hidden), 6)
         gen = torch.Generator().manual_seed(int(self.seed))
         w = self.net_.init(gen, dtype)
-        self._train(w, x, t, gen)
+        self._probe_z = self._probe_s = None
+        with _threads(self.n_threads):
+            self._train(w, x, t, gen)
         return self
 
     def _train(self, w, x, t, gen):
@@ -281,7 +315,7 @@ class ResidualNetwork:
                         vp = v.to(pdt)
                         JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, vp)).to(torch.float64)
                         return 2 * beta * JtJv + (2 * alpha + _mu) * v
-                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta if self.warm_start else None,
+                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta if self.cg_warm_start else None,
                                    maxiter=self.cg_maxiter)
                 w_new = w + step
                 y_new, cache_new = net.forward(w_new, x)
@@ -304,18 +338,26 @@ class ResidualNetwork:
                 tr_inv = self._trace_inverse(w, x, cache, alpha, beta, gen, JtJ if self.solver == "full" else None)
                 gamma, alpha, beta = br_update(tr_inv, N, n_data, alpha, E_D, E_W)
             history.append((epoch, E_D / n_data, gamma, alpha, beta))
-            if self.progress is not None and (epoch % 10 == 0 or epoch == 1):
-                self.progress(epoch=epoch, mse=E_D / n_data, gamma=gamma)
+            if self.progress is not None and (epoch % self.progress_every == 0 or epoch == 1):
+                self.progress(epoch=epoch, max_epochs=self.max_epochs, mse=E_D / n_data, gamma=gamma)
             stall = stall + 1 if rel < self.min_rel_improvement else 0
             if stall >= self.patience:
                 stop = "converged"
                 break
+            if self.window and epoch > self.window:
+                _, mse_then, gamma_then, _, _ = history[-1 - self.window]
+                mse_now = E_D / n_data
+                if (mse_then - mse_now) < self.window_rtol * mse_now and \
+                        abs(gamma - gamma_then) < 10 * self.window_rtol * gamma:
+                    stop = "plateau"
+                    break
         self.weights_ = w
         self.alpha_, self.beta_, self.gamma_ = float(alpha), float(beta), float(gamma)
         self.n_epochs_ = epoch
         self.stop_reason_ = stop
         self.mse_normalised_ = E_D / n_data
-        self.loss_history_ = history
+        self.loss_ = float(beta * E_D + alpha * E_W)
+        self.loss_history_ = np.array(history)  # columns: epoch, normalised MSE, γ, α, β
         return self
 
     def _trace_inverse(self, w, x, cache, alpha, beta, gen, JtJ=None):
@@ -333,11 +375,19 @@ class ResidualNetwork:
             JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, v.to(pdt))).to(torch.float64)
             return 2 * beta * JtJv + 2 * alpha * v
 
-        # zᵀ H⁻¹ z from a truncated CG solve (CG's energy-norm optimality makes zᵀx_k converge fast)
+        # zᵀ H⁻¹ z from a truncated CG solve (CG's energy-norm optimality makes zᵀx_k converge fast).
+        # The Rademacher probes are drawn once per fit and each solve starts at the previous
+        # solution for the same probe: H changes little between re-estimates, so a few CG
+        # iterations suffice, and γ does not jitter from fresh probe noise at every update.
+        if getattr(self, "_probe_z", None) is None or len(self._probe_z) != self.probes \
+                or self._probe_z[0].numel() != N:
+            self._probe_z = [(torch.randint(0, 2, (N,), generator=gen) * 2 - 1).to(torch.float64)
+                             for _ in range(self.probes)]
+            self._probe_s = [None] * self.probes
         total = 0.0
-        for _ in range(self.probes):
-            z = (torch.randint(0, 2, (N,), generator=gen) * 2 - 1).to(torch.float64)
-            s, _ = _pcg(apply_H, z, diag, tol=1e-3, maxiter=2 * self.cg_maxiter)
+        for i, z in enumerate(self._probe_z):
+            s, _ = _pcg(apply_H, z, diag, x0=self._probe_s[i], tol=1e-3, maxiter=2 * self.cg_maxiter)
+            self._probe_s[i] = s
             total += float(z @ s)
         return total / self.probes
 
@@ -351,7 +401,7 @@ class ResidualNetwork:
         self._check()
         x = torch.as_tensor(self.input_mapping_.apply(np.asarray(q, dtype=float).reshape(-1, 6)),
                             dtype=self.weights_.dtype)
-        with torch.no_grad():
+        with torch.no_grad(), _threads(getattr(self, "n_threads", None)):
             y, _ = self.net_.forward(self.weights_, x)
         return self.target_mapping_.invert(y.numpy().astype(float))
 

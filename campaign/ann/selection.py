@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import numpy as np
 
+from campaign.errors import DataError
 from campaign.ann.network import ResidualNetwork
 from campaign.model.rotations import rotvec_to_matrix
 
@@ -15,6 +19,35 @@ def compensate_pose(T_model, dz_hat) -> np.ndarray:
     T[:, :3, 3] -= dz_hat[:, :3]
     T[:, :3, :3] = rotvec_to_matrix(-dz_hat[:, 3:6]) @ T[:, :3, :3]
     return T
+
+
+@dataclass(frozen=True)
+class TrainingProgress:
+    """One progress report of a training inside model selection (what a progress bar shows).
+
+    ``str()`` gives a one-line status, so a callback that just prints lines works too.
+    fold is 1-based, or None for the final retraining on the whole training set.
+    """
+
+    hidden: tuple
+    fold: int | None
+    folds: int
+    epoch: int
+    max_epochs: int
+    mse: float  # normalised training MSE (mean over the 6 mapped outputs)
+    gamma: float  # effective number of parameters
+
+    def __str__(self) -> str:
+        where = "final" if self.fold is None else f"fold {self.fold}/{self.folds}"
+        return (f"{self.hidden} {where}: epoch {self.epoch}/{self.max_epochs}, "
+                f"mse {self.mse:.4g}, γ {self.gamma:.0f}")
+
+
+def _reporter(progress, hidden, fold, folds):
+    if progress is None:
+        return None
+    return lambda **kw: progress(TrainingProgress(tuple(hidden), fold, folds, kw["epoch"], kw["max_epochs"],
+                                                  kw["mse"], kw["gamma"]))
 
 
 def _fold_of(n, folds, seed):
@@ -32,28 +65,36 @@ def cv_stats(dz_true, dz_pred, target_scale) -> dict:
 
 
 def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None, progress=None, **net_options):
-    """K-fold CV over hidden sizes on training data only. Returns {"sizes": [...], "best": (N1, N2)}.
+    """K-fold CV over hidden sizes on training data only (the paper's Table 5).
 
-    The normalisation of Δz_tot in the RMSE uses the standard deviation of the training targets
-    (the same mapping as the network's own).
+    q (n, 6) rad, dz (n, 6) residuals (m, rad) after the prior model (nominal or geometric).
+    Folds are a seeded random partition; each fold's network fits its own mappings on its
+    training part. Returns a JSON-ready dict ``{"sizes": [row, ...], "best": [N1, N2],
+    "folds": K}`` with one row per size: ``hidden``, ``rmse_normalised`` (RMSE of the held-out
+    Δz_tot, each component divided by the standard deviation of the targets), ``max_position_mm``,
+    ``max_orientation_mrad``, ``mean_position_mm``, ``epochs`` (per fold), ``wall_s``.
+    The best size has the lowest RMSE. progress: optional callable(TrainingProgress) and, after
+    each size, callable(str).
     """
     q = np.asarray(q, dtype=float)
     dz = np.asarray(dz, dtype=float)
     fold = _fold_of(len(q), folds, seed)
     scale = np.where(dz.std(axis=0) > 0, dz.std(axis=0), 1.0)
+    if len(q) < 2 * folds or dz.shape != (len(q), 6) or q.shape[1:] != (6,):
+        raise DataError(f"cross_validate: need q, dz (n, 6) with n >= {2 * folds}, got {q.shape}, {dz.shape}")
     rows = []
     for hidden in sizes:
         pred = np.empty_like(dz)
         epochs = []
+        t0 = time.perf_counter()
         for k in range(folds):
             tr, te = fold != k, fold == k
-            say = (lambda _h=hidden, _k=k, **kw: progress(f"CV {_h} fold {_k + 1}/{folds}: epoch {kw['epoch']}, "
-                                                         f"mse {kw['mse']:.4g}, γ {kw['gamma']:.0f}")) if progress else None
-            net = ResidualNetwork(hidden=hidden, q_lower=q_lower, q_upper=q_upper, seed=seed, progress=say,
-                                  **net_options).fit(q[tr], dz[tr])
+            net = ResidualNetwork(hidden=tuple(hidden), q_lower=q_lower, q_upper=q_upper, seed=seed,
+                                  progress=_reporter(progress, hidden, k + 1, folds), **net_options).fit(q[tr], dz[tr])
             pred[te] = net.predict(q[te])
             epochs.append(net.n_epochs_)
-        row = {"hidden": list(hidden), **cv_stats(dz, pred, scale), "epochs": epochs}
+        row = {"hidden": list(hidden), **cv_stats(dz, pred, scale), "epochs": epochs,
+               "wall_s": time.perf_counter() - t0}
         rows.append(row)
         if progress:
             progress(f"CV {hidden}: RMSE {row['rmse_normalised']:.3f}, max ‖Δr‖ {row['max_position_mm']:.3f} mm")
@@ -65,14 +106,16 @@ def fit_ann_stage(q_train, dz_train, *, sizes, folds=5, seed=0, q_lower=None, q_
                   **net_options):
     """Choose the hidden size by CV on the training set, retrain it on the whole training set.
 
-    Returns (ResidualNetwork, cv dict). With a single size, CV is still run (for Table 5).
+    q_train (n, 6) rad, dz_train (n, 6) (m, rad): residuals of the prior model on the training
+    set only. q_lower, q_upper: joint limits of eq. 17 (rad) for the input mapping (None: the
+    embedded robot's). net_options: further ResidualNetwork hyperparameters (max_epochs, ...).
+    Returns (ResidualNetwork fitted on the whole training set, cv dict of :func:`cross_validate`
+    plus ``"final"``). With a single size, CV is still run (for Table 5).
     """
     cv = cross_validate(q_train, dz_train, sizes=sizes, folds=folds, seed=seed, q_lower=q_lower,
                         q_upper=q_upper, progress=progress, **net_options)
-    say = (lambda **kw: progress(f"final {tuple(cv['best'])}: epoch {kw['epoch']}, mse {kw['mse']:.4g}, "
-                                 f"γ {kw['gamma']:.0f}")) if progress else None
-    net = ResidualNetwork(hidden=tuple(cv["best"]), q_lower=q_lower, q_upper=q_upper, seed=seed, progress=say,
-                          **net_options).fit(q_train, dz_train)
+    net = ResidualNetwork(hidden=tuple(cv["best"]), q_lower=q_lower, q_upper=q_upper, seed=seed,
+                          progress=_reporter(progress, cv["best"], None, folds), **net_options).fit(q_train, dz_train)
     cv["final"] = {"hidden": list(cv["best"]), "epochs": net.n_epochs_, "gamma": net.gamma_, "alpha": net.alpha_,
                    "beta": net.beta_, "stop": net.stop_reason_}
     return net, cv
