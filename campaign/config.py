@@ -28,17 +28,27 @@ SECTIONS = {
 TOP_KEYS = {"robot", "scene", "effects", *SECTIONS}
 
 
+def read_yaml_mapping(path, error=ConfigError) -> dict:
+    """A YAML file whose top level is a mapping (an empty file is {}); ``error`` (an exception
+    class) names the file on any failure."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise error(f"{path}: expected a mapping at the top level")
+    return doc
+
+
 def load_config(path=None) -> dict:
     """The configuration with defaults filled in; ``_path`` and ``_dir`` record where it came from."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    try:
-        doc = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    if not isinstance(doc, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
+    doc = read_yaml_mapping(path)
     extra = sorted(set(doc) - TOP_KEYS)
     if extra:
         raise ConfigError(f"{path}: unknown key '{extra[0]}' (allowed: {', '.join(sorted(TOP_KEYS))})")

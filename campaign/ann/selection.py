@@ -36,11 +36,16 @@ class TrainingProgress:
     max_epochs: int
     mse: float  # normalised training MSE (mean over the 6 mapped outputs)
     gamma: float  # effective number of parameters
+    stage: str = ""  # calibrate's stage name (e.g. "geometric+ann"), set by the caller
+
+    @property
+    def task(self) -> str:
+        """Which training this is: stage, hidden size and fold (constant over its epochs)."""
+        where = "final" if self.fold is None else f"fold {self.fold}/{self.folds}"
+        return " ".join(p for p in (self.stage, f"{self.hidden[0]}x{self.hidden[1]}", where) if p)
 
     def __str__(self) -> str:
-        where = "final" if self.fold is None else f"fold {self.fold}/{self.folds}"
-        return (f"{self.hidden} {where}: epoch {self.epoch}/{self.max_epochs}, "
-                f"mse {self.mse:.4g}, γ {self.gamma:.0f}")
+        return f"{self.task}: epoch {self.epoch}/{self.max_epochs}, mse {self.mse:.4g}, γ {self.gamma:.0f}"
 
 
 def _reporter(progress, hidden, fold, folds):

@@ -9,6 +9,7 @@ is evaluated once, at the end.
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import json
 from pathlib import Path
@@ -75,7 +76,8 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     for prior, T_model in T_prior.items():
         stage = "ann" if prior == "nominal" else f"{prior}+ann"
         dz = pose_error(T_model, poses.T_IE)
-        say = (lambda msg, _s=stage: progress(f"[{_s}] {msg}")) if progress else None
+        say = (lambda msg, _s=stage: progress(f"[{_s}] {msg}" if isinstance(msg, str)
+                                              else dataclasses.replace(msg, stage=_s))) if progress else None
         net, cv = fit_ann_stage(poses.q[tr], dz[tr], sizes=sizes, folds=folds, progress=say,
                                 q_lower=robot.q_lower, q_upper=robot.q_upper, **fit_kwargs)
         dz_hat = net.predict(poses.q)

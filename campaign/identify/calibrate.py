@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from campaign.effects.base import effect_context, parse_effect_list
-from campaign.errors import ConfigError, DataError
+from campaign.errors import DataError
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import train_test_split
@@ -56,16 +56,10 @@ class CalibrationResult:
 
 def run_config(run_dir) -> dict:
     """The run's own ``campaign.yaml`` (copied there by `plan`/`run`), or {}."""
+    from campaign.config import read_yaml_mapping
+
     path = Path(run_dir) / "campaign.yaml"
-    if not path.is_file():
-        return {}
-    try:
-        cfg = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(cfg, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
-    return cfg
+    return read_yaml_mapping(path) if path.is_file() else {}
 
 
 def configured_effects(run_dir) -> tuple:
@@ -95,7 +89,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
 
     effects: names of physical effects to identify jointly with the geometric parameters
     (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
-    compensator (campaign.ann). progress: optional callable(str) for status lines.
+    compensator (campaign.ann). progress: optional callable receiving status lines (str) and,
+    during ANN training, campaign.ann.selection.TrainingProgress reports.
     """
     run_dir = Path(run_dir)
     say = progress or (lambda msg: None)
@@ -211,6 +206,8 @@ def _write(result: CalibrationResult, robot, geo) -> None:
     params.update(_param_block(model))
     if model is not geo:
         params["geometric_only"] = _param_block(geo)
+    # networks trained by this calibrate run (stage -> file beside params.yaml)
+    params["ann_stages"] = dict(result.extra.get("ann_files", {}))
     _atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
     _atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
     # history: one entry per calibrate run, so a report can show the error falling

@@ -33,6 +33,26 @@ def register(sub):
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_calibrate)
 
+    p = sub.add_parser("predict", help="calibrated pose of E in F_I for given joint coordinates")
+    p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
+    p.add_argument("--csv", required=True, metavar="IN",
+                   help="CSV with q1..q6 (rad), optional pose_id and context columns (time_s, temperature_c, ...)")
+    p.add_argument("--out", metavar="OUT", default=None,
+                   help="CSV to write: pose_id,q1..q6,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
+    p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
+    p.set_defaults(func=_predict)
+
+    p = sub.add_parser("compensate",
+                       help="corrected joint commands that bring the real tool to the nominal poses of given commands")
+    p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
+    p.add_argument("--csv", required=True, metavar="IN",
+                   help="CSV with nominal joint commands q1..q6 (rad), optional pose_id and context columns")
+    p.add_argument("--out", metavar="OUT", default=None,
+                   help="CSV to write: pose_id,q1..q6 (corrected, rad),dq1..dq6,residual_position_mm,"
+                        "residual_orientation_mrad,converged,within_limits (default: standard output)")
+    p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
+    p.set_defaults(func=_compensate)
+
 
 def _import(args):
     from campaign.measure.store import import_csv
@@ -64,9 +84,67 @@ def _calibrate(args):
         ann_options["sizes"] = parse_sizes(args.sizes)
     if args.epochs:
         ann_options["max_epochs"] = args.epochs
-    progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    progress = None if args.quiet else _CalibrateProgress()
     ann = True if args.ann is None else args.ann
     result = calibrate(args.run, effects=args.effects, position_only=args.position_only, ann=ann,
                        ann_options=ann_options, progress=progress)
+    if progress is not None:
+        progress.close()
     print(summary_text(result))
+    return 0
+
+
+class _CalibrateProgress:
+    """Status lines, and one progress bar per network training (stage, size, fold) showing the
+    epoch, the running normalised MSE and the effective number of parameters γ."""
+
+    def __init__(self):
+        self.bar = None
+        self.task = None
+
+    def __call__(self, msg):
+        from campaign.progress import Progress
+
+        if isinstance(msg, str):
+            self.close()
+            print(msg, file=sys.stderr, flush=True)
+            return
+        if msg.task != self.task:
+            self.close()
+            self.task = msg.task
+            self.bar = Progress(msg.task, total=msg.max_epochs, enabled=True, unit=" epochs")
+        self.bar.update(msg.epoch - self.bar.done, extra=f"mse {msg.mse:.4g} γ {msg.gamma:.0f}")
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+        self.bar = self.task = None
+
+
+def _predict(args):
+    from campaign.identify.use import CalibratedRobot, predict_rows, read_joint_csv, write_table
+
+    calibrated = CalibratedRobot(args.run, stage=args.stage)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys)
+    header, rows = predict_rows(calibrated, pose_id, q, context)
+    write_table(args.out, header, rows)
+    if args.out:
+        print(f"wrote {len(rows)} calibrated poses ({calibrated.stage}) to {args.out}")
+    return 0
+
+
+def _compensate(args):
+    from campaign.identify.use import CalibratedRobot, compensate_rows, read_joint_csv, write_table
+
+    calibrated = CalibratedRobot(args.run, stage=args.stage)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys)
+    header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context)
+    write_table(args.out, header, rows)
+    if args.out:
+        print(f"wrote {len(rows)} corrected joint commands ({calibrated.stage}) to {args.out}")
+    if not ok.all():
+        print(f"warning: {int((~ok).sum())} pose(s) did not converge (column converged = 0)", file=sys.stderr)
+    if not inside.all():
+        print(f"warning: {int((~inside).sum())} corrected command(s) outside the joint limits "
+              "(column within_limits = 0)", file=sys.stderr)
     return 0

@@ -18,10 +18,11 @@ from campaign.measure.data import CSV_COLUMNS, MeasuredPoses
 from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS
 
 
-def read_measured_csv(path, robot=None) -> MeasuredPoses:
-    """Read and validate a measured-pose CSV.
+def read_numeric_table(path, required) -> tuple:
+    """Read a CSV of numbers with a header; every cell finite.
 
-    With ``robot`` (a RobotModel), joint values are also checked against its limits.
+    Returns (header, {column: values (n,)}, source line numbers (n,)). ``required`` columns
+    must be present; every error names the file, and where it applies the line and column.
     """
     path = Path(path)
     try:
@@ -32,9 +33,9 @@ def read_measured_csv(path, robot=None) -> MeasuredPoses:
         raise DataError(f"{path}: not a UTF-8 text file") from None
     rows = list(csv.reader(text.splitlines()))
     if not rows:
-        raise DataError(f"{path}: empty file (expected header {','.join(CSV_COLUMNS)})")
+        raise DataError(f"{path}: empty file (expected header {','.join(required)})")
     header = [h.strip() for h in rows[0]]
-    missing = [c for c in CSV_COLUMNS if c not in header]
+    missing = [c for c in required if c not in header]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
     if len(set(header)) != len(header):
@@ -56,7 +57,16 @@ def read_measured_csv(path, robot=None) -> MeasuredPoses:
                 raise DataError(f"{path}: line {line}, column {header[j]}: {cell.strip()} is not a finite number")
             values[k, j] = v
     col = {h: values[:, j] for j, h in enumerate(header)}
-    lines = np.array([line for line, _ in body])
+    return header, col, np.array([line for line, _ in body])
+
+
+def read_measured_csv(path, robot=None) -> MeasuredPoses:
+    """Read and validate a measured-pose CSV.
+
+    With ``robot`` (a RobotModel), joint values are also checked against its limits.
+    """
+    path = Path(path)
+    header, col, lines = read_numeric_table(path, CSV_COLUMNS)
 
     def fail(mask, name, what):
         k = int(np.argmax(mask))

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from campaign.errors import ConfigError
 
@@ -136,15 +135,11 @@ class RobotModel:
 
 @functools.lru_cache(maxsize=8)
 def _load_cached(meta_path: str) -> RobotModel:
+    from campaign.config import read_yaml_mapping
     from campaign.model.rotations import urdf_rpy
 
     meta_file = Path(meta_path)
-    try:
-        meta = yaml.safe_load(meta_file.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{meta_file}: not valid YAML ({exc})") from None
-    if not isinstance(meta, dict):
-        raise ConfigError(f"{meta_file}: expected a mapping at the top level")
+    meta = read_yaml_mapping(meta_file)
     required = ("urdf", "chain", "gravity_in_I_m_s2", "reflectors", "max_velocity_rad_s",
                 "max_acceleration_rad_s2", "max_jerk_rad_s3")
     for key in required:

@@ -1,0 +1,255 @@
+"""Using a calibration: `campaign predict` and `campaign compensate`.
+
+A run's calibration folder holds everything needed to evaluate the calibrated robot again:
+``params.yaml`` (the 48 geometric parameters and the effects' parameters, plain YAML) and, when
+the ANN was trained, ``ann_nominal.pt`` / ``ann_geometric.pt`` (tensors only, loaded with
+``weights_only``). :class:`CalibratedRobot` reads them back and evaluates any stage of
+``metrics.json``'s ``order``: ``nominal``, ``geometric``, ``geometric+<effect>...``, ``ann``
+(nominal + network) or ``<model>+ann``.
+
+*Predict* gives the pose of E in F_I for joint coordinates. *Compensate* inverts it: for the
+pose a program expects from nominal joint commands q_nom (T* = FK_nominal(q_nom)), it finds
+commands q with model(q) = T* by Newton iteration on the full model (network included), the
+Jacobian taken by central differences, so whatever the stage contains is inverted exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from campaign.config import read_yaml_mapping
+from campaign.effects.base import EffectSet, make_effect, model_pose
+from campaign.errors import ConfigError, DataError
+from campaign.measure.csvio import read_numeric_table
+from campaign.model.kinematics import N_PARAMS, PARAM_NAMES, forward, pose_error
+from campaign.model.robot import RobotModel
+from campaign.model.rotations import matrix_to_rotvec
+
+JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
+POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
+#: networks by the prior model they were trained after ("nominal" or the identified model)
+ANN_FILES = {"nominal": "ann_nominal.pt", "model": "ann_geometric.pt"}
+
+
+@dataclass(frozen=True)
+class _Model:
+    """One identified model block of params.yaml: p_e (48,) and the effects with their values."""
+
+    stage: str
+    p_e: np.ndarray
+    effects: EffectSet = field(default_factory=EffectSet)
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def _block(robot, block: dict, source: Path, where: str) -> _Model:
+    try:
+        names = list(block["p_e_names"])
+        p_e = np.asarray(block["p_e"], dtype=float)
+        effects = block.get("effects") or {}
+        if names != list(PARAM_NAMES) or p_e.shape != (N_PARAMS,) or not np.all(np.isfinite(p_e)):
+            raise DataError(f"{source}: {where}p_e must be the {N_PARAMS} finite values named as in Table 2")
+        made, theta = [], []
+        for name, spec in effects.items():
+            eff = make_effect(name, robot)
+            values = [float(p["value"]) for p in spec["parameters"]]
+            if [p["name"] for p in spec["parameters"]] != list(eff.param_names):
+                raise DataError(f"{source}: {where}effects.{name}: parameters do not match the effect's "
+                                f"({', '.join(eff.param_names)})")
+            made.append(eff)
+            theta.extend(values)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{source}: {where}malformed ({exc.__class__.__name__}: {exc})") from None
+    stage = "+".join(["geometric", *(e.name for e in made)])
+    return _Model(stage, p_e, EffectSet(tuple(made)), np.asarray(theta, dtype=float))
+
+
+class CalibratedRobot:
+    """The calibrated robot of a run, read back from ``RUN/calibration``.
+
+    stage: a stage of metrics.json's ``order`` (None: the last one, the current model).
+    """
+
+    def __init__(self, run_dir, stage: str | None = None, robot: RobotModel | None = None):
+        from campaign.identify.calibrate import CALIBRATION_DIR, load_robot_for_run
+
+        self.run_dir = Path(run_dir)
+        folder = self.run_dir / CALIBRATION_DIR
+        metrics_path, params_path = folder / "metrics.json", folder / "params.yaml"
+        for path in (metrics_path, params_path):
+            if not path.is_file():
+                raise DataError(f"{path}: not found; run `campaign calibrate {self.run_dir}` first")
+        try:
+            order = list(json.loads(metrics_path.read_text())["order"])
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise DataError(f"{metrics_path}: malformed ({exc.__class__.__name__})") from None
+        params = read_yaml_mapping(params_path, DataError)
+        self.robot = robot or load_robot_for_run(self.run_dir)
+        if params.get("robot") not in (None, self.robot.name):
+            raise DataError(f"{params_path}: calibrated for robot {params.get('robot')!r}, "
+                            f"the run's robot is {self.robot.name!r}")
+        self.stage = order[-1] if stage is None else stage
+        if self.stage not in order:
+            raise ConfigError(f"--stage: '{self.stage}' is not a stage of {metrics_path} ({', '.join(order)})")
+
+        main = _block(self.robot, params, params_path, "")
+        geo = _block(self.robot, params["geometric_only"], params_path, "geometric_only.") \
+            if "geometric_only" in params else main
+        models = {"nominal": _Model("nominal", np.zeros(N_PARAMS)), "geometric": geo, main.stage: main}
+        prior, net_file = self.stage, None
+        if self.stage == "ann":
+            prior, net_file = "nominal", ANN_FILES["nominal"]
+        elif self.stage.endswith("+ann"):
+            prior, net_file = self.stage[: -len("+ann")], ANN_FILES["model"]
+        if prior not in models:
+            raise DataError(f"{params_path}: holds no parameters for stage '{prior}' "
+                            f"(it holds {', '.join(models)}); re-run calibrate")
+        trained = params.get("ann_stages") or {}
+        if net_file is not None and trained.get(self.stage) != net_file:
+            raise DataError(f"{folder}: the network of stage '{self.stage}' was not trained by the last "
+                            f"calibrate; re-run `campaign calibrate {self.run_dir} --ann`")
+        self.model = models[prior]
+        self.network = None
+        if net_file is not None:
+            from campaign.ann import ResidualNetwork
+
+            self.network = ResidualNetwork.load(folder / net_file)
+
+    @property
+    def context_keys(self) -> tuple:
+        return tuple(k for e in self.model.effects.effects for k in e.context_keys)
+
+    def predict(self, q, context=None) -> np.ndarray:
+        """Calibrated pose of E in F_I, (n, 4, 4), for joint coordinates q (n, 6) rad."""
+        q = np.asarray(q, dtype=float).reshape(-1, 6)
+        self.model.effects.check_context(context or {}, len(q))
+        T = model_pose(self.robot, q, self.model.p_e, self.model.effects, self.model.theta, context or {})
+        if self.network is not None:
+            from campaign.ann import compensate_pose
+
+            T = compensate_pose(T, self.network.predict(q))
+        return T
+
+    def compensate(self, T_target, q_start, context=None, *, tol_m: float = 1e-9, tol_rad: float = 1e-8,
+                   max_iter: int = 50, step_rad: float = 1e-6, max_step_rad: float = 0.1):
+        """Joint commands q (n, 6) with predict(q) = T_target, iterated from q_start.
+
+        Levenberg-Marquardt per pose (a Newton step where the Jacobian is well conditioned,
+        damped near a singularity, steps of at most ``max_step_rad``), the Jacobian of the
+        whole stage by central differences. Returns (q, residual (n, 6) =
+        pose_error(predict(q), T_target) in m and rad, converged (n,) bool). A pose whose
+        target the calibrated model cannot reach (beside a singularity, e.g. the elbow nearly
+        folded) ends unconverged, with its remaining residual.
+        """
+        T_target = np.asarray(T_target, dtype=float).reshape(-1, 4, 4)
+        q, r, ok = self._solve(T_target, np.array(q_start, dtype=float).reshape(-1, 6), context,
+                               tol_m, tol_rad, max_iter, step_rad, max_step_rad)
+        return q, r, ok
+
+    def _solve(self, T_target, q, context, tol_m, tol_rad, max_iter, step_rad, max_step_rad):
+        lam = np.full(len(q), 1e-9)
+        r = pose_error(self.predict(q, context), T_target)
+
+        def done(res):
+            return (np.linalg.norm(res[:, :3], axis=1) <= tol_m) & (np.linalg.norm(res[:, 3:], axis=1) <= tol_rad)
+
+        for _ in range(max_iter):
+            idx = np.flatnonzero(~done(r))
+            if len(idx) == 0:
+                break
+            ctx = _rows(context, idx)
+            J = np.empty((len(idx), 6, 6))
+            for j in range(6):
+                dq = np.zeros(6)
+                dq[j] = step_rad
+                r_plus = pose_error(self.predict(q[idx] + dq, ctx), T_target[idx])
+                r_minus = pose_error(self.predict(q[idx] - dq, ctx), T_target[idx])
+                J[:, :, j] = (r_plus - r_minus) / (2 * step_rad)
+            JtJ = np.einsum("nki,nkj->nij", J, J)
+            g = np.einsum("nki,nk->ni", J, r[idx])
+            damping = lam[idx, None, None] * (np.eye(6) * np.einsum("nii->ni", JtJ)[:, None, :] + 1e-12 * np.eye(6))
+            step = -np.linalg.solve(JtJ + damping, g[:, :, None])[:, :, 0]
+            big = np.abs(step).max(axis=1) > max_step_rad
+            step[big] *= (max_step_rad / np.abs(step[big]).max(axis=1))[:, None]
+            r_new = pose_error(self.predict(q[idx] + step, ctx), T_target[idx])
+            better = np.sum(r_new ** 2, axis=1) < np.sum(r[idx] ** 2, axis=1)
+            q[idx[better]] += step[better]
+            r[idx[better]] = r_new[better]
+            lam[idx] = np.where(better, np.maximum(lam[idx] / 10, 1e-12), lam[idx] * 10)
+        converged = (np.linalg.norm(r[:, :3], axis=1) <= 10 * tol_m) & (np.linalg.norm(r[:, 3:], axis=1) <= 10 * tol_rad)
+        return q, r, converged
+
+
+def _rows(context, idx):
+    return {k: np.asarray(v)[idx] for k, v in (context or {}).items()}
+
+
+def read_joint_csv(path, robot: RobotModel, context_keys=()) -> tuple:
+    """Joint coordinates (and the context columns an effect needs) from a CSV.
+
+    Header: ``q1..q6`` (rad), optionally ``pose_id`` and any context columns (``time_s``,
+    ``temperature_c``, ...). Returns (pose_id (n,), q (n, 6), context dict).
+    """
+    header, col, lines = read_numeric_table(path, JOINT_COLUMNS)
+    missing = [k for k in context_keys if k not in col]
+    if missing:
+        raise DataError(f"{path}: the calibrated model needs the column(s) {', '.join(missing)} "
+                        f"(context of its effects)")
+    q = np.stack([col[c] for c in JOINT_COLUMNS], axis=1)
+    robot.check_joints(q, field=f"{path}: q", slack=1e-6)
+    pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
+    context = {k: col[k] for k in header if k not in JOINT_COLUMNS and k != "pose_id"}
+    return pose_id, q, context
+
+
+def write_table(path, header, rows) -> None:
+    """Write a numeric CSV atomically (``path`` None: standard output)."""
+    import csv
+    import sys
+
+    if path is None:
+        w = csv.writer(sys.stdout, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(rows)
+        return
+    path = Path(path)
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+    tmp.replace(path)
+
+
+def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):
+    """Rows ``pose_id,q1..q6,x,y,z,rx,ry,rz`` (m, rad) of the calibrated poses."""
+    T = calibrated.predict(q, context)
+    rv = matrix_to_rotvec(T[:, :3, :3])
+    header = ["pose_id", *JOINT_COLUMNS, *POSE_COLUMNS]
+    rows = [[int(i), *(repr(float(v)) for v in qq), *(repr(float(v)) for v in T[k, :3, 3]),
+             *(repr(float(v)) for v in rv[k])] for k, (i, qq) in enumerate(zip(pose_id, q))]
+    return header, rows
+
+
+def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context):
+    """Rows of corrected joint commands for the poses the nominal model gives at q_nominal.
+
+    Columns: ``pose_id, q1..q6`` (corrected, rad), ``dq1..dq6`` (correction, rad),
+    ``residual_position_mm, residual_orientation_mrad`` (model at the corrected q vs target),
+    ``converged``, ``within_limits`` (0/1). Returns (header, rows, converged, within_limits).
+    """
+    robot = calibrated.robot
+    T_target = forward(robot, q_nominal)
+    q, r, ok = calibrated.compensate(T_target, q_nominal, context)
+    inside = np.all((q >= robot.q_lower) & (q <= robot.q_upper), axis=1)
+    header = ["pose_id", *JOINT_COLUMNS, *(f"d{c}" for c in JOINT_COLUMNS),
+              "residual_position_mm", "residual_orientation_mrad", "converged", "within_limits"]
+    rows = []
+    for k in range(len(q)):
+        rows.append([int(pose_id[k]), *(repr(float(v)) for v in q[k]),
+                     *(repr(float(v)) for v in q[k] - q_nominal[k]),
+                     f"{np.linalg.norm(r[k, :3]) * 1e3:.3e}", f"{np.linalg.norm(r[k, 3:]) * 1e3:.3e}",
+                     int(ok[k]), int(inside[k])])
+    return header, rows, ok, inside
