@@ -95,6 +95,10 @@ def plot_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
     return name
 
 
+#: stages that are a comparison, not a step of the model being built up
+SIDE_STAGES = ("ann",)
+
+
 def history_rows(history_path: Path):
     """[(run index, effects, {stage: mean test position mm})] from history.json."""
     if not history_path.is_file():
@@ -123,7 +127,14 @@ def plot_history(history_path: Path, out: Path, name: str = "history.png"):
             seen.add(stage)
             labels.append(stage)
             values.append(stages[stage]["position_mm"]["mean"])
-    ax.plot(range(len(values)), values, "o-")
+    # the sequence of models a user builds up is one line; the network trained on the nominal
+    # model alone (stage "ann", the paper's comparison) is a side branch, drawn apart
+    chain = [x for x, label in enumerate(labels) if label not in SIDE_STAGES]
+    side = [x for x, label in enumerate(labels) if label in SIDE_STAGES]
+    ax.plot(chain, [values[x] for x in chain], "o-", label="model as it was built up")
+    if side:
+        ax.plot(side, [values[x] for x in side], "s", color="0.6", label="ANN on the nominal model (comparison)")
+    ax.legend(fontsize=8)
     ax.set_xticks(range(len(values)), labels, rotation=20, ha="right", fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("held-out mean ‖Δt‖ [mm]")
