@@ -55,7 +55,7 @@ def _demo(args):
         cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
         print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(cfg['effects'])}]` in {cfg_path}")
     _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
-          "--sizes", "32x16,64x32", "--folds", "3", "--epochs", args.ann_epochs, "--quiet")
+          "--sizes", "32x16,64x32", "--folds", "3", "--epochs", args.ann_epochs)
     print("\n=== 7. watch the error fall (held-out test set)")
     print(history_table(run))
     print(f"\nreports: {run}/calibration/report.html, {run}/diagnose/report.html, {run}/plan/tour.png")
