@@ -9,10 +9,11 @@ from campaign.cli import main
 from campaign.errors import ConfigError
 from campaign.model.kinematics import frames, forward
 from campaign.model.robot import REPO_ROOT
-from campaign.plan.checks import ExactChecker, reflector_geometry
+from campaign.plan.checks import ClearanceChecker, ExactChecker, reflector_geometry
+from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first
 from campaign.plan.grid import PAPER_CELLS, Grid, tool_frames
 from campaign.plan.scene import load_scene
-from campaign.plan.tour import rest_to_rest_time, ruckig_time, segment_samples
+from campaign.plan.tour import interior_samples, rest_to_rest_time, ruckig_time, segment_samples
 
 SCENE = REPO_ROOT / "scene" / "default_cell.yaml"
 
@@ -52,6 +53,43 @@ def test_travel_time_equals_ruckig_and_the_motion_is_a_straight_joint_line(robot
             assert np.ptp(lam) < 1e-8
     samples = segment_samples(np.zeros(6), np.full(6, 0.5), np.deg2rad(1.0))
     assert np.max(np.abs(np.diff(samples, axis=0))) <= np.deg2rad(1.0) + 1e-12
+
+
+def test_fast_nominal_frames_equal_batched_fk(robot, rng):
+    q = rng.uniform(robot.q_lower, robot.q_upper, size=(200, 6))
+    R, t = frames(robot, q)
+    R2, t2 = nominal_frames(robot, q)
+    np.testing.assert_allclose(R2, R, atol=1e-14)
+    np.testing.assert_allclose(t2, t, atol=1e-14)
+
+
+def test_all_segments_sampled_at_once_equal_per_segment_sampling(robot, rng):
+    A = rng.uniform(robot.q_lower, robot.q_upper, size=(40, 6))
+    B = rng.uniform(robot.q_lower, robot.q_upper, size=(40, 6))
+    B[3] = A[3]  # a zero-length segment has no inner sample
+    q, seg = interior_samples(A, B, np.deg2rad(1.0))
+    ref = [segment_samples(a, b, np.deg2rad(1.0))[1:-1] for a, b in zip(A, B)]
+    np.testing.assert_allclose(q, np.concatenate(ref), atol=1e-14)
+    np.testing.assert_array_equal(seg, np.repeat(np.arange(40), [len(r) for r in ref]))
+
+
+@pytest.mark.parametrize("clearance", [0.01, 0.035, 0.1])
+def test_sphere_bounds_never_clear_a_pair_that_fcl_finds_closer(robot, rng, clearance):
+    scene = load_scene(SCENE)
+    checker = ClearanceChecker(robot, scene, 0.035)
+    q = rng.uniform(robot.q_lower, robot.q_upper, size=(150, 6))
+    R, t = frames(robot, q)
+    Re, te = nominal_frames_entry_first(robot, q)
+    need_scene, need_self = checker.undecided_pairs(Re, te, clearance)
+    for k in range(len(q)):
+        checker._place(R[k], t[k])
+        for m, (i, j) in enumerate(checker.scene_pairs):
+            if not need_scene[m, k]:
+                assert checker._dist(checker.robot_objs[i], checker.scene_objs[j]) >= clearance
+        for m, (i, j) in enumerate(checker.self_pairs):
+            if not need_self[m, k]:
+                assert checker._dist(checker.robot_objs[i], checker.robot_objs[j]) >= clearance
+    assert need_self.mean() < 0.5  # the bounds decide most pairs
 
 
 def test_summary_counts_add_up(planned):

@@ -13,7 +13,8 @@ import itertools
 
 import numpy as np
 
-from campaign.plan.geometry import RobotSpheres, fcl_geometry, point_obstacle_distance, robot_primitives, robot_spheres
+from campaign.plan.geometry import (RobotSpheres, fcl_geometry, point_primitive_distance, robot_primitives, robot_spheres,
+                                    to_world)
 
 #: frames whose primitives may occlude the tracker's beams (the tool plate and flange lie
 #: behind the reflectors' cones, so frames 6 and 7 cannot block a beam that passed the cone test)
@@ -114,9 +115,17 @@ class ClearanceChecker:
             self.scene_objs.append(fcl.CollisionObject(fcl_geometry(obs.kind, obs.size),
                                                        fcl.Transform(obs.T_I[:3, :3], obs.T_I[:3, 3])))
         self.scene_pairs = [(i, j) for i, p in enumerate(self.prims) if p.frame >= 1 for j in range(len(self.scene_objs))]
+        self._sphere_centre = [self.spheres.centre[self.spheres.primitive == i] for i in range(len(self.prims))]
+        self._sphere_radius = [self.spheres.radius[self.spheres.primitive == i] for i in range(len(self.prims))]
+        # per obstacle: the columns of its pairs in scene_pairs, and their robot primitives
+        self._scene_pair_columns = [np.array([m for m, (i, o) in enumerate(self.scene_pairs) if o == j], dtype=int)
+                                    for j in range(len(self.scene_objs))]
+        self._scene_pair_prims = [np.array([i for i, o in self.scene_pairs if o == j], dtype=int)
+                                  for j in range(len(self.scene_objs))]
         cand = [(i, j) for i, j in itertools.combinations(range(len(self.prims)), 2)
                 if abs(self.prims[i].frame - self.prims[j].frame) >= 2]
         self.self_pairs, self.disabled_pairs = self._prune_always_near(cand)
+        self._self_pair_index = np.array(self.self_pairs, dtype=int).reshape(-1, 2).T
 
     def _prune_always_near(self, pairs, n=300, seed=0):
         from campaign.model.kinematics import frames
@@ -154,41 +163,77 @@ class ClearanceChecker:
         d = min(self._dist(self.robot_objs[i], self.scene_objs[j]) for i, j in self.scene_pairs)
         return min(d, min(self._dist(self.robot_objs[i], self.robot_objs[j]) for i, j in self.self_pairs))
 
-    def clear(self, R, t, clearance=None) -> np.ndarray:
-        """(n,) bool: every checked pair farther apart than the clearance. Sphere bounds first, FCL for the rest."""
-        c = self.clearance if clearance is None else float(clearance)
-        n = len(R)
+    def undecided_pairs(self, R, t, clearance):
+        """Which pairs the sphere bounds cannot clear, for poses with frames given entry-first:
+        R (8, 3, 3, n), t (8, 3, n) (see :func:`~campaign.plan.geometry.nominal_frames_entry_first`).
+
+        Returns ``(need_scene (len(scene_pairs), n), need_self (len(self_pairs), n))``, bool:
+        True where the lower bound on that pair's distance is below ``clearance`` (m); False
+        means the pair is certainly farther apart than ``clearance``. Two levels: one sphere
+        per primitive for every pose; then, only where that could not decide, each primitive's
+        sphere set against the other side's exact shape. Every sphere contains its piece of
+        the primitive, so a sphere's centre distance to the other shape less its radius is a
+        lower bound on that piece's distance."""
+        c = float(clearance)
+        n = R.shape[-1]
         S = self.spheres
-        # coarse level: one sphere per primitive, for every pose
-        Cw = np.einsum("npij,pj->npi", R[:, S.coarse_frame], S.coarse_centre) + t[:, S.coarse_frame]
-        need_scene = np.zeros((n, len(self.scene_pairs)), dtype=bool)
+        # coarse level: one sphere per primitive, for every pose; centres (3, P, n)
+        Cw = np.stack([sum(R[f, :, j] * cc[j] for j in range(3)) + t[f] for f, cc in zip(S.coarse_frame, S.coarse_centre)],
+                      axis=1)
+        need_scene = np.zeros((len(self.scene_pairs), n), dtype=bool)
+        for j, obs in enumerate(self.scene.obstacles):
+            prims = self._scene_pair_prims[j]
+            d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
+            need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
+        I, J = self._self_pair_index
+        diff = Cw[:, I] - Cw[:, J]
+        d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+        need_self = d - (S.coarse_radius[I] + S.coarse_radius[J])[:, None] < c
+        # fine level, only for the poses (columns) that the coarse level could not decide
         for m, (i, j) in enumerate(self.scene_pairs):
-            need_scene[:, m] = point_obstacle_distance(Cw[:, i], self.scene.obstacles[j]) - S.coarse_radius[i] < c
-        need_self = np.zeros((n, len(self.self_pairs)), dtype=bool)
-        for m, (i, j) in enumerate(self.self_pairs):
-            d = np.linalg.norm(Cw[:, i] - Cw[:, j], axis=-1)
-            need_self[:, m] = d - S.coarse_radius[i] - S.coarse_radius[j] < c
-        # fine level: the primitives' sphere sets, only where the coarse bound could not decide
-        for m, (i, j) in enumerate(self.scene_pairs):
-            rows = np.flatnonzero(need_scene[:, m])
-            if len(rows) == 0:
+            cols = np.flatnonzero(need_scene[m])
+            if len(cols) == 0:
                 continue
-            sel = S.primitive == i
-            W = np.einsum("nij,sj->nsi", R[rows][:, S.frame[sel][0]], S.centre[sel]) + t[rows][:, S.frame[sel][0]][:, None]
-            lb = np.min(point_obstacle_distance(W, self.scene.obstacles[j]) - S.radius[sel], axis=1)
-            need_scene[rows, m] = lb < c
+            f, obs = self.prims[i].frame, self.scene.obstacles[j]
+            W = to_world(R[f][..., cols], t[f][:, cols], self._sphere_centre[i])
+            d = point_primitive_distance(W, obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
+            need_scene[m, cols] = np.min(d - self._sphere_radius[i][:, None], axis=0) < c
         for m, (i, j) in enumerate(self.self_pairs):
-            rows = np.flatnonzero(need_self[:, m])
-            if len(rows) == 0:
-                continue
-            si, sj = S.primitive == i, S.primitive == j
-            Wi = np.einsum("nij,sj->nsi", R[rows][:, S.frame[si][0]], S.centre[si]) + t[rows][:, S.frame[si][0]][:, None]
-            Wj = np.einsum("nij,sj->nsi", R[rows][:, S.frame[sj][0]], S.centre[sj]) + t[rows][:, S.frame[sj][0]][:, None]
-            lb = np.full(len(rows), np.inf)
-            for a in range(Wi.shape[1]):  # bounded memory: one sphere of i against all of j
-                d = np.linalg.norm(Wj - Wi[:, a : a + 1], axis=-1) - S.radius[sj][None, :] - S.radius[si][a]
-                lb = np.minimum(lb, d.min(axis=1))
-            need_self[rows, m] = lb < c
+            cols = np.flatnonzero(need_self[m])
+            # i's spheres against j's shape, then j's spheres against i's shape where still undecided
+            for a, b in ((i, j), (j, i)):
+                if len(cols) == 0:
+                    break
+                lb = self._spheres_to_primitive(R, t, cols, a, b)
+                need_self[m, cols[lb >= c]] = False
+                cols = cols[lb < c]
+        return need_scene, need_self
+
+    def _spheres_to_primitive(self, R, t, cols, a, b):
+        """Lower bound (len(cols),) on the distance (m) between robot primitives a and b at the
+        poses ``cols`` of entry-first frames R (8, 3, 3, n), t (8, 3, n): a's enclosing spheres
+        against b's exact shape."""
+        fa, pb = self.prims[a].frame, self.prims[b]
+        W = to_world(R[fa][..., cols], t[fa][:, cols], self._sphere_centre[a])
+        Rf, tf = R[pb.frame][..., cols], t[pb.frame][:, cols]
+        Rb = np.stack([np.stack([sum(Rf[i, l] * pb.T[l, k] for l in range(3)) for k in range(3)]) for i in range(3)])
+        cb = to_world(Rf, tf, pb.T[None, :3, 3])[:, 0]
+        d = point_primitive_distance(W, pb.kind, pb.size, Rb, cb)
+        return np.min(d - self._sphere_radius[a][:, None], axis=0)
+
+    def clear(self, R, t, clearance=None) -> np.ndarray:
+        """(n,) bool: every checked pair farther apart than the clearance (m; default: the
+        checker's). Frames R (n, 8, 3, 3), t (n, 8, 3). Sphere bounds first, FCL for the rest."""
+        R, t = np.asarray(R), np.asarray(t)
+        return self.clear_entry_first(np.ascontiguousarray(np.moveaxis(R, 0, -1)),
+                                      np.ascontiguousarray(np.moveaxis(t, 0, -1)), clearance)
+
+    def clear_entry_first(self, R, t, clearance=None) -> np.ndarray:
+        """:meth:`clear` for frames given entry-first: R (8, 3, 3, n), t (8, 3, n)."""
+        c = self.clearance if clearance is None else float(clearance)
+        n = R.shape[-1]
+        need_scene, need_self = self.undecided_pairs(R, t, c)
+        need_scene, need_self = need_scene.T, need_self.T
         ok = np.ones(n, dtype=bool)
         todo = np.flatnonzero(need_scene.any(axis=1) | need_self.any(axis=1))
         scene_pairs = np.array(self.scene_pairs).reshape(-1, 2)
@@ -196,7 +241,7 @@ class ClearanceChecker:
         for k in todo:
             ms, mo = np.flatnonzero(need_scene[k]), np.flatnonzero(need_self[k])
             which = set(scene_pairs[ms, 0]) | set(self_pairs[mo, 0]) | set(self_pairs[mo, 1])
-            self._place(R[k], t[k], which)
+            self._place(R[..., k], t[..., k], which)
             for i, j in scene_pairs[ms]:
                 if self._dist(self.robot_objs[i], self.scene_objs[j]) < c:
                     ok[k] = False

@@ -22,7 +22,8 @@ from campaign.model.robot import RobotModel
 from campaign.plan import checks
 from campaign.plan.grid import Grid, tool_frames
 from campaign.plan.scene import load_scene
-from campaign.plan.tour import GridTimes, nearest_neighbour, path_time, rest_to_rest_time, segment_samples, two_opt
+from campaign.plan.geometry import nominal_frames_entry_first
+from campaign.plan.tour import GridTimes, interior_samples, nearest_neighbour, path_time, two_opt
 from campaign.progress import Progress
 
 #: the paper's campaign: 13,919 poses measured in about 3.5 days
@@ -31,6 +32,8 @@ PAPER_DURATION_S = 3.5 * 86400.0
 #: joints 2 and 3 of the via posture that lifts the arm clear of the wall (rad)
 VIA_Q2, VIA_Q3 = 0.0, -np.pi / 2
 CHUNK = 200_000
+#: motion samples checked together (bounds memory at about 2 kB a sample)
+MOTION_CHUNK = 32_768
 
 
 def _filter_grid(robot, scene, grid, clearance, progress):
@@ -79,33 +82,21 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     return suitable, counts, checker
 
 
-def _check_segments(robot, checker, Q_from, Q_to, max_step, clearance):
-    """(m,) bool: each straight joint-space motion clear by ``clearance`` at every sample."""
+def _check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK):
+    """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, 6) clear by
+    ``clearance`` (m) at every sample ≤ ``max_step`` (rad) of joint motion apart.
+
+    The end poses themselves are not re-checked here (they passed the pose filter at the
+    stricter pose clearance); all inner samples of all segments are generated at once and
+    checked ``chunk`` at a time (FK, sphere bounds, FCL for what the bounds leave)."""
     ok = np.ones(len(Q_from), dtype=bool)
-    batch_q, batch_seg = [], []
-    n_batch = 0
-
-    def flush():
-        nonlocal batch_q, batch_seg, n_batch
-        if not batch_q:
-            return
-        q = np.concatenate(batch_q)
-        seg = np.concatenate(batch_seg)
-        R, t = frames(robot, q)
-        good = checker.clear(R, t, clearance)
-        bad = np.unique(seg[~good])
-        ok[bad] = False
-        batch_q, batch_seg, n_batch = [], [], 0
-
-    for m in range(len(Q_from)):
-        samples = segment_samples(Q_from[m], Q_to[m], max_step)[1:-1]
-        if len(samples):
-            batch_q.append(samples)
-            batch_seg.append(np.full(len(samples), m))
-            n_batch += len(samples)
-        if n_batch > 20000:
-            flush()
-    flush()
+    if len(Q_from) == 0:
+        return ok
+    q, seg = interior_samples(Q_from, Q_to, max_step)
+    for s in range(0, len(q), chunk):
+        R, t = nominal_frames_entry_first(robot, q[s : s + chunk])
+        good = checker.clear_entry_first(R, t, clearance)
+        ok[seg[s : s + chunk][~good]] = False
     return ok
 
 
@@ -122,6 +113,14 @@ def _order_group(times, grid, members, start_cells):
 def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False) -> dict:
     """Plan a campaign; write the run's plan folder; return the summary (also in summary.json)."""
     t_start = time.perf_counter()
+    timing = {}  # seconds per stage, wall
+    clock = [t_start]
+
+    def lap(stage):
+        now = time.perf_counter()
+        timing[stage] = now - clock[0]
+        clock[0] = now
+
     cfg = config if isinstance(config, dict) else load_config(config)
     pc = cfg["plan"]
     robot = RobotModel.load(resolve(cfg, cfg["robot"]) if (Path(cfg["_dir"]) / str(cfg["robot"])).is_dir()
@@ -133,15 +132,14 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     out = run_dir / "plan"
     out.mkdir(parents=True, exist_ok=True)
     write_run_config(cfg, run_dir)
+    lap("setup")
 
     suitable, counts, checker = _filter_grid(robot, scene, grid, float(pc["clearance_m"]), progress)
-    t_filter = time.perf_counter() - t_start
+    lap("filters")
 
     # stage 3: groups, order, check
     times = GridTimes(robot, grid)
-    _, t_all = (None, None)
-    R_E, t_E = frames(robot, grid.q(suitable))[0][:, 7], frames(robot, grid.q(suitable))[1][:, 7]
-    front = scene.side_of_wall(t_E)
+    front = scene.side_of_wall(nominal_frames_entry_first(robot, grid.q(suitable))[1][7].T)
     bar = Progress("stage 3: ordering", 2, progress, " groups")
     home = np.array(grid.cells) // 2
     groups = {}
@@ -154,14 +152,17 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
                 if len(groups[g]) else np.inf)
     order = np.concatenate([groups[first], groups["behind" if first == "front" else "front"]])
     Q = grid.q(order)
+    lap("ordering")
     max_step = np.deg2rad(float(pc["motion_sample_deg"]))
     mc = float(pc["motion_clearance_m"])
     bar = Progress("stage 3: motion check", len(order), progress, " segments")
     ok = _check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
     bar.update(len(order))
     bar.close()
+    lap("motion_check")
     # fix colliding segments: via postures that lift the arm, else drop the pose
     vias, dropped = {}, []
+    via_from = {}  # tour index of a pose reached through vias → tour index its via path starts from
     keep = np.ones(len(order), dtype=bool)
     bad = list(np.flatnonzero(~ok))
     prev_of = lambda k: max(i for i in range(k + 1) if keep[i])  # noqa: E731
@@ -175,22 +176,23 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         if checker.clear(*frames(robot, path[1:3]), mc).all() and \
                 _check_segments(robot, checker, path[:-1], path[1:], max_step, mc).all():
             vias[int(order[k])] = [v1, v2]
+            via_from[k] = prev_of(m)
         else:
             keep[k] = False
             dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"))
-    # segments after a dropped pose start elsewhere: re-check those and repeat until clean
+    # segments after a dropped pose start elsewhere: re-check those (only those: every other
+    # segment is unchanged and already checked) and repeat until clean
+    known_ok = {(m, m + 1) for m in np.flatnonzero(ok)} | {(via_from[k], k) for k in via_from}
     for _ in range(5):
         kept = np.flatnonzero(keep)
-        Qk = Q[kept]
-        starts = []
-        for i in range(1, len(kept)):
-            if int(order[kept[i]]) in vias:
-                continue
-            starts.append(i)
+        starts = [i for i in range(1, len(kept)) if (kept[i - 1], kept[i]) not in known_ok]
         if not starts:
             break
         starts = np.array(starts)
-        seg_ok = _check_segments(robot, checker, Qk[starts - 1], Qk[starts], max_step, mc)
+        # a pose reached through vias: its first via posture is the segment's target
+        targets = np.array([vias[int(order[kept[i]])][0] if int(order[kept[i]]) in vias else Q[kept[i]] for i in starts])
+        seg_ok = _check_segments(robot, checker, Q[kept[starts - 1]], targets, max_step, mc)
+        known_ok |= {(kept[i - 1], kept[i]) for i in starts[seg_ok]}
         if seg_ok.all():
             break
         for i in starts[~seg_ok]:
@@ -209,6 +211,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     per_pose = float(pc["settle_time_s"]) + 3 * float(pc["tracker_time_per_reflector_s"])
     duration = tour_time + n * per_pose
 
+    lap("repair")
     _write_outputs(out, order_final, Q_final, vias, dropped)
     front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, 7]) if n else np.zeros(0, bool)
     summary = {
@@ -229,14 +232,16 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
             "seconds_per_pose": duration / n if n else None,
         },
         "disabled_link_pairs": [list(p) for p in checker.disabled_pairs],
-        "timing_s": {"filters": t_filter, "total": time.perf_counter() - t_start},
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    lap("outputs")
     try:
         _plot(out / "tour.png", robot, scene, Q_final, front_final)
     except Exception as exc:  # a plot must never lose a plan
         summary["plot_error"] = str(exc)
+    lap("plot")
+    summary["timing_s"] = {**timing, "total": time.perf_counter() - t_start}
+    summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 

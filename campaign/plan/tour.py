@@ -151,6 +151,29 @@ def segment_samples(qa, qb, max_step_rad):
     return qa + s * (qb - qa)
 
 
+def segment_sample_counts(Q_from, Q_to, max_step_rad):
+    """Number of steps k (m,) of each straight motion Q_from[i]→Q_to[i] (m, 6) in
+    :func:`segment_samples`: k = ceil(max joint motion / max_step_rad), at least 1."""
+    span = np.max(np.abs(np.asarray(Q_to, dtype=float) - np.asarray(Q_from, dtype=float)), axis=1)
+    return np.maximum(1, np.ceil(span / max_step_rad)).astype(np.int64)
+
+
+def interior_samples(Q_from, Q_to, max_step_rad):
+    """The inner samples of all segments at once (the end poses excluded): the same
+    configurations as ``segment_samples(a, b, max_step_rad)[1:-1]`` for every pair, stacked.
+
+    Returns (q (N, 6) rad, segment index (N,))."""
+    Q_from, Q_to = np.asarray(Q_from, dtype=float), np.asarray(Q_to, dtype=float)
+    k = segment_sample_counts(Q_from, Q_to, max_step_rad)
+    inner = k - 1
+    seg = np.repeat(np.arange(len(k)), inner)
+    # sample number i = 1..k-1 within its segment
+    first = np.cumsum(inner) - inner
+    i = np.arange(len(seg)) - np.repeat(first, inner) + 1
+    s = (i / k[seg])[:, None]
+    return Q_from[seg] + s * (Q_to[seg] - Q_from[seg]), seg
+
+
 def path_time(robot, Q) -> float:
     """Total travel time (s) of a path through joint vectors Q (n, 6)."""
     if len(Q) < 2:
