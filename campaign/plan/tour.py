@@ -87,57 +87,110 @@ class GridTimes:
         return t
 
 
+def axis_tables(times: GridTimes, C):
+    """Per joint i, the table (cells_i, n) of travel times (s) of that joint alone from each of
+    its cell values to each pose of C (n, 6): the time from cell vector c to every pose is then
+    the elementwise maximum of the six rows ``tables[i][c[i]]`` (contiguous rows, no gathers)."""
+    return [lut[np.abs(np.arange(len(lut))[:, None] - C[None, :, i])] for i, lut in enumerate(times.lut)]
+
+
 def nearest_neighbour(times: GridTimes, C, start: int = 0):
-    """Greedy tour over cell vectors C (n, 6); returns the visiting order (n,)."""
+    """Greedy tour over cell vectors C (n, 6) from pose ``start``; returns the visiting order (n,).
+
+    At each step the nearest unvisited pose in travel time (ties: the lowest index). The
+    per-joint time tables are compacted to the unvisited poses whenever half of them are gone."""
     n = len(C)
-    remaining = np.ones(n, dtype=bool)
     order = np.empty(n, dtype=np.int64)
+    alive = np.arange(n)  # pose indices of the tables' columns
+    tables = axis_tables(times, C)
+    visited = np.zeros(n)  # +inf on visited columns
     cur = start
-    idx_all = np.arange(n)
+    row = np.empty(n)
     for k in range(n):
         order[k] = cur
-        remaining[cur] = False
         if k == n - 1:
             break
-        cand = idx_all[remaining]
-        t = times.from_one(C[cur], C[cand])
-        cur = cand[int(np.argmin(t))]
+        col = int(np.searchsorted(alive, cur))
+        visited[col] = np.inf
+        if 2 * (n - k - 1) < len(alive) and len(alive) > 256:  # compact to the unvisited columns
+            keep = np.isfinite(visited)
+            alive, visited = alive[keep], visited[keep]
+            tables = [T[:, keep] for T in tables]
+            row = np.empty(len(alive))
+        c = C[cur]
+        np.add(tables[0][c[0]], visited, out=row)
+        for i in range(1, 6):
+            np.maximum(row, tables[i][c[i]], out=row)
+        cur = int(alive[int(np.argmin(row))])
     return order
 
 
-def two_opt(times: GridTimes, C, order, neighbours: int = 8, passes: int = 3):
-    """2-opt on an open path with candidate lists of the nearest poses in travel time."""
+def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
+    """The k nearest poses in travel time of each pose of C (n, 6), itself excluded: (n, k) indices."""
+    n = len(C)
+    k = min(k, n - 1)
+    tables = axis_tables(times, C)
+    near = np.empty((n, k), dtype=np.int64)
+    for s in range(0, n, block):
+        rows = np.arange(s, min(s + block, n))
+        t = tables[0][C[rows, 0]]
+        for i in range(1, 6):
+            np.maximum(t, tables[i][C[rows, i]], out=t)
+        t[np.arange(len(rows)), rows] = np.inf
+        near[rows] = np.argpartition(t, k - 1, axis=1)[:, :k]
+    return near
+
+
+def _pair_time_function(times: GridTimes, C):
+    """A plain-Python travel time t(a, b) (s) between poses a, b of C (n, 6): scalar lookups
+    without numpy's per-call overhead, for the local search's many single pairs."""
+    cells = C.tolist()
+    l0, l1, l2, l3, l4, l5 = (lut.tolist() for lut in times.lut)
+
+    def pair_time(a, b):
+        ca, cb = cells[a], cells[b]
+        return max(l0[abs(ca[0] - cb[0])], l1[abs(ca[1] - cb[1])], l2[abs(ca[2] - cb[2])],
+                   l3[abs(ca[3] - cb[3])], l4[abs(ca[4] - cb[4])], l5[abs(ca[5] - cb[5])])
+
+    return pair_time
+
+
+def two_opt(times: GridTimes, C, order, neighbours: int = 8, passes: int = 3, near=None):
+    """2-opt on an open path with candidate lists of the nearest poses in travel time.
+
+    For each edge (a, b) of the path and each candidate c near a (later on the path, with
+    successor d), reverse b…c when t(a,b) + t(c,d) > t(a,c) + t(b,d) (first improvement).
+    The first pose stays first. ``near``: precomputed :func:`neighbour_lists`."""
     order = np.array(order)
     n = len(order)
     if n < 4:
         return order
-    # candidate lists (by time) from a block-wise computation
-    near = np.empty((n, neighbours), dtype=np.int64)
-    k = min(neighbours, n - 1)
-    for s in range(0, n, 512):
-        block = C[s : s + 512]
-        t = times.pair(block[:, None, :], C[None, :, :])
-        t[np.arange(len(block)), np.arange(s, s + len(block))] = np.inf
-        near[s : s + len(block), :k] = np.argpartition(t, k, axis=1)[:, :k]
-    near = near[:, :k]
+    if near is None:
+        near = neighbour_lists(times, C, neighbours)
+    near = near.tolist()
+    dist = _pair_time_function(times, C)
     pos = np.empty(n, dtype=np.int64)
     for p in range(passes):
         pos[order] = np.arange(n)
+        seq = order.tolist()
+        where = pos.tolist()
         improved = 0
         for i in range(n - 1):
-            a, b = order[i], order[i + 1]
-            d_ab = times.pair(C[a], C[b])
+            a, b = seq[i], seq[i + 1]
+            d_ab = dist(a, b)
             for c in near[a]:
-                j = pos[c]
+                j = where[c]
                 if j <= i + 1 or j >= n - 1:
                     continue
-                d = order[j + 1]
-                gain = d_ab + times.pair(C[c], C[d]) - times.pair(C[a], C[c]) - times.pair(C[b], C[d])
+                d = seq[j + 1]
+                gain = d_ab + dist(c, d) - dist(a, c) - dist(b, d)
                 if gain > 1e-9:
-                    order[i + 1 : j + 1] = order[i + 1 : j + 1][::-1]
-                    pos[order[i + 1 : j + 1]] = np.arange(i + 1, j + 1)
+                    seq[i + 1 : j + 1] = seq[i + 1 : j + 1][::-1]
+                    for m in range(i + 1, j + 1):
+                        where[seq[m]] = m
                     improved += 1
                     break
+        order = np.array(seq, dtype=np.int64)
         if not improved:
             break
     return order
