@@ -166,3 +166,10 @@ def test_bad_inputs_are_named():
     with pytest.raises(ConfigError, match="N1xN2"):
         parse_sizes("64-32")
     assert parse_sizes("16x16, 64x32") == ((16, 16), (64, 32))
+
+
+def test_structured_gauss_newton_matrix_equals_jt_j(small_net):
+    net, w, x, _ = small_net
+    J = net.jacobian(w, x)
+    _, cache = net.forward(w, x)
+    torch.testing.assert_close(net.gauss_newton(w, x, cache, chunk=5), J.T @ J, atol=1e-12, rtol=0)

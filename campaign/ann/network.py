@@ -117,6 +117,85 @@ class MLP:
                           ((h2 * h2).sum(0)[None, :].expand(self.n_out, -1)).reshape(-1),
                           torch.full((self.n_out,), float(n), dtype=x.dtype)])
 
+    def kfac(self, w, x, cache):
+        """Kronecker factors of the per-layer diagonal blocks of JᵀJ, eigendecomposed.
+
+        Layer l's parameters (W_l | b_l) as a matrix V (r × (c+1)); each row of J restricted to
+        that block is ``a ⊗ x̃`` (a: the output-k cotangent at the layer's pre-activation, x̃ =
+        (layer input, 1)), so the block is ``Σ_s Σ_k (a aᵀ) ⊗ (x̃ x̃ᵀ)``, approximated (K-FAC,
+        Martens & Grosse 2015) by ``(Σ a aᵀ / n) ⊗ (Σ x̃ x̃ᵀ)``, exact for the output layer.
+        Returns [(λ_A, Q_A, λ_B, Q_B)] per layer.
+        """
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        h1, h2 = cache
+        n = x.shape[0]
+        g_a2 = W3[None, :, :] * (1 - h2 * h2)[:, None, :]  # (n, n_out, n2)
+        g_a1 = (g_a2 @ W2) * (1 - h1 * h1)[:, None, :]
+        one = torch.ones((n, 1), dtype=x.dtype)
+        pairs = []
+        for g, inp in ((g_a1, x), (g_a2, h1), (None, h2)):
+            xt = torch.cat([inp, one], 1)
+            if g is None:
+                A = torch.eye(self.n_out, dtype=x.dtype)
+            else:
+                g = g.reshape(-1, g.shape[-1])
+                A = (g.T @ g) / n
+            la, Qa = torch.linalg.eigh(A.double())
+            lb, Qb = torch.linalg.eigh((xt.T @ xt).double())
+            pairs.append((la.clamp_min(0).to(x.dtype), Qa.to(x.dtype), lb.clamp_min(0).to(x.dtype), Qb.to(x.dtype)))
+        return pairs
+
+    def kfac_solve(self, factors, v, scale, shift):
+        """(scale · K + shift I)⁻¹ v for the block-diagonal Kronecker approximation K of JᵀJ."""
+        parts = self.unpack(v)
+        out = []
+        for (la, Qa, lb, Qb), dW, db in zip(factors, parts[0::2], parts[1::2]):
+            V = torch.cat([dW, db[:, None]], 1)
+            T = (Qa.T @ V @ Qb) / (scale * la[:, None] * lb[None, :] + shift)
+            V = Qa @ T @ Qb.T
+            out += [V[:, :-1].reshape(-1), V[:, -1]]
+        return torch.cat(out)
+
+    def gauss_newton(self, w, x, cache, chunk=1000):
+        """JᵀJ (n_weights, n_weights) assembled exactly, in x's precision, without forming J.
+
+        Layer l's block of a Jacobian row is ``a_l ⊗ x̃_l`` (see :meth:`kfac`), so block (l, m) of
+        JᵀJ is ``Σ_s C_lm[s] ⊗ D_lm[s]`` with ``C_lm = Σ_k a_l[k] a_m[k]ᵀ`` and ``D_lm = x̃_l x̃_mᵀ``:
+        one matrix product ``Cᵀ D`` over the samples per block pair, done in chunks of samples.
+        About 7× fewer flops than ``J.T @ J`` for (64, 32) on 6 outputs. The reference solver's.
+        """
+        W1, b1, W2, b2, W3, b3 = self.unpack(w)
+        h1, h2 = cache
+        n, dt = x.shape[0], x.dtype
+        rows = [self.n1, self.n2, self.n_out]
+        cols = [self.n_in + 1, self.n1 + 1, self.n2 + 1]
+        # flat index of each (i, j) of the layer matrix (W | b): W row-major, then b
+        perm, off = [], 0
+        for r, c in zip(rows, cols):
+            i = torch.arange(r)[:, None]
+            j = torch.arange(c)[None, :]
+            perm.append((off + torch.where(j < c - 1, i * (c - 1) + j, r * (c - 1) + i)).reshape(-1))
+            off += r * c
+        G = torch.zeros((self.n_weights, self.n_weights), dtype=dt)
+        for s0 in range(0, n, chunk):
+            sl = slice(s0, min(n, s0 + chunk))
+            m = sl.stop - sl.start
+            one = torch.ones((m, 1), dtype=dt)
+            g_a2 = W3[None, :, :] * (1 - h2[sl] * h2[sl])[:, None, :]
+            g_a1 = (g_a2 @ W2) * (1 - h1[sl] * h1[sl])[:, None, :]
+            a = [g_a1, g_a2, torch.eye(self.n_out, dtype=dt).expand(m, -1, -1)]
+            xt = [torch.cat([x[sl], one], 1), torch.cat([h1[sl], one], 1), torch.cat([h2[sl], one], 1)]
+            for l in range(3):
+                for k in range(l, 3):
+                    C = (a[l].transpose(1, 2) @ a[k]).reshape(m, -1)  # (m, r_l r_k)
+                    D = (xt[l][:, :, None] * xt[k][:, None, :]).reshape(m, -1)  # (m, c_l c_k)
+                    B = (C.T @ D).reshape(rows[l], rows[k], cols[l], cols[k]).permute(0, 2, 1, 3)
+                    B = B.reshape(rows[l] * cols[l], rows[k] * cols[k])
+                    G[perm[l][:, None], perm[k][None, :]] += B
+                    if k != l:
+                        G[perm[k][:, None], perm[l][None, :]] += B.T
+        return G
+
     def jacobian(self, w, x):
         """The full Jacobian (n·n_out, n_weights), rows ordered sample-major. Reference only."""
         _, cache = self.forward(w, x)
@@ -168,11 +247,16 @@ def br_update(gamma_trace_inv, n_weights, n_data, alpha, E_D, E_W):
     return gamma, alpha, beta
 
 
-def _pcg(apply_A, b, diag, x0=None, tol=1e-3, maxiter=50):
-    """Preconditioned conjugate gradients for SPD A (Jacobi preconditioner). Returns (x, iterations)."""
+def _pcg(apply_A, b, precond, x0=None, tol=1e-3, maxiter=50):
+    """Preconditioned conjugate gradients for SPD A. Returns (x, iterations).
+
+    precond: the preconditioner M⁻¹ as a callable r -> M⁻¹ r, or a tensor (Jacobi: r / precond).
+    Stops when ‖r‖ ≤ tol ‖b‖ or after maxiter iterations.
+    """
+    M = precond if callable(precond) else (lambda r: r / precond)
     x = torch.zeros_like(b) if x0 is None else x0.clone()
     r = b - apply_A(x) if x0 is not None else b.clone()
-    z = r / diag
+    z = M(r)
     p = z.clone()
     rz = r @ z
     bnorm = torch.linalg.vector_norm(b)
@@ -184,7 +268,7 @@ def _pcg(apply_A, b, diag, x0=None, tol=1e-3, maxiter=50):
         r = r - a * Ap
         if torch.linalg.vector_norm(r) <= tol * bnorm:
             break
-        z = r / diag
+        z = M(r)
         rz_new = r @ z
         p = z + (rz_new / rz) * p
         rz = rz_new
@@ -219,8 +303,11 @@ class ResidualNetwork:
     def __init__(self, *, hidden=(64, 32), q_lower=None, q_upper=None, max_epochs=2048, solver="cg",
                  gamma_every=20, probes=4, cg_maxiter=25, product_dtype="float32", seed=0,
                  min_rel_improvement=1e-5, patience=15, window=100, window_rtol=2e-3, mu_max=1e10,
-                 n_threads=None, cg_warm_start=False, progress=None, progress_every=10):
+                 n_threads=None, cg_warm_start=False, progress=None, progress_every=10,
+                 preconditioner="kfac", cg_tol=1e-3):
         self.hidden = hidden
+        self.preconditioner = preconditioner
+        self.cg_tol = cg_tol
         self.q_lower = q_lower
         self.q_upper = q_upper
         self.max_epochs = max_epochs
@@ -251,6 +338,8 @@ class ResidualNetwork:
             raise DataError("ResidualNetwork.fit: q and dz must be finite")
         if self.solver not in ("cg", "full"):
             raise ConfigError(f"solver must be 'cg' or 'full', not {self.solver!r}")
+        if self.preconditioner not in ("kfac", "jacobi"):
+            raise ConfigError(f"preconditioner must be 'kfac' or 'jacobi', not {self.preconditioner!r}")
         dtype = torch.float64
         if self.product_dtype not in ("float32", "float64"):
             raise ConfigError(f"product_dtype must be 'float32' or 'float64', not {self.product_dtype!r}")
@@ -279,6 +368,7 @@ class ResidualNetwork:
         net = self.net_
         N = net.n_weights
         n_data = t.numel()
+        full = self.solver == "full"
         pdt = torch.float32 if self.product_dtype == "float32" else torch.float64
         x_p = x.to(pdt)
         y, cache = net.forward(w, x)
@@ -294,29 +384,32 @@ class ResidualNetwork:
         delta = None
         epoch = 0
         stop = "max_epochs"
+        self.cg_iterations_ = 0
+        JtJ_next = None
         for epoch in range(1, self.max_epochs + 1):
             F = beta * E_D + alpha * E_W
             grad = 2 * beta * net.vjp(w, x, cache, e) + 2 * alpha * w
-            if self.solver == "full":
-                J = net.jacobian(w, x)
-                JtJ = J.T @ J
+            if full:
+                JtJ = JtJ_next if JtJ_next is not None else net.gauss_newton(w, x, cache)
+                JtJ_next = None
+                eye = torch.eye(N, dtype=x.dtype)
             else:
                 w_p, cache_p = w.to(pdt), tuple(c.to(pdt) for c in cache)
-                if epoch % 5 == 1:  # the preconditioner need not be fresh every epoch
-                    jtj_diag = net.jtj_diagonal(w_p, x_p, cache_p).to(torch.float64)
-                diag = 2 * beta * jtj_diag + 2 * alpha
+                pre = self._preconditioner(w_p, x_p, cache_p, epoch)
             accepted = False
             while mu <= self.mu_max:
-                if self.solver == "full":
-                    A = 2 * beta * JtJ + (2 * alpha + mu) * torch.eye(N, dtype=x.dtype)
-                    step = -torch.linalg.solve(A, grad)
+                if full:
+                    L, info = torch.linalg.cholesky_ex(2 * beta * JtJ + (2 * alpha + mu) * eye)
+                    if int(info) != 0:
+                        mu *= 10
+                        continue
+                    step = -torch.cholesky_solve(grad[:, None], L)[:, 0]
                 else:
-                    def apply_A(v, _mu=mu):
-                        vp = v.to(pdt)
-                        JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, vp)).to(torch.float64)
-                        return 2 * beta * JtJv + (2 * alpha + _mu) * v
-                    step, _ = _pcg(apply_A, -grad, diag + mu, x0=delta if self.cg_warm_start else None,
-                                   maxiter=self.cg_maxiter)
+                    step, its = _pcg(self._apply_H(w_p, x_p, cache_p, beta, 2 * alpha + mu), -grad,
+                                     self._precond_solve(pre, beta, 2 * alpha + mu),
+                                     x0=delta if self.cg_warm_start else None, tol=self.cg_tol,
+                                     maxiter=self.cg_maxiter)
+                    self.cg_iterations_ += its
                 w_new = w + step
                 y_new, cache_new = net.forward(w_new, x)
                 e_new = y_new - t
@@ -335,7 +428,9 @@ class ResidualNetwork:
             w, cache, e, E_D, E_W = w_new, cache_new, e_new, E_D_new, E_W_new
             mu = max(mu / 10, 1e-20)
             if epoch % self.gamma_every == 0 or epoch == 1:
-                tr_inv = self._trace_inverse(w, x, cache, alpha, beta, gen, JtJ if self.solver == "full" else None)
+                if full:  # JᵀJ at the new point, reused by the next epoch's step
+                    JtJ_next = net.gauss_newton(w, x, cache)
+                tr_inv = self._trace_inverse(w, x, cache, alpha, beta, gen, JtJ_next if full else None)
                 gamma, alpha, beta = br_update(tr_inv, N, n_data, alpha, E_D, E_W)
             history.append((epoch, E_D / n_data, gamma, alpha, beta))
             if self.progress is not None and (epoch % self.progress_every == 0 or epoch == 1):
@@ -356,25 +451,63 @@ class ResidualNetwork:
         self.n_epochs_ = epoch
         self.stop_reason_ = stop
         self.mse_normalised_ = E_D / n_data
+        self.E_D_, self.E_W_ = float(E_D), float(E_W)
         self.loss_ = float(beta * E_D + alpha * E_W)
         self.loss_history_ = np.array(history)  # columns: epoch, normalised MSE, γ, α, β
         return self
 
+    # -- the matrix-free pieces: H v, the preconditioner, tr(H⁻¹) -------------------------------
+    def _apply_H(self, w_p, x_p, cache_p, beta, shift):
+        """v -> (2β JᵀJ + shift I) v, the Jacobian products in the product precision, result float64."""
+        net, pdt = self.net_, x_p.dtype
+
+        def apply(v):
+            JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, v.to(pdt))).to(torch.float64)
+            return 2 * beta * JtJv + shift * v
+        return apply
+
+    def _preconditioner(self, w_p, x_p, cache_p, epoch=1):
+        """The data the preconditioner needs at this point: K-FAC factors, or diag(JᵀJ)."""
+        if self.preconditioner == "kfac":
+            return ("kfac", self.net_.kfac(w_p, x_p, cache_p))
+        if epoch % 5 == 1 or getattr(self, "_jtj_diag", None) is None:  # need not be fresh every epoch
+            self._jtj_diag = self.net_.jtj_diagonal(w_p, x_p, cache_p).to(torch.float64)
+        return ("jacobi", self._jtj_diag)
+
+    def _precond_solve(self, pre, beta, shift):
+        """r -> M⁻¹ r for M ≈ 2β JᵀJ + shift I (float64 in and out)."""
+        kind, data = pre
+        if kind == "jacobi":
+            return 2 * beta * data + shift
+        pdt = data[0][0].dtype
+        return lambda r: self.net_.kfac_solve(data, r.to(pdt), 2 * beta, shift).to(torch.float64)
+
+    def _precond_trace(self, pre, beta, shift):
+        """tr(M⁻¹), exactly (M's eigenvalues are known)."""
+        kind, data = pre
+        if kind == "jacobi":
+            return float((1.0 / (2 * beta * data + shift)).sum())
+        return float(sum((1.0 / (2 * beta * la.double()[:, None] * lb.double()[None, :] + shift)).sum()
+                         for la, _, lb, _ in data))
+
     def _trace_inverse(self, w, x, cache, alpha, beta, gen, JtJ=None):
-        """tr(H⁻¹), H = 2β JᵀJ + 2α I: exact with the full Jacobian, else Hutchinson + PCG."""
+        """tr(H⁻¹), H = 2β JᵀJ + 2α I: exact with JᵀJ given, else Hutchinson + PCG.
+
+        The estimate uses the preconditioner M as a control variate:
+        ``tr(H⁻¹) = tr(M⁻¹) + E[zᵀ(H⁻¹ − M⁻¹)z]``, tr(M⁻¹) exact, so only the (smaller)
+        difference carries Hutchinson noise.
+        """
         net = self.net_
         N = net.n_weights
         if JtJ is not None:
-            H = 2 * beta * JtJ + 2 * alpha * torch.eye(N, dtype=x.dtype)
-            return float(torch.trace(torch.linalg.inv(H)))
+            L = torch.linalg.cholesky(2 * beta * JtJ + 2 * alpha * torch.eye(N, dtype=JtJ.dtype))
+            return float(torch.trace(torch.cholesky_inverse(L)))
         pdt = torch.float32 if self.product_dtype == "float32" else torch.float64
         w_p, x_p, cache_p = w.to(pdt), x.to(pdt), tuple(c.to(pdt) for c in cache)
-        diag = (2 * beta * net.jtj_diagonal(w_p, x_p, cache_p) + 2 * alpha).to(torch.float64)
-
-        def apply_H(v):
-            JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, v.to(pdt))).to(torch.float64)
-            return 2 * beta * JtJv + 2 * alpha * v
-
+        pre = self._preconditioner(w_p, x_p, cache_p)
+        apply_H = self._apply_H(w_p, x_p, cache_p, beta, 2 * alpha)
+        M = self._precond_solve(pre, beta, 2 * alpha)
+        M_inv = M if callable(M) else (lambda r: r / M)
         # zᵀ H⁻¹ z from a truncated CG solve (CG's energy-norm optimality makes zᵀx_k converge fast).
         # The Rademacher probes are drawn once per fit and each solve starts at the previous
         # solution for the same probe: H changes little between re-estimates, so a few CG
@@ -386,10 +519,11 @@ class ResidualNetwork:
             self._probe_s = [None] * self.probes
         total = 0.0
         for i, z in enumerate(self._probe_z):
-            s, _ = _pcg(apply_H, z, diag, x0=self._probe_s[i], tol=1e-3, maxiter=2 * self.cg_maxiter)
+            s, its = _pcg(apply_H, z, M, x0=self._probe_s[i], tol=self.cg_tol, maxiter=2 * self.cg_maxiter)
+            self.cg_iterations_ = getattr(self, "cg_iterations_", 0) + its
             self._probe_s[i] = s
-            total += float(z @ s)
-        return total / self.probes
+            total += float(z @ s) - float(z @ M_inv(z))
+        return self._precond_trace(pre, beta, 2 * alpha) + total / self.probes
 
     # -- use --------------------------------------------------------------------------------
     def _check(self):
