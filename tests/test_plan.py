@@ -11,7 +11,7 @@ from campaign.model.kinematics import frames, forward
 from campaign.model.robot import REPO_ROOT
 from campaign.plan.checks import ClearanceChecker, ExactChecker, reflector_geometry
 from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first
-from campaign.plan.grid import PAPER_CELLS, Grid, tool_frames
+from campaign.plan.grid import PAPER_CELLS, Grid, iter_tool_points, tool_frames
 from campaign.plan.scene import load_scene
 from campaign.plan.tour import interior_samples, rest_to_rest_time, ruckig_time, segment_samples
 
@@ -39,6 +39,17 @@ def test_structured_grid_kinematics_equals_batched_fk(robot):
     T = forward(robot, g.q(np.arange(g.size)))
     np.testing.assert_allclose(R, T[:, :3, :3], atol=1e-14)
     np.testing.assert_allclose(t, T[:, :3, 3], atol=1e-14)
+
+
+def test_reflectors_over_the_grid_block_by_block_equal_the_tool_frames(robot):
+    g = Grid.for_robot(robot, (5, 3, 3, 4, 2, 3))
+    R, t = tool_frames(robot, g)
+    P_ref, A_ref = reflector_geometry(robot, R, t)
+    axes = np.array([r.axis_in_E for r in robot.reflectors])
+    blocks = list(iter_tool_points(robot, g, robot.reflector_positions_in_E, axes, chunk=7))
+    assert [b[0] for b in blocks] == list(range(0, g.size, 7 * 3))
+    np.testing.assert_allclose(np.concatenate([b[1] for b in blocks]), P_ref, atol=1e-14)
+    np.testing.assert_allclose(np.concatenate([b[2] for b in blocks]), A_ref, atol=1e-14)
 
 
 def test_travel_time_equals_ruckig_and_the_motion_is_a_straight_joint_line(robot, rng):

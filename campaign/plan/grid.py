@@ -68,3 +68,35 @@ def tool_frames(robot, grid: Grid):
     t = t + R @ robot.t_nominal[7]
     R = R @ robot.R_nominal[7]
     return R, t
+
+
+def iter_tool_points(robot, grid: Grid, points_in_E, vectors_in_E, chunk: int = 4096):
+    """Points and directions fixed in F_E, in F_I, for every candidate, block by block, without
+    forming the candidates' 3×3 rotations: the poses of frame 5 are built level by level as in
+    :func:`tool_frames` (a tenth of the grid's size), then, for ``chunk`` frame-5 poses at a
+    time, the points and vectors turned by every value of q6 are mapped by one product.
+
+    points_in_E (r, 3) m, vectors_in_E (s, 3). Yields (first candidate index, P (n, r, 3) m,
+    V (n, s, 3)) for consecutive blocks of candidates, in candidate-index order."""
+    points_in_E = np.asarray(points_in_E, dtype=float).reshape(-1, 3)
+    vectors_in_E = np.asarray(vectors_in_E, dtype=float).reshape(-1, 3)
+    r, c6 = len(points_in_E), grid.cells[5]
+    R = robot.R_nominal[0][None]
+    t = robot.t_nominal[0][None]
+    for k in range(5):  # frames 1..5
+        Rk = robot.R_nominal[k + 1] @ rot_z(grid.axis_values(k))
+        t = np.broadcast_to((t + R @ robot.t_nominal[k + 1])[:, None, :], (R.shape[0], Rk.shape[0], 3)).reshape(-1, 3)
+        R = (R[:, None] @ Rk[None]).reshape(-1, 3, 3)
+    # p in F_E lies at t6 + R5 R̄6 Rz(q6) (t̄7 + R̄7 p) in F_I; a vector v at R5 R̄6 Rz(q6) R̄7 v
+    t6 = t + R @ robot.t_nominal[6]
+    M = R @ robot.R_nominal[6]  # (m, 3, 3)
+    R7, t7 = robot.R_nominal[7], robot.t_nominal[7]
+    Z = rot_z(grid.axis_values(5))  # (c6, 3, 3)
+    # columns (q6 value, point) and (q6 value, vector), in frame 6 before its joint's turn
+    ZP = np.ascontiguousarray(np.einsum("qij,kj->iqk", Z, t7 + points_in_E @ R7.T).reshape(3, -1))
+    ZV = np.ascontiguousarray(np.einsum("qij,kj->iqk", Z, vectors_in_E @ R7.T).reshape(3, -1))
+    for s in range(0, len(M), chunk):
+        Mc, tc = M[s : s + chunk], t6[s : s + chunk]
+        P = (np.einsum("mij,jc->mci", Mc, ZP).reshape(len(Mc), c6, r, 3) + tc[:, None, None, :]).reshape(-1, r, 3)
+        V = np.ascontiguousarray(np.einsum("mij,jc->mci", Mc, ZV)).reshape(len(P), -1, 3)
+        yield s * c6, P, V

@@ -20,7 +20,7 @@ from campaign.config import load_config, resolve, write_run_config
 from campaign.model.kinematics import frames
 from campaign.model.robot import RobotModel
 from campaign.plan import checks
-from campaign.plan.grid import Grid, tool_frames
+from campaign.plan.grid import Grid, iter_tool_points
 from campaign.plan.scene import load_scene
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.tour import GridTimes, interior_samples, nearest_neighbour, path_time, two_opt
@@ -31,7 +31,6 @@ PAPER_POSES = 13919
 PAPER_DURATION_S = 3.5 * 86400.0
 #: joints 2 and 3 of the via posture that lifts the arm clear of the wall (rad)
 VIA_Q2, VIA_Q3 = 0.0, -np.pi / 2
-CHUNK = 200_000
 #: motion samples checked together (bounds memory at about 2 kB a sample)
 MOTION_CHUNK = 32_768
 
@@ -40,14 +39,14 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     """Stage 2 over the whole grid; returns (suitable candidate indices, counts)."""
     counts = {"candidates": grid.size}
     bar = Progress("stage 1-2: tool poses", grid.size, progress, " poses")
-    R_E, t_E = tool_frames(robot, grid)
     survivors = []
     removed = {"tracker_range": 0, "reflector_cone": 0, "line_of_sight_scene": 0, "line_of_sight_robot": 0,
                "clearance_fcl": 0}
     cand_after_visibility = []
-    for s in range(0, grid.size, CHUNK):
-        idx = np.arange(s, min(s + CHUNK, grid.size))
-        P, A = checks.reflector_geometry(robot, R_E[idx], t_E[idx])
+    axes = np.array([r.axis_in_E for r in robot.reflectors])
+    for s, P, A in iter_tool_points(robot, grid, robot.reflector_positions_in_E, axes):
+        block = len(P)
+        idx = np.arange(s, s + block)
         ok = checks.range_ok(scene, P)
         removed["tracker_range"] += int((~ok).sum())
         idx, P, A = idx[ok], P[ok], A[ok]
@@ -57,9 +56,8 @@ def _filter_grid(robot, scene, grid, clearance, progress):
         ok = checks.scene_line_of_sight_ok(scene, P)
         removed["line_of_sight_scene"] += int((~ok).sum())
         cand_after_visibility.append(idx[ok])
-        bar.update(min(CHUNK, grid.size - s))
+        bar.update(block)
     bar.close()
-    del R_E, t_E
     idx = np.concatenate(cand_after_visibility)
     checker = checks.ClearanceChecker(robot, scene, clearance)
     bar = Progress("stage 2: LOS + FCL", len(idx), progress, " poses")
