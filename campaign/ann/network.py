@@ -12,9 +12,12 @@ Levenberg-Marquardt steps on the Gauss-Newton Hessian ``H = 2β JᵀJ + 2α I``,
 Speed (docs/ann.md has the measurements): J is never formed. For a two-layer tanh net the
 products ``J v`` and ``Jᵀ u`` are a handful of small matrix products (written out below,
 checked against torch.func in the tests), so each LM step is solved by conjugate gradients
-preconditioned with the exact diagonal of JᵀJ (also cheap in closed form), and tr(H⁻¹) by a
-Hutchinson estimate with the same solver. A plain full-Jacobian LM (:func:`jacobian`,
-``solver="full"``) is kept as the reference.
+(float32 products, float64 everything else) preconditioned with a block-diagonal Kronecker
+(K-FAC) approximation of JᵀJ whose damped inverse is exact and cheap by eigendecomposition of
+the small factors; tr(H⁻¹) by a Hutchinson estimate with the same solver and the
+preconditioner's exact trace as a control variate. A plain full-Jacobian LM
+(``solver="full"``: JᵀJ assembled exactly in float64 by :meth:`MLP.gauss_newton`, Cholesky
+solves, exact trace) is kept as the reference.
 """
 
 from __future__ import annotations
@@ -61,6 +64,8 @@ class MLP:
         self.n_weights = sum(self.sizes)
 
     def unpack(self, w):
+        if isinstance(w, (tuple, list)):  # already unpacked
+            return w
         out, i = [], 0
         for s, n in zip(self.shapes, self.sizes):
             out.append(w[i : i + n].view(s))
@@ -117,44 +122,58 @@ class MLP:
                           ((h2 * h2).sum(0)[None, :].expand(self.n_out, -1)).reshape(-1),
                           torch.full((self.n_out,), float(n), dtype=x.dtype)])
 
-    def kfac(self, w, x, cache):
+    def kfac(self, w, x, cache, max_samples=4096):
         """Kronecker factors of the per-layer diagonal blocks of JᵀJ, eigendecomposed.
 
         Layer l's parameters (W_l | b_l) as a matrix V (r × (c+1)); each row of J restricted to
         that block is ``a ⊗ x̃`` (a: the output-k cotangent at the layer's pre-activation, x̃ =
         (layer input, 1)), so the block is ``Σ_s Σ_k (a aᵀ) ⊗ (x̃ x̃ᵀ)``, approximated (K-FAC,
         Martens & Grosse 2015) by ``(Σ a aᵀ / n) ⊗ (Σ x̃ x̃ᵀ)``, exact for the output layer.
-        Returns [(λ_A, Q_A, λ_B, Q_B)] per layer.
+        The first layer's A factor is estimated on at most ``max_samples`` samples (it is only a
+        preconditioner). Returns [(λ_A, Q_A, λ_B, Q_B)] per layer.
         """
         W1, b1, W2, b2, W3, b3 = self.unpack(w)
         h1, h2 = cache
         n = x.shape[0]
-        g_a2 = W3[None, :, :] * (1 - h2 * h2)[:, None, :]  # (n, n_out, n2)
-        g_a1 = (g_a2 @ W2) * (1 - h1 * h1)[:, None, :]
+        s2 = 1 - h2 * h2
+        # layer 2: a[k] = W3[k] ∘ s2, so Σ_s Σ_k a aᵀ = (W3ᵀW3) ∘ (s2ᵀ s2)
+        A2 = (W3.T @ W3) * (s2.T @ s2)
+        # layer 1: a[k] = (W3[k] ∘ s2) W2 ∘ s1, one (n·n_out, n2) @ (n2, n1) product; the costliest
+        # factor, so estimated on an evenly strided subset of at most max_samples samples
+        sub = slice(None, None, max(1, -(-n // max_samples)))
+        m = s2[sub].shape[0]
+        g_a1 = ((W3[None, :, :] * s2[sub][:, None, :]).reshape(-1, self.n2) @ W2).reshape(m, self.n_out, self.n1)
+        g_a1 = (g_a1 * (1 - h1[sub] * h1[sub])[:, None, :]).reshape(-1, self.n1)
+        A1 = (g_a1.T @ g_a1) * (n / m)
         one = torch.ones((n, 1), dtype=x.dtype)
         pairs = []
-        for g, inp in ((g_a1, x), (g_a2, h1), (None, h2)):
+        for A, inp in ((A1, x), (A2, h1), (None, h2)):
             xt = torch.cat([inp, one], 1)
-            if g is None:
-                A = torch.eye(self.n_out, dtype=x.dtype)
-            else:
-                g = g.reshape(-1, g.shape[-1])
-                A = (g.T @ g) / n
-            la, Qa = torch.linalg.eigh(A.double())
             lb, Qb = torch.linalg.eigh((xt.T @ xt).double())
+            if A is None:  # output layer: Σ_k e_k e_kᵀ / n · n = I, exact
+                la, Qa = torch.ones(self.n_out, dtype=torch.float64), torch.eye(self.n_out, dtype=torch.float64)
+            else:
+                la, Qa = torch.linalg.eigh(A.double() / n)
             pairs.append((la.clamp_min(0).to(x.dtype), Qa.to(x.dtype), lb.clamp_min(0).to(x.dtype), Qb.to(x.dtype)))
         return pairs
 
+    def kfac_inverse(self, factors, scale, shift):
+        """The map v -> (scale · K + shift I)⁻¹ v for the block-diagonal Kronecker approximation K
+        of JᵀJ (:meth:`kfac`): per layer ``Q_A [(Q_Aᵀ V Q_B) / (scale λ_A λ_Bᵀ + shift)] Q_Bᵀ``."""
+        blocks = [(Qa, Qb, 1.0 / (scale * la[:, None] * lb[None, :] + shift)) for la, Qa, lb, Qb in factors]
+
+        def solve(v):
+            parts = self.unpack(v)
+            out = []
+            for (Qa, Qb, D), dW, db in zip(blocks, parts[0::2], parts[1::2]):
+                V = Qa @ (((Qa.T @ torch.cat([dW, db[:, None]], 1)) @ Qb) * D) @ Qb.T
+                out += [V[:, :-1].reshape(-1), V[:, -1]]
+            return torch.cat(out)
+        return solve
+
     def kfac_solve(self, factors, v, scale, shift):
-        """(scale · K + shift I)⁻¹ v for the block-diagonal Kronecker approximation K of JᵀJ."""
-        parts = self.unpack(v)
-        out = []
-        for (la, Qa, lb, Qb), dW, db in zip(factors, parts[0::2], parts[1::2]):
-            V = torch.cat([dW, db[:, None]], 1)
-            T = (Qa.T @ V @ Qb) / (scale * la[:, None] * lb[None, :] + shift)
-            V = Qa @ T @ Qb.T
-            out += [V[:, :-1].reshape(-1), V[:, -1]]
-        return torch.cat(out)
+        """(scale · K + shift I)⁻¹ v, see :meth:`kfac_inverse`."""
+        return self.kfac_inverse(factors, scale, shift)(v)
 
     def gauss_newton(self, w, x, cache, chunk=1000):
         """JᵀJ (n_weights, n_weights) assembled exactly, in x's precision, without forming J.
@@ -286,26 +305,36 @@ class ResidualNetwork:
     solver : "cg" (matrix-free, default) or "full" (explicit Jacobian, the reference)
     gamma_every : epochs between re-estimates of α, β, γ
     probes : Hutchinson probes for tr(H⁻¹) (cg solver)
-    cg_maxiter : conjugate-gradient iterations per LM step at most (warm-started)
+    cg_maxiter : conjugate-gradient iterations per LM step at most
+    cg_miniter, cg_ramp_epochs : optionally start with cg_miniter iterations per step, rising
+        linearly to cg_maxiter at epoch cg_ramp_epochs (None: cg_maxiter throughout)
+    cg_tol : CG stops early when ‖r‖ ≤ cg_tol ‖b‖
+    trace_maxiter : CG iterations per Hutchinson probe at most (warm-started from the last estimate)
+    preconditioner : "kfac" (block-diagonal Kronecker factors of JᵀJ, default) or "jacobi"
+        (its exact diagonal)
     product_dtype : precision of the Jacobian products inside CG ("float32" or "float64"); weights,
-        errors and the objective are always float64
+        gradient, errors and the objective are always float64
     min_rel_improvement, patience : converged when an LM step lowers F by less than this fraction
         for ``patience`` epochs in a row
-    window, window_rtol : also converged when the training MSE fell by less than ``window_rtol``
+    window, window_rtol : plateau: stop when the training MSE fell by less than ``window_rtol``
         (relative) over the last ``window`` epochs and γ moved by less than 10 × that
     seed : initialisation seed (weights and Hutchinson probes); training is deterministic
-    n_threads : torch intra-op threads during fit/predict (None: leave torch's setting); on a
-        shared 2-core machine 1 thread avoids OpenMP oversubscription (docs/ann.md)
+    n_threads : torch intra-op threads during fit/predict (None: leave torch's setting). Default 1:
+        on the shared 2-core machine 2 threads were 3-10× slower whenever another process ran
+        (OpenMP threads waiting for a busy core; docs/ann.md)
     cg_warm_start : start each LM step's CG at the previous accepted step
     progress : optional callable(epoch=, max_epochs=, mse=, gamma=) every ``progress_every`` epochs
     """
 
     def __init__(self, *, hidden=(64, 32), q_lower=None, q_upper=None, max_epochs=2048, solver="cg",
-                 gamma_every=20, probes=4, cg_maxiter=25, product_dtype="float32", seed=0,
-                 min_rel_improvement=1e-5, patience=15, window=100, window_rtol=2e-3, mu_max=1e10,
-                 n_threads=None, cg_warm_start=False, progress=None, progress_every=10,
-                 preconditioner="kfac", cg_tol=1e-3):
+                 gamma_every=20, probes=4, cg_maxiter=20, product_dtype="float32", seed=0,
+                 min_rel_improvement=1e-5, patience=15, window=50, window_rtol=1e-2, mu_max=1e10,
+                 n_threads=1, cg_warm_start=False, progress=None, progress_every=10,
+                 preconditioner="kfac", cg_tol=1e-3, cg_miniter=None, cg_ramp_epochs=100, trace_maxiter=20):
         self.hidden = hidden
+        self.cg_miniter = cg_miniter
+        self.cg_ramp_epochs = cg_ramp_epochs
+        self.trace_maxiter = trace_maxiter
         self.preconditioner = preconditioner
         self.cg_tol = cg_tol
         self.q_lower = q_lower
@@ -408,7 +437,7 @@ class ResidualNetwork:
                     step, its = _pcg(self._apply_H(w_p, x_p, cache_p, beta, 2 * alpha + mu), -grad,
                                      self._precond_solve(pre, beta, 2 * alpha + mu),
                                      x0=delta if self.cg_warm_start else None, tol=self.cg_tol,
-                                     maxiter=self.cg_maxiter)
+                                     maxiter=self._cg_budget(epoch))
                     self.cg_iterations_ += its
                 w_new = w + step
                 y_new, cache_new = net.forward(w_new, x)
@@ -456,10 +485,18 @@ class ResidualNetwork:
         self.loss_history_ = np.array(history)  # columns: epoch, normalised MSE, γ, α, β
         return self
 
+    def _cg_budget(self, epoch):
+        """CG iterations allowed in this epoch's LM step: cg_miniter at epoch 1 rising linearly to
+        cg_maxiter at cg_ramp_epochs (early steps are far from the optimum, rough solves do)."""
+        lo = self.cg_maxiter if self.cg_miniter is None else min(self.cg_miniter, self.cg_maxiter)
+        frac = min(1.0, (epoch - 1) / max(1, self.cg_ramp_epochs))
+        return int(round(lo + frac * (self.cg_maxiter - lo)))
+
     # -- the matrix-free pieces: H v, the preconditioner, tr(H⁻¹) -------------------------------
     def _apply_H(self, w_p, x_p, cache_p, beta, shift):
         """v -> (2β JᵀJ + shift I) v, the Jacobian products in the product precision, result float64."""
         net, pdt = self.net_, x_p.dtype
+        w_p = tuple(net.unpack(w_p))
 
         def apply(v):
             JtJv = net.vjp(w_p, x_p, cache_p, net.jvp(w_p, x_p, cache_p, v.to(pdt))).to(torch.float64)
@@ -480,7 +517,8 @@ class ResidualNetwork:
         if kind == "jacobi":
             return 2 * beta * data + shift
         pdt = data[0][0].dtype
-        return lambda r: self.net_.kfac_solve(data, r.to(pdt), 2 * beta, shift).to(torch.float64)
+        solve = self.net_.kfac_inverse(data, 2 * beta, shift)
+        return lambda r: solve(r.to(pdt)).to(torch.float64)
 
     def _precond_trace(self, pre, beta, shift):
         """tr(M⁻¹), exactly (M's eigenvalues are known)."""
@@ -519,7 +557,8 @@ class ResidualNetwork:
             self._probe_s = [None] * self.probes
         total = 0.0
         for i, z in enumerate(self._probe_z):
-            s, its = _pcg(apply_H, z, M, x0=self._probe_s[i], tol=self.cg_tol, maxiter=2 * self.cg_maxiter)
+            s, its = _pcg(apply_H, z, M, x0=self._probe_s[i], tol=self.cg_tol,
+                          maxiter=2 * self.cg_maxiter if self.trace_maxiter is None else self.trace_maxiter)
             self.cg_iterations_ = getattr(self, "cg_iterations_", 0) + its
             self._probe_s[i] = s
             total += float(z @ s) - float(z @ M_inv(z))
