@@ -13,7 +13,8 @@ from campaign.plan.checks import ClearanceChecker, ExactChecker, reflector_geome
 from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first
 from campaign.plan.grid import PAPER_CELLS, Grid, iter_tool_points, tool_frames
 from campaign.plan.scene import load_scene
-from campaign.plan.tour import interior_samples, rest_to_rest_time, ruckig_time, segment_samples
+from campaign.plan.tour import (GridTimes, interior_samples, nearest_neighbour, neighbour_lists, or_opt, rest_to_rest_time,
+                                ruckig_time, segment_samples, two_opt)
 
 SCENE = REPO_ROOT / "scene" / "default_cell.yaml"
 
@@ -101,6 +102,33 @@ def test_sphere_bounds_never_clear_a_pair_that_fcl_finds_closer(robot, rng, clea
             if not need_self[m, k]:
                 assert checker._dist(checker.robot_objs[i], checker.robot_objs[j]) >= clearance
     assert need_self.mean() < 0.5  # the bounds decide most pairs
+
+
+def test_tour_ordering_visits_every_pose_once_and_local_search_never_lengthens_it(robot, rng):
+    g = Grid.for_robot(robot, PAPER_CELLS)
+    times = GridTimes(robot, g)
+    C = g.cell_indices(rng.choice(g.size, 400, replace=False))
+    start = 17
+    order = nearest_neighbour(times, C, start)
+    # the greedy tour, step by step without the tables
+    ref, left = [start], set(range(len(C))) - {start}
+    while left:
+        cand = np.array(sorted(left))
+        nxt = int(cand[np.argmin(times.from_one(C[ref[-1]], C[cand]))])
+        ref.append(nxt)
+        left.remove(nxt)
+    np.testing.assert_array_equal(order, ref)
+    near = neighbour_lists(times, C, 8)
+    t_all = times.pair(C[:, None, :], C[None, :, :])
+    np.fill_diagonal(t_all, np.inf)
+    np.testing.assert_allclose(np.sort(t_all[np.arange(len(C))[:, None], near], axis=1),
+                               np.sort(t_all, axis=1)[:, :8])
+    length = lambda o: float(np.sum(times.pair(C[o[:-1]], C[o[1:]])))  # noqa: E731
+    improved = two_opt(times, C, order, passes=20, near=near)
+    moved = or_opt(times, C, improved, near, max_len=3)
+    for o in (improved, moved):
+        assert sorted(o.tolist()) == list(range(len(C))) and o[0] == start
+    assert length(moved) <= length(improved) <= length(order)
 
 
 def test_summary_counts_add_up(planned):

@@ -23,7 +23,8 @@ from campaign.plan import checks
 from campaign.plan.grid import Grid, iter_tool_points
 from campaign.plan.scene import load_scene
 from campaign.plan.geometry import nominal_frames_entry_first
-from campaign.plan.tour import GridTimes, interior_samples, nearest_neighbour, path_time, two_opt
+from campaign.plan.tour import (GridTimes, interior_samples, nearest_neighbour, neighbour_lists, or_opt, path_time,
+                                two_opt)
 from campaign.progress import Progress
 
 #: the paper's campaign: 13,919 poses measured in about 3.5 days
@@ -104,7 +105,12 @@ def _order_group(times, grid, members, start_cells):
     C = grid.cell_indices(members)
     start = int(np.argmin(times.from_one(start_cells, C)))
     order = nearest_neighbour(times, C, start)
-    order = two_opt(times, C, order)
+    near = neighbour_lists(times, C, 8)
+    # 2-opt to convergence, single poses moved by Or-opt, 2-opt again (about 0.2 % shorter
+    # than three 2-opt passes on the default cell, for about a second)
+    order = two_opt(times, C, order, passes=20, near=near)
+    order = or_opt(times, C, order, near, max_len=1, passes=1)
+    order = two_opt(times, C, order, passes=20, near=near)
     return members[order]
 
 

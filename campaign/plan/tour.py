@@ -129,8 +129,10 @@ def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
     """The k nearest poses in travel time of each pose of C (n, 6), itself excluded: (n, k) indices."""
     n = len(C)
     k = min(k, n - 1)
+    near = np.empty((n, max(k, 0)), dtype=np.int64)
+    if k <= 0:
+        return near
     tables = axis_tables(times, C)
-    near = np.empty((n, k), dtype=np.int64)
     for s in range(0, n, block):
         rows = np.arange(s, min(s + block, n))
         t = tables[0][C[rows, 0]]
@@ -194,6 +196,70 @@ def two_opt(times: GridTimes, C, order, neighbours: int = 8, passes: int = 3, ne
         if not improved:
             break
     return order
+
+
+def or_opt(times: GridTimes, C, order, near, max_len: int = 3, passes: int = 3):
+    """Or-opt on an open path: move a run of 1…``max_len`` consecutive poses, possibly reversed,
+    between two neighbouring poses elsewhere (or after the last pose) when that shortens the
+    total travel time; the insertion places tried are next to the run's end poses' candidates
+    in ``near`` (:func:`neighbour_lists`). The first pose stays first. Returns the new order."""
+    seq = np.asarray(order).tolist()
+    n = len(seq)
+    if n < 4:
+        return np.array(seq, dtype=np.int64)
+    near = np.asarray(near).tolist()
+    dist = _pair_time_function(times, C)
+    where = [0] * n  # position of each pose on the path
+    for k, p in enumerate(seq):
+        where[p] = k
+    for _ in range(passes):
+        improved = 0
+        i = 1
+        while i < n:
+            moved = False
+            for L in range(1, max_len + 1):
+                e = i + L - 1
+                if e >= n:
+                    break
+                prev, s0, sL = seq[i - 1], seq[i], seq[e]
+                nxt = seq[e + 1] if e + 1 < n else None
+                removal = dist(prev, s0) + (dist(sL, nxt) - dist(prev, nxt) if nxt is not None else 0.0)
+                if removal <= 1e-9:
+                    continue
+                best, best_k, best_rev = 1e-9, -1, False
+                for c in near[s0] + near[sL]:
+                    kc = where[c]
+                    for k in (kc - 1, kc):  # the edge (seq[k], seq[k + 1]) next to c
+                        if k < 0 or (i - 1 <= k <= e):
+                            continue
+                        u = seq[k]
+                        if k + 1 < n:
+                            v = seq[k + 1]
+                            d_uv = dist(u, v)
+                            fwd = dist(u, s0) + dist(sL, v) - d_uv
+                            rev = dist(u, sL) + dist(s0, v) - d_uv
+                        else:  # after the last pose
+                            fwd, rev = dist(u, s0), dist(u, sL)
+                        for cost, reverse in ((fwd, False), (rev, True)):
+                            if removal - cost > best:
+                                best, best_k, best_rev = removal - cost, k, reverse
+                if best_k >= 0:
+                    run = seq[i : e + 1]
+                    if best_rev:
+                        run.reverse()
+                    rest = seq[:i] + seq[e + 1 :]
+                    at = best_k + 1 if best_k < i else best_k + 1 - L  # insert after seq[best_k]
+                    seq = rest[:at] + run + rest[at:]
+                    for k in range(min(i, at), max(e, at + L - 1) + 1):
+                        where[seq[k]] = k
+                    improved += 1
+                    moved = True
+                    break
+            if not moved:
+                i += 1
+        if not improved:
+            break
+    return np.array(seq, dtype=np.int64)
 
 
 def segment_samples(qa, qb, max_step_rad):
