@@ -3,7 +3,10 @@
     python benchmarks/bench_plan.py [--grid-scale 1.0]
 
 Runs `campaign plan` in a separate process and reports its wall time and peak memory
-(max RSS of the child), the counts per filter, the tour and the estimated duration.
+(max RSS of the child), the seconds per stage (``stages_s``: setup, filters, ordering,
+motion_check, repair, outputs, plot, and the process start + CLI around them), the counts
+per filter, the tour and the estimated duration, and the load average before and after (the
+machine is shared: run it as ``flock /tmp/campaign-bench.lock python benchmarks/bench_plan.py``).
 Writes benchmarks/results/plan.json.
 """
 
@@ -24,6 +27,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--grid-scale", type=float, default=1.0)
     args = ap.parse_args()
+    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "campaign.cli", "plan", "--run", tmp, "--quiet",
@@ -31,13 +35,19 @@ def main():
         wall = time.perf_counter() - t0
         peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         summary = json.loads((Path(tmp) / "plan" / "summary.json").read_text())
-    res = {"wall_s": wall, "peak_rss_mb": peak_mb, "load_average": os.getloadavg(), "summary": summary}
+    stages = dict(summary["timing_s"])
+    # interpreter start, imports and the CLI around plan_campaign
+    stages["process_start_and_cli"] = wall - stages.pop("total")
+    res = {"command": " ".join(["python", "benchmarks/bench_plan.py"] + sys.argv[1:]),
+           "wall_s": wall, "stages_s": stages, "peak_rss_mb": peak_mb,
+           "load_average": os.getloadavg(), "load_average_before": load_before,
+           "motion_time_s": summary["tour"]["motion_time_s"], "summary": summary}
     print(f"candidates {summary['candidates']:,}; suitable {summary['suitable']:,} "
           f"({100 * summary['suitable_fraction']:.2f} %); removed per filter {summary['removed_by_filter']}")
     print(f"tour {summary['tour']['poses']:,} poses, {summary['tour']['via_poses']} vias, {summary['tour']['dropped']} dropped, "
           f"motion {summary['tour']['motion_time_s'] / 3600:.2f} h; estimated campaign "
           f"{summary['estimated_campaign']['total_days']:.2f} days (paper 3.5 days / 13,919 poses)")
-    print(f"stage timings {summary['timing_s']}")
+    print("stages (s wall): " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()))
     print(f"campaign plan: {wall:.1f} s wall, peak memory {peak_mb:.0f} MB; load average {res['load_average'][0]:.2f}")
     (Path(__file__).parent / "results" / "plan.json").write_text(json.dumps(res, indent=2))
 
