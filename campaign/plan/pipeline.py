@@ -273,14 +273,14 @@ def _plot(path, robot, scene, Q, front):
     from campaign.model.kinematics import forward
 
     t = forward(robot, Q)[:, :3, 3] if len(Q) else np.zeros((0, 3))
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
     for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
                                          (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))):
         sign = -1 if b == 1 else 1
-        ax.scatter(t[front, a], sign * t[front, b], s=2, c="C0", label=f"in front of the wall ({front.sum()})")
-        ax.scatter(t[~front, a], sign * t[~front, b], s=2, c="C1", label=f"behind the wall ({(~front).sum()})")
+        ax.scatter(t[front, a], sign * t[front, b], s=2, c="C0")
+        ax.scatter(t[~front, a], sign * t[~front, b], s=2, c="C1")
         o = scene.tracker_position
-        ax.plot([o[a]], [sign * o[b]], "k^", ms=10, label="tracker")
+        ax.plot([o[a]], [sign * o[b]], "k^", ms=10)
         for obs in scene.obstacles:
             if obs.name == "floor":
                 continue
@@ -291,13 +291,20 @@ def _plot(path, robot, scene, Q, front):
             ax.add_patch(plt.Rectangle((w[:, a].min(), (sign * w[:, b]).min()), np.ptp(w[:, a]), np.ptp(w[:, b]),
                                        fill=obs.name == scene.wall_name, alpha=0.35, color=color))
             ax.annotate(obs.name, (w[:, a].mean(), (sign * w[:, b]).max()), fontsize=7, ha="center")
-        ax.plot([0], [0], "ks", ms=6, label="robot base")
+        ax.plot([0], [0], "ks", ms=6)
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
         ax.set_aspect("equal")
     axes[0].set_title("tool positions, top view")
     axes[1].set_title("side view")
-    axes[1].legend(fontsize=8, loc="upper right", markerscale=4)
-    fig.tight_layout()
+    # explicit handles: scatter dots of size 2 and a 10-pt marker would otherwise be scaled alike
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], ls="", marker="o", ms=6, color="C0", label=f"in front of the wall ({front.sum()})"),
+               Line2D([], [], ls="", marker="o", ms=6, color="C1", label=f"behind the wall ({(~front).sum()})"),
+               Line2D([], [], ls="", marker="^", ms=8, color="k", label="tracker"),
+               Line2D([], [], ls="", marker="s", ms=6, color="k", label="robot base")]
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=9, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
