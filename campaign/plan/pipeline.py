@@ -269,6 +269,7 @@ def _plot(path, robot, scene, Q, front):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     from campaign.model.kinematics import forward
 
@@ -298,8 +299,6 @@ def _plot(path, robot, scene, Q, front):
     axes[0].set_title("tool positions, top view")
     axes[1].set_title("side view")
     # explicit handles: scatter dots of size 2 and a 10-pt marker would otherwise be scaled alike
-    from matplotlib.lines import Line2D
-
     handles = [Line2D([], [], ls="", marker="o", ms=6, color="C0", label=f"in front of the wall ({front.sum()})"),
                Line2D([], [], ls="", marker="o", ms=6, color="C1", label=f"behind the wall ({(~front).sum()})"),
                Line2D([], [], ls="", marker="^", ms=8, color="k", label="tracker"),
