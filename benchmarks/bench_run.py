@@ -25,7 +25,8 @@ from pathlib import Path
 
 import yaml
 
-from campaign.model.robot import REPO_ROOT, RobotModel
+from campaign.model.robot import RobotModel
+from campaign.paths import DEFAULT_SCENE
 from campaign.sim.truth import random_joint_poses
 
 
@@ -42,7 +43,7 @@ def main():
         (run / "plan" / "poses.csv").write_text(
             "pose_id,q1,q2,q3,q4,q5,q6\n" + "\n".join(f"{i}," + ",".join(repr(float(v)) for v in q[i])
                                                         for i in range(len(q))) + "\n")
-        cfg = {"robot": "comau_racer5_080", "scene": str(REPO_ROOT / "scene" / "default_cell.yaml"),
+        cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
                "sim": {"seed": 0, "hidden_effects": ["ground_compliance", "joint_compliance"]}}
         if args.faults:
             r = args.faults

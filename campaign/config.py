@@ -12,9 +12,7 @@ from pathlib import Path
 import yaml
 
 from campaign.errors import ConfigError
-from campaign.model.robot import REPO_ROOT
-
-DEFAULT_CONFIG = REPO_ROOT / "campaign.yaml"
+from campaign.paths import DEFAULT_CONFIG
 
 SECTIONS = {
     "plan": {"grid_cells": [17, 10, 10, 14, 6, 10], "clearance_m": 0.035, "motion_clearance_m": 0.01,

@@ -8,7 +8,7 @@ import pytest
 from campaign.cli import main
 from campaign.errors import ConfigError
 from campaign.model.kinematics import frames, forward
-from campaign.model.robot import REPO_ROOT
+from campaign.paths import DEFAULT_SCENE
 from campaign.plan.checks import ClearanceChecker, ExactChecker, reflector_geometry
 from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first
 from campaign.plan.grid import PAPER_CELLS, Grid, iter_tool_points, tool_frames
@@ -16,7 +16,7 @@ from campaign.plan.scene import load_scene
 from campaign.plan.tour import (GridTimes, interior_samples, nearest_neighbour, neighbour_lists, or_opt, rest_to_rest_time,
                                 ruckig_time, segment_samples, two_opt)
 
-SCENE = REPO_ROOT / "scene" / "default_cell.yaml"
+SCENE = DEFAULT_SCENE
 
 
 @pytest.fixture(scope="module")

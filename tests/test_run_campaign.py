@@ -17,7 +17,7 @@ import yaml
 from campaign.cli import main
 from campaign.measure import protocol as P
 from campaign.measure.store import open_run
-from campaign.model.robot import REPO_ROOT
+from campaign.paths import DEFAULT_SCENE
 from campaign.sim.truth import random_joint_poses, read_truth
 
 
@@ -28,7 +28,7 @@ def make_run(tmp_path, robot, n=60, seed=0, sim=None, run=None, name="run"):
     q = random_joint_poses(robot, n, seed=seed)
     lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{1000 + i}," + ",".join(repr(float(v)) for v in q[i]) for i in range(n)]
     (run_dir / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
-    cfg = {"robot": "comau_racer5_080", "scene": str(REPO_ROOT / "scene" / "default_cell.yaml"),
+    cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
            "run": {"timeout_s": 0.5, "retries": 3, "backoff_s": 0.01, "drift_check_every": 20, **(run or {})},
            "sim": {"seed": seed, "time_factor": 0.0, **(sim or {})}}
     (run_dir / "campaign.yaml").write_text(yaml.safe_dump(cfg))

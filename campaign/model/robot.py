@@ -16,9 +16,7 @@ import numpy as np
 
 from campaign.errors import ConfigError
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-ROBOT_MODELS = REPO_ROOT / "robot_models"
-DEFAULT_ROBOT = "comau_racer5_080"
+from campaign.paths import DEFAULT_ROBOT, ROBOT_MODELS  # noqa: F401  (re-exported)
 
 #: Names of the eight transforms of eq. (5), in order.
 TRANSFORM_NAMES = ("I0", "01", "12", "23", "34", "45", "56", "6E")
