@@ -13,8 +13,8 @@ from campaign.plan.checks import ClearanceChecker, ExactChecker, reflector_geome
 from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first
 from campaign.plan.grid import PAPER_CELLS, Grid, iter_tool_points, tool_frames
 from campaign.plan.scene import load_scene
-from campaign.plan.tour import (GridTimes, interior_samples, nearest_neighbour, neighbour_lists, or_opt, rest_to_rest_time,
-                                ruckig_time, segment_samples, two_opt)
+from campaign.plan.timing import GridTimes
+from campaign.plan.tour import interior_samples, nearest_neighbour, neighbour_lists, or_opt, segment_samples, two_opt
 
 SCENE = DEFAULT_SCENE
 
@@ -51,20 +51,6 @@ def test_reflectors_over_the_grid_block_by_block_equal_the_tool_frames(robot):
     assert [b[0] for b in blocks] == list(range(0, g.size, 7 * 3))
     np.testing.assert_allclose(np.concatenate([b[1] for b in blocks]), P_ref, atol=1e-14)
     np.testing.assert_allclose(np.concatenate([b[2] for b in blocks]), A_ref, atol=1e-14)
-
-
-def test_travel_time_equals_ruckig_and_the_motion_is_a_straight_joint_line(robot, rng):
-    for _ in range(30):
-        qa = rng.uniform(robot.q_lower, robot.q_upper)
-        qb = rng.uniform(robot.q_lower, robot.q_upper)
-        duration, traj = ruckig_time(robot, qa, qb)
-        assert rest_to_rest_time(robot, qa[None], qb[None])[0] == pytest.approx(duration, abs=1e-9)
-        for s in np.linspace(0, duration, 7):
-            p = np.array(traj.at_time(s)[0])
-            lam = (p - qa) / (qb - qa)
-            assert np.ptp(lam) < 1e-8
-    samples = segment_samples(np.zeros(6), np.full(6, 0.5), np.deg2rad(1.0))
-    assert np.max(np.abs(np.diff(samples, axis=0))) <= np.deg2rad(1.0) + 1e-12
 
 
 def test_fast_nominal_frames_equal_batched_fk(robot, rng):

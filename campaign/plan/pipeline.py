@@ -23,8 +23,8 @@ from campaign.plan import checks
 from campaign.plan.grid import Grid, iter_tool_points
 from campaign.plan.scene import load_scene
 from campaign.plan.geometry import nominal_frames_entry_first
-from campaign.plan.tour import (GridTimes, interior_samples, nearest_neighbour, neighbour_lists, or_opt, path_time,
-                                two_opt)
+from campaign.plan.timing import GridTimes, path_time
+from campaign.plan.tour import interior_samples, nearest_neighbour, neighbour_lists, or_opt, two_opt
 from campaign.progress import Progress
 
 #: the paper's campaign: 13,919 poses measured in about 3.5 days

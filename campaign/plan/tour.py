@@ -1,90 +1,17 @@
-"""Stage 3: order the suitable poses into a short tour in Ruckig travel time, and check it.
+"""Stage 3: order the suitable poses into a short tour in Ruckig travel time, and sample its motions.
 
-Travel time between two poses is Ruckig's time-optimal, jerk-limited rest-to-rest duration:
-each joint's minimum time for its distance under (v, a, j) limits, the motion synchronised to
-the slowest joint (:func:`rest_to_rest_time`; the tests compare it with Ruckig itself). With
-phase synchronisation every joint follows the same normalised profile, so the motion is a
-straight line in joint space; segments are re-checked by sampling that line at ≤ 1° of joint
-motion (:func:`segment_samples`, tests compare with Ruckig's own trajectory).
+Travel times come from campaign.plan.timing (Ruckig's time-optimal, jerk-limited, phase-
+synchronised rest-to-rest durations, tabulated per joint for grid poses: :class:`GridTimes`).
+With phase synchronisation the motion is a straight line in joint space; segments are
+re-checked by sampling that line at ≤ 1° of joint motion (:func:`segment_samples`, the tests
+compare with Ruckig's own trajectory).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-
-def joint_min_time(d, v, a, j):
-    """Minimum rest-to-rest time (s) to move a distance d ≥ 0 (rad) with limits v, a, j. Vectorised."""
-    d = np.abs(np.asarray(d, dtype=float))
-    # peak velocity when both acceleration and cruise phases exist
-    if v >= a * a / j:
-        t_acc = v / a + a / j
-    else:
-        t_acc = 2.0 * np.sqrt(v / j)
-    d_acc = v * t_acc / 2.0  # distance of a full acceleration phase up to v
-    cruise = d >= 2 * d_acc
-    out = np.empty_like(d)
-    out[cruise] = 2 * t_acc + (d[cruise] - 2 * d_acc) / v
-    short = ~cruise
-    ds = d[short]
-    # no cruise: peak velocity vp with d = 2 * dist_acc(vp)
-    vp = 0.5 * a * (-a / j + np.sqrt((a / j) ** 2 + 4 * ds / a))  # when vp ≥ a²/j
-    full_acc = vp >= a * a / j
-    t = np.where(full_acc, 2 * (vp / a + a / j), 0.0)
-    vp2 = (ds * np.sqrt(j) / 2.0) ** (2.0 / 3.0)  # triangular acceleration
-    t = np.where(full_acc, t, 4.0 * np.sqrt(vp2 / j))
-    out[short] = t
-    return out
-
-
-def rest_to_rest_time(robot, qa, qb):
-    """Synchronised rest-to-rest duration (s) between joint vectors qa, qb (…, 6)."""
-    dq = np.abs(np.asarray(qb, dtype=float) - np.asarray(qa, dtype=float))
-    times = [joint_min_time(dq[..., i].reshape(-1), robot.max_velocity[i], robot.max_acceleration[i],
-                            robot.max_jerk[i]).reshape(dq.shape[:-1]) for i in range(6)]
-    return np.max(np.stack(times, axis=-1), axis=-1)
-
-
-def ruckig_time(robot, qa, qb) -> float:
-    """The same duration computed by Ruckig (for tests and for the segments' plan)."""
-    from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
-
-    otg = Ruckig(6)
-    inp = InputParameter(6)
-    inp.current_position = list(map(float, qa))
-    inp.target_position = list(map(float, qb))
-    inp.max_velocity = list(map(float, robot.max_velocity))
-    inp.max_acceleration = list(map(float, robot.max_acceleration))
-    inp.max_jerk = list(map(float, robot.max_jerk))
-    inp.synchronization = Synchronization.Phase
-    traj = Trajectory(6)
-    res = otg.calculate(inp, traj)
-    if res not in (Result.Working, Result.Finished):
-        raise RuntimeError(f"ruckig failed: {res}")
-    return traj.duration, traj
-
-
-class GridTimes:
-    """Travel times between grid poses by lookup: for grid poses, |Δq_i| is a whole number of
-    cells, so each joint's time is a table indexed by the cell difference."""
-
-    def __init__(self, robot, grid):
-        self.lut = [joint_min_time(np.arange(grid.cells[i]) * grid.step[i], robot.max_velocity[i],
-                                   robot.max_acceleration[i], robot.max_jerk[i]) for i in range(6)]
-
-    def from_one(self, c, C):
-        """Times from cell vector c (6,) to cell vectors C (m, 6)."""
-        t = self.lut[0][np.abs(C[:, 0] - c[0])]
-        for i in range(1, 6):
-            t = np.maximum(t, self.lut[i][np.abs(C[:, i] - c[i])])
-        return t
-
-    def pair(self, A, B):
-        d = np.abs(A - B)
-        t = self.lut[0][d[..., 0]]
-        for i in range(1, 6):
-            t = np.maximum(t, self.lut[i][d[..., i]])
-        return t
+from campaign.plan.timing import GridTimes
 
 
 def axis_tables(times: GridTimes, C):
@@ -291,10 +218,3 @@ def interior_samples(Q_from, Q_to, max_step_rad):
     i = np.arange(len(seg)) - np.repeat(first, inner) + 1
     s = (i / k[seg])[:, None]
     return Q_from[seg] + s * (Q_to[seg] - Q_from[seg]), seg
-
-
-def path_time(robot, Q) -> float:
-    """Total travel time (s) of a path through joint vectors Q (n, 6)."""
-    if len(Q) < 2:
-        return 0.0
-    return float(np.sum(rest_to_rest_time(robot, Q[:-1], Q[1:])))

@@ -37,7 +37,7 @@ from campaign.measure import protocol as P
 from campaign.measure.reflectors import transform_points
 from campaign.model.robot import RobotModel
 from campaign.plan.scene import load_scene
-from campaign.plan.tour import rest_to_rest_time
+from campaign.plan.timing import rest_to_rest_time
 from campaign.sim.truth import make_truth, write_truth
 
 FAULT_KINDS = ("drop", "late", "garble", "beam_lost", "robot_fault", "estop")
