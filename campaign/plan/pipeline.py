@@ -23,6 +23,7 @@ from campaign.plan import checks
 from campaign.plan.grid import Grid, iter_tool_points
 from campaign.plan.scene import load_scene
 from campaign.plan.geometry import nominal_frames_entry_first
+from campaign.plan.plot import plot_tour
 from campaign.plan.timing import GridTimes, path_time
 from campaign.plan.tour import interior_samples, nearest_neighbour, neighbour_lists, or_opt, two_opt
 from campaign.progress import Progress
@@ -239,7 +240,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     }
     lap("outputs")
     try:
-        _plot(out / "tour.png", robot, scene, Q_final, front_final)
+        plot_tour(out / "tour.png", robot, scene, Q_final, front_final)
     except Exception as exc:  # a plot must never lose a plan
         summary["plot_error"] = str(exc)
     lap("plot")
@@ -262,48 +263,3 @@ def _write_outputs(out, order, Q, vias, dropped):
     (out / "vias.csv").write_text("\n".join(vl) + "\n")
     dl = ["pose_id,reason"] + [f"{p},{r}" for p, r in dropped]
     (out / "dropped.csv").write_text("\n".join(dl) + "\n")
-
-
-def _plot(path, robot, scene, Q, front):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
-
-    from campaign.model.kinematics import forward
-
-    t = forward(robot, Q)[:, :3, 3] if len(Q) else np.zeros((0, 3))
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
-    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
-                                         (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))):
-        sign = -1 if b == 1 else 1
-        ax.scatter(t[front, a], sign * t[front, b], s=2, c="C0")
-        ax.scatter(t[~front, a], sign * t[~front, b], s=2, c="C1")
-        o = scene.tracker_position
-        ax.plot([o[a]], [sign * o[b]], "k^", ms=10)
-        for obs in scene.obstacles:
-            if obs.name == "floor":
-                continue
-            ext = np.asarray(obs.size if obs.kind == "box" else (2 * obs.size[0], 2 * obs.size[0], obs.size[1]))
-            corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * ext
-            w = corners @ obs.T_I[:3, :3].T + obs.T_I[:3, 3]
-            color = "r" if obs.name == scene.wall_name else "0.6"
-            ax.add_patch(plt.Rectangle((w[:, a].min(), (sign * w[:, b]).min()), np.ptp(w[:, a]), np.ptp(w[:, b]),
-                                       fill=obs.name == scene.wall_name, alpha=0.35, color=color))
-            ax.annotate(obs.name, (w[:, a].mean(), (sign * w[:, b]).max()), fontsize=7, ha="center")
-        ax.plot([0], [0], "ks", ms=6)
-        ax.set_xlabel(la)
-        ax.set_ylabel(lb)
-        ax.set_aspect("equal")
-    axes[0].set_title("tool positions, top view")
-    axes[1].set_title("side view")
-    # explicit handles: scatter dots of size 2 and a 10-pt marker would otherwise be scaled alike
-    handles = [Line2D([], [], ls="", marker="o", ms=6, color="C0", label=f"in front of the wall ({front.sum()})"),
-               Line2D([], [], ls="", marker="o", ms=6, color="C1", label=f"behind the wall ({(~front).sum()})"),
-               Line2D([], [], ls="", marker="^", ms=8, color="k", label="tracker"),
-               Line2D([], [], ls="", marker="s", ms=6, color="k", label="robot base")]
-    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=9, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,0 +1,107 @@
+"""The tour picture ``RUN/plan/tour.png``: where the tool goes, and in which order.
+
+Two views of F_I (top and side) of the tool positions of the planned poses, the path between
+successive poses drawn as a line whose colour runs along the visiting order (colour bar:
+visit number), the first and last poses numbered, the switch from one wall group to the
+other marked, and the cell's obstacles, the wall (red), the tracker and the robot base.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def tour_positions(robot, Q):
+    """Tool positions (n, 3) m in F_I of joint vectors Q (n, N) rad, in visiting order."""
+    from campaign.model.kinematics import forward
+
+    return forward(robot, Q)[:, :3, 3] if len(Q) else np.zeros((0, 3))
+
+
+def plot_tour(path, robot, scene, Q, front) -> None:
+    """Write the tour picture. Q (n, N) rad in visiting order; front (n,) bool: pose in front of the wall."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
+
+    t = tour_positions(robot, Q)
+    n = len(t)
+    front = np.asarray(front, dtype=bool)
+    # the visit index where the tour crosses from one wall group to the other (None: one group)
+    switch = np.flatnonzero(front[1:] != front[:-1]) + 1 if n > 1 else np.zeros(0, int)
+    cmap = plt.get_cmap("viridis")
+    norm = Normalize(1, max(n, 2))
+    fig = plt.figure(figsize=(14, 5.6))
+    gs = fig.add_gridspec(1, 3, width_ratios=(1, 1, 0.035), left=0.05, right=0.93, bottom=0.2, top=0.86,
+                          wspace=0.18)
+    axes = [fig.add_subplot(gs[0, 0]), fig.add_subplot(gs[0, 1])]
+    cax = fig.add_subplot(gs[0, 2])
+    o = scene.tracker_position
+    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
+                                         (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))):
+        sign = -1 if b == 1 else 1
+        xy = np.column_stack([t[:, a], sign * t[:, b]])
+        # the view: the tool positions and the robot base, with a margin; the rest of the cell
+        # (the tracker, far away) is pointed at from the edge
+        box = np.vstack([xy, [[0.0, 0.0]]]) if n else np.array([[0.0, 0.0]])
+        lo, hi = box.min(axis=0) - 0.15, box.max(axis=0) + 0.15
+        for obs in scene.obstacles:
+            if obs.name == "floor":
+                continue
+            ext = np.asarray(obs.size if obs.kind == "box" else (2 * obs.size[0], 2 * obs.size[0], obs.size[1]))
+            corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * ext
+            w = corners @ obs.T_I[:3, :3].T + obs.T_I[:3, 3]
+            color = "r" if obs.name == scene.wall_name else "0.6"
+            ax.add_patch(plt.Rectangle((w[:, a].min(), (sign * w[:, b]).min()), np.ptp(w[:, a]), np.ptp(w[:, b]),
+                                       fill=obs.name == scene.wall_name, alpha=0.35, color=color, zorder=0))
+            cx, cy = w[:, a].mean(), (sign * w[:, b]).max()
+            if lo[0] <= cx <= hi[0] and lo[1] <= cy <= hi[1]:  # name the obstacles in view
+                ax.annotate(obs.name, (cx, cy), fontsize=8, ha="center", va="bottom", zorder=5)
+        if n > 1:
+            segs = np.stack([xy[:-1], xy[1:]], axis=1)
+            lc = LineCollection(segs, cmap=cmap, norm=norm, linewidths=0.5, alpha=0.55, zorder=1)
+            lc.set_array(np.arange(1, n))
+            ax.add_collection(lc)
+        ax.scatter(xy[:, 0], xy[:, 1], c=np.arange(1, n + 1), cmap=cmap, norm=norm, s=3, zorder=2)
+        ax.plot([0], [0], "ks", ms=6, zorder=4)
+        trk = np.array([o[a], sign * o[b]])
+        if np.all((trk >= lo) & (trk <= hi)):
+            ax.plot(*trk, "k^", ms=10, zorder=4)
+        else:
+            edge = np.clip(trk, lo, hi)
+            ax.plot(*edge, "k>", ms=9, zorder=8, clip_on=False)
+        if n:
+            ends = [(0, "start", "C2", (9, 9), "left")] + ([(n - 1, "end", "C3", (-9, 9), "right")] if n > 1 else [])
+            for k, word, color, off, ha in ends:
+                ax.plot(*xy[k], "o", ms=13, mfc=color, mec="k", zorder=6)
+                ax.annotate(f"{word} #{k + 1}", xy[k], xytext=off, textcoords="offset points", fontsize=9, ha=ha,
+                            weight="bold", zorder=7, bbox=dict(boxstyle="round,pad=0.2", fc="w", ec=color, alpha=0.9))
+            for k in switch:
+                ax.plot(*xy[k], "D", ms=9, mfc="w", mec="k", zorder=6)
+                ax.annotate(f"#{k + 1}: {'front' if front[k] else 'behind'} group begins", xy[k], xytext=(9, -16),
+                            textcoords="offset points", fontsize=8, zorder=7,
+                            bbox=dict(boxstyle="round,pad=0.2", fc="w", ec="0.3", alpha=0.9))
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_xlabel(la)
+        ax.set_ylabel(lb)
+        ax.set_aspect("equal", adjustable="box")
+    axes[0].set_title("tool positions in visiting order, top view")
+    axes[1].set_title("side view")
+    sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, cax=cax, label=f"visit number (1 … {n})")
+    handles = [Line2D([], [], ls="", marker="o", ms=9, mfc="C2", mec="k", label="first pose"),
+               Line2D([], [], ls="", marker="o", ms=9, mfc="C3", mec="k", label="last pose"),
+               Line2D([], [], ls="", marker="D", ms=7, mfc="w", mec="k", label="next wall group begins"),
+               Line2D([], [], ls="", marker="s", ms=6, color="k", label="robot base"),
+               Line2D([], [], ls="", marker=">", ms=8, color="k", label=f"towards the tracker (at {np.round(o, 2).tolist()} m, out of view)")]
+    n_front = int(front.sum())
+    fig.suptitle(f"tour of {n} poses: {n_front} in front of the wall, {n - n_front} behind it "
+                 f"(colour: order of visits)", fontsize=11)
+    fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 0.0))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
