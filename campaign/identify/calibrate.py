@@ -22,7 +22,7 @@ from campaign.effects.base import effect_context, parse_effect_list
 from campaign.errors import DataError
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
-from campaign.identify.split import train_test_split
+from campaign.identify.split import run_split
 from campaign.measure.store import open_run
 from campaign.model.kinematics import PARAM_NAMES, forward, pose_error
 from campaign.model.robot import RobotModel
@@ -101,10 +101,11 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     if len(poses) < 20:
         raise DataError(f"{run_dir}: only {len(poses)} measured poses; at least 20 are needed")
     robot.check_joints(poses.q, field=f"{run_dir}: q", slack=1e-6)
-    is_test = train_test_split(poses.pose_id)
+    is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
     if tr.sum() < 10 or te.sum() < 2:
-        raise DataError(f"{run_dir}: too few poses for an 80/20 split ({len(poses)})")
+        raise DataError(f"{run_dir}: too few poses for a train/test split ({int(tr.sum())} training, "
+                        f"{int(te.sum())} test of {len(poses)})")
     context = effect_context(poses.context, poses.time_s)
     ctx_tr = {k: v[tr] for k, v in context.items()}
 

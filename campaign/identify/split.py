@@ -24,3 +24,31 @@ def train_test_split(pose_id, *, seed: int = SPLIT_SEED, test_fraction: float = 
         z = z ^ (z >> np.uint64(31))
     u = (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
     return u < test_fraction
+
+
+def run_split(run_dir, pose_id):
+    """Boolean mask ``is_test`` (n,) for a run's measured poses.
+
+    A plan that chose its poses (`campaign plan --select/--budget/--target-mm`) drew validation
+    poses at random from the suitable set and listed them in ``RUN/plan/validation.csv``
+    (``pose_id``): they are the test set, so the accuracy claim comes from poses the design did
+    not choose. Otherwise the fixed 80/20 split, where a repeated measurement (pose id
+    ``p + r·10⁹``, RUN/plan/repeats.csv) lies on the side of the pose ``p`` it repeats.
+    """
+    from pathlib import Path
+
+    from campaign.errors import DataError
+    from campaign.plan.selection import base_pose_id
+
+    pose_id = np.asarray(pose_id, dtype=np.int64)
+    path = Path(run_dir) / "plan" / "validation.csv"
+    if not path.is_file():
+        return train_test_split(base_pose_id(pose_id))
+    lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    if not lines or lines[0] != "pose_id":
+        raise DataError(f"{path}: header must be pose_id")
+    try:
+        ids = np.array([int(ln) for ln in lines[1:]], dtype=np.int64)
+    except ValueError:
+        raise DataError(f"{path}: pose ids must be integers") from None
+    return np.isin(pose_id, ids)

@@ -1,4 +1,5 @@
-"""`campaign plan [--config FILE] [--run DIR] [--grid-scale S]`."""
+"""`campaign plan [--config FILE] [--run DIR] [--grid-scale S] [--select N | --budget HOURS | --target-mm X]
+[--for-effects a,b]`."""
 
 from __future__ import annotations
 
@@ -12,6 +13,21 @@ def register(sub):
     p.add_argument("--grid-scale", type=float, default=1.0,
                    help="scale the cells per axis for a coarser (<1) or finer grid (default: 1 = 1,428,000 candidates)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--select", type=int, metavar="N", default=None,
+                     help="measure the N suitable poses most informative about the model (D-optimal), not all")
+    how.add_argument("--budget", type=float, metavar="HOURS", default=None,
+                     help="the most informative campaign that fits in HOURS (motion, settle, tracker)")
+    how.add_argument("--target-mm", type=float, metavar="X", default=None,
+                     help="the smallest campaign predicted to bring the model's mean position error to X mm")
+    p.add_argument("--for-effects", metavar="A,B", default=None,
+                   help="effects whose parameters the selection must teach too (default: those in campaign.yaml)")
+    p.add_argument("--criterion", choices=("D", "A", "I"), default="D",
+                   help="optimality: D (log det, default), A (trace of the covariance), I (mean position variance)")
+    p.add_argument("--validation", type=float, metavar="FRACTION", default=None,
+                   help="random validation poses added, as a share of the selected ones (default: 0.2, at least 30)")
+    p.add_argument("--repeats", type=int, metavar="N", default=None,
+                   help="poses measured 3 times, spread over the tour, for the noise floor (default: 3 with a selection)")
     p.set_defaults(func=_plan)
 
 
@@ -21,7 +37,9 @@ def _plan(args):
 
     if not args.grid_scale > 0:
         raise ConfigError(f"--grid-scale must be positive, got {args.grid_scale}")
-    s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty())
+    selection = _selection_options(args)
+    s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty(),
+                      selection=selection)
     rm = s["removed_by_filter"]
     est = s["estimated_campaign"]
     print(f"candidates {s['candidates']:,} (grid {' x '.join(map(str, s['grid_cells']))})")
@@ -29,10 +47,61 @@ def _plan(args):
         print(f"  removed by {name:<22} {rm[name]:>10,}")
     print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %): "
           f"{s['groups']['front_of_wall']:,} in front of the wall, {s['groups']['behind_wall']:,} behind")
+    if "selection" in s:
+        print(selection_text(s["selection"]))
     t = s["tour"]
     print(f"tour: {t['poses']:,} poses, {t['via_poses']} via poses, {t['dropped']} dropped; motion {t['motion_time_s'] / 3600:.2f} h")
-    print(f"estimated campaign {est['total_days']:.2f} days ({est['seconds_per_pose']:.1f} s a pose) "
-          f"vs the paper's {est['paper']['duration_days']:.1f} days for {est['paper']['poses']:,} poses "
-          f"({est['paper']['seconds_per_pose']:.1f} s a pose)")
-    print(f"written: {args.run}/plan/poses.csv, summary.json, tour.png ({s['timing_s']['total']:.1f} s)")
+    if "selection" in s:
+        print(f"estimated campaign {est['total_s'] / 3600:.2f} h ({est['seconds_per_pose']:.1f} s a pose) "
+              f"vs the paper's {est['paper']['duration_days']:.1f} days for {est['paper']['poses']:,} poses")
+    else:
+        print(f"estimated campaign {est['total_days']:.2f} days ({est['seconds_per_pose']:.1f} s a pose) "
+              f"vs the paper's {est['paper']['duration_days']:.1f} days for {est['paper']['poses']:,} poses "
+              f"({est['paper']['seconds_per_pose']:.1f} s a pose)")
+    extra = ", validation.csv, repeats.csv" if "selection" in s else ""
+    print(f"written: {args.run}/plan/poses.csv{extra}, summary.json, tour.png ({s['timing_s']['total']:.1f} s)")
     return 0
+
+
+def _selection_options(args):
+    from campaign.effects.base import parse_effect_list
+    from campaign.plan.selection import REPEAT_POSES, SelectionOptions
+
+    if args.select is None and args.budget is None and args.target_mm is None:
+        for flag, value in (("--for-effects", args.for_effects), ("--validation", args.validation)):
+            if value is not None:
+                from campaign.errors import ConfigError
+
+                raise ConfigError(f"{flag} needs --select, --budget or --target-mm")
+        if args.repeats:
+            from campaign.errors import ConfigError
+
+            raise ConfigError("--repeats needs --select, --budget or --target-mm")
+        return None
+    if args.for_effects is not None:
+        effects = parse_effect_list(args.for_effects)
+    else:
+        from campaign.config import load_config
+
+        effects = tuple(load_config(args.config).get("effects") or ())
+    kw = {}
+    if args.validation is not None:
+        kw["validation_fraction"] = args.validation
+    return SelectionOptions(n=args.select, budget_h=args.budget, target_mm=args.target_mm, effects=effects,
+                            criterion=args.criterion, repeat_poses=REPEAT_POSES if args.repeats is None else args.repeats,
+                            **kw).check()
+
+
+def selection_text(sel) -> str:
+    """What the selection chose and what it predicts, in a few lines."""
+    p = sel["predicted"]
+    what = (f"{sel['select']} poses" if "select" in sel else f"a {sel['budget_h']:g} h budget" if "budget_h" in sel
+            else f"a target of {sel['target_mm']:g} mm")
+    eff = f" + {', '.join(sel['effects'])}" if sel["effects"] else ""
+    return "\n".join([
+        f"selection ({sel['criterion']}-optimal for {what}; {sel['n_unknowns']} unknowns: geometry{eff}): "
+        f"{sel['selected']} poses chosen, {sel['validation']} random validation poses added, "
+        f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times",
+        f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position, "
+        f"{p['model_orientation_mrad']:.3f} mrad; held-out {1e3 * p['heldout_position_mm']:.1f} µm "
+        f"(tracker noise alone {1e3 * p['noise_position_mm']:.1f} µm)"])

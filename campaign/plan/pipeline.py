@@ -115,8 +115,23 @@ def _order_group(times, grid, members, start_cells):
     return members[order]
 
 
-def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False) -> dict:
-    """Plan a campaign; write the run's plan folder; return the summary (also in summary.json)."""
+def _order_tour(robot, scene, grid, times, home, members):
+    """Grid indices ``members`` in visiting order: front-of-wall and behind-wall groups, each
+    a short tour, the group whose first pose is nearer the grid's middle first."""
+    front = scene.side_of_wall(nominal_frames_entry_first(robot, grid.q(members))[1][7].T)
+    groups = {name: _order_group(times, grid, members[mask], home) for name, mask in (("front", front),
+                                                                                     ("behind", ~front))}
+    first = min(groups, key=lambda g: times.from_one(home, grid.cell_indices(groups[g][:1]))[0]
+                if len(groups[g]) else np.inf)
+    return np.concatenate([groups[first], groups["behind" if first == "front" else "front"]])
+
+
+def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False,
+                  selection=None) -> dict:
+    """Plan a campaign; write the run's plan folder; return the summary (also in summary.json).
+
+    selection: a :class:`campaign.plan.selection.SelectionOptions` to measure an optimal
+    subset of the suitable poses (plus validation poses and repeats) instead of all of them."""
     t_start = time.perf_counter()
     timing = {}  # seconds per stage, wall
     clock = [t_start]
@@ -144,19 +159,23 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
 
     # stage 3: groups, order, check
     times = GridTimes(robot, grid)
-    front = scene.side_of_wall(nominal_frames_entry_first(robot, grid.q(suitable))[1][7].T)
-    bar = Progress("stage 3: ordering", 2, progress, " groups")
     home = np.array(grid.cells) // 2
-    groups = {}
-    for name, mask in (("front", front), ("behind", ~front)):
-        groups[name] = _order_group(times, grid, suitable[mask], home)
-        bar.update(1)
+    members, choice = suitable, None
+    if selection is not None:
+        from campaign.plan.selection import choose_campaign
+
+        choice = choose_campaign(robot, grid, suitable, selection, settle_s=float(pc["settle_time_s"]),
+                                 tracker_s=3 * float(pc["tracker_time_per_reflector_s"]),
+                                 **_selection_times(robot, scene, grid, times, home, suitable))
+        members = choice.members
+        lap("selection")
+    bar = Progress("stage 3: ordering", 1, progress, " tours")
+    order = _order_tour(robot, scene, grid, times, home, members)
+    bar.update(1)
     bar.close()
-    # visit the group whose first pose is nearer the middle of the grid first
-    first = min(groups, key=lambda g: times.from_one(home, grid.cell_indices(groups[g][:1]))[0]
-                if len(groups[g]) else np.inf)
-    order = np.concatenate([groups[first], groups["behind" if first == "front" else "front"]])
-    Q = grid.q(order)
+    if choice is not None:
+        order = choice.with_repeats(order)  # pose ids; repeats map back to their grid index
+    Q = grid.q(_grid_index(order))
     lap("ordering")
     max_step = np.deg2rad(float(pc["motion_sample_deg"]))
     mc = float(pc["motion_clearance_m"])
@@ -204,7 +223,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
             keep[kept[i]] = False
             dropped.append((int(order[kept[i]]), "no collision-free motion after re-ordering"))
     order_final = order[keep]
-    Q_final = grid.q(order_final)
+    Q_final = grid.q(_grid_index(order_final))
     # travel time including vias
     path = [Q_final[0]] if len(Q_final) else []
     for i in range(1, len(order_final)):
@@ -238,6 +257,12 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         },
         "disabled_link_pairs": [list(p) for p in checker.disabled_pairs],
     }
+    from campaign.plan.selection import write_choice
+
+    write_choice(out, choice, order_final)  # without a choice: no validation.csv, repeats.csv
+    if choice is not None:
+        summary["selection"] = choice.summary
+        summary["tour"]["repeats"] = int(np.sum(_grid_index(order_final) != order_final))
     lap("outputs")
     try:
         plot_tour(out / "tour.png", robot, scene, Q_final, front_final)
@@ -248,6 +273,19 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _grid_index(pose_ids):
+    from campaign.plan.selection import base_pose_id
+
+    return base_pose_id(pose_ids)
+
+
+def _selection_times(robot, scene, grid, times, home, suitable):
+    """Travel-time callables for a selection by budget (seconds)."""
+    cells = grid.cell_indices(suitable)
+    return {"travel_from": lambda k: times.from_one(cells[k], cells), "start_s": times.from_one(home, cells),
+            "tour_time": lambda ids: path_time(robot, grid.q(_order_tour(robot, scene, grid, times, home, ids)))}
 
 
 def _write_outputs(out, order, Q, vias, dropped):

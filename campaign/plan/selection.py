@@ -1,0 +1,661 @@
+"""Optimal experiment design: the suitable poses that teach the model most, per pose or per hour.
+
+The unknowns are those `calibrate` identifies: the geometric base parameters
+(:mod:`campaign.model.base_params`) plus the parameters of the physical effects to plan for.
+Their Jacobian is the identification's own (``CalibrationModel``'s rows ``∂Δz/∂x`` at the start
+point ``x = 0``: analytic for the geometry, numerical for the effects, as the solver does).
+
+What the tracker measures is the three reflectors, each coordinate with noise σ (m). The pose
+derived from them by Kabsch carries, to first order, the information of the nine coordinates:
+``Λ_i = Aᵢᵀ Aᵢ / σ²`` (6×6) with ``Aᵢ`` (9×6) the map of a twist of F_E (δt at E's origin, δφ in
+F_I) to the reflectors' displacements. So every candidate contributes a 6-row block
+``Bᵢ = Lᵢᵀ Jᵢ`` (``Λᵢ = Lᵢ Lᵢᵀ``) to the information matrix ``M = Σ Bᵢᵀ Bᵢ``. Columns are scaled
+to unit mean information over the candidates (D-optimality does not depend on that scale).
+
+Criteria: ``D`` maximises log det M; ``A`` minimises tr M⁻¹ (scaled parameters); ``I``
+minimises the mean variance of the predicted tool position over the candidates
+(tr W M⁻¹, ``W = mean Jₜᵀ Jₜ``). Greedy selection keeps, for every candidate, ``Gⱼ = Bⱼ M⁻¹ Bⱼᵀ``
+(6×6) up to date with rank-6 (Woodbury) updates, so adding ``Bⱼ`` gains
+``log det(I + Gⱼ)`` (matrix determinant lemma). DETMAX exchange passes (Mitchell 1974: add the
+best candidate, remove the least useful pose, stop when that is the one just added) then improve
+the greedy set. With a time cost per pose, the greedy step maximises gain per second.
+
+The predicted accuracy (:func:`predict_accuracy`) is the covariance of the estimator that
+`calibrate` runs (row weights by block, from the noise: a sandwich ``H⁻¹ S H⁻¹``), carried to
+the tool pose at every candidate: the expected error of the model against the truth, and the
+expected held-out error (model error plus the measurement's own noise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from campaign.effects.base import EffectSet, effect_context, make_effect, model_pose
+from campaign.errors import ConfigError
+from campaign.model.base_params import base_parameters
+from campaign.model.kinematics import forward
+
+#: Leica LTD800: σ per coordinate of a reflector centre (m), the simulated tracker's default too
+TRACKER_NOISE_M = 10e-6
+#: ridge of the information matrix before any pose is chosen, relative to the mean
+#: information of one pose per (scaled) parameter: it only orders the first few picks
+RIDGE = 1e-6
+#: G is recomputed from M⁻¹ every this many rank-6 updates (bounds round-off drift)
+REFRESH_EVERY = 64
+#: normal samples per pose for the expected norm of a 3-D Gaussian error
+NORM_SAMPLES = 256
+CRITERIA = ("D", "A", "I")
+
+
+@dataclass(frozen=True)
+class Information:
+    """Per-candidate information about the unknowns.
+
+    names, units: (p,) of the unknowns (base parameters, then effect parameters);
+    J: (m, 6, p) ``∂Δz/∂x`` (rows: position m, orientation rad, per unit of each unknown);
+    noise_cov: (m, 6, 6) covariance of the measured Δz (m², m·rad, rad²);
+    blocks: (m, 6, p) whitened, column-scaled rows (``blocksᵀ blocks`` = information);
+    scale: (p,) the column scale (``blocks = Lᵀ J / scale``).
+    """
+
+    names: tuple
+    units: tuple
+    J: np.ndarray
+    noise_cov: np.ndarray
+    blocks: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def n_candidates(self) -> int:
+        return self.J.shape[0]
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.J.shape[2]
+
+    def information(self, index) -> np.ndarray:
+        """Scaled information matrix (p, p) of the poses ``index`` (repeats count twice)."""
+        B = self.blocks[np.asarray(index, dtype=np.int64)].reshape(-1, self.n_unknowns)
+        return B.T @ B
+
+
+def reflector_pose_noise(robot, q, noise_m: float = TRACKER_NOISE_M) -> np.ndarray:
+    """Covariance (n, 6, 6) of Δz = (δt at E's origin [m], δφ in F_I [rad]) of the pose that
+    Kabsch derives from the three reflectors, each coordinate with noise ``noise_m`` (m)."""
+    T = forward(robot, q)
+    R = T[:, :3, :3]
+    r = np.asarray(robot.reflector_positions_in_E, dtype=float) @ np.swapaxes(R, 1, 2)  # (n, k, 3) in F_I
+    n, k = r.shape[:2]
+    # displacement of reflector k under the twist: δt + δφ × r_k = δt − [r_k]× δφ
+    A = np.zeros((n, k, 3, 6))
+    A[:, :, :, :3] = np.eye(3)
+    sk = np.zeros((n, k, 3, 3))
+    sk[..., 0, 1], sk[..., 0, 2] = -r[..., 2], r[..., 1]
+    sk[..., 1, 0], sk[..., 1, 2] = r[..., 2], -r[..., 0]
+    sk[..., 2, 0], sk[..., 2, 1] = -r[..., 1], r[..., 0]
+    A[:, :, :, 3:] = -sk
+    A = A.reshape(n, 3 * k, 6)
+    info = np.swapaxes(A, 1, 2) @ A / noise_m**2
+    return np.linalg.inv(info)
+
+
+def unknowns_jacobian(robot, q, effects=(), context=None):
+    """``∂Δz/∂x`` (n, 6, p) at the identification's start point (x = 0), with the unknowns'
+    names and units: exactly the rows `calibrate`'s solver builds (CalibrationModel)."""
+    from campaign.identify.solver import CalibrationModel
+
+    q = np.asarray(q, dtype=float)
+    es = EffectSet(tuple(make_effect(e, robot) if isinstance(e, str) else e for e in effects))
+    for e in es.effects:
+        missing = [k for k in e.context_keys if k != "time_s" and k not in (context or {})]
+        if missing:
+            raise ConfigError(f"effect '{e.name}' depends on '{missing[0]}', which is known only when measuring: "
+                              "the plan cannot weigh it (leave it out of --for-effects)")
+    ctx = effect_context(context or {}, (context or {}).get("time_s", np.zeros(len(q))))
+    # the solver's own Jacobian, evaluated without fitting (its _jacobian reads these two)
+    probe = CalibrationModel(robot=robot, effects=es.effects)
+    probe.effect_set_ = es
+    probe.base_ = base_parameters(robot)
+    theta = es.initial_params()
+    T0 = model_pose(robot, q, None, es, theta, ctx)
+    J = probe._jacobian(q, probe.base_.expand(np.zeros(probe.base_.n_base)), theta, ctx, T0)
+    names = probe.base_.names + es.param_names
+    units = probe.base_.units + es.param_units
+    return J, names, units
+
+
+def information_model(robot, q, *, effects=(), noise_m: float = TRACKER_NOISE_M, context=None,
+                      noise_cov=None) -> Information:
+    """The :class:`Information` of candidate joint vectors q (m, 6) rad.
+
+    noise_cov: (m, 6, 6) covariance of each measured Δz; default: the three reflectors, each
+    coordinate with σ = ``noise_m`` (m), fitted by Kabsch (:func:`reflector_pose_noise`).
+    """
+    q = np.asarray(q, dtype=float)
+    J, names, units = unknowns_jacobian(robot, q, effects, context)
+    cov = reflector_pose_noise(robot, q, noise_m) if noise_cov is None else np.asarray(noise_cov, dtype=float)
+    L = np.linalg.cholesky(np.linalg.inv(cov))  # Λ = L Lᵀ
+    B = np.swapaxes(L, 1, 2) @ J
+    scale = np.sqrt(np.mean(np.sum(B**2, axis=1), axis=0))
+    dead = scale <= 1e-12 * max(scale.max(), 1e-300)
+    if dead.any():
+        name = names[int(np.flatnonzero(dead)[0])]
+        raise ConfigError(f"no candidate pose informs '{name}': it cannot be planned for")
+    B = B / scale
+    for a in (J, cov, B, scale):
+        a.setflags(write=False)
+    return Information(tuple(names), tuple(units), J, cov, B, scale)
+
+
+def log_det(info: Information, index) -> float:
+    """log det of the scaled information of the poses ``index`` (no ridge), directly."""
+    sign, val = np.linalg.slogdet(info.information(index))
+    return float(val) if sign > 0 else -np.inf
+
+
+def _logdet_spd(K):
+    """log det of a batch of symmetric positive definite matrices (…, k, k)."""
+    Lc = np.linalg.cholesky(K)
+    return 2.0 * np.sum(np.log(np.diagonal(Lc, axis1=-2, axis2=-1)), axis=-1)
+
+
+class _Design:
+    """The growing design: M⁻¹ (with the ridge) and Gⱼ = Bⱼ M⁻¹ Bⱼᵀ for every candidate."""
+
+    def __init__(self, info: Information, criterion: str, weight=None):
+        self.B = info.blocks
+        p = info.n_unknowns
+        self.M = RIDGE * np.eye(p)
+        self.Minv = np.eye(p) / RIDGE
+        # refreshes as M reaches full rank and becomes well conditioned: the updates from the
+        # ridge's 1/RIDGE scale down to O(1) lose digits, which a fresh M⁻¹ restores
+        self.full_rank_at = int(np.ceil(p / 6))
+        self.count = np.zeros(info.n_candidates, dtype=np.int64)
+        self.criterion = criterion
+        # A: W = I; I: W = mean over candidates of the position rows' JᵀJ, in scaled parameters
+        self.W_half = None if weight is None else np.linalg.cholesky(weight + 1e-12 * np.trace(weight) / p * np.eye(p))
+        self.updates = 0
+        self.refresh()
+
+    def refresh(self):
+        self.Minv = np.linalg.inv(self.M)
+        self.Minv = 0.5 * (self.Minv + self.Minv.T)
+        BM = self.B @ self.Minv  # (m, 6, p)
+        self.G = BM @ np.swapaxes(self.B, 1, 2)
+        self.updates = 0
+
+    def _rank6(self, j, sign):
+        """M += sign · Bⱼᵀ Bⱼ (sign ±1), updating M⁻¹ and every G."""
+        Bj = self.B[j]
+        self.M = self.M + sign * (Bj.T @ Bj)
+        u = self.Minv @ Bj.T  # (p, 6)
+        K = np.eye(6) + sign * (Bj @ u)
+        Kinv = np.linalg.inv(K)
+        self.Minv = self.Minv - sign * (u @ Kinv @ u.T)
+        self.Minv = 0.5 * (self.Minv + self.Minv.T)
+        C = self.B @ u  # (m, 6, 6) = Bᵢ M⁻¹ Bⱼᵀ
+        self.G = self.G - sign * (C @ Kinv @ np.swapaxes(C, 1, 2))
+        self.updates += 1
+        n = int(self.count.sum()) + int(sign)
+        if self.updates >= REFRESH_EVERY or n in (self.full_rank_at, 2 * self.full_rank_at, 4 * self.full_rank_at):
+            self.refresh()
+
+    def add(self, j):
+        self._rank6(j, +1.0)
+        self.count[j] += 1
+
+    def remove(self, j):
+        self._rank6(j, -1.0)
+        self.count[j] -= 1
+
+    def gains(self, index=None):
+        """Improvement of the criterion from adding each candidate (larger is better)."""
+        G = self.G if index is None else self.G[index]
+        I6 = np.eye(6)
+        if self.criterion == "D":
+            return _logdet_spd(I6 + G)
+        H = self._H(index)
+        return np.trace(np.linalg.solve(I6 + G, H), axis1=1, axis2=2)
+
+    def losses(self, index):
+        """Worsening of the criterion from removing each pose of ``index`` (smaller is better)."""
+        G = self.G[index]
+        I6 = np.eye(6)
+        K = I6 - G
+        if self.criterion == "D":
+            ev = np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, 1, 2)))
+            return -np.sum(np.log(np.clip(ev, 1e-300, None)), axis=1)
+        H = self._H(index)
+        return np.trace(np.linalg.solve(K, H), axis1=1, axis2=2)
+
+    def _H(self, index):
+        """Bⱼ M⁻¹ W M⁻¹ Bⱼᵀ (…, 6, 6)."""
+        P = self.Minv if self.W_half is None else self.Minv @ self.W_half
+        B = self.B if index is None else self.B[index]
+        BP = B @ P
+        return BP @ np.swapaxes(BP, 1, 2)
+
+    def criterion_value(self):
+        """log det M (D) or tr W M⁻¹ (A, I), ridge included."""
+        if self.criterion == "D":
+            return float(np.linalg.slogdet(self.M)[1])
+        P = self.Minv if self.W_half is None else self.W_half.T @ self.Minv @ self.W_half
+        return float(np.trace(P))
+
+
+def position_weight(info: Information) -> np.ndarray:
+    """Mean over the candidates of the position rows' JᵀJ in scaled parameters (p, p): the
+    I-criterion's weight, tr(W M⁻¹) = mean variance of the predicted tool position."""
+    Jt = info.J[:, :3, :] * info.scale
+    return np.einsum("mri,mrj->ij", Jt, Jt) / info.n_candidates
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Chosen candidates (indices into the candidate array) in the order they were chosen,
+    the criterion and its value (log det of the scaled information for D), and timings (s)."""
+
+    index: np.ndarray
+    criterion: str
+    log_det: float
+    exchanges: int
+    time_s: float
+
+
+def select(info: Information, n: int | None = None, *, criterion: str = "D", exchange: bool = True,
+           cost_s=None, budget_s: float | None = None, travel_s=None, start=None,
+           max_exchanges: int | None = None) -> Selection:
+    """Choose ``n`` candidates greedily, then improve them by DETMAX exchanges.
+
+    cost_s: (m,) seconds each candidate costs besides the motion to it (settle + tracker);
+    travel_s: optional callable ``travel_s(j) -> (m,)`` seconds from candidate j to every
+    candidate, so a candidate's motion cost is its time from the nearest chosen pose (from
+    ``start``: (m,) seconds from the robot's start). With costs, each step maximises gain per
+    second, and ``budget_s`` (instead of n) stops when the estimated time is spent.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    if criterion not in CRITERIA:
+        raise ConfigError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
+    m = info.n_candidates
+    if n is None and budget_s is None:
+        raise ConfigError("select: give a number of poses or a budget")
+    if n is not None and not 1 <= n <= m:
+        raise ConfigError(f"cannot select {n} of {m} suitable poses")
+    weight = position_weight(info) if criterion == "I" else None
+    d = _Design(info, criterion, weight)
+    fixed = None if cost_s is None else np.broadcast_to(np.asarray(cost_s, dtype=float), (m,))
+    nearest = None
+    if travel_s is not None:
+        nearest = np.zeros(m) if start is None else np.asarray(start, dtype=float).copy()
+    chosen = []
+    spent = 0.0
+    free = np.ones(m, dtype=bool)
+    limit = m if n is None else n
+    while len(chosen) < limit:
+        g = d.gains()
+        score = g.copy()
+        cost = None
+        if fixed is not None:
+            cost = fixed + (nearest if nearest is not None else 0.0)
+            score = g / np.maximum(cost, 1e-9)
+        score[~free] = -np.inf
+        j = int(np.argmax(score))
+        if not np.isfinite(score[j]):
+            break
+        if budget_s is not None and cost is not None and spent + cost[j] > budget_s:
+            break
+        if cost is not None:
+            spent += float(cost[j])
+        d.add(j)
+        free[j] = False
+        chosen.append(j)
+        if nearest is not None:
+            nearest = np.minimum(nearest, travel_s(j)) if len(chosen) > 1 or start is not None else travel_s(j)
+    n_ex = 0
+    if exchange and len(chosen) and fixed is None:
+        chosen, n_ex = _detmax(d, chosen, free, max_exchanges)
+    idx = np.array(chosen, dtype=np.int64)
+    return Selection(idx, criterion, log_det(info, idx), n_ex, time.perf_counter() - t0)
+
+
+def _detmax(d: _Design, chosen, free, max_exchanges=None):
+    """Mitchell's DETMAX with excursions of one: add the best candidate, remove the least
+    useful pose; stop when the pose removed is the one just added."""
+    chosen = list(chosen)
+    limit = max_exchanges if max_exchanges is not None else 4 * len(chosen) + 20
+    n_ex = 0
+    for _ in range(limit):
+        g = d.gains()
+        g[~free] = -np.inf
+        j = int(np.argmax(g))
+        if not np.isfinite(g[j]):
+            break
+        d.add(j)
+        members = np.array(chosen + [j])
+        loss = d.losses(members)
+        k = int(np.argmin(loss))
+        i = int(members[k])
+        if i == j or g[j] - loss[k] <= 1e-10 * max(abs(g[j]), 1.0):
+            d.remove(j)
+            break
+        d.remove(i)
+        chosen.remove(i)
+        chosen.append(j)
+        free[j] = False
+        free[i] = True
+        n_ex += 1
+    return chosen, n_ex
+
+
+# -- predicted accuracy ----------------------------------------------------------------------------
+def estimator_covariance(info: Information, index) -> np.ndarray:
+    """Covariance (p, p) of the unknowns (in their own units) estimated from the poses
+    ``index`` by `calibrate`'s solver: rows weighted by one σ per block (position,
+    orientation) from the noise, so the covariance is the sandwich H⁻¹ S H⁻¹."""
+    index = np.asarray(index, dtype=np.int64)
+    J = info.J[index]
+    S6 = info.noise_cov[index]
+    var_p = np.mean(np.trace(S6[:, :3, :3], axis1=1, axis2=2)) / 3.0
+    var_o = np.mean(np.trace(S6[:, 3:, 3:], axis1=1, axis2=2)) / 3.0
+    w = np.array([1 / var_p] * 3 + [1 / var_o] * 3)
+    WJ = J * w[None, :, None]
+    H = np.einsum("nri,nrj->ij", J, WJ)
+    S = np.einsum("nri,nrs,nsj->ij", WJ, S6, WJ)
+    Hinv = np.linalg.pinv(H)
+    return Hinv @ S @ Hinv
+
+
+def expected_norm(C, n_samples: int = NORM_SAMPLES, seed: int = 0) -> np.ndarray:
+    """E‖x‖ for x ~ N(0, Cₖ), each Cₖ (k, 3, 3) symmetric PSD; fixed normal samples."""
+    C = np.asarray(C, dtype=float)
+    lam, V = np.linalg.eigh(0.5 * (C + np.swapaxes(C, -1, -2)))
+    root = V * np.sqrt(np.clip(lam, 0, None))[:, None, :]
+    z = np.random.default_rng(seed).standard_normal((n_samples, C.shape[-1]))
+    return np.mean(np.linalg.norm(np.einsum("kij,sj->ksi", root, z), axis=-1), axis=1)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Predicted accuracy of a design over the evaluation poses (mm, mrad): the model against
+    the truth, and held-out (the model's error plus the measurement's noise), mean and RMS."""
+
+    model_position_mm: float
+    model_position_rms_mm: float
+    model_orientation_mrad: float
+    heldout_position_mm: float
+    heldout_orientation_mrad: float
+    noise_position_mm: float
+
+    def as_dict(self) -> dict:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def predict_accuracy(info: Information, index, evaluate=None) -> Prediction:
+    """What a campaign on the poses ``index`` will achieve, averaged over the candidates
+    ``evaluate`` (default: all): expected mean errors from :func:`estimator_covariance`."""
+    cov = estimator_covariance(info, index)
+    ev = np.arange(info.n_candidates) if evaluate is None else np.asarray(evaluate, dtype=np.int64)
+    J = info.J[ev]
+    C = J @ cov @ np.swapaxes(J, 1, 2)  # (k, 6, 6) model error at each evaluation pose
+    N = info.noise_cov[ev]
+    Cp, Co = C[:, :3, :3], C[:, 3:, 3:]
+    return Prediction(
+        model_position_mm=1e3 * float(np.mean(expected_norm(Cp))),
+        model_position_rms_mm=1e3 * float(np.sqrt(np.mean(np.trace(Cp, axis1=1, axis2=2)))),
+        model_orientation_mrad=1e3 * float(np.mean(expected_norm(Co))),
+        heldout_position_mm=1e3 * float(np.mean(expected_norm(Cp + N[:, :3, :3]))),
+        heldout_orientation_mrad=1e3 * float(np.mean(expected_norm(Co + N[:, 3:, 3:]))),
+        noise_position_mm=1e3 * float(np.mean(expected_norm(N[:, :3, :3]))),
+    )
+
+
+def smallest_reaching(info: Information, target_mm: float, *, criterion: str = "D", evaluate=None,
+                      max_n: int | None = None):
+    """The smallest greedy design whose predicted model error against the truth (mean
+    position, mm, over ``evaluate``) is at most ``target_mm``: (n, Selection, Prediction).
+
+    Greedy designs are nested, so the size is found by bisection on one greedy order; the
+    chosen size is then improved by exchanges."""
+    m = info.n_candidates
+    max_n = min(max_n or m, m)
+    full = select(info, max_n, criterion=criterion, exchange=False)
+    order = full.index
+    p_min = max(1, int(np.ceil(info.n_unknowns / 6)) + 1)
+
+    def pred(k):
+        return predict_accuracy(info, order[:k], evaluate)
+
+    best = pred(len(order))
+    if best.model_position_mm > target_mm:
+        raise ConfigError(f"--target-mm {target_mm:g}: even {len(order)} poses are predicted to reach only "
+                          f"{best.model_position_mm:.4f} mm")
+    lo, hi = p_min, len(order)  # pred(hi) reaches the target
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if pred(mid).model_position_mm <= target_mm:
+            hi = mid
+        else:
+            lo = mid + 1
+    sel = select(info, hi, criterion=criterion, exchange=True)
+    p = predict_accuracy(info, sel.index, evaluate)
+    if p.model_position_mm > target_mm:  # exchanges are for the criterion, not the target: keep greedy's
+        sel = Selection(order[:hi], criterion, log_det(info, order[:hi]), 0, sel.time_s)
+        p = pred(hi)
+    return hi, sel, p
+
+
+# -- the campaign: selected poses, validation poses, repeats ---------------------------------------
+#: pose_id of the r-th repeat (r ≥ 1) of candidate p: p + r · REPEAT_ID_STRIDE (the store keys on
+#: pose_id, so a repeat gets an id of its own; its joint vector is identical to p's)
+REPEAT_ID_STRIDE = 1_000_000_000
+#: seed of the random draw of validation poses (fixed: a re-plan draws the same ones)
+VALIDATION_SEED = 20200101
+VALIDATION_FRACTION = 0.2
+MIN_VALIDATION = 30
+#: with a selection: this many chosen poses are measured REPEAT_TIMES times, spread over the tour
+REPEAT_POSES = 3
+REPEAT_TIMES = 3
+
+
+def base_pose_id(pose_id) -> np.ndarray:
+    """The candidate a pose id measures: repeats map back to their original."""
+    return np.asarray(pose_id, dtype=np.int64) % REPEAT_ID_STRIDE
+
+
+@dataclass(frozen=True)
+class SelectionOptions:
+    """What `campaign plan` is asked to choose. Exactly one of n / budget_h / target_mm.
+
+    n: number of poses; budget_h: campaign hours (motion, settle, tracker; validation and
+    repeats included); target_mm: predicted mean position error of the model against the
+    truth over the suitable poses (mm); effects: effect names to plan for (besides the
+    geometry); criterion: D, A or I; validation_fraction, min_validation: random validation
+    poses added (a share of the chosen number, at least that many); repeat_poses,
+    repeat_times: poses measured several times for the noise floor; noise_m: tracker σ (m).
+    """
+
+    n: int | None = None
+    budget_h: float | None = None
+    target_mm: float | None = None
+    effects: tuple = ()
+    criterion: str = "D"
+    validation_fraction: float = VALIDATION_FRACTION
+    min_validation: int = MIN_VALIDATION
+    repeat_poses: int = REPEAT_POSES
+    repeat_times: int = REPEAT_TIMES
+    noise_m: float = TRACKER_NOISE_M
+
+    def check(self):
+        given = [v is not None for v in (self.n, self.budget_h, self.target_mm)]
+        if sum(given) != 1:
+            raise ConfigError("give exactly one of --select N, --budget HOURS, --target-mm X")
+        if self.n is not None and self.n < 1:
+            raise ConfigError(f"--select must be a positive number of poses, got {self.n}")
+        if self.budget_h is not None and not self.budget_h > 0:
+            raise ConfigError(f"--budget must be a positive number of hours, got {self.budget_h}")
+        if self.target_mm is not None and not self.target_mm > 0:
+            raise ConfigError(f"--target-mm must be positive, got {self.target_mm}")
+        if self.criterion not in CRITERIA:
+            raise ConfigError(f"--criterion must be one of {', '.join(CRITERIA)}, got {self.criterion!r}")
+        if not 0 <= self.validation_fraction < 1:
+            raise ConfigError(f"--validation must be a fraction in [0, 1), got {self.validation_fraction}")
+        if self.min_validation < 0 or self.repeat_poses < 0 or self.repeat_times < 1:
+            raise ConfigError("validation and repeat counts must be >= 0 (repeat times >= 1)")
+        if self.repeat_times > 16:
+            raise ConfigError(f"a pose can be measured at most 16 times, got {self.repeat_times}")
+        return self
+
+
+@dataclass(frozen=True)
+class CampaignChoice:
+    """The chosen campaign, as candidate grid indices: ``selected`` (the design, in the
+    order chosen), ``validation`` (random, for the test set), ``repeated`` (selected poses
+    measured ``repeat_times`` times); ``prediction`` for the selected poses; ``summary``."""
+
+    selected: np.ndarray
+    validation: np.ndarray
+    repeated: np.ndarray
+    repeat_times: int
+    prediction: Prediction
+    summary: dict
+
+    @property
+    def members(self) -> np.ndarray:
+        """Grid indices to visit once each (selected + validation)."""
+        return np.concatenate([self.selected, self.validation])
+
+    def with_repeats(self, order) -> np.ndarray:
+        """Tour order (pose ids) with the repeats' ids inserted, spread evenly over the tour:
+        extra measurement e of E goes after tour position ⌊(e + ½) L / E⌋, cycling over
+        the repeated poses, so the copies of one pose lie far apart in time."""
+        order = np.asarray(order, dtype=np.int64)
+        reps = [int(p) for p in self.repeated]
+        extra = [(reps[e % len(reps)], 1 + e // len(reps)) for e in range(len(reps) * (self.repeat_times - 1))]
+        if not extra:
+            return order
+        L = len(order)
+        slots = {int((e + 0.5) * L / len(extra)): e for e in range(len(extra))}
+        out = []
+        for k, pid in enumerate(order):
+            out.append(int(pid))
+            if k in slots:
+                p, r = extra[slots[k]]
+                out.append(p + r * REPEAT_ID_STRIDE)
+        return np.array(out, dtype=np.int64)
+
+
+def _draw_validation(m, chosen, fraction, minimum, seed=VALIDATION_SEED):
+    n_val = 0 if fraction == 0 and minimum == 0 else max(int(minimum), int(round(fraction * len(chosen))))
+    rest = np.setdiff1d(np.arange(m), chosen)
+    n_val = min(n_val, len(rest))
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(rest, n_val, replace=False)) if n_val else np.zeros(0, dtype=np.int64)
+
+
+def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: float, tracker_s: float,
+                    travel_from=None, start_s=None, tour_time=None, progress=None) -> CampaignChoice:
+    """Choose the campaign among the ``suitable`` grid indices (what `plan --select`,
+    ``--budget`` and ``--target-mm`` do).
+
+    settle_s, tracker_s: seconds per pose (tracker time for the three reflectors);
+    travel_from(k) -> (m,) s from suitable pose k to every suitable pose; start_s (m,) s from
+    the robot's start; tour_time(grid indices) -> s of the ordered tour (for ``--budget``).
+    """
+    import time
+
+    opts.check()
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    suitable = np.asarray(suitable, dtype=np.int64)
+    m = len(suitable)
+    if m == 0:
+        raise ConfigError("no suitable poses to select from")
+    info = information_model(robot, grid.q(suitable), effects=opts.effects, noise_m=opts.noise_m)
+    t_info = time.perf_counter() - t0
+    say(f"information of {m:,} suitable poses about {info.n_unknowns} unknowns ({t_info:.1f} s)")
+    per_pose_s = settle_s + tracker_s
+    p_min = int(np.ceil(info.n_unknowns / 6))
+    n_val = lambda n: 0 if n == 0 else max(opts.min_validation, int(round(opts.validation_fraction * n)))  # noqa: E731
+    if opts.n is not None:
+        if opts.n < p_min:
+            raise ConfigError(f"--select {opts.n}: {info.n_unknowns} unknowns need at least {p_min} poses "
+                              "(6 equations each)")
+        sel = select(info, opts.n, criterion=opts.criterion)
+        mode = {"select": opts.n}
+    elif opts.target_mm is not None:
+        _, sel, _ = smallest_reaching(info, opts.target_mm, criterion=opts.criterion)
+        mode = {"target_mm": opts.target_mm}
+    else:
+        budget_s = opts.budget_h * 3600.0
+        extra_per = opts.repeat_poses * (opts.repeat_times - 1)
+        sel, eff = None, budget_s
+        for _ in range(5):
+            # the budget's share for the design: validation and repeats cost their share too
+            design_s = eff / (1.0 + opts.validation_fraction) - extra_per * per_pose_s
+            s = select(info, None, criterion=opts.criterion, cost_s=per_pose_s, budget_s=max(design_s, 0.0),
+                       travel_s=travel_from, start=start_s)
+            if len(s.index) < p_min:
+                break
+            nv = n_val(len(s.index))
+            total = (len(s.index) + nv + extra_per) * per_pose_s
+            if tour_time is not None:
+                total += tour_time(suitable[s.index])
+            if total <= budget_s:
+                sel = s if sel is None or len(s.index) > len(sel.index) else sel
+                if total > 0.97 * budget_s:
+                    break
+            eff *= budget_s / max(total, 1e-9)
+        if sel is None:
+            raise ConfigError(f"--budget {opts.budget_h:g} h: too short for the {p_min} poses that "
+                              f"{info.n_unknowns} unknowns need (at least {p_min * per_pose_s / 3600:.2f} h "
+                              "without motion)")
+        mode = {"budget_h": opts.budget_h}
+    chosen = sel.index
+    val = _draw_validation(m, chosen, opts.validation_fraction, opts.min_validation)
+    n_rep = min(opts.repeat_poses, len(chosen)) if opts.repeat_times > 1 else 0
+    # repeated poses: spread over the design's choice order (first, middle, last chosen...)
+    rep = chosen[np.linspace(0, len(chosen) - 1, n_rep).round().astype(int)] if n_rep else np.zeros(0, np.int64)
+    t1 = time.perf_counter()
+    # the repeats' extra measurements are training data too
+    pred = predict_accuracy(info, np.concatenate([chosen, np.repeat(rep, max(opts.repeat_times - 1, 0))]))
+    t_pred = time.perf_counter() - t1
+    summary = {
+        **mode, "criterion": opts.criterion, "unknowns": list(info.names), "n_unknowns": info.n_unknowns,
+        "effects": list(opts.effects), "tracker_noise_m": opts.noise_m,
+        "selected": int(len(chosen)), "validation": int(len(val)), "repeated_poses": int(n_rep),
+        "repeat_times": int(opts.repeat_times) if n_rep else 1,
+        "log_det_information": sel.log_det, "exchanges": sel.exchanges,
+        "predicted": {**pred.as_dict(), "evaluated_over": "all suitable poses",
+                      "note": "expected mean errors of the model calibrated on the selected poses: "
+                              "model_* against the truth, heldout_* against measurements (model + tracker noise)"},
+        "time_s": {"information": t_info, "selection": sel.time_s, "prediction": t_pred},
+    }
+    return CampaignChoice(suitable[chosen], suitable[val], suitable[rep], int(opts.repeat_times), pred, summary)
+
+
+def write_choice(out, choice: CampaignChoice | None, visited_ids) -> None:
+    """RUN/plan/validation.csv (``pose_id`` of the validation poses in the tour) and
+    RUN/plan/repeats.csv (``pose_id,repeat_of``: each repeat's id and the pose it repeats)."""
+    from pathlib import Path
+
+    out = Path(out)
+    if choice is None:
+        for name in ("validation.csv", "repeats.csv"):
+            (out / name).unlink(missing_ok=True)
+        return
+    visited = set(int(p) for p in visited_ids)
+    lines = ["pose_id"] + [str(int(p)) for p in choice.validation if int(p) in visited]
+    _write_atomic(out / "validation.csv", "\n".join(lines) + "\n")
+    rl = ["pose_id,repeat_of"] + [f"{int(p)},{int(p) % REPEAT_ID_STRIDE}" for p in visited_ids
+                                  if int(p) >= REPEAT_ID_STRIDE]
+    _write_atomic(out / "repeats.csv", "\n".join(rl) + "\n")
+
+
+def _write_atomic(path, text):
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(text)
+    tmp.replace(path)

@@ -1,0 +1,195 @@
+"""Optimal pose selection (issue 14): the design's algebra, its prediction, and `plan --select`."""
+
+import json
+
+import numpy as np
+import pytest
+
+from campaign.cli import main
+from campaign.measure.reflectors import pose_from_reflectors, transform_points
+from campaign.model.kinematics import forward, pose_error
+from campaign.plan import selection as S
+from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+
+@pytest.fixture(scope="module")
+def candidates(robot):
+    return random_joint_poses(robot, 300, seed=7)
+
+
+@pytest.fixture(scope="module")
+def info(robot, candidates):
+    return S.information_model(robot, candidates)
+
+
+def test_rank_six_updates_equal_the_direct_inverse_and_log_det(info):
+    d = S._Design(info, "D")
+    rng = np.random.default_rng(0)
+    picks = rng.choice(info.n_candidates, 40, replace=False)
+    for j in picks:
+        d.add(j)
+    d.remove(picks[3])
+    kept = np.delete(picks, 3)
+    M = info.information(kept) + S.RIDGE * np.eye(info.n_unknowns)
+    assert d.criterion_value() == pytest.approx(np.linalg.slogdet(M)[1], rel=1e-9)
+    G = info.blocks @ np.linalg.inv(M) @ np.swapaxes(info.blocks, 1, 2)
+    np.testing.assert_allclose(d.G, G, atol=1e-8 * np.abs(G).max())
+    # the gain of adding a candidate is the change of log det (matrix determinant lemma)
+    j = int(rng.integers(info.n_candidates))
+    M2 = M + info.blocks[j].T @ info.blocks[j]
+    assert d.gains()[j] == pytest.approx(np.linalg.slogdet(M2)[1] - np.linalg.slogdet(M)[1], rel=1e-8)
+
+
+def test_d_optimal_beats_every_random_subset_on_log_det_and_exchanges_never_lose(info):
+    greedy = S.select(info, 20, exchange=False)
+    best = S.select(info, 20)
+    rng = np.random.default_rng(1)
+    random = [S.log_det(info, rng.choice(info.n_candidates, 20, replace=False)) for _ in range(50)]
+    assert greedy.log_det > max(random)
+    assert best.log_det >= greedy.log_det - 1e-9
+    assert len(set(best.index.tolist())) == 20
+
+
+def test_a_and_i_criteria_lower_their_own_trace_below_d_and_random(info):
+    W = S.position_weight(info)
+    n = 20
+    rng = np.random.default_rng(2)
+
+    def trace(idx, weight):
+        Minv = np.linalg.inv(info.information(idx))
+        return np.trace(Minv if weight is None else weight @ Minv)
+
+    for crit, weight in (("A", None), ("I", W)):
+        sel = S.select(info, n, criterion=crit)
+        t = trace(sel.index, weight)
+        assert t < trace(S.select(info, n).index, weight)
+        assert t < min(trace(rng.choice(info.n_candidates, n, replace=False), weight) for _ in range(20))
+
+
+def test_kabsch_pose_noise_equals_monte_carlo_of_the_three_reflectors(robot, candidates):
+    q = candidates[:3]
+    cov = S.reflector_pose_noise(robot, q, 1e-5)
+    T = forward(robot, q)
+    P = transform_points(T, np.broadcast_to(robot.reflector_positions_in_E, (3, 3, 3)))
+    rng = np.random.default_rng(3)
+    draws = []
+    for _ in range(4000):
+        Tm, _ = pose_from_reflectors(np.eye(4), robot.reflector_positions_in_E, P + rng.normal(0, 1e-5, P.shape))
+        draws.append(pose_error(Tm, T))
+    d = np.array(draws)  # (draws, 3, 6)
+    for k in range(3):
+        emp = np.cov(d[:, k].T)
+        np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(cov[k])), rtol=0.06)
+
+
+def test_predicted_error_against_the_truth_matches_the_real_identification_within_20_percent(robot, candidates, info):
+    """Monte-Carlo of the real pipeline (reflector noise → Kabsch → CalibrationModel) on one design."""
+    from campaign.identify.solver import CalibrationModel
+
+    sel = S.select(info, 25)
+    pred = S.predict_accuracy(info, sel.index)
+    truth = make_truth(robot, seed=4)
+    q = candidates[sel.index]
+    errs, held = [], []
+    for seed in range(12):
+        meas = synthesize(truth, q, seed=100 + seed)
+        model = CalibrationModel(robot=robot).fit(meas.q, meas.T_IE)
+        # the truth as seen in this campaign's set-up frame, at every candidate
+        T_true = truth.pose_in_measured_frame(candidates, meas.T_LI)
+        errs.append(np.mean(np.linalg.norm(pose_error(model.predict(candidates), T_true)[:, :3], axis=1)))
+        other = synthesize(truth, candidates, seed=500 + seed)
+        T_other = truth.pose_in_measured_frame(candidates, meas.T_LI) @ np.linalg.inv(
+            truth.pose_in_measured_frame(candidates, other.T_LI)) @ other.T_IE
+        held.append(np.mean(np.linalg.norm(pose_error(model.predict(candidates), T_other)[:, :3], axis=1)))
+    assert np.mean(errs) * 1e3 == pytest.approx(pred.model_position_mm, rel=0.2)
+    assert np.mean(held) * 1e3 == pytest.approx(pred.heldout_position_mm, rel=0.2)
+
+
+def test_smallest_design_reaching_a_target_is_the_first_greedy_prefix_that_does(info):
+    full = S.select(info, 60, exchange=False).index
+    target = S.predict_accuracy(info, full[:30]).model_position_mm * 1.0001
+    n, sel, pred = S.smallest_reaching(info, target, max_n=60)
+    assert pred.model_position_mm <= target
+    assert S.predict_accuracy(info, full[: n - 1]).model_position_mm > target
+    assert n <= 30
+
+
+def test_repeats_are_spread_over_the_tour_with_their_own_ids():
+    choice = S.CampaignChoice(np.array([5, 7, 9]), np.array([11]), np.array([5, 9]), 3, None, {})
+    order = choice.with_repeats(np.arange(100, 120))
+    extra = order[order >= S.REPEAT_ID_STRIDE]
+    assert sorted(extra.tolist()) == sorted([5 + S.REPEAT_ID_STRIDE, 9 + S.REPEAT_ID_STRIDE,
+                                             5 + 2 * S.REPEAT_ID_STRIDE, 9 + 2 * S.REPEAT_ID_STRIDE])
+    pos = np.flatnonzero(order >= S.REPEAT_ID_STRIDE)
+    assert np.min(np.diff(pos)) >= 4
+    np.testing.assert_array_equal(S.base_pose_id(extra), [5, 9, 5, 9])
+
+
+@pytest.fixture(scope="module")
+def selected_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("select") / "run"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--select", "12", "--quiet"]) == 0
+    return run
+
+
+def _read_csv(path):
+    lines = path.read_text().splitlines()
+    return lines[0], [[float(v) for v in ln.split(",")] for ln in lines[1:] if ln]
+
+
+def test_plan_select_writes_the_design_validation_and_repeats(selected_run):
+    s = json.loads((selected_run / "plan" / "summary.json").read_text())
+    sel = s["selection"]
+    assert sel["selected"] == 12 and sel["validation"] == 30 and sel["repeated_poses"] == 3
+    header, rows = _read_csv(selected_run / "plan" / "poses.csv")
+    assert header == "pose_id,q1,q2,q3,q4,q5,q6"
+    ids = np.array([r[0] for r in rows], dtype=np.int64)
+    assert len(ids) == len(set(ids)) == 12 + 30 + 6 - s["tour"]["dropped"]
+    _, val = _read_csv(selected_run / "plan" / "validation.csv")
+    assert set(int(v[0]) for v in val) <= set(ids.tolist())
+    _, reps = _read_csv(selected_run / "plan" / "repeats.csv")
+    q_of = {int(r[0]): r[1:] for r in rows}
+    for pid, orig in reps:
+        assert q_of[int(pid)] == q_of[int(orig)]  # identical joint vectors
+    assert sel["predicted"]["heldout_position_mm"] > sel["predicted"]["noise_position_mm"] > 0
+    assert s["estimated_campaign"]["total_s"] < 3600
+
+
+def test_calibrate_tests_on_the_plans_validation_poses(selected_run):
+    from campaign.identify.split import run_split
+
+    _, rows = _read_csv(selected_run / "plan" / "poses.csv")
+    _, val = _read_csv(selected_run / "plan" / "validation.csv")
+    ids = np.array([r[0] for r in rows], dtype=np.int64)
+    is_test = run_split(selected_run, ids)
+    assert set(ids[is_test].tolist()) == set(int(v[0]) for v in val)
+
+
+def test_a_plan_without_selection_removes_a_previous_validation_list(tmp_path, selected_run):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(selected_run, run)
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.4", "--quiet"]) == 0
+    assert not (run / "plan" / "validation.csv").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--select", "3"], "at least 5 poses"),
+    (["--select", "12", "--for-effects", "thermal"], "known only when measuring"),
+    (["--select", "12", "--for-effects", "nonsense"], "unknown effect 'nonsense'"),
+    (["--budget", "0.001"], "too short"),
+    (["--for-effects", "ground_compliance"], "needs --select"),
+])
+def test_bad_selection_requests_get_one_line(tmp_path, capsys, argv, message):
+    assert main(["plan", "--run", str(tmp_path / "r"), "--grid-scale", "0.4", "--quiet", *argv]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_budget_plan_fits_its_hours(tmp_path):
+    run = tmp_path / "run"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--budget", "0.4", "--quiet"]) == 0
+    s = json.loads((run / "plan" / "summary.json").read_text())
+    assert s["estimated_campaign"]["total_s"] <= 0.4 * 3600 * 1.02
+    assert s["selection"]["selected"] >= 5
