@@ -160,10 +160,12 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
 
 def parameter_text(model: CalibrationModel) -> str:
     """Identified parameters with σ, one per line, units in the header."""
-    lines = [f"{'#':>3} {'parameter':<34} {'value':>14} {'sigma':>12}  unit"]
-    for i, (name, unit, value, sigma) in enumerate(model.parameter_table()):
-        label = model.base_.expression(i) if i < model.base_.n_base else name
-        lines.append(f"{i + 1:>3} {label[:34]:<34} {value:>14.6g} {sigma:>12.3g}  {unit}")
+    rows = [(model.base_.expression(i) if i < model.base_.n_base else name, unit, value, sigma)
+            for i, (name, unit, value, sigma) in enumerate(model.parameter_table())]
+    width = max([len("parameter")] + [len(r[0]) for r in rows])  # full names, never cut
+    lines = [f"{'#':>3} {'parameter':<{width}} {'value':>14} {'sigma':>12}  unit"]
+    for i, (label, unit, value, sigma) in enumerate(rows):
+        lines.append(f"{i + 1:>3} {label:<{width}} {value:>14.6g} {sigma:>12.3g}  {unit}")
     return "\n".join(lines)
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.identify.metrics import format_table6
+from campaign.identify.noise_floor import tracker_noise_floor
 
 
 def _plt():
@@ -29,68 +30,195 @@ def _norms(dz):
     return np.linalg.norm(dz[:, :3], axis=1) * 1e3, np.linalg.norm(dz[:, 3:6], axis=1) * 1e3
 
 
+def orientation_measured(dz) -> bool:
+    """Whether Δz (n, 6) carries an orientation error (position-only data leave it 0 or NaN)."""
+    dz = np.asarray(dz, dtype=float)
+    return dz.shape[1] >= 6 and bool(np.all(np.isfinite(dz[:, 3:6]))) and bool(np.any(dz[:, 3:6] != 0.0))
+
+
+def signed_components(dz) -> list:
+    """[(label, unit, values (n,))]: Δx, Δy, Δz of F_I in mm, then Δφx, Δφy, Δφz (rotation
+    vector in F_I) in mrad when the orientation was measured."""
+    dz = np.asarray(dz, dtype=float)
+    comps = [(f"Δ{c}", "mm", dz[:, k] * 1e3) for k, c in enumerate("xyz")]
+    if orientation_measured(dz):
+        comps += [(f"Δφ{c}", "mrad", dz[:, 3 + k] * 1e3) for k, c in enumerate("xyz")]
+    return comps
+
+
+#: at most this many bins along a joint coordinate, and at least this many poses in each
+#: (a 90 % band from fewer values would be its minimum and maximum)
+MAX_BINS = 24
+MIN_BIN_POSES = 8
+
+
+def _margins_in(fig, *, left, right, bottom, top, hspace, wspace):
+    """Figure margins in inches (a fixed layout: tight_layout costs seconds on 36 panels)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        hspace=hspace, wspace=wspace)
+
+
+def binned_quantiles(x, y, *, max_bins: int = MAX_BINS, min_count: int = MIN_BIN_POSES) -> dict:
+    """Mean and 5 %/95 % quantiles (a 90 % band) of y in bins of x.
+
+    Bins: one per distinct value of x when x takes at most ``max_bins`` values (poses on a
+    grid), else ``max_bins`` bins of about equal count (equal x values never split); then
+    neighbouring bins are merged until each holds ``min_count`` poses (the last short bin
+    joins its neighbour). Returns {"x": mean x per bin, "n", "mean", "q05", "q95"}, each (b,).
+    """
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    order = np.argsort(x, kind="stable")
+    xs, ys = x[order], y[order]
+    n = len(xs)
+    empty = {k: np.zeros(0) for k in ("x", "n", "mean", "q05", "q95")}
+    if n == 0:
+        return empty
+    values = np.unique(xs)
+    if len(values) <= max_bins:
+        starts = np.searchsorted(xs, values, side="left")
+    else:
+        cut = np.round(np.linspace(0, n, max_bins + 1)[:-1]).astype(int)
+        starts = np.unique(np.searchsorted(xs, xs[cut], side="left"))
+    bounds = list(starts) + [n]
+    merged = [0]
+    for k in range(1, len(bounds)):
+        if bounds[k] - merged[-1] >= min_count or k == len(bounds) - 1:
+            merged.append(bounds[k])
+    if len(merged) > 2 and merged[-1] - merged[-2] < min_count:
+        del merged[-2]
+    out = {k: [] for k in empty}
+    for lo, hi in zip(merged[:-1], merged[1:]):
+        yb = ys[lo:hi]
+        out["x"].append(xs[lo:hi].mean())
+        out["n"].append(hi - lo)
+        out["mean"].append(yb.mean())
+        q05, q95 = np.quantile(yb, [0.05, 0.95])
+        out["q05"].append(q05)
+        out["q95"].append(q95)
+    return {k: np.asarray(v, dtype=float) for k, v in out.items()}
+
+
+def _which_poses(is_test):
+    """The poses the per-joint plots bin: the held-out test set, unless it
+    is too small to fill MAX_BINS bins of MIN_BIN_POSES poses (then every pose, training poses
+    included: their residuals show the same systematic errors, slightly smaller). (mask, words)."""
+    is_test = np.asarray(is_test, dtype=bool)
+    if is_test.sum() >= MAX_BINS * MIN_BIN_POSES:
+        return is_test, f"held-out test set, {int(is_test.sum())} poses"
+    return np.ones_like(is_test), f"all {len(is_test)} poses, train and test (the test set alone is too small to bin)"
+
+
 def plot_distributions(residuals: dict, is_test, out: Path) -> list:
-    """Histograms of ‖Δt‖ (mm) and ‖Δφ‖ (mrad) per stage, test set. Returns file names."""
+    """Histograms of ‖Δt‖ (mm) and ‖Δφ‖ (mrad, where measured) of every stage on the test set
+    (as the paper's Figs. 3, 4, 6, 7), one row per stage on shared log axes (small multiples:
+    identical stages cannot hide each other). Returns the file names."""
     plt = _plt()
-    files = []
-    for k, (label, unit) in enumerate((("position error ‖Δt‖", "mm"), ("orientation error ‖Δφ‖", "mrad"))):
-        fig, ax = plt.subplots(figsize=(7, 4))
-        all_vals = [(_norms(dz[is_test])[k]) for dz in residuals.values()]
-        hi = max(np.quantile(v, 0.995) for v in all_vals)
-        lo = max(min(max(np.min(v), 1e-6) for v in all_vals), hi * 1e-4)
-        bins = np.logspace(np.log10(lo), np.log10(hi * 1.05), 60)
-        for name, v in zip(residuals, all_vals):
-            ax.hist(v, bins=bins, histtype="step", linewidth=1.5, label=f"{name} (mean {v.mean():.3g} {unit})")
-        ax.set_xscale("log")
-        ax.set_xlabel(f"{label} [{unit}], test set, log scale")
-        ax.set_ylabel("poses")
-        ax.legend(fontsize=8)
-        ax.set_title(f"{label} per model stage")
-        fig.tight_layout()
-        name = f"distribution_{'position' if k == 0 else 'orientation'}.png"
-        fig.savefig(out / name, dpi=110)
-        plt.close(fig)
-        files.append(name)
-    return files
+    use = np.asarray(is_test, dtype=bool)
+    words = f"held-out test set, {int(use.sum())} poses"
+    names = list(residuals)
+    with_rot = all(orientation_measured(residuals[s]) for s in names)
+    blocks = [("position error ‖Δt‖", "mm", 0)] + ([("orientation error ‖Δφ‖", "mrad", 1)] if with_rot else [])
+    fig, axes = plt.subplots(len(names), len(blocks), figsize=(6.5 * len(blocks), 0.4 + 1.35 * len(names)),
+                             sharex="col", squeeze=False)
+    for c, (label, unit, k) in enumerate(blocks):
+        vals = [_norms(residuals[s][use])[k] for s in names]
+        hi = max(np.max(v) for v in vals)
+        lo = max(min(max(np.min(v), 1e-9) for v in vals), hi * 1e-5)
+        bins = np.logspace(np.log10(lo * 0.95), np.log10(hi * 1.05), 50)
+        for r, (name, v) in enumerate(zip(names, vals)):
+            ax = axes[r, c]
+            color = f"C{r % 10}"
+            ax.hist(v, bins=bins, color=color, alpha=0.45)
+            ax.hist(v, bins=bins, histtype="step", color=color, linewidth=1.2)
+            mean, q90 = float(np.mean(v)), float(np.quantile(v, 0.9))
+            ax.axvline(mean, color="k", linewidth=1.0)
+            ax.axvline(q90, color="k", linewidth=1.0, linestyle="--")
+            ax.set_xscale("log")
+            ax.set_title(f"{name}:  mean {mean:.3g} {unit} (solid line), q90 {q90:.3g} {unit} (dashed)",
+                         loc="left", fontsize=9, pad=3)
+            ax.tick_params(labelsize=8)
+            if c == 0:
+                ax.set_ylabel("poses", fontsize=8)
+        axes[-1, c].set_xlabel(f"{label} [{unit}], log scale", fontsize=9)
+    fig.suptitle(f"error distribution of each model stage ({words})", fontsize=11)
+    _margins_in(fig, left=0.65, right=0.2, bottom=0.55, top=0.55, hspace=0.6, wspace=0.12)
+    name = "distributions.png"
+    fig.savefig(out / name, dpi=100)
+    plt.close(fig)
+    return [name]
 
 
 def plot_against_joints(q, dz, is_test, title: str, out: Path, name: str) -> str:
-    """Error of one stage against each joint coordinate (deg), test set."""
+    """Signed error components of one stage against each joint coordinate (deg): per bin of
+    the joint, the mean (line) and the 90 % band (5 %–95 % quantiles) of Δx, Δy, Δz (mm) and,
+    where measured, Δφx, Δφy, Δφz (mrad); held-out test set (:func:`binned_quantiles`)."""
     plt = _plt()
-    pos, rot = _norms(dz)
-    fig, axes = plt.subplots(2, 6, figsize=(16, 5), sharey="row")
-    for i in range(6):
-        for row, (v, unit) in enumerate(((pos, "‖Δt‖ mm"), (rot, "‖Δφ‖ mrad"))):
-            ax = axes[row, i]
-            ax.scatter(np.rad2deg(q[~is_test, i]), v[~is_test], s=2, alpha=0.3, color="0.6", label="train")
-            ax.scatter(np.rad2deg(q[is_test, i]), v[is_test], s=3, alpha=0.6, color="C0", label="test")
-            if row == 1:
-                ax.set_xlabel(f"q{i + 1} [deg]")
-            if i == 0:
-                ax.set_ylabel(unit)
-    axes[0, 0].legend(fontsize=7, markerscale=3)
-    fig.suptitle(f"{title}: error against each joint coordinate")
-    fig.tight_layout()
+    q = np.asarray(q, dtype=float)
+    use, words = _which_poses(is_test)
+    comps = signed_components(np.asarray(dz)[use])
+    n_joints = q.shape[1]
+    fig, axes = plt.subplots(len(comps), n_joints, figsize=(2.35 * n_joints + 0.6, 1.45 * len(comps) + 0.9),
+                             sharey="row", sharex="col", squeeze=False)
+    for j in range(n_joints):
+        x = np.rad2deg(q[use, j])
+        for r, (label, unit, y) in enumerate(comps):
+            ax = axes[r, j]
+            b = binned_quantiles(x, y)
+            color = "C0" if unit == "mm" else "C1"
+            ax.fill_between(b["x"], b["q05"], b["q95"], color=color, alpha=0.25, linewidth=0)
+            ax.plot(b["x"], b["mean"], "o-", color=color, ms=2.5, linewidth=1.2)
+            ax.axhline(0.0, color="0.5", linewidth=0.6)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3, linewidth=0.5)
+            if r == len(comps) - 1:
+                ax.set_xlabel(f"q{j + 1} [deg]", fontsize=9)
+            if j == 0:
+                ax.set_ylabel(f"{label} [{unit}]", fontsize=9)
+    fig.suptitle(f"{title}: signed error against each joint — bin mean (line) and 90 % band "
+                 f"(5–95 % quantiles); {words}", fontsize=10)
+    _margins_in(fig, left=0.8, right=0.15, bottom=0.55, top=0.4, hspace=0.12, wspace=0.1)
     fig.savefig(out / name, dpi=100)
     plt.close(fig)
     return name
 
 
+def workspace_colour_scale(pos_mm):
+    """(vmin, vmax) mm of the workspace plot's colour scale: from 0 to the largest error."""
+    pos_mm = np.asarray(pos_mm, dtype=float)
+    top = float(np.max(pos_mm)) if len(pos_mm) else 0.0
+    return 0.0, top if top > 0 else 1.0
+
+
 def plot_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
-    """Tool positions (top view x-z and side view x-y of F_I) coloured by ‖Δt‖ (mm)."""
+    """Tool positions (top view x-z and side view x-y of F_I) coloured by ‖Δt‖ (mm), all poses;
+    the colour scale runs from 0 to the largest error (square-root spacing), the largest
+    errors drawn on top."""
     plt = _plt()
-    pos, _ = _norms(dz)
+    from matplotlib.colors import PowerNorm
+
+    pos, _ = _norms(np.asarray(dz))
+    xyz = np.asarray(xyz, dtype=float)
+    top = np.argsort(pos, kind="stable")  # largest last, so on top
+    vmin, vmax = workspace_colour_scale(pos)
+    norm = PowerNorm(0.5, vmin=vmin, vmax=vmax)
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    vmax = np.quantile(pos, 0.98)
-    for ax, (a, b, la, lb) in zip(axes, ((0, 2, "x_I [m]", "z_I [m]"), (0, 1, "x_I [m]", "height −y_I [m]"))):
-        yb = xyz[:, b] if b != 1 else -xyz[:, 1]
-        sc = ax.scatter(xyz[:, a], yb, c=pos, s=4, cmap="viridis", vmin=0, vmax=vmax)
+    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m]", "x_I [m]"), (2, 1, "z_I [m]", "height −y_I [m]"))):
+        yb = xyz[top, b] if b != 1 else -xyz[top, 1]
+        sc = ax.scatter(xyz[top, a], yb, c=pos[top], s=6, cmap="viridis", norm=norm)
+        if len(pos):
+            k = top[-1]
+            ax.plot(xyz[k, a], xyz[k, b] if b != 1 else -xyz[k, 1], "o", ms=11, mfc="none", mec="r", mew=1.5)
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
-        ax.set_aspect("equal")
-    fig.colorbar(sc, ax=axes, label="‖Δt‖ [mm]")
-    fig.suptitle(f"{title}: position error over the workspace")
-    fig.savefig(out / name, dpi=100)
+        ax.set_aspect("equal", adjustable="datalim")
+    axes[0].set_title("top view", fontsize=10)
+    axes[1].set_title("side view", fontsize=10)
+    cb = fig.colorbar(sc, ax=axes, label="‖Δt‖ [mm] (0 to the largest, square-root scale)")
+    cb.ax.axhline(vmax, color="r", linewidth=2)
+    fig.suptitle(f"{title}: position error over the workspace, all {len(pos)} poses "
+                 f"(red circle: the largest, {vmax:.3g} mm)", fontsize=11)
+    fig.savefig(out / name, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return name
 
@@ -110,13 +238,29 @@ def history_rows(history_path: Path):
     return [(i + 1, r.get("effects", []), r.get("order", []), r.get("stages", {})) for i, r in enumerate(runs)]
 
 
-def plot_history(history_path: Path, out: Path, name: str = "history.png"):
-    """Held-out mean position error of the current model after each calibrate run, and per stage."""
+def _wrap_stage(name: str, width: int = 22) -> str:
+    """A stage name broken before its '+' parts so that a tick label stays narrow, never cut."""
+    lines = [""]
+    for k, part in enumerate(name.split("+")):
+        piece = part if k == 0 else "+" + part
+        if lines[-1] and len(lines[-1]) + len(piece) > width:
+            lines.append(piece)
+        else:
+            lines[-1] += piece
+    return "\n".join(lines)
+
+
+def plot_history(history_path: Path, out: Path, name: str = "history.png", noise_floor="auto"):
+    """Held-out mean position error of the current model after each calibrate run, and per stage,
+    with the tracker noise floor as a line (``noise_floor``: a :class:`NoiseFloor`, None for
+    none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
     rows = history_rows(history_path)
     if not rows:
         return None
+    if isinstance(noise_floor, str) and noise_floor == "auto":
+        noise_floor = tracker_noise_floor(Path(history_path).parent.parent)
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(8, 4))
+    fig, ax = plt.subplots(figsize=(9, 4.6))
     labels, values = [], []
     seen = set()
     for idx, effects, order, stages in rows:
@@ -134,51 +278,73 @@ def plot_history(history_path: Path, out: Path, name: str = "history.png"):
     ax.plot(chain, [values[x] for x in chain], "o-", label="model as it was built up")
     if side:
         ax.plot(side, [values[x] for x in side], "s", color="0.6", label="ANN on the nominal model (comparison)")
-    ax.legend(fontsize=8)
-    ax.set_xticks(range(len(values)), labels, rotation=20, ha="right", fontsize=8)
+    lo, hi = min(values), max(values)
+    if noise_floor is not None:
+        ax.axhline(noise_floor.position_mm, color="C3", linestyle=":", linewidth=1.5,
+                   label=f"tracker noise floor {noise_floor.position_mm:.3g} mm ({noise_floor.source})")
+        lo = min(lo, noise_floor.position_mm)
     ax.set_yscale("log")
+    ax.set_ylim(lo / 2.5, hi * 3.0)
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_xticks(range(len(values)), [_wrap_stage(label) for label in labels], fontsize=8)
+    ax.set_xlim(-0.5, len(values) - 0.5)
     ax.set_ylabel("held-out mean ‖Δt‖ [mm]")
     ax.set_title("watch the error fall: each model stage as it was added")
     for x, v in enumerate(values):
         ax.annotate(f"{v:.3g}", (x, v), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / name, dpi=110)
+    fig.savefig(out / name, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return name
 
 
+PAGE_STYLE = ("<style>body{font-family:sans-serif;max-width:1340px;margin:2em auto;padding:0 1em}"
+              "pre{background:#f6f6f6;padding:1em;overflow-x:auto}img{max-width:100%;display:block;margin:0.5em 0}"
+              "h3{margin-bottom:0.2em}</style>")
+
+
 def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is_test,
-                 param_text: str = "", extra_html: str = "") -> Path:
+                 param_text: str = "", extra_html: str = "", noise_floor="auto") -> Path:
     """Write ``RUN/calibration/report.html`` and its PNGs; return the HTML path.
 
-    residuals: stage name -> Δz (n, 6) for every pose; q (n, 6) rad; xyz (n, 3) m measured
-    tool positions; is_test (n,) bool.
+    residuals: stage name -> Δz (n, 6) for every pose; q (n, N) rad; xyz (n, 3) m measured
+    tool positions; is_test (n,) bool. noise_floor: a :class:`NoiseFloor`, None, or "auto"
+    (:func:`tracker_noise_floor` from the run's repeats or its configured tracker noise).
     """
     out = Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
     is_test = np.asarray(is_test, dtype=bool)
+    if isinstance(noise_floor, str) and noise_floor == "auto":
+        noise_floor = tracker_noise_floor(run_dir, q, xyz)
     imgs = plot_distributions(residuals, is_test, out)
     current = order[-1]
-    first = order[0]
-    joint_imgs = [plot_against_joints(q, residuals[s], is_test, s, out, f"joints_{s.replace('+', '_')}.png")
-                  for s in dict.fromkeys([first, current]) if s in residuals]
+    joint_imgs = [(s, plot_against_joints(q, residuals[s], is_test, s, out, f"joints_{s.replace('+', '_')}.png"))
+                  for s in order if s in residuals]
     ws_img = plot_workspace(xyz, residuals[current], current, out, "workspace.png") if current in residuals else None
-    hist_img = plot_history(out / "history.json", out)
+    hist_img = plot_history(out / "history.json", out, noise_floor=noise_floor)
     table_test = format_table6(stages, order, "test")
     table_train = format_table6(stages, order, "train")
     parts = [
-        "<!doctype html><meta charset='utf-8'><title>campaign calibration report</title>",
-        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}pre{background:#f6f6f6;padding:1em}"
-        "img{max-width:100%}</style>",
+        "<!doctype html><meta charset='utf-8'><title>campaign calibration report</title>", PAGE_STYLE,
         f"<h1>Calibration report: {html.escape(str(Path(run_dir).name))}</h1>",
         f"<p>Current model: <b>{html.escape(current)}</b>. Statistics in the shape of the paper's Table 6.</p>",
         "<h2>Test set</h2>", f"<pre>{html.escape(table_test)}</pre>",
         "<h2>Training set</h2>", f"<pre>{html.escape(table_train)}</pre>",
     ]
     if hist_img:
-        parts += ["<h2>Watch the error fall</h2>", f"<img src='{hist_img}'>"]
-    parts += ["<h2>Error distributions (test set)</h2>"] + [f"<img src='{f}'>" for f in imgs]
-    parts += ["<h2>Error against each joint coordinate</h2>"] + [f"<img src='{f}'>" for f in joint_imgs]
+        floor_words = (f" The dotted line is the tracker noise floor: the mean ‖Δt‖ a perfect model would still "
+                       f"show, σ·2√2/√π for noise σ per coordinate ({html.escape(noise_floor.source)})."
+                       if noise_floor is not None else " No tracker noise floor: no repeated measurements and no "
+                       "configured tracker noise.")
+        parts += ["<h2>Watch the error fall</h2>", f"<p>Held-out mean position error of each model stage.{floor_words}</p>",
+                  f"<img src='{hist_img}'>"]
+    parts += ["<h2>Error distributions</h2>", "<p>One row per model stage, on shared axes.</p>"]
+    parts += [f"<img src='{f}'>" for f in imgs]
+    parts += ["<h2>Error against each joint coordinate</h2>",
+              "<p>Every model stage, signed components: where a stage's band leaves zero along a joint, the model "
+              "misses something that depends on that joint.</p>"]
+    for stage, f in joint_imgs:
+        parts += [f"<h3>{html.escape(stage)}</h3>", f"<img src='{f}'>"]
     if ws_img:
         parts += ["<h2>Error over the workspace</h2>", f"<img src='{ws_img}'>"]
     if extra_html:

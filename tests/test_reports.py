@@ -1,0 +1,192 @@
+"""Reports: binned per-joint statistics, the noise floor, full parameter names, colour scales,
+and every page rendered in a real headless browser (Chromium), skipped when none is installed."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from campaign.identify.metrics import error_stats
+from campaign.identify.noise_floor import (MAXWELL_MEAN_PER_SIGMA, fitted_origin_covariance, mean_norm,
+                                           noise_floor_from_repeats, noise_floor_from_sigma, tracker_noise_floor)
+from campaign.identify.report import binned_quantiles, signed_components, workspace_colour_scale, write_report
+from campaign.model.kinematics import pose_error
+
+ROOT = Path(__file__).resolve().parents[1]
+SCREENSHOT = ROOT / "benchmarks" / "screenshot_reports.py"
+
+
+def test_bins_follow_the_grid_values_and_give_each_bins_own_mean_and_quantiles(rng):
+    x = np.repeat([-30.0, -10.0, 10.0, 30.0], [20, 9, 3, 40])  # the third value has too few poses
+    y = rng.normal(size=len(x)) + 0.1 * x
+    b = binned_quantiles(x, y, min_count=8)
+    groups = [x == -30, x == -10, (x == 10) | (x == 30)]  # the short bin joins its neighbour
+    np.testing.assert_array_equal(b["n"], [g.sum() for g in groups])
+    np.testing.assert_allclose(b["x"], [x[g].mean() for g in groups])
+    np.testing.assert_allclose(b["mean"], [y[g].mean() for g in groups])
+    np.testing.assert_allclose(b["q05"], [np.quantile(y[g], 0.05) for g in groups])
+    np.testing.assert_allclose(b["q95"], [np.quantile(y[g], 0.95) for g in groups])
+
+
+def test_continuous_coordinates_get_equal_count_bins_that_never_split_a_value(rng):
+    x = np.round(rng.uniform(-90, 90, 1000), 0)  # many ties
+    y = rng.normal(size=1000)
+    b = binned_quantiles(x, y, max_bins=20, min_count=8)
+    assert len(b["n"]) <= 20 and b["n"].sum() == 1000 and b["n"].min() >= 8
+    # rebuild the bins from their counts: consecutive in sorted x, no value in two bins
+    xs = np.sort(x)
+    edges = np.cumsum(b["n"]).astype(int)
+    for k in edges[:-1]:
+        assert xs[k - 1] < xs[k]
+    assert np.all(np.diff(b["x"]) > 0)
+
+
+def test_signed_components_in_mm_and_mrad_and_no_orientation_rows_for_position_only_data():
+    dz = np.array([[1e-3, -2e-3, 3e-3, 1e-4, 0.0, -2e-4]])
+    comps = signed_components(dz)
+    assert [(c[0], c[1]) for c in comps] == [("Δx", "mm"), ("Δy", "mm"), ("Δz", "mm"),
+                                            ("Δφx", "mrad"), ("Δφy", "mrad"), ("Δφz", "mrad")]
+    np.testing.assert_allclose([c[2][0] for c in comps], [1.0, -2.0, 3.0, 0.1, 0.0, -0.2])
+    position_only = dz.copy()
+    position_only[:, 3:] = 0.0
+    assert [c[0] for c in signed_components(position_only)] == ["Δx", "Δy", "Δz"]
+
+
+def test_the_workspace_colour_scale_reaches_the_largest_error(rng):
+    pos = np.abs(rng.normal(size=500)) * 0.01
+    pos[17] = 0.3  # one pose far off: a 98 % quantile scale would leave it beyond the colour bar
+    lo, hi = workspace_colour_scale(pos)
+    assert lo == 0.0 and hi >= pos.max()
+
+
+def test_mean_norm_is_the_maxwell_mean_for_isotropic_noise_and_matches_sampling_otherwise(rng):
+    sigma = 7e-6
+    assert mean_norm(sigma ** 2 * np.eye(3)) == pytest.approx(sigma * 2 * np.sqrt(2 / np.pi), rel=1e-9)
+    assert MAXWELL_MEAN_PER_SIGMA == pytest.approx(1.5957691216, rel=1e-10)
+    A = rng.normal(size=(3, 3))
+    cov = A @ A.T + 0.1 * np.eye(3)
+    e = rng.multivariate_normal(np.zeros(3), cov, size=400_000)
+    assert mean_norm(cov) == pytest.approx(np.linalg.norm(e, axis=1).mean(), rel=4e-3)
+
+
+def test_configured_noise_floor_equals_the_simulated_campaigns_error_of_the_true_robot(robot):
+    """Truth in simulation: the tracker measures three reflectors with σ = 10 µm each, Kabsch
+    gives the tool pose; the true robot's mean position error is the floor (read after)."""
+    from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+    floor = noise_floor_from_sigma(10e-6, robot.reflector_positions_in_E)
+    truth = make_truth(robot, seed=1, noise_m=10e-6, resolution_m=0.0)
+    meas = synthesize(truth, random_joint_poses(robot, 3000, seed=2), seed=3)
+    dz = pose_error(truth.pose_in_measured_frame(meas.q, meas.T_LI), meas.T_IE)
+    observed_mm = np.linalg.norm(dz[:, :3], axis=1).mean() * 1e3
+    assert floor.position_mm == pytest.approx(observed_mm, rel=0.03)
+    # one point measured with σ would be 1.6 σ = 16 µm: the fit of three is well below it
+    assert floor.position_mm < 0.7 * noise_floor_from_sigma(10e-6).position_mm
+    assert fitted_origin_covariance(np.zeros((1, 3)), 2.0) == pytest.approx(4.0 * np.eye(3))
+
+
+def test_noise_floor_from_repeated_poses_recovers_the_noise(rng):
+    q_unique = rng.uniform(-1, 1, size=(60, 6))
+    q = np.repeat(q_unique, 4, axis=0)
+    xyz = rng.uniform(-1, 1, size=(60, 3)).repeat(4, axis=0) + rng.normal(0, 20e-6, size=(240, 3))
+    floor = noise_floor_from_repeats(q, xyz)
+    assert floor.position_mm == pytest.approx(20e-3 * MAXWELL_MEAN_PER_SIGMA, rel=0.06)
+    assert "repeats of 60 poses" in floor.source
+    assert noise_floor_from_repeats(q_unique, xyz[::4]) is None  # no repeats, no floor
+
+
+def test_the_run_floor_comes_from_repeats_first_then_from_the_configured_tracker_noise(tmp_path, rng):
+    (tmp_path / "campaign.yaml").write_text("robot: comau_racer5_080\nsim:\n  noise_m: 2.0e-05\n")
+    q = rng.uniform(-1, 1, size=(50, 6))
+    xyz = rng.uniform(-1, 1, size=(50, 3))
+    configured = tracker_noise_floor(tmp_path, q, xyz)
+    assert "sim.noise_m" in configured.source and "3-reflector fit" in configured.source
+    assert configured.position_mm == pytest.approx(2 * tracker_noise_floor(tmp_path, q, xyz, sigma_m=10e-6).position_mm)
+    q_rep, xyz_rep = np.repeat(q, 2, axis=0), np.repeat(xyz, 2, axis=0) + rng.normal(0, 5e-6, (100, 3))
+    assert "repeats" in tracker_noise_floor(tmp_path, q_rep, xyz_rep).source
+    (tmp_path / "campaign.yaml").write_text("robot: comau_racer5_080\n")
+    assert tracker_noise_floor(tmp_path, q, xyz) is None
+
+
+def test_parameter_table_keeps_every_name_whole(robot):
+    from campaign.identify.calibrate import parameter_text
+    from campaign.identify.solver import CalibrationModel
+    from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+    meas = synthesize(make_truth(robot, seed=3), random_joint_poses(robot, 120, seed=4), seed=5)
+    model = CalibrationModel(robot=robot).fit(meas.q, meas.T_IE)
+    text = parameter_text(model).splitlines()
+    names = [model.base_.expression(i) for i in range(model.base_.n_base)]
+    assert max(len(n) for n in names) > 34  # the old table cut names at 34 characters
+    for line, name in zip(text[1:], names):
+        assert f" {name} " in line
+
+
+def synthetic_report(folder: Path, rng, n: int = 300) -> Path:
+    """A calibration report from made-up residuals (a trend in q2 left in 'geometric', two
+    identical stages), with a two-run history: no calibration needed, fast."""
+    q = np.deg2rad(rng.choice(np.linspace(-120, 120, 9), size=(n, 6)))
+    noise = rng.normal(0, 8e-6, size=(n, 6))
+    trend = np.zeros((n, 6))
+    trend[:, 1] = 60e-6 * np.sin(q[:, 1])
+    residuals = {"nominal": noise * 300 + 2e-3, "geometric": noise + trend, "geometric+ground_compliance": noise,
+                 "geometric+ground_compliance+ann": noise.copy()}
+    is_test = rng.uniform(size=n) < 0.2
+    stages = {s: {"train": error_stats(dz[~is_test]), "test": error_stats(dz[is_test])} for s, dz in residuals.items()}
+    order = list(residuals)
+    out = folder / "calibration"
+    out.mkdir(parents=True)
+    runs = [{"effects": [], "order": order[:2], "stages": {s: stages[s]["test"] for s in order[:2]}},
+            {"effects": ["ground_compliance"], "order": order, "stages": {s: stages[s]["test"] for s in order}}]
+    (out / "history.json").write_text(json.dumps({"runs": runs}))
+    xyz = rng.uniform(-0.5, 0.5, size=(n, 3))
+    long_name = "pL_I0_x - pL_01_y - 0.189 pR_01_x + pL_12_y - 0.050 pR_12_x"
+    return write_report(folder, stages, order, residuals, q, xyz, is_test,
+                        param_text=f"  # parameter\n  1 {long_name}  0.00052  2.1e-06  m",
+                        noise_floor=noise_floor_from_sigma(10e-6))
+
+
+@pytest.fixture(scope="module")
+def report_page(tmp_path_factory):
+    return synthetic_report(tmp_path_factory.mktemp("report") / "run", np.random.default_rng(7))
+
+
+def test_the_report_shows_every_stage_against_the_joints_the_floor_and_whole_names(report_page):
+    page = report_page
+    html = page.read_text()
+    for stage in ("nominal", "geometric", "geometric+ground_compliance", "geometric+ground_compliance+ann"):
+        img = f"joints_{stage.replace('+', '_')}.png"
+        assert img in html and (page.parent / img).stat().st_size > 20_000
+    assert "tracker noise floor" in html and "history.png" in html
+    assert "pL_I0_x - pL_01_y - 0.189 pR_01_x + pL_12_y - 0.050 pR_12_x" in html
+    assert (page.parent / "distributions.png").is_file() and (page.parent / "workspace.png").is_file()
+
+
+def _browser():
+    sys.path.insert(0, str(SCREENSHOT.parent))
+    try:
+        from screenshot_reports import find_browser
+    finally:
+        sys.path.pop(0)
+    return find_browser()
+
+
+@pytest.mark.skipif(_browser() is None, reason="no Chromium on this machine (apt-get install chromium): "
+                                              "the reports are not rendered in a browser here")
+def test_the_report_renders_in_headless_chromium_with_its_pictures(report_page, tmp_path):
+    from PIL import Image
+
+    # the same page without its pictures: the rendered report must carry much more ink than that
+    bare = report_page.with_name("bare.html")
+    bare.write_text(report_page.read_text().replace("<img src=", "<img data-src="))
+    shots = tmp_path / "shots"
+    proc = subprocess.run([sys.executable, str(SCREENSHOT), str(report_page.parent.parent), "--out", str(shots),
+                           "--width", "1400", "--height", "6000"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    full, text_only = shots / "calibration_report.png", shots / "calibration_bare.png"
+    assert Image.open(full).size == (1400, 6000)
+    ink = [np.mean(np.asarray(Image.open(p).convert("L")) < 245) for p in (full, text_only)]
+    assert ink[0] > 3 * ink[1] and ink[1] > 0.003
