@@ -27,6 +27,7 @@ def plot_tour(path, robot, scene, Q, front) -> None:
     from matplotlib.collections import LineCollection
     from matplotlib.colors import Normalize
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     t = tour_positions(robot, Q)
     n = len(t)
@@ -35,20 +36,28 @@ def plot_tour(path, robot, scene, Q, front) -> None:
     switch = np.flatnonzero(front[1:] != front[:-1]) + 1 if n > 1 else np.zeros(0, int)
     cmap = plt.get_cmap("viridis")
     norm = Normalize(1, max(n, 2))
-    fig = plt.figure(figsize=(14, 5.6))
-    gs = fig.add_gridspec(1, 3, width_ratios=(1, 1, 0.035), left=0.05, right=0.93, bottom=0.2, top=0.86,
-                          wspace=0.18)
+    views = ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
+             (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))
+    # each view: the tool positions and the robot base, with a margin; the rest of the cell
+    # (the tracker, far away) is pointed at from the edge. Panel widths follow the views' extents
+    # (equal scales on both axes) so that no space is wasted beside them.
+    limits = []
+    for a, b, _, _ in views:
+        sign = -1 if b == 1 else 1
+        box = np.vstack([np.column_stack([t[:, a], sign * t[:, b]]), [[0.0, 0.0]]])
+        limits.append((box.min(axis=0) - 0.15, box.max(axis=0) + 0.15))
+    panel_h = 4.0
+    widths = [panel_h * (hi[0] - lo[0]) / (hi[1] - lo[1]) for lo, hi in limits]
+    fig_w = sum(widths) + 3.2
+    fig = plt.figure(figsize=(fig_w, panel_h + 2.1))
+    gs = fig.add_gridspec(1, 3, width_ratios=(*widths, 0.15), left=0.8 / fig_w, right=1 - 1.0 / fig_w,
+                          bottom=1.3 / (panel_h + 2.1), top=1 - 0.75 / (panel_h + 2.1), wspace=0.25)
     axes = [fig.add_subplot(gs[0, 0]), fig.add_subplot(gs[0, 1])]
     cax = fig.add_subplot(gs[0, 2])
     o = scene.tracker_position
-    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
-                                         (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))):
+    for ax, (a, b, la, lb), (lo, hi) in zip(axes, views, limits):
         sign = -1 if b == 1 else 1
         xy = np.column_stack([t[:, a], sign * t[:, b]])
-        # the view: the tool positions and the robot base, with a margin; the rest of the cell
-        # (the tracker, far away) is pointed at from the edge
-        box = np.vstack([xy, [[0.0, 0.0]]]) if n else np.array([[0.0, 0.0]])
-        lo, hi = box.min(axis=0) - 0.15, box.max(axis=0) + 0.15
         for obs in scene.obstacles:
             if obs.name == "floor":
                 continue
@@ -98,10 +107,11 @@ def plot_tour(path, robot, scene, Q, front) -> None:
                Line2D([], [], ls="", marker="o", ms=9, mfc="C3", mec="k", label="last pose"),
                Line2D([], [], ls="", marker="D", ms=7, mfc="w", mec="k", label="next wall group begins"),
                Line2D([], [], ls="", marker="s", ms=6, color="k", label="robot base"),
+               Patch(color="r", alpha=0.35, label="wall"),
                Line2D([], [], ls="", marker=">", ms=8, color="k", label=f"towards the tracker (at {np.round(o, 2).tolist()} m, out of view)")]
     n_front = int(front.sum())
     fig.suptitle(f"tour of {n} poses: {n_front} in front of the wall, {n - n_front} behind it "
                  f"(colour: order of visits)", fontsize=11)
-    fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 0.0))
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 0.0))
     fig.savefig(path, dpi=110)
     plt.close(fig)
