@@ -1,87 +1,358 @@
 """campaign.yaml: the configuration of a campaign (robot, scene, plan, run, sim, effects).
 
-Unknown keys are errors (one line naming the file and the key); paths are relative to the
-file that names them. Without a file, the embedded default ``campaign.yaml`` is used.
+Parsed once, by :func:`load_config`, into a frozen :class:`CampaignConfig` whose every value
+has been checked for its type, its range and finiteness; a bad value is one
+:class:`~campaign.errors.ConfigError` line naming the file and the field, e.g.
+``runs/x/campaign.yaml: plan.clearance_m: must be a finite number >= 0, got -0.5``,
+raised before any work starts. Unknown keys are errors too. Paths are relative to the file
+that names them. Without a file, the embedded default ``campaign.yaml`` is used.
+
+The keys and their defaults are a contract (DESIGN.md): extend, never change them.
 """
 
 from __future__ import annotations
 
-import copy
+import math
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import yaml
 
 from campaign.errors import ConfigError
-from campaign.paths import DEFAULT_CONFIG
+from campaign.fileio import atomic_write, read_yaml_mapping  # noqa: F401  (read_yaml_mapping re-exported)
+from campaign.paths import DEFAULT_CONFIG, DEFAULT_ROBOT, DEFAULT_SCENE
 
-SECTIONS = {
-    "plan": {"grid_cells": [17, 10, 10, 14, 6, 10], "clearance_m": 0.035, "motion_clearance_m": 0.01,
-             "motion_sample_deg": 1.0, "settle_time_s": 2.0, "tracker_time_per_reflector_s": 5.0},
-    "run": {"timeout_s": 5.0, "move_timeout_s": 120.0, "retries": 3, "reconnect_attempts": 5,
-            "backoff_s": 0.2, "drift_check_every": 500, "drift_threshold_mm": 0.05},
-    "sim": {"seed": 0, "time_factor": 0.0, "noise_m": 10e-6, "hidden_effects": ["ground_compliance"],
-            "faults": {"drop": 0.0, "late": 0.0, "garble": 0.0, "beam_lost": 0.0, "robot_fault": 0.0}},
-    "calibrate": {"effects": None},
+#: fault kinds the simulated cell injects (docs/protocol.md), each a rate per request in 0..1
+FAULT_KINDS = ("drop", "late", "garble", "beam_lost", "robot_fault", "estop")
+#: measure attempts of a pose use request-id slots 1..31 (campaign.measure.driver): retries <= 30
+MAX_RETRIES = 30
+#: longest wait the driver accepts for one reply, s (a day: anything longer is a typo)
+MAX_TIMEOUT_S = 86400.0
+#: finest motion sampling accepted, deg (100x the default's samples; finer only costs time)
+MIN_MOTION_SAMPLE_DEG = 0.01
+#: most cells per joint axis (the paper uses at most 17)
+MAX_GRID_CELLS = 10_000
+#: a plan's candidate index is its pose id, and the driver's request ids hold pose ids below 2**34
+MAX_GRID_SIZE = 2**34
+
+
+# -- one validator per kind of value: each returns what it checked ----------------------------
+
+class _Where:
+    """Names a field for error messages: ``FILE: section.key``."""
+
+    def __init__(self, path, section: str):
+        self.path, self.section = path, section
+
+    def __call__(self, key) -> str:
+        return f"{self.path}: {self.section}.{key}" if self.section else f"{self.path}: {key}"
+
+
+def _is_number(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float))
+
+
+def check_number(value, where: str, *, low=None, high=None, low_open=False) -> float:
+    """A finite float within [low, high] (``low_open``: > low); ConfigError naming ``where``."""
+    ok = _is_number(value) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        rng = []
+        if low is not None:
+            rng.append(f"{'>' if low_open else '>='} {low:g}")
+        if high is not None:
+            rng.append(f"<= {high:g}")
+        raise ConfigError(f"{where}: must be a finite number{' ' + ' and '.join(rng) if rng else ''}, got {value!r}")
+    return float(value)
+
+
+def check_int(value, where: str, *, low=None, high=None) -> int:
+    """An integer within [low, high] (floats and booleans refused); ConfigError naming ``where``."""
+    ok = not isinstance(value, bool) and isinstance(value, int)
+    if ok and low is not None:
+        ok = value >= low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        rng = " in " + f"{low}..{high}" if low is not None and high is not None else \
+            (f" >= {low}" if low is not None else "")
+        raise ConfigError(f"{where}: must be an integer{rng}, got {value!r}")
+    return int(value)
+
+
+def check_str(value, where: str, *, optional=False) -> str | None:
+    if value is None and optional:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{where}: must be a non-empty string{' or null' if optional else ''}, got {value!r}")
+    return value
+
+
+def check_names(value, where: str) -> tuple:
+    """A list of strings (effect entries: built-in names or ``file.py:Class``), or a
+    mapping name -> true/false (the enabled ones), or a comma-separated string."""
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        value = value.split(",")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if not isinstance(v, bool):
+                raise ConfigError(f"{where}.{k}: must be true or false, got {v!r}")
+        value = [k for k, v in value.items() if v]
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"{where}: must be a list of names, got {value!r}")
+    out = []
+    for i, v in enumerate(value):
+        if not isinstance(v, str):
+            raise ConfigError(f"{where}[{i}]: must be a string, got {v!r}")
+        if v.strip():
+            out.append(v.strip())
+    return tuple(out)
+
+
+def parse_faults(section, where="campaign.yaml"):
+    """({kind: rate per request in [0, 1]}, late_delay_s) from the ``sim.faults`` mapping."""
+    section = section or {}
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: sim.faults must be a mapping of fault kind to rate")
+    rates, late_delay_s = {}, 1.0
+    for key, value in section.items():
+        if key == "late_delay_s":
+            if not _is_number(value) or not 0 <= value <= 3600:
+                raise ConfigError(f"{where}: sim.faults.late_delay_s must be a number of seconds in 0..3600, "
+                                  f"got {value!r}")
+            late_delay_s = float(value)
+            continue
+        if key not in FAULT_KINDS:
+            raise ConfigError(f"{where}: unknown fault 'sim.faults.{key}' (allowed: {', '.join(FAULT_KINDS)}, "
+                              "late_delay_s)")
+        if not _is_number(value) or not 0 <= value <= 1:
+            raise ConfigError(f"{where}: sim.faults.{key} must be a rate in 0..1, got {value!r}")
+        rates[key] = float(value)
+    return rates, late_delay_s
+
+
+# -- the sections -----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """``plan:``. grid_cells: joint-limit cells per axis (eq. 17); distances m; times s."""
+
+    grid_cells: tuple = (17, 10, 10, 14, 6, 10)
+    clearance_m: float = 0.035
+    motion_clearance_m: float = 0.01
+    motion_sample_deg: float = 1.0
+    settle_time_s: float = 2.0
+    tracker_time_per_reflector_s: float = 5.0
+
+    @classmethod
+    def parse(cls, doc: dict, where: _Where) -> "PlanConfig":
+        kw = {}
+        if "grid_cells" in doc:
+            g = doc["grid_cells"]
+            if not isinstance(g, (list, tuple)) or not g:
+                raise ConfigError(f"{where('grid_cells')}: must be a list of integers >= 1 "
+                                  f"(cells per joint), got {g!r}")
+            kw["grid_cells"] = tuple(check_int(v, f"{where('grid_cells')}[{i}]", low=1, high=MAX_GRID_CELLS)
+                                     for i, v in enumerate(g))
+            if math.prod(kw["grid_cells"]) >= MAX_GRID_SIZE:
+                raise ConfigError(f"{where('grid_cells')}: {' x '.join(map(str, kw['grid_cells']))} candidates "
+                                  f"exceed the {MAX_GRID_SIZE:,} a plan can address")
+        for key in ("clearance_m", "motion_clearance_m", "settle_time_s", "tracker_time_per_reflector_s"):
+            if key in doc:
+                kw[key] = check_number(doc[key], where(key), low=0.0)
+        if "motion_sample_deg" in doc:
+            kw["motion_sample_deg"] = check_number(doc["motion_sample_deg"], where("motion_sample_deg"),
+                                                   low=MIN_MOTION_SAMPLE_DEG, high=180.0)
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """``run:``: how the driver waits and retries. Times in s; ``drift_threshold_mm`` in mm."""
+
+    timeout_s: float = 5.0
+    move_timeout_s: float = 120.0
+    retries: int = 3
+    reconnect_attempts: int = 5
+    backoff_s: float = 0.2
+    drift_check_every: int = 500
+    drift_threshold_mm: float = 0.05
+
+    @classmethod
+    def parse(cls, doc: dict, where: _Where) -> "RunConfig":
+        kw = {}
+        for key in ("timeout_s", "move_timeout_s"):
+            if key in doc:
+                kw[key] = check_number(doc[key], where(key), low=0.0, low_open=True, high=MAX_TIMEOUT_S)
+        if "backoff_s" in doc:
+            kw["backoff_s"] = check_number(doc["backoff_s"], where("backoff_s"), low=0.0, high=3600.0)
+        if "drift_threshold_mm" in doc:
+            kw["drift_threshold_mm"] = check_number(doc["drift_threshold_mm"], where("drift_threshold_mm"), low=0.0)
+        if "retries" in doc:
+            kw["retries"] = check_int(doc["retries"], where("retries"), low=0, high=MAX_RETRIES)
+        if "reconnect_attempts" in doc:
+            kw["reconnect_attempts"] = check_int(doc["reconnect_attempts"], where("reconnect_attempts"), low=0,
+                                                 high=1000)
+        if "drift_check_every" in doc:
+            kw["drift_check_every"] = check_int(doc["drift_check_every"], where("drift_check_every"), low=0)
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """``sim:``: the simulated cell. ``noise_m`` tracker σ per coordinate (m); ``faults``
+    rates per request (0..1) by kind; ``late_delay_s`` how long a late reply is held (s)."""
+
+    seed: int = 0
+    time_factor: float = 0.0
+    noise_m: float = 10e-6
+    hidden_effects: tuple = ("ground_compliance",)
+    faults: dict = field(default_factory=dict)
+    late_delay_s: float = 1.0
+
+    @classmethod
+    def parse(cls, doc: dict, where: _Where) -> "SimConfig":
+        kw = {}
+        if "seed" in doc:
+            kw["seed"] = check_int(doc["seed"], where("seed"), low=0, high=2**63 - 1)
+        if "time_factor" in doc:
+            kw["time_factor"] = check_number(doc["time_factor"], where("time_factor"), low=0.0, high=1000.0)
+        if "noise_m" in doc:
+            kw["noise_m"] = check_number(doc["noise_m"], where("noise_m"), low=0.0, high=1.0)
+        if "hidden_effects" in doc:
+            kw["hidden_effects"] = check_names(doc["hidden_effects"], where("hidden_effects"))
+        if "faults" in doc:
+            kw["faults"], kw["late_delay_s"] = parse_faults(doc["faults"], where.path)
+        return cls(**kw)
+
+
+SECTIONS = {"plan": PlanConfig, "run": RunConfig, "sim": SimConfig}
+#: keys of each section as written in campaign.yaml
+SECTION_KEYS = {
+    "plan": {f.name for f in fields(PlanConfig)},
+    "run": {f.name for f in fields(RunConfig)},
+    "sim": {f.name for f in fields(SimConfig)} - {"late_delay_s"},
+    "calibrate": {"effects"},
 }
-TOP_KEYS = {"robot", "scene", "effects", *SECTIONS}
+TOP_KEYS = {"robot", "scene", "tool_frame", "base_frame", "effects", *SECTION_KEYS}
 
 
-def read_yaml_mapping(path, error=ConfigError) -> dict:
-    """A YAML file whose top level is a mapping (an empty file is {}); ``error`` (an exception
-    class) names the file on any failure."""
+@dataclass(frozen=True)
+class CampaignConfig:
+    """A validated campaign.yaml. Build it with :func:`load_config`.
+
+    robot: a name under campaign/data/robot_models/ or a path (folder, robot.yaml or URDF)
+    relative to the file; scene: path of the cell's YAML relative to the file; tool_frame,
+    base_frame: the run's tool and base frame in the robot's URDF (None: the robot's own);
+    effects: physical effects enabled for calibration, as written (built-in names or
+    ``file.py:Class`` entries relative to this file).
+    """
+
+    path: Path
+    robot: str = DEFAULT_ROBOT
+    scene: str = str(DEFAULT_SCENE)
+    tool_frame: str | None = None
+    base_frame: str | None = None
+    effects: tuple = ()
+    plan: PlanConfig = field(default_factory=PlanConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    @property
+    def dir(self) -> Path:
+        """The folder of the file: relative paths in it start here."""
+        return self.path.parent
+
+    def resolve(self, value) -> Path:
+        """A path from the config, relative to the config file's folder."""
+        p = Path(value)
+        return p if p.is_absolute() else self.dir / p
+
+    @property
+    def scene_path(self) -> Path:
+        return self.resolve(self.scene)
+
+    @property
+    def robot_spec(self) -> str:
+        """What :meth:`RobotModel.load` takes: the path the file names when it exists
+        (relative to the file), else the robot's name under campaign/data/robot_models/."""
+        p = self.resolve(self.robot)
+        return str(p) if p.exists() else self.robot
+
+    def as_yaml_dict(self, *, absolute: bool = False) -> dict:
+        """The keys as campaign.yaml holds them (``absolute``: paths made absolute, for a copy
+        of the file elsewhere)."""
+        sim = asdict(self.sim)
+        faults = dict(sim.pop("faults"))
+        late = sim.pop("late_delay_s")
+        if faults.get("late") or late != 1.0:
+            faults["late_delay_s"] = late
+        sim["faults"] = faults
+        sim["hidden_effects"] = list(sim["hidden_effects"])
+        plan = asdict(self.plan)
+        plan["grid_cells"] = list(plan["grid_cells"])
+        out = {"robot": self.robot_spec if absolute else self.robot,
+               "scene": str(self.scene_path) if absolute else self.scene}
+        if self.tool_frame is not None:
+            out["tool_frame"] = self.tool_frame
+        if self.base_frame is not None:
+            out["base_frame"] = self.base_frame
+        out.update({"effects": list(self.effects), "plan": plan, "run": asdict(self.run), "sim": sim})
+        return out
+
+
+def parse_config(doc: dict, path) -> CampaignConfig:
+    """Validate a campaign.yaml mapping ``doc`` read from ``path`` (named in every error)."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise error(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise error(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    if doc is None:
-        return {}
-    if not isinstance(doc, dict):
-        raise error(f"{path}: expected a mapping at the top level")
-    return doc
-
-
-def load_config(path=None) -> dict:
-    """The configuration with defaults filled in; ``_path`` and ``_dir`` record where it came from."""
-    path = Path(path) if path is not None else DEFAULT_CONFIG
-    doc = read_yaml_mapping(path)
     extra = sorted(set(doc) - TOP_KEYS)
     if extra:
         raise ConfigError(f"{path}: unknown key '{extra[0]}' (allowed: {', '.join(sorted(TOP_KEYS))})")
-    cfg = {"robot": doc.get("robot", "comau_racer5_080"), "scene": doc.get("scene", "scene/default_cell.yaml"),
-           "effects": list(doc.get("effects") or [])}
-    for name, defaults in SECTIONS.items():
-        section = doc.get(name) or {}
+    top = _Where(path, "")
+    kw = {"path": path.resolve()}
+    for key in ("robot", "scene"):
+        if doc.get(key) is not None:
+            kw[key] = check_str(doc[key], top(key))
+    for key in ("tool_frame", "base_frame"):
+        kw[key] = check_str(doc.get(key), top(key), optional=True)
+    for name in SECTION_KEYS:
+        section = doc.get(name)
+        if section is None:
+            section = {}
         if not isinstance(section, dict):
-            raise ConfigError(f"{path}: {name}: expected a mapping")
-        unknown = sorted(set(section) - set(defaults))
+            raise ConfigError(f"{path}: {name}: expected a mapping, got {section!r}")
+        unknown = sorted(set(section) - SECTION_KEYS[name])
         if unknown:
-            raise ConfigError(f"{path}: unknown key '{name}.{unknown[0]}' (allowed: {', '.join(sorted(defaults))})")
-        merged = copy.deepcopy(defaults)
-        merged.update(section)
-        cfg[name] = merged
-    cfg["_path"] = str(path.resolve())
-    cfg["_dir"] = str(path.resolve().parent)
-    return cfg
+            raise ConfigError(f"{path}: unknown key '{name}.{unknown[0]}' "
+                              f"(allowed: {', '.join(sorted(SECTION_KEYS[name]))})")
+        if name in SECTIONS:
+            kw[name] = SECTIONS[name].parse(section, _Where(path, name))
+    effects = check_names(doc.get("effects"), top("effects"))
+    if not effects and isinstance(doc.get("calibrate"), dict):
+        effects = check_names(doc["calibrate"].get("effects"), top("calibrate.effects"))
+    kw["effects"] = effects
+    return CampaignConfig(**kw)
 
 
-def resolve(cfg, value) -> Path:
-    """A path from the config, relative to the config file's folder."""
-    p = Path(value)
-    return p if p.is_absolute() else Path(cfg["_dir"]) / p
+def load_config(path=None) -> CampaignConfig:
+    """The validated configuration of ``path`` (None: the embedded default), defaults filled in."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    if path.is_dir():
+        path = path / "campaign.yaml"
+    return parse_config(read_yaml_mapping(path), path)
 
 
-def write_run_config(cfg, run_dir) -> Path:
+def write_config(cfg: CampaignConfig, path, *, header: str = "") -> Path:
+    """Write ``cfg`` as campaign.yaml at ``path`` (paths made absolute), atomically."""
+    text = (header + "\n" if header else "") + yaml.safe_dump(cfg.as_yaml_dict(absolute=True), sort_keys=False)
+    return atomic_write(Path(path), text)
+
+
+def write_run_config(cfg: CampaignConfig, run_dir) -> Path:
     """Copy the configuration into a run folder (paths made absolute), as RUN/campaign.yaml."""
-    out = {k: v for k, v in cfg.items() if not k.startswith("_")}
-    out["scene"] = str(resolve(cfg, cfg["scene"]))
-    robot = Path(str(cfg["robot"]))
-    if not robot.is_absolute() and (Path(cfg["_dir"]) / robot).is_dir():
-        out["robot"] = str(Path(cfg["_dir"]) / robot)
-    path = Path(run_dir) / "campaign.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("# the configuration this run was made with; edit `effects:` to add physical effects\n"
-                    + yaml.safe_dump(out, sort_keys=False))
-    return path
+    return write_config(cfg, Path(run_dir) / "campaign.yaml",
+                        header="# the configuration this run was made with; edit `effects:` to add physical effects")

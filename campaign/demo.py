@@ -2,6 +2,8 @@
 
 plan → simulated campaign with a hidden physical effect → calibrate → diagnose → add the
 suggested effect → calibrate again with the neural compensator → the error, step by step.
+Each step is the command line a user would type; the one step that is not a command (adding
+the effect to RUN/campaign.yaml) is :meth:`campaign.run.RunFolder.add_effects`.
 """
 
 from __future__ import annotations
@@ -10,14 +12,13 @@ import json
 import sys
 from pathlib import Path
 
-import yaml
-
 from campaign.cli import main as cli
 
 
 def register(sub):
     p = sub.add_parser("demo", help="the whole story on the embedded defaults (simulated hardware)")
-    p.add_argument("--run", default="runs/demo", metavar="DIR", help="run folder (default: %(default)s; replaced)")
+    p.add_argument("--run", default="runs/demo", metavar="DIR",
+                   help="run folder (default: %(default)s); a folder holding measurements is refused, never replaced")
     p.add_argument("--grid-scale", type=float, default=1.0, help="plan grid scale (default: 1 = 1,428,000 candidates)")
     p.add_argument("--ann-epochs", type=int, default=150, help="epochs of each network training (default: %(default)s)")
     p.set_defaults(func=_demo)
@@ -32,28 +33,26 @@ def _step(title, *argv):
 
 
 def _demo(args):
-    import shutil
-
+    from campaign.config import check_int, check_number
     from campaign.identify.report import history_table
+    from campaign.run import RunFolder
 
+    check_number(args.grid_scale, "--grid-scale", low=0.0, low_open=True)
+    check_int(args.ann_epochs, "--ann-epochs", low=1)
     run = Path(args.run)
-    if run.exists():
-        shutil.rmtree(run)
-    _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run,
-          "--grid-scale", args.grid_scale)
+    folder = RunFolder(run)
+    folder.refuse_if_measured("the demo", f"give the demo a new folder (--run {run}-2)")
+    _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run, "--grid-scale", args.grid_scale)
     _step("2. measure it on the simulated cell (hidden: geometric errors + the elastic ground)", "run", run, "--sim")
     _step("3. calibrate the geometric model", "calibrate", run, "--no-ann")
     print(f"\n=== 4. where does the model fail, and which effect is missing?\n$ campaign diagnose {run}", flush=True)
     rc = cli(["diagnose", str(run)])
     if rc != 0:
         sys.exit(rc)
-    verdict = json.loads((run / "diagnose" / "diagnosis.json").read_text())["verdict"]
+    verdict = json.loads((folder.diagnose_dir / "diagnosis.json").read_text())["verdict"]
     if verdict:
-        cfg_path = run / "campaign.yaml"
-        cfg = yaml.safe_load(cfg_path.read_text())
-        cfg["effects"] = sorted(set(cfg.get("effects") or []) | {verdict})
-        cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
-        print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(cfg['effects'])}]` in {cfg_path}")
+        effects = folder.add_effects([verdict])
+        print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(effects)}]` in {folder.config_path}")
     _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
           "--sizes", "32x16,64x32", "--folds", "3", "--epochs", args.ann_epochs)
     print("\n=== 7. watch the error fall (held-out test set)")

@@ -38,3 +38,20 @@ class TrackerTimeout(PeerError):
 
 class RobotFault(PeerError):
     """The robot controller reported a fault; the campaign must stop."""
+
+
+class StorageError(CampaignError):
+    """A file or the measurement log could not be written (full disk, locked database, ...);
+    nothing stored before is lost."""
+
+
+class RunBusy(CampaignError):
+    """Another process drives this run (its lock is held)."""
+
+
+class RunHoldsMeasurements(CampaignError):
+    """The command would replace or delete measurements; it refuses."""
+
+
+class PlanError(CampaignError):
+    """The configuration is valid but no plan can be made from it (e.g. no suitable pose)."""

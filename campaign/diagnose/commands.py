@@ -26,19 +26,12 @@ def _diagnose(args):
         raise ConfigError(f"--folds must be at least 2, got {args.folds}")
     progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
     d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
-    report = None
-    if not args.no_report:
-        from campaign.diagnose.report import write_report
-        from campaign.identify.calibrate import load_robot_for_run
-        from campaign.measure.store import open_run
+    from campaign.diagnose.report import write_diagnosis
 
-        with open_run(args.run) as store:
-            poses = store.load_measured()
-        report = write_report(d, poses, load_robot_for_run(args.run))
+    report = write_diagnosis(d, report=not args.no_report)
     if args.json:
         print(json.dumps(d.as_json(), indent=2))
     else:
         print(d.text())
-        if report:
-            print(f"report: {report}")
+        print(f"{'report' if not args.no_report else 'written'}: {report}")
     return 0

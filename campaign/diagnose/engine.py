@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from campaign.effects.base import available, effect_context, parse_effect_list
+from campaign.effects.base import available, effect_context, make_effect, parse_effect_list
 from campaign.errors import DataError
 from campaign.identify.calibrate import configured_effects, load_robot_for_run
 from campaign.identify.solver import CalibrationModel
@@ -126,6 +126,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     current = configured_effects(run_dir) if effects is None else parse_effect_list(effects)
     names = list(available()) if candidates is None else list(parse_effect_list(candidates))
     names = [n for n in names if n not in current]
+    for name in (*current, *names):  # an unknown name is one line now, not after the fits
+        make_effect(name, robot)
     with open_run(run_dir) as store:
         poses = store.load_measured()
     is_test = train_test_split(poses.pose_id)

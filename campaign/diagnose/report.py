@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from campaign.fileio import atomic_write
 from campaign.identify.report import _plt, plot_against_joints, plot_history, plot_workspace
 
 
@@ -47,6 +48,19 @@ def plot_ranking(diagnosis, out: Path, name: str = "ranking.png") -> str:
     return name
 
 
+def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
+    """Write RUN/diagnose/diagnosis.json (what `diagnose --json` prints) and, with ``report``,
+    RUN/diagnose/report.html and its PNGs; returns the report's path (or the JSON's)."""
+    from campaign.run import RunFolder
+
+    run = RunFolder(diagnosis.run_dir)
+    if not report:
+        return atomic_write(run.diagnose_dir / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
+    with run.store() as store:
+        poses = store.load_measured()
+    return write_report(diagnosis, poses, run.robot())
+
+
 def write_report(diagnosis, poses, robot) -> Path:
     """Write RUN/diagnose/report.html, its PNGs and diagnosis.json; return the HTML path."""
     from campaign.effects._gravity import gravity_torques, overturning_moment
@@ -67,7 +81,7 @@ def write_report(diagnosis, poses, robot) -> Path:
         series["temperature [°C]"] = poses.context["temperature_c"]
     imgs.append(plot_against_context(res, series, is_test, out))
     hist = plot_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out)
-    (out / "diagnosis.json").write_text(json.dumps(diagnosis.as_json(), indent=2))
+    atomic_write(out / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
     parts = ["<!doctype html><meta charset='utf-8'><title>campaign diagnosis</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}pre{background:#f6f6f6;padding:1em}"
              "img{max-width:100%}</style>",
@@ -77,8 +91,4 @@ def write_report(diagnosis, poses, robot) -> Path:
         parts += ["<h2>Watch the error fall (calibrate history)</h2>", f"<img src='{hist}'>"]
     parts += ["<h2>Candidates</h2>", f"<img src='{imgs[0]}'>",
               "<h2>Where the current model fails</h2>"] + [f"<img src='{f}'>" for f in imgs[1:]]
-    path = out / "report.html"
-    tmp = path.with_name("report.html.partial")
-    tmp.write_text("\n".join(parts))
-    tmp.replace(path)
-    return path
+    return atomic_write(out / "report.html", "\n".join(parts))

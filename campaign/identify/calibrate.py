@@ -18,14 +18,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import effect_context, parse_effect_list
-from campaign.errors import DataError
+from campaign.effects.base import effect_context, make_effect, parse_effect_list
+from campaign.errors import ConfigError, DataError
+from campaign.fileio import atomic_write
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split
 from campaign.measure.store import open_run
 from campaign.model.kinematics import PARAM_NAMES, forward, pose_error
 from campaign.model.robot import RobotModel
+from campaign.run import RunFolder
 
 CALIBRATION_DIR = "calibration"
 
@@ -54,28 +56,26 @@ class CalibrationResult:
         return out
 
 
-def run_config(run_dir) -> dict:
-    """The run's own ``campaign.yaml`` (copied there by `plan`/`run`), or {}."""
-    from campaign.config import read_yaml_mapping
-
-    path = Path(run_dir) / "campaign.yaml"
-    return read_yaml_mapping(path) if path.is_file() else {}
-
-
 def configured_effects(run_dir) -> tuple:
-    """Effects enabled in the run's campaign.yaml (``effects:`` list or ``calibrate: effects:``)."""
-    cfg = run_config(run_dir)
-    eff = cfg.get("effects")
-    if eff is None and isinstance(cfg.get("calibrate"), dict):
-        eff = cfg["calibrate"].get("effects")
-    if isinstance(eff, dict):
-        eff = [k for k, v in eff.items() if v]
-    return parse_effect_list(eff)
+    """Effects enabled in the run's campaign.yaml (``RunFolder(run_dir).effects``)."""
+    return RunFolder(run_dir).effects
 
 
 def load_robot_for_run(run_dir) -> RobotModel:
-    cfg = run_config(run_dir)
-    return RobotModel.load(cfg.get("robot", "comau_racer5_080"))
+    """The run's robot (``RunFolder(run_dir).robot()``)."""
+    return RunFolder(run_dir).robot()
+
+
+def check_ann_options(options: dict) -> dict:
+    """Validate the neural stage's options (``folds`` >= 2, ``max_epochs`` >= 1); ConfigError
+    naming the command-line option otherwise. Returns them."""
+    folds = options.get("folds", 5)
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise ConfigError(f"--folds must be an integer >= 2 (cross-validation needs two folds), got {folds!r}")
+    epochs = options.get("max_epochs", 1)
+    if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1:
+        raise ConfigError(f"--epochs must be an integer >= 1, got {epochs!r}")
+    return options
 
 
 def stage_name(effects) -> str:
@@ -93,9 +93,14 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     during ANN training, campaign.ann.selection.TrainingProgress reports.
     """
     run_dir = Path(run_dir)
+    run = RunFolder(run_dir)
     say = progress or (lambda msg: None)
-    robot = robot or load_robot_for_run(run_dir)
-    effects = configured_effects(run_dir) if effects is None else parse_effect_list(effects)
+    if ann:
+        check_ann_options(ann_options or {})
+    robot = robot or run.robot()
+    effects = run.effects if effects is None else parse_effect_list(effects)
+    for name in effects:  # an unknown effect is one line before any fit
+        make_effect(name, robot)
     with open_run(run_dir) as store:
         poses = store.load_measured()
     if len(poses) < 20:
@@ -211,8 +216,8 @@ def _write(result: CalibrationResult, robot, geo) -> None:
         params["geometric_only"] = _param_block(geo)
     # networks trained by this calibrate run (stage -> file beside params.yaml)
     params["ann_stages"] = dict(result.extra.get("ann_files", {}))
-    _atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
-    _atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
+    atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
+    atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
     # history: one entry per calibrate run, so a report can show the error falling
     hist_path = out / "history.json"
     history = []
@@ -227,13 +232,7 @@ def _write(result: CalibrationResult, robot, geo) -> None:
         "stages": {name: result.stages[name]["test"] for name in result.order},
         "order": result.order,
     })
-    _atomic_write(hist_path, json.dumps({"runs": history}, indent=2))
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text)
-    tmp.replace(path)
+    atomic_write(hist_path, json.dumps({"runs": history}, indent=2))
 
 
 def summary_text(result: CalibrationResult) -> str:

@@ -9,7 +9,8 @@ def register(sub):
     p = sub.add_parser("import", help="turn a measured-pose CSV into a run folder")
     p.add_argument("csv", metavar="CSV", help="measured-pose CSV (pose_id,time_s,q1..q6,x,y,z,rx,ry,rz[,extra...])")
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
-    p.add_argument("--robot", default="comau_racer5_080", help="robot for the joint-limit check (default: %(default)s)")
+    p.add_argument("--robot", default=None,
+                   help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
     p.set_defaults(func=_import)
 
     p = sub.add_parser("export", help="write a run's measured poses as a measured-pose CSV")
@@ -55,19 +56,18 @@ def register(sub):
 
 
 def _import(args):
-    from campaign.measure.store import import_csv
-    from campaign.model.robot import RobotModel
+    from campaign.measure.importer import import_run
 
-    n = import_csv(args.csv, args.run, RobotModel.load(args.robot))
+    n = import_run(args.csv, args.run, robot=args.robot)
     print(f"imported {n} poses into {args.run}/measurements.sqlite")
     return 0
 
 
 def _export(args):
     from campaign.measure.csvio import write_measured_csv
-    from campaign.measure.store import open_run
+    from campaign.run import RunFolder
 
-    with open_run(args.run) as store:
+    with RunFolder(args.run).store() as store:
         poses = store.load_measured()
     write_measured_csv(args.csv, poses)
     print(f"wrote {len(poses)} poses to {args.csv}")
@@ -75,15 +75,16 @@ def _export(args):
 
 
 def _calibrate(args):
-    from campaign.identify.calibrate import calibrate, summary_text
+    from campaign.identify.calibrate import calibrate, check_ann_options, summary_text
 
     ann_options = {"folds": args.folds}
     if args.sizes:
         from campaign.identify.ann_stage import parse_sizes
 
         ann_options["sizes"] = parse_sizes(args.sizes)
-    if args.epochs:
+    if args.epochs is not None:
         ann_options["max_epochs"] = args.epochs
+    check_ann_options(ann_options)
     progress = None if args.quiet else _CalibrateProgress()
     ann = True if args.ann is None else args.ann
     result = calibrate(args.run, effects=args.effects, position_only=args.position_only, ann=ann,

@@ -97,12 +97,12 @@ def noise_floor_from_repeats(q, xyz, *, min_dof: int = 6):
     return NoiseFloor(mean_norm(cov) * 1e3, cov, f"from repeats of {n_rep} poses, σ ≈ {sd_um:.3g} µm per coordinate")
 
 
-def _run_markers(cfg: dict):
+def _run_markers(run_dir):
     """The reflectors (k, 3) m in F_E of the run's robot, or None when it cannot be loaded."""
     try:
-        from campaign.model.robot import RobotModel
+        from campaign.run import RunFolder
 
-        robot = RobotModel.load(cfg.get("robot", "comau_racer5_080"))
+        robot = RunFolder(run_dir).robot()
         return np.asarray(robot.reflector_positions_in_E, dtype=float)
     except Exception:
         return None
@@ -113,7 +113,7 @@ def tracker_noise_floor(run_dir, q=None, xyz=None, sigma_m: float | None = None,
     (m, per reflector coordinate), else from repeated measurements in q, xyz (the run's own when
     not given), else from the tracker noise configured in RUN/campaign.yaml (``sim.noise_m``).
     markers_in_E: the reflectors (k, 3) m (default: the run's robot's)."""
-    from campaign.config import read_yaml_mapping
+    from campaign.fileio import read_yaml_mapping
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / "campaign.yaml"
@@ -122,7 +122,7 @@ def tracker_noise_floor(run_dir, q=None, xyz=None, sigma_m: float | None = None,
     except Exception:  # a chart's reference line is never worth failing a report for
         cfg = {}
     if sigma_m is not None:
-        markers = _run_markers(cfg) if markers_in_E is None else markers_in_E
+        markers = _run_markers(run_dir) if markers_in_E is None else markers_in_E
         return noise_floor_from_sigma(sigma_m, markers, f"stated σ = {sigma_m * 1e6:.3g} µm per reflector coordinate")
     if q is None or xyz is None:
         try:
@@ -144,7 +144,7 @@ def tracker_noise_floor(run_dir, q=None, xyz=None, sigma_m: float | None = None,
         sigma = None
     if sigma is None or not np.isfinite(sigma) or sigma <= 0:
         return None
-    markers = _run_markers(cfg) if markers_in_E is None else markers_in_E
+    markers = _run_markers(run_dir) if markers_in_E is None else markers_in_E
     fit = f"{len(markers)}-reflector fit" if markers is not None and len(markers) > 1 else "one point"
     return noise_floor_from_sigma(sigma, markers, f"configured tracker noise sim.noise_m, σ = {sigma * 1e6:.3g} µm, "
                                                   f"{fit}")

@@ -351,11 +351,9 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
         parts.append(extra_html)
     if param_text:
         parts += ["<h2>Parameters</h2>", f"<pre>{html.escape(param_text)}</pre>"]
-    path = out / "report.html"
-    tmp = path.with_name("report.html.partial")
-    tmp.write_text("\n".join(parts))
-    tmp.replace(path)
-    return path
+    from campaign.fileio import atomic_write
+
+    return atomic_write(out / "report.html", "\n".join(parts))
 
 
 def history_table(run_dir) -> str:

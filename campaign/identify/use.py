@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from campaign.config import read_yaml_mapping
+
 from campaign.effects.base import EffectSet, make_effect, model_pose
 from campaign.errors import ConfigError, DataError
+from campaign.fileio import atomic_open, read_yaml_mapping
 from campaign.measure.csvio import read_numeric_table
 from campaign.model.kinematics import N_PARAMS, PARAM_NAMES, forward, pose_error
 from campaign.model.robot import RobotModel
@@ -73,7 +74,8 @@ class CalibratedRobot:
     """
 
     def __init__(self, run_dir, stage: str | None = None, robot: RobotModel | None = None):
-        from campaign.identify.calibrate import CALIBRATION_DIR, load_robot_for_run
+        from campaign.identify.calibrate import CALIBRATION_DIR
+        from campaign.run import RunFolder
 
         self.run_dir = Path(run_dir)
         folder = self.run_dir / CALIBRATION_DIR
@@ -86,7 +88,7 @@ class CalibratedRobot:
         except (json.JSONDecodeError, KeyError, TypeError) as exc:
             raise DataError(f"{metrics_path}: malformed ({exc.__class__.__name__})") from None
         params = read_yaml_mapping(params_path, DataError)
-        self.robot = robot or load_robot_for_run(self.run_dir)
+        self.robot = robot or RunFolder(self.run_dir).robot()
         if params.get("robot") not in (None, self.robot.name):
             raise DataError(f"{params_path}: calibrated for robot {params.get('robot')!r}, "
                             f"the run's robot is {self.robot.name!r}")
@@ -214,13 +216,10 @@ def write_table(path, header, rows) -> None:
         w.writerow(header)
         w.writerows(rows)
         return
-    path = Path(path)
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         w.writerows(rows)
-    tmp.replace(path)
 
 
 def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):

@@ -40,35 +40,20 @@ def register(sub):
 
 
 def _run(args):
-    from pathlib import Path
-
-    from campaign.config import load_config, resolve
     from campaign.errors import ConfigError, PeerError, RobotFault
-    from campaign.measure.driver import RunOptions, SimulatedCell, run_campaign
-    from campaign.model.robot import RobotModel
+    from campaign.measure.session import measure_run
 
-    run = Path(args.run)
-    cfg_path = args.config or (run / "campaign.yaml" if (run / "campaign.yaml").is_file() else None)
-    cfg = load_config(cfg_path)
-    robot_ref = resolve(cfg, cfg["robot"])
-    robot = RobotModel.load(robot_ref if robot_ref.is_dir() else cfg["robot"])
-    opts = RunOptions.from_config(cfg["run"])
+    run = args.run
     log = lambda msg: print(f"\n{msg}", file=sys.stderr, flush=True)  # noqa: E731
-    progress = not args.quiet and sys.stderr.isatty()
-    if args.max_poses is not None and args.max_poses < 0:
-        raise ConfigError(f"--max-poses must be >= 0, got {args.max_poses}")
-    kw = dict(progress=progress, log=log, max_poses=args.max_poses, poses_csv=args.poses,
-              retry_failed=args.retry_failed, verbose=args.verbose)
-    if args.sim:
-        if args.tracker:
-            raise ConfigError("--tracker goes with --controller, not with --sim")
-        with SimulatedCell(cfg["_path"], run) as cell:
-            res = run_campaign(run, robot, cell.controller, cell.tracker, opts, **kw)
-    else:
-        if not args.tracker:
-            raise ConfigError("--controller needs --tracker HOST:PORT too")
-        res = run_campaign(run, robot, _hostport(args.controller, "controller"), _hostport(args.tracker, "tracker"),
-                           opts, **kw)
+    if args.sim and args.tracker:
+        raise ConfigError("--tracker goes with --controller, not with --sim")
+    if not args.sim and not args.tracker:
+        raise ConfigError("--controller needs --tracker HOST:PORT too")
+    peers = {} if args.sim else {"controller": _hostport(args.controller, "controller"),
+                                 "tracker": _hostport(args.tracker, "tracker")}
+    res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
+                      log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
+                      verbose=args.verbose, **peers)
     h = res.simulated_duration_s / 3600
     print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
           f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import DataError
-from campaign.measure.data import CSV_COLUMNS, MeasuredPoses
+from campaign.fileio import atomic_open
+from campaign.measure.data import CSV_COLUMNS, MAX_STORED_POSE_ID, MeasuredPoses
 from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS
 
 
@@ -75,6 +76,10 @@ def read_measured_csv(path, robot=None) -> MeasuredPoses:
     pid = col["pose_id"]
     if np.any(pid != np.round(pid)):
         fail(pid != np.round(pid), "pose_id", "is not an integer")
+    out_of_range = (pid < 0) | (pid >= MAX_STORED_POSE_ID)
+    if out_of_range.any():
+        fail(out_of_range, "pose_id", f"is outside 0..{MAX_STORED_POSE_ID - 1} (pose ids are non-negative integers "
+                                      "stored exactly)")
     uniq, counts = np.unique(pid, return_counts=True)
     if np.any(counts > 1):
         dup = uniq[counts > 1][0]
@@ -113,8 +118,7 @@ def write_measured_csv(path, poses: MeasuredPoses) -> None:
     path = Path(path)
     extra = sorted(poses.context)
     rv = poses.rotvec
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(list(CSV_COLUMNS) + extra)
         for i in range(len(poses)):
@@ -124,4 +128,3 @@ def write_measured_csv(path, poses: MeasuredPoses) -> None:
             row += [repr(float(v)) for v in rv[i]]
             row += [repr(float(poses.context[k][i])) for k in extra]
             w.writerow(row)
-    tmp.replace(path)

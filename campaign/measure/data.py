@@ -8,6 +8,8 @@ import numpy as np
 
 from campaign.model.rotations import matrix_to_rotvec, rotvec_to_matrix
 
+#: pose ids are SQLite INTEGERs (int64) and are read from CSVs as float64: exact below 2**53
+MAX_STORED_POSE_ID = 2**53
 #: Columns of the measured-pose CSV (DESIGN.md), in order.
 CSV_COLUMNS = ("pose_id", "time_s", "q1", "q2", "q3", "q4", "q5", "q6", "x", "y", "z", "rx", "ry", "rz")
 

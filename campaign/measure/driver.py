@@ -16,15 +16,16 @@ docs/protocol.md gives the id layout.
 
 from __future__ import annotations
 
-import os
 import signal
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import CampaignError, DataError, PeerError, ProtocolError, RobotFault
+from campaign.config import MAX_GRID_SIZE as MAX_POSE_ID  # pose ids are the plan's grid indices
+from campaign.config import RunConfig
+from campaign.errors import DataError, PeerError, ProtocolError, RobotFault
 from campaign.measure import protocol as P
 from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors
 from campaign.measure.store import PoseRecord, open_run
@@ -38,7 +39,6 @@ _SETUP_ID = 1 << 40
 _DRIFT_ID = 1 << 41
 _HEARTBEAT_ID = 1 << 42
 _EPOCH_ID = 1 << 44
-MAX_POSE_ID = 1 << 34
 #: controller fault codes that concern only the requested pose: the pose is marked failed
 #: and the campaign goes on. Any other code (``emergency_stop``, ...) stops the campaign.
 POSE_FAULT_CODES = ("joint_limit", "move_rejected", "unreachable")
@@ -49,24 +49,20 @@ class PeerUnreachable(PeerError):
 
 
 @dataclass(frozen=True)
-class RunOptions:
-    """How the driver waits and retries. Times in s; ``drift_threshold_mm`` in mm."""
+class RunOptions(RunConfig):
+    """How the driver waits and retries: the validated ``run:`` section of campaign.yaml
+    (campaign.config.RunConfig) and what campaign.yaml does not set. Times in s."""
 
-    timeout_s: float = 5.0
-    move_timeout_s: float = 120.0
-    retries: int = 3
-    reconnect_attempts: int = 5
-    backoff_s: float = 0.2
-    drift_check_every: int = 500
-    drift_threshold_mm: float = 0.05
     setup_repeats: int = 10
     #: stop the campaign when this many poses in a row fail (something systematic is wrong)
     max_consecutive_failures: int = 50
 
     @classmethod
-    def from_config(cls, section: dict) -> "RunOptions":
-        known = {k: section[k] for k in cls.__dataclass_fields__ if k in section}
-        return cls(**known)
+    def from_config(cls, section) -> "RunOptions":
+        """From the validated ``run:`` section (RunConfig) or a mapping of its keys."""
+        if not isinstance(section, dict):
+            section = asdict(section)
+        return cls(**{k: section[k] for k in cls.__dataclass_fields__ if k in section})
 
 
 class Peer:
@@ -181,9 +177,14 @@ def read_plan(run_dir, poses_csv=None):
     vias = {}
     vpath = plan / "vias.csv"
     if poses_csv is None and vpath.is_file():
-        for line in vpath.read_text().splitlines()[1:]:
+        for k, line in enumerate(vpath.read_text().splitlines()[1:], start=2):
             if line.strip():
-                c = [float(x) for x in line.split(",")]
+                try:
+                    c = [float(x) for x in line.split(",")]
+                except ValueError:
+                    c = []
+                if len(c) != 7 or not np.all(np.isfinite(c)) or c[0] != int(c[0]):
+                    raise DataError(f"{vpath}: line {k}: expected before_pose_id,q1..q6 as finite numbers")
                 vias.setdefault(int(c[0]), []).append(c[1:])
     return np.array(ids, dtype=np.int64), np.array(qs, dtype=float).reshape(-1, 6), vias
 
@@ -206,19 +207,21 @@ class RunResult:
 
 
 def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOptions(), *, progress=False,
-                 log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False) -> RunResult:
+                 log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False, plan=None) -> RunResult:
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
     controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
     warnings (one line each), and with ``verbose`` every retry too. ``retry_failed`` forgets
     the failed poses first so they are measured again. ``poses_csv`` replaces
-    RUN/plan/poses.csv. Returns counts and the campaign clock (s) at the end. Ctrl-C
+    RUN/plan/poses.csv; ``plan``: the (ids, q, vias) of :func:`read_plan` when already read.
+    Returns counts and the campaign clock (s) at the end, which continues from the last
+    stored time. The caller holds the run's lock (campaign.measure.session). Ctrl-C
     (SIGINT) stops after the current pose; a second one stops at once (the pose in flight is
     not stored).
     """
     run_dir = Path(run_dir)
     say = log or (lambda msg: None)
-    ids, Q, vias = read_plan(run_dir, poses_csv)
+    ids, Q, vias = plan if plan is not None else read_plan(run_dir, poses_csv)
     robot.check_joints(Q, field=str(poses_csv or f"{run_dir}/plan/poses.csv"))
     stop = {"flag": None}
     old_handler = None
@@ -238,8 +241,7 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
     ctrl = trk = None
     try:
         with open_run(run_dir, create=True) as store:
-            store._db.execute("PRAGMA journal_mode=WAL")
-            store._db.execute("PRAGMA synchronous=NORMAL")
+            store.use_wal()
             epoch = int(store.get_meta("id_epoch", 0))
             if retry_failed:
                 forgotten = store.forget_failed()
@@ -267,8 +269,9 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             remaining_total = len(todo)
             if max_poses is not None:
                 todo = todo[:max_poses]
+            clock = store.clock_s()
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
-                           stored_before)
+                           stored_before, clock)
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             if kind not in ("unreachable", "robot_fault"):
                 try:  # the clock after the last measurement's tracker time
@@ -309,10 +312,11 @@ def _setup(store, trk, opts, base):
     return T_LI
 
 
-def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before):
+def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before,
+          clock_start=0.0):
     bar = Progress("measuring", len(todo), progress, " poses")
     n_ok = n_fail = drift_warnings = in_a_row = 0
-    clock = clock0 = 0.0
+    clock = clock0 = clock_start
     stopped = kind = None
     reference = store.get_meta("drift_reference")
     try:
@@ -451,61 +455,10 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E):
         return None, clock
 
 
-class SimulatedCell:
-    """The simulated cell (``python -m campaign.sim.cell``) as a child process of the driver.
+def __getattr__(name):
+    # the simulator's launcher moved to campaign.sim.launcher; old imports keep working
+    if name == "SimulatedCell":
+        from campaign.sim.launcher import SimulatedCell
 
-    It runs in its own session, so a Ctrl-C at the terminal reaches only the driver (which
-    finishes the current pose); it watches its standard input, a pipe from this process,
-    and exits when that closes: after :meth:`stop`, or when the driver dies, even by kill -9.
-    Its stderr goes to ``RUN/sim/cell.log``.
-    """
-
-    def __init__(self, config_path, run_dir):
-        import json
-        import subprocess
-        import sys
-
-        log_path = Path(run_dir) / "sim" / "cell.log"
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.log_path = log_path
-        # one BLAS thread: the cell's algebra is tiny, and idle OpenBLAS threads spinning on a
-        # loaded machine make its start-up seconds instead of milliseconds
-        env = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", **os.environ}
-        with open(log_path, "ab") as err:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "campaign.sim.cell", "--config", str(config_path), "--run", str(run_dir),
-                 "--watch-stdin"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
-                start_new_session=True, env=env)
-        line = self.proc.stdout.readline().decode()
-        try:
-            info = json.loads(line)
-        except json.JSONDecodeError:
-            self.stop()
-            tail = log_path.read_text(errors="replace").strip().splitlines()
-            raise PeerError(f"the simulated cell did not start: {tail[-1] if tail else 'no output'} "
-                            f"(see {log_path})") from None
-        if "error" in info:
-            self.stop()
-            raise CampaignError(f"simulated cell: {info['error']}")
-        self.host = info["host"]
-        self.controller = (self.host, int(info["controller"]))
-        self.tracker = (self.host, int(info["tracker"]))
-        self.truth_path = info["truth"]
-
-    def stop(self):
-        """Close the cell's stdin and wait for it to exit (killed after 10 s)."""
-        try:
-            if self.proc.stdin and not self.proc.stdin.closed:
-                self.proc.stdin.close()
-            self.proc.wait(timeout=10)
-        except Exception:
-            self.proc.kill()
-            self.proc.wait()
-        if self.proc.stdout:
-            self.proc.stdout.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.stop()
+        return SimulatedCell
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -207,6 +207,8 @@ def decode(body: bytes):
         obj = json.loads(body.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ProtocolError(f"frame is not UTF-8 JSON ({exc.__class__.__name__})") from None
+    except RecursionError:
+        raise ProtocolError("frame nests JSON too deeply (a message is one flat object)") from None
     return from_dict(obj)
 
 

@@ -20,6 +20,7 @@ Tables (units in the column names where they are not SI base units):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 from dataclasses import dataclass, field
@@ -27,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import DataError
-from campaign.measure.data import MeasuredPoses
+from campaign.errors import DataError, StorageError
+from campaign.measure.data import MAX_STORED_POSE_ID, MeasuredPoses
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -65,6 +66,8 @@ CREATE TABLE IF NOT EXISTS events (
 """
 
 MEASUREMENTS_FILE = "measurements.sqlite"
+#: seconds a write waits for another connection's lock before it fails with one line
+BUSY_TIMEOUT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -96,8 +99,10 @@ class MeasurementStore:
         if not create and not self.path.is_file():
             raise DataError(f"{self.path}: no measurement log here")
         try:
-            self._db = sqlite3.connect(str(self.path), timeout=30.0)
+            self._db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT_S)
             self._db.executescript(SCHEMA)
+        except sqlite3.OperationalError as exc:
+            raise StorageError(f"{self.path}: cannot open the measurement log ({exc})") from None
         except sqlite3.DatabaseError as exc:
             raise DataError(f"{self.path}: not a measurement log ({exc})") from None
 
@@ -110,10 +115,31 @@ class MeasurementStore:
     def close(self):
         self._db.close()
 
+    @contextlib.contextmanager
+    def _writing(self, what: str):
+        """One committed transaction; a storage failure (full disk, locked database, read-only
+        file) rolls it back and becomes one StorageError line: everything committed before stays."""
+        try:
+            with self._db:
+                yield self._db
+        except sqlite3.IntegrityError:
+            raise
+        except sqlite3.DatabaseError as exc:
+            raise StorageError(f"{self.path}: cannot store {what} ({exc}); everything stored before is kept, "
+                               "re-run to resume once the cause is fixed") from None
+
+    def use_wal(self) -> None:
+        """Write-ahead logging: readers (calibrate, export) never block the driver's commits."""
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+        except sqlite3.DatabaseError as exc:
+            raise StorageError(f"{self.path}: cannot open the measurement log for writing ({exc})") from None
+
     # -- meta -------------------------------------------------------------------------
     def set_meta(self, key: str, value) -> None:
-        with self._db:
-            self._db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value)))
+        with self._writing(f"meta '{key}'") as db:
+            db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value)))
 
     def get_meta(self, key: str, default=None):
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -128,6 +154,9 @@ class MeasurementStore:
         """Store several poses in one transaction (used by import)."""
         rows, refl = [], []
         for rec in records:
+            if isinstance(rec.pose_id, bool) or not 0 <= rec.pose_id < MAX_STORED_POSE_ID \
+                    or rec.pose_id != int(rec.pose_id):
+                raise DataError(f"pose_id {rec.pose_id!r}: must be an integer in 0..{MAX_STORED_POSE_ID - 1}")
             if rec.status not in ("measured", "failed"):
                 raise DataError(f"pose {rec.pose_id}: status must be 'measured' or 'failed', not {rec.status!r}")
             qe = rec.q_encoder if rec.q_encoder is not None else (None,) * 6
@@ -139,11 +168,11 @@ class MeasurementStore:
             for name, (p, st) in rec.reflectors.items():
                 p = p if p is not None else (None, None, None)
                 refl.append((int(rec.pose_id), name, *p, st))
+        what = f"pose {rows[0][0]}" if len(rows) == 1 else f"{len(rows)} poses"
         try:
-            with self._db:
-                self._db.executemany(
-                    "INSERT INTO poses VALUES (" + ",".join("?" * 27) + ")", rows)
-                self._db.executemany("INSERT INTO reflector_readings VALUES (?,?,?,?,?,?)", refl)
+            with self._writing(what) as db:
+                db.executemany("INSERT INTO poses VALUES (" + ",".join("?" * 27) + ")", rows)
+                db.executemany("INSERT INTO reflector_readings VALUES (?,?,?,?,?,?)", refl)
         except sqlite3.IntegrityError as exc:
             raise DataError(f"{self.path}: a pose is already stored ({exc})") from None
 
@@ -152,9 +181,9 @@ class MeasurementStore:
         """Append one event (its own committed transaction); ``time_s`` is the campaign clock."""
         import time
 
-        with self._db:
-            self._db.execute("INSERT INTO events(kind, pose_id, time_s, wall_time_unix_s, detail) VALUES (?,?,?,?,?)",
-                             (kind, pose_id, time_s, time.time(), json.dumps(detail or {}, sort_keys=True)))
+        with self._writing(f"event '{kind}'") as db:
+            db.execute("INSERT INTO events(kind, pose_id, time_s, wall_time_unix_s, detail) VALUES (?,?,?,?,?)",
+                       (kind, pose_id, time_s, time.time(), json.dumps(detail or {}, sort_keys=True)))
 
     def events(self, kind: str | None = None) -> list:
         """[(kind, pose_id, time_s, detail dict), ...] in the order they happened."""
@@ -165,12 +194,20 @@ class MeasurementStore:
 
     def forget_failed(self) -> list:
         """Delete the failed poses (one transaction) so a re-run measures them again; their ids."""
-        with self._db:
-            ids = [r[0] for r in self._db.execute("SELECT pose_id FROM poses WHERE status = 'failed'")]
-            self._db.execute("DELETE FROM reflector_readings WHERE pose_id IN "
-                             "(SELECT pose_id FROM poses WHERE status = 'failed')")
-            self._db.execute("DELETE FROM poses WHERE status = 'failed'")
+        with self._writing("the forgetting of failed poses") as db:
+            ids = [r[0] for r in db.execute("SELECT pose_id FROM poses WHERE status = 'failed'")]
+            db.execute("DELETE FROM reflector_readings WHERE pose_id IN "
+                       "(SELECT pose_id FROM poses WHERE status = 'failed')")
+            db.execute("DELETE FROM poses WHERE status = 'failed'")
         return ids
+
+    def clock_s(self) -> float:
+        """The campaign clock at the last thing stored (s; 0 for an empty log): a resumed
+        campaign continues from here, so the clock never runs backwards."""
+        times = [0.0, self._db.execute("SELECT MAX(time_s) FROM poses").fetchone()[0],
+                 self._db.execute("SELECT MAX(time_s) FROM events").fetchone()[0],
+                 self.get_meta("campaign_clock_s")]
+        return float(max(t for t in times if t is not None))
 
     def stored_ids(self) -> set:
         """pose_ids with a stored outcome (measured or failed)."""
@@ -210,19 +247,25 @@ def open_run(run_dir, *, create: bool = False) -> MeasurementStore:
 def import_csv(csv_path, run_dir, robot=None) -> int:
     """Create ``run_dir/measurements.sqlite`` from a measured-pose CSV. Returns the pose count.
 
-    The CSV is validated whole before anything is written; the log is written to a
-    temporary file and moved into place, so a failure leaves the run folder untouched.
+    The CSV is validated whole before anything is written (see :func:`write_imported`).
+    `campaign import` goes through :func:`campaign.measure.importer.import_run`, which also
+    records the run's robot and holds the run's lock.
     """
     from campaign.measure.csvio import read_measured_csv
 
-    run_dir = Path(run_dir)
     poses = read_measured_csv(csv_path, robot)
+    return write_imported(poses, run_dir, source={"kind": "import", "csv": str(Path(csv_path).resolve())},
+                          robot=robot)
+
+
+def write_imported(poses, run_dir, *, source: dict, robot=None) -> int:
+    """Create ``run_dir/measurements.sqlite`` holding ``poses`` (MeasuredPoses). The log is
+    written to a temporary file and moved into place, so a failure (a full disk included)
+    leaves the run folder as it was. Refuses a folder that already holds a log."""
+    run_dir = Path(run_dir)
     target = run_dir / MEASUREMENTS_FILE
     if target.exists():
         raise DataError(f"{run_dir}: already holds {MEASUREMENTS_FILE}; import into a new run folder")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    tmp = run_dir / (MEASUREMENTS_FILE + ".partial")
-    tmp.unlink(missing_ok=True)
     rv = poses.rotvec
     records = [
         PoseRecord(pose_id=int(poses.pose_id[i]), seq=i, status="measured", q=tuple(poses.q[i]),
@@ -230,10 +273,18 @@ def import_csv(csv_path, run_dir, robot=None) -> int:
                    context={k: float(v[i]) for k, v in poses.context.items()})
         for i in range(len(poses))
     ]
-    with MeasurementStore(tmp) as store:
-        store.set_meta("source", {"kind": "import", "csv": str(Path(csv_path).resolve())})
-        if robot is not None:
-            store.set_meta("robot", robot.name)
-        store.add_poses(records)
-    tmp.replace(target)
+    tmp = run_dir / (MEASUREMENTS_FILE + ".partial")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        tmp.unlink(missing_ok=True)
+        with MeasurementStore(tmp) as store:
+            store.set_meta("source", source)
+            if robot is not None:
+                store.set_meta("robot", robot.name)
+            store.add_poses(records)
+        tmp.replace(target)
+    except OSError as exc:
+        raise StorageError(f"{target}: cannot write ({exc.strerror or exc}); nothing was imported") from None
+    finally:
+        tmp.unlink(missing_ok=True)
     return len(records)

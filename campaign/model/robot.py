@@ -133,7 +133,7 @@ class RobotModel:
 
 @functools.lru_cache(maxsize=8)
 def _load_cached(meta_path: str) -> RobotModel:
-    from campaign.config import read_yaml_mapping
+    from campaign.fileio import read_yaml_mapping
     from campaign.model.rotations import urdf_rpy
 
     meta_file = Path(meta_path)

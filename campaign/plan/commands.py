@@ -8,8 +8,10 @@ import sys
 
 def register(sub):
     p = sub.add_parser("plan", help="plan a collision-free list of measurement poses (embedded defaults without a config)")
-    p.add_argument("--config", metavar="FILE", default=None, help="campaign.yaml (default: the embedded one)")
-    p.add_argument("--run", metavar="DIR", default="runs/default", help="run folder (default: %(default)s)")
+    p.add_argument("--config", metavar="FILE", default=None,
+                   help="campaign.yaml (default: the run's own when it has one, else the embedded one)")
+    p.add_argument("--run", metavar="DIR", default="runs/default",
+                   help="run folder (default: %(default)s); a run holding measurements is refused")
     p.add_argument("--grid-scale", type=float, default=1.0,
                    help="scale the cells per axis for a coarser (<1) or finer grid (default: 1 = 1,428,000 candidates)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -32,11 +34,8 @@ def register(sub):
 
 
 def _plan(args):
-    from campaign.errors import ConfigError
     from campaign.plan.pipeline import plan_campaign
 
-    if not args.grid_scale > 0:
-        raise ConfigError(f"--grid-scale must be positive, got {args.grid_scale}")
     selection = _selection_options(args)
     s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty(),
                       selection=selection)
@@ -81,9 +80,9 @@ def _selection_options(args):
     if args.for_effects is not None:
         effects = parse_effect_list(args.for_effects)
     else:
-        from campaign.config import load_config
+        from campaign.run import RunFolder
 
-        effects = tuple(load_config(args.config).get("effects") or ())
+        effects = RunFolder(args.run, config=args.config).effects
     kw = {}
     if args.validation is not None:
         kw["validation_fraction"] = args.validation

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from campaign.config import MAX_GRID_SIZE
 from campaign.errors import ConfigError
 from campaign.model.rotations import rot_z
 
@@ -28,6 +29,9 @@ class Grid:
         cells = tuple(int(c) for c in cells)
         if len(cells) != 6 or any(c < 1 for c in cells):
             raise ConfigError(f"plan.grid_cells: expected 6 positive integers, got {list(cells)}")
+        if int(np.prod(np.array(cells, dtype=object))) >= MAX_GRID_SIZE:
+            raise ConfigError(f"plan.grid_cells: {' x '.join(map(str, cells))} candidates exceed the "
+                              f"{MAX_GRID_SIZE:,} a plan can address")
         return cls(cells, np.array(robot.q_lower, dtype=float), np.array(robot.q_upper, dtype=float))
 
     @property

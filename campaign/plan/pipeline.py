@@ -16,17 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.config import load_config, resolve, write_run_config
+from campaign.config import CampaignConfig, load_config
+from campaign.errors import ConfigError, PlanError
+from campaign.fileio import atomic_write
 from campaign.model.kinematics import frames
-from campaign.model.robot import RobotModel
 from campaign.plan import checks
 from campaign.plan.grid import Grid, iter_tool_points
-from campaign.plan.scene import load_scene
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.plot import plot_tour
 from campaign.plan.timing import GridTimes, path_time
 from campaign.plan.tour import interior_samples, nearest_neighbour, neighbour_lists, or_opt, two_opt
 from campaign.progress import Progress
+from campaign.run import RunFolder
 
 #: the paper's campaign: 13,919 poses measured in about 3.5 days
 PAPER_POSES = 13919
@@ -130,8 +131,38 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
                   selection=None) -> dict:
     """Plan a campaign; write the run's plan folder; return the summary (also in summary.json).
 
-    selection: a :class:`campaign.plan.selection.SelectionOptions` to measure an optimal
-    subset of the suitable poses (plus validation poses and repeats) instead of all of them."""
+    config: a campaign.yaml path or a CampaignConfig; None: the run's own campaign.yaml when
+    it has one, else the embedded default. selection: a
+    :class:`campaign.plan.selection.SelectionOptions` to measure an optimal subset of the
+    suitable poses (plus validation poses and repeats) instead of all of them. Refused (one
+    line, nothing written) when the run holds measurements, when another process holds the
+    run's lock, or when no pose is suitable. The run's campaign.yaml and plan/ are written
+    only once the plan is made.
+    """
+    if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or \
+            not 0 < grid_scale < float("inf"):
+        raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
+    run = RunFolder(run_dir)
+    if isinstance(config, CampaignConfig):
+        cfg = config
+    elif config is not None:
+        cfg = load_config(config)
+    else:
+        cfg = run.config  # the run's own, or the embedded default for a new folder
+    run = RunFolder(run_dir, config=cfg)
+    robot = run.robot()
+    scene = run.scene()
+    cells = np.maximum(1, np.round(np.asarray(cfg.plan.grid_cells, dtype=float) * float(grid_scale))).astype(int)
+    try:
+        grid = Grid.for_robot(robot, cells)
+    except ConfigError as exc:
+        raise ConfigError(f"{cfg.path}: {exc} (with --grid-scale {grid_scale:g})") from None
+    run.refuse_if_measured("planning again", f"plan into a new run folder (--run {Path(run_dir).name}-2)")
+    with run.lock("plan"):
+        return _plan(run, cfg, robot, scene, grid, progress, selection)
+
+
+def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection) -> dict:
     t_start = time.perf_counter()
     timing = {}  # seconds per stage, wall
     clock = [t_start]
@@ -141,20 +172,18 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         timing[stage] = now - clock[0]
         clock[0] = now
 
-    cfg = config if isinstance(config, dict) else load_config(config)
-    pc = cfg["plan"]
-    robot = RobotModel.load(resolve(cfg, cfg["robot"]) if (Path(cfg["_dir"]) / str(cfg["robot"])).is_dir()
-                            else cfg["robot"])
-    scene = load_scene(resolve(cfg, cfg["scene"]))
-    cells = np.maximum(1, np.round(np.asarray(pc["grid_cells"], dtype=float) * float(grid_scale))).astype(int)
-    grid = Grid.for_robot(robot, cells)
-    run_dir = Path(run_dir)
-    out = run_dir / "plan"
-    out.mkdir(parents=True, exist_ok=True)
-    write_run_config(cfg, run_dir)
+    pc = cfg.plan
+    cells = grid.cells
+    out = run.plan_dir
     lap("setup")
 
-    suitable, counts, checker = _filter_grid(robot, scene, grid, float(pc["clearance_m"]), progress)
+    suitable, counts, checker = _filter_grid(robot, scene, grid, pc.clearance_m, progress)
+    if len(suitable) == 0:
+        rm = counts["removed_by_filter"]
+        worst = max(rm, key=rm.get)
+        raise PlanError(f"{cfg.path}: no suitable pose among {grid.size:,} candidates (most removed by "
+                        f"{worst}: {rm[worst]:,}); check plan.clearance_m ({pc.clearance_m:g} m), plan.grid_cells "
+                        f"and the scene {cfg.scene_path}")
     lap("filters")
 
     # stage 3: groups, order, check
@@ -164,8 +193,8 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     if selection is not None:
         from campaign.plan.selection import choose_campaign
 
-        choice = choose_campaign(robot, grid, suitable, selection, settle_s=float(pc["settle_time_s"]),
-                                 tracker_s=3 * float(pc["tracker_time_per_reflector_s"]),
+        choice = choose_campaign(robot, grid, suitable, selection, settle_s=pc.settle_time_s,
+                                 tracker_s=3 * pc.tracker_time_per_reflector_s,
                                  **_selection_times(robot, scene, grid, times, home, suitable))
         members = choice.members
         lap("selection")
@@ -177,8 +206,8 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         order = choice.with_repeats(order)  # pose ids; repeats map back to their grid index
     Q = grid.q(_grid_index(order))
     lap("ordering")
-    max_step = np.deg2rad(float(pc["motion_sample_deg"]))
-    mc = float(pc["motion_clearance_m"])
+    max_step = np.deg2rad(pc.motion_sample_deg)
+    mc = pc.motion_clearance_m
     bar = Progress("stage 3: motion check", len(order), progress, " segments")
     ok = _check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
     bar.update(len(order))
@@ -232,10 +261,14 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         path.append(Q_final[i])
     tour_time = path_time(robot, np.array(path)) if len(path) > 1 else 0.0
     n = len(order_final)
-    per_pose = float(pc["settle_time_s"]) + 3 * float(pc["tracker_time_per_reflector_s"])
+    per_pose = pc.settle_time_s + 3 * pc.tracker_time_per_reflector_s
     duration = tour_time + n * per_pose
 
     lap("repair")
+    if n == 0:
+        raise PlanError(f"{cfg.path}: every one of the {len(order):,} suitable poses was dropped from the tour "
+                        f"(no collision-free motion at plan.motion_clearance_m = {mc:g} m)")
+    run.write_config(cfg)
     _write_outputs(out, order_final, Q_final, vias, dropped)
     front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, 7]) if n else np.zeros(0, bool)
     summary = {
@@ -245,11 +278,11 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         "suitable": counts["suitable"], "suitable_fraction": counts["suitable"] / counts["candidates"],
         "groups": {"front_of_wall": int(front_final.sum()), "behind_wall": int((~front_final).sum())},
         "tour": {"poses": n, "via_poses": int(sum(len(v) for v in vias.values())), "dropped": len(dropped),
-                 "motion_time_s": tour_time, "clearance_m": float(pc["clearance_m"]), "motion_clearance_m": mc,
-                 "motion_sample_deg": float(pc["motion_sample_deg"])},
+                 "motion_time_s": tour_time, "clearance_m": pc.clearance_m, "motion_clearance_m": mc,
+                 "motion_sample_deg": pc.motion_sample_deg},
         "estimated_campaign": {
-            "motion_s": tour_time, "settle_s": n * float(pc["settle_time_s"]),
-            "tracker_s": n * 3 * float(pc["tracker_time_per_reflector_s"]), "total_s": duration,
+            "motion_s": tour_time, "settle_s": n * pc.settle_time_s,
+            "tracker_s": n * 3 * pc.tracker_time_per_reflector_s, "total_s": duration,
             "total_days": duration / 86400.0,
             "paper": {"poses": PAPER_POSES, "duration_days": PAPER_DURATION_S / 86400.0,
                       "seconds_per_pose": PAPER_DURATION_S / PAPER_POSES},
@@ -271,7 +304,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     lap("plot")
     summary["timing_s"] = {**timing, "total": time.perf_counter() - t_start}
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write(out / "summary.json", json.dumps(summary, indent=2))
     return summary
 
 
@@ -291,13 +324,11 @@ def _selection_times(robot, scene, grid, times, home, suitable):
 def _write_outputs(out, order, Q, vias, dropped):
     lines = ["pose_id,q1,q2,q3,q4,q5,q6"]
     lines += [f"{int(p)}," + ",".join(repr(float(v)) for v in q) for p, q in zip(order, Q)]
-    tmp = out / "poses.csv.partial"
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(out / "poses.csv")
+    atomic_write(out / "poses.csv", "\n".join(lines) + "\n")
     vl = ["before_pose_id,q1,q2,q3,q4,q5,q6"]
     for pid in order:
         for v in vias.get(int(pid), []):
             vl.append(f"{int(pid)}," + ",".join(repr(float(x)) for x in v))
-    (out / "vias.csv").write_text("\n".join(vl) + "\n")
+    atomic_write(out / "vias.csv", "\n".join(vl) + "\n")
     dl = ["pose_id,reason"] + [f"{p},{r}" for p, r in dropped]
-    (out / "dropped.csv").write_text("\n".join(dl) + "\n")
+    atomic_write(out / "dropped.csv", "\n".join(dl) + "\n")

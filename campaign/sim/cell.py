@@ -30,17 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.config import load_config, resolve
+from campaign.config import FAULT_KINDS, CampaignConfig, load_config, parse_faults  # noqa: F401 (re-exported)
 from campaign.effects.base import make_effect
 from campaign.errors import CampaignError, PeerError, ProtocolError
 from campaign.measure import protocol as P
 from campaign.measure.reflectors import transform_points
-from campaign.model.robot import RobotModel
 from campaign.plan.scene import load_scene
 from campaign.plan.timing import rest_to_rest_time
+from campaign.run import load_robot
 from campaign.sim.truth import make_truth, write_truth
 
-FAULT_KINDS = ("drop", "late", "garble", "beam_lost", "robot_fault", "estop")
 _KIND_CODE = {k: i + 1 for i, k in enumerate(FAULT_KINDS)}
 #: distances of the base-frame set-up points from F_I's origin along x and y (m)
 SETUP_SPACING_M = 0.3
@@ -48,52 +47,30 @@ SETUP_SPACING_M = 0.3
 CACHE_SIZE = 4096
 #: a connection silent this long (s) is closed
 IDLE_TIMEOUT_S = 300.0
-
-
-def parse_faults(section, where="campaign.yaml"):
-    """({kind: rate per request in [0, 1]}, late_delay_s) from the ``sim.faults`` mapping."""
-    from campaign.errors import ConfigError
-
-    section = section or {}
-    if not isinstance(section, dict):
-        raise ConfigError(f"{where}: sim.faults must be a mapping of fault kind to rate")
-    rates, late_delay_s = {}, 1.0
-    for key, value in section.items():
-        if key == "late_delay_s":
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 3600:
-                raise ConfigError(f"{where}: sim.faults.late_delay_s must be a number of seconds in 0..3600, "
-                                  f"got {value!r}")
-            late_delay_s = float(value)
-            continue
-        if key not in FAULT_KINDS:
-            raise ConfigError(f"{where}: unknown fault 'sim.faults.{key}' (allowed: {', '.join(FAULT_KINDS)}, "
-                              "late_delay_s)")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
-            raise ConfigError(f"{where}: sim.faults.{key} must be a rate in 0..1, got {value!r}")
-        rates[key] = float(value)
-    return rates, late_delay_s
+#: pending connections the kernel queues per port
+LISTEN_BACKLOG = 128
 
 
 class World:
     """The physical state shared by both ports. All methods hold the lock."""
 
-    def __init__(self, cfg, run_dir):
-        sc = cfg["sim"]
-        robot_ref = resolve(cfg, cfg["robot"])
-        self.robot = RobotModel.load(robot_ref if robot_ref.is_dir() else cfg["robot"])
-        self.scene = load_scene(resolve(cfg, cfg["scene"]))
-        self.seed = int(sc["seed"])
+    def __init__(self, cfg: CampaignConfig, run_dir, start_clock_s: float = 0.0):
+        sc = cfg.sim
+        self.robot = load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
+        self.scene = load_scene(cfg.scene_path)
+        self.seed = sc.seed
         hidden = {}
-        for name in sc.get("hidden_effects") or []:
+        for name in sc.hidden_effects:
             e = make_effect(name, self.robot)
             hidden[name] = e.typical_params(self.seed)
-        self.truth = make_truth(self.robot, seed=self.seed, noise_m=float(sc["noise_m"]), effects=hidden,
+        self.truth = make_truth(self.robot, seed=self.seed, noise_m=sc.noise_m, effects=hidden,
                                 T_LI=self.scene.T_LI)
-        self.settle_s = float(cfg["plan"]["settle_time_s"])
-        self.tracker_s = float(cfg["plan"]["tracker_time_per_reflector_s"])
-        self.time_factor = float(sc["time_factor"])
-        self.faults, self.late_delay_s = parse_faults(sc.get("faults"), cfg.get("_path", "campaign.yaml"))
-        self.clock_s = 0.0
+        self.settle_s = cfg.plan.settle_time_s
+        self.tracker_s = cfg.plan.tracker_time_per_reflector_s
+        self.time_factor = sc.time_factor
+        self.faults, self.late_delay_s = dict(sc.faults), sc.late_delay_s
+        #: the simulated campaign clock (s); a resumed campaign continues from its last stored time
+        self.clock_s = float(start_clock_s)
         self.q = np.array(self.robot.q_mid)
         self.lock = threading.Lock()
         self.truth_path = Path(run_dir) / "sim" / "truth.yaml"
@@ -179,7 +156,8 @@ class Port:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.bind((host, port))
-        self.sock.listen(8)
+        # a deep backlog: a burst of (re)connections must not wait for the kernel's SYN retry (1 s)
+        self.sock.listen(LISTEN_BACKLOG)
         self.port = self.sock.getsockname()[1]
         self.cache: OrderedDict = OrderedDict()
         self.cache_lock = threading.Lock()
@@ -251,9 +229,11 @@ class Port:
             c.close()
 
 
-def start_cell(cfg, run_dir, host="127.0.0.1", controller_port=0, tracker_port=0):
-    """Start both ports in this process (threads); returns (world, controller Port, tracker Port)."""
-    world = World(cfg, run_dir)
+def start_cell(cfg, run_dir, host="127.0.0.1", controller_port=0, tracker_port=0, start_clock_s=0.0):
+    """Start both ports in this process (threads); returns (world, controller Port, tracker Port).
+
+    cfg: a validated CampaignConfig; start_clock_s: the simulated clock to start from (s)."""
+    world = World(cfg, run_dir, start_clock_s)
     ports = (Port(world, "controller", host, controller_port), Port(world, "tracker", host, tracker_port))
     for p in ports:
         threading.Thread(target=p.serve_forever, daemon=True).start()
@@ -275,11 +255,15 @@ def main(argv=None):
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--controller-port", type=int, default=0)
     ap.add_argument("--tracker-port", type=int, default=0)
+    ap.add_argument("--start-clock-s", type=float, default=0.0, help="simulated clock at start (s)")
     ap.add_argument("--watch-stdin", action="store_true")
     args = ap.parse_args(argv)
     try:
+        if not 0 <= args.start_clock_s < float("inf"):
+            raise CampaignError(f"--start-clock-s must be a finite time >= 0, got {args.start_clock_s}")
         cfg = load_config(args.config)
-        world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port)
+        world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port,
+                                      args.start_clock_s)
     except CampaignError as exc:
         print(json.dumps({"error": str(exc)}), flush=True)
         return 1

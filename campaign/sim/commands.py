@@ -31,28 +31,17 @@ def register(sub):
 
 
 def _synth(args):
-    from campaign.effects.base import make_effect, parse_effect_list
+    from campaign.effects.base import parse_effect_list
     from campaign.errors import ConfigError
     from campaign.measure.csvio import write_measured_csv
-    from campaign.model.robot import RobotModel
-    from campaign.sim.truth import make_truth, random_joint_poses, synthesize, write_truth
+    from campaign.run import load_robot
+    from campaign.sim.truth import synthetic_campaign, write_truth
 
-    if args.poses < 1:
-        raise ConfigError(f"--poses must be positive, got {args.poses}")
-    robot = RobotModel.load(args.robot)
-    hidden = {}
-    for name in parse_effect_list(args.hidden):
-        e = make_effect(name, robot)
-        hidden[name] = e.typical_params(args.seed) if hasattr(e, "typical_params") else e.initial_params()
-    truth = make_truth(robot, seed=args.seed, noise_m=args.noise_um * 1e-6, effects=hidden)
-    q = random_joint_poses(robot, args.poses, seed=args.seed + 1)
-    context = {}
-    for e in truth.effects.effects:
-        if hasattr(e, "synthetic_context"):
-            context.update(e.synthetic_context(len(q), args.seed))
-    poses = synthesize(truth, q, seed=args.seed + 2, context=context)
+    if args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    poses, truth = synthetic_campaign(load_robot(args.robot), args.poses, seed=args.seed,
+                                      noise_m=args.noise_um * 1e-6, hidden=parse_effect_list(args.hidden))
     out = Path(args.csv)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_measured_csv(out, poses)
     truth_path = Path(args.truth) if args.truth else out.with_suffix(".truth.yaml")
     write_truth(truth, truth_path)
@@ -64,10 +53,13 @@ def _sim(args):
     import time
 
     from campaign.config import load_config
+    from campaign.run import RunFolder
     from campaign.sim.cell import start_cell
 
     cfg = load_config(args.config)
-    world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port)
+    # a run that holds measurements continues its campaign clock (never backwards)
+    world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port,
+                                  RunFolder(args.run).clock_s())
     print(f"simulated cell: controller {args.host}:{ctrl.port}, tracker {args.host}:{trk.port} "
           f"(truth in {world.truth_path}); Ctrl-C stops", flush=True)
     try:

@@ -173,7 +173,32 @@ def synthesize(truth: TruthRobot, q, *, seed: int = 0, time_s=None, context=None
 
 
 def write_truth(truth: TruthRobot, path) -> None:
-    Path(path).write_text(truth.to_yaml())
+    from campaign.fileio import atomic_write
+
+    atomic_write(path, truth.to_yaml())
+
+
+def synthetic_campaign(robot: RobotModel, n_poses: int, *, seed: int = 0, noise_m: float = TRACKER_NOISE_M,
+                       hidden=()) -> tuple:
+    """(MeasuredPoses, TruthRobot): ``n_poses`` random poses measured on a truth drawn from
+    ``seed`` with the named physical effects hidden at their typical magnitude (`campaign synth`)."""
+    from campaign.errors import ConfigError
+
+    if isinstance(n_poses, bool) or not isinstance(n_poses, int) or n_poses < 1:
+        raise ConfigError(f"--poses must be a positive integer, got {n_poses!r}")
+    if not 0 <= noise_m < 1:
+        raise ConfigError(f"--noise-um must be a finite number >= 0 below 1e6, got {noise_m * 1e6!r}")
+    effects = {}
+    for name in hidden:
+        e = make_effect(name, robot)
+        effects[name] = e.typical_params(seed) if hasattr(e, "typical_params") else e.initial_params()
+    truth = make_truth(robot, seed=seed, noise_m=noise_m, effects=effects)
+    q = random_joint_poses(robot, n_poses, seed=seed + 1)
+    context = {}
+    for e in truth.effects.effects:
+        if hasattr(e, "synthetic_context"):
+            context.update(e.synthetic_context(len(q), seed))
+    return synthesize(truth, q, seed=seed + 2, context=context), truth
 
 
 def read_truth(path, robot: RobotModel | None = None) -> TruthRobot:

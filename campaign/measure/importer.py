@@ -1,0 +1,45 @@
+"""`campaign import` as a library call: a measured-pose CSV into a run folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from campaign.errors import ConfigError, DataError
+from campaign.paths import DEFAULT_ROBOT
+from campaign.run import RunFolder, load_robot
+
+
+def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str | None = None,
+               base_frame: str | None = None) -> int:
+    """Import ``csv_path`` into ``run_dir``; returns the number of poses.
+
+    robot: name, URDF or robot.yaml (None: the robot the run records, else the default).
+    A run that records another robot is refused; a folder without campaign.yaml gets one
+    recording the robot. The CSV is validated whole before the folder is touched.
+    """
+    from campaign.measure.csvio import read_measured_csv
+    from campaign.measure.store import write_imported
+
+    run = RunFolder(run_dir)
+    if run.has_config:
+        cfg = run.config
+        recorded = (cfg.robot_spec, cfg.tool_frame, cfg.base_frame)
+        if robot is not None and load_robot(robot, tool_frame=tool_frame, base_frame=base_frame).name \
+                != run.robot().name:
+            raise ConfigError(f"--robot {robot}: {run.config_path} records robot {cfg.robot!r}; "
+                              "import into a new run folder for another robot")
+        spec, tool_frame, base_frame = recorded
+    else:
+        spec = robot if robot is not None else DEFAULT_ROBOT
+        if robot is not None and Path(robot).exists():
+            spec = str(Path(robot).resolve())
+    model = load_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
+    if run.measurements_path.exists():  # checked again under the lock by write_imported
+        raise DataError(f"{run.path}: already holds {run.measurements_path.name}; import into a new run folder")
+    poses = read_measured_csv(csv_path, model)
+    with run.lock("import"):
+        n = write_imported(poses, run.path, source={"kind": "import", "csv": str(Path(csv_path).resolve())},
+                           robot=model)
+        if not run.has_config:
+            run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
+    return n

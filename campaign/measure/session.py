@@ -1,0 +1,41 @@
+"""`campaign run` as a library call: lock the run, start the simulated cell if asked, drive."""
+
+from __future__ import annotations
+
+from campaign.errors import ConfigError
+from campaign.measure.driver import RunOptions, RunResult, read_plan, run_campaign
+from campaign.run import RunFolder
+
+
+def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
+                log=None, max_poses=None, poses_csv=None, retry_failed: bool = False,
+                verbose: bool = False) -> RunResult:
+    """Measure the planned poses of ``run_dir`` that have no stored outcome yet.
+
+    sim: start the simulated cell (a child process, stopped at the end) and drive it;
+    otherwise controller and tracker are (host, port). config: a campaign.yaml to use
+    instead of RUN/campaign.yaml. Everything is checked before the run is touched: the
+    configuration, the robot, the plan; then the run's lock is taken (RunBusy when another
+    process drives it) before the cell is started or contacted and before the log is opened.
+    The simulated clock resumes at the run's last stored time. Other arguments as
+    :func:`campaign.measure.driver.run_campaign`.
+    """
+    run = RunFolder(run_dir, config=config)
+    cfg = run.config
+    robot = run.robot()
+    opts = RunOptions.from_config(cfg.run)
+    if max_poses is not None and max_poses < 0:
+        raise ConfigError(f"--max-poses must be >= 0, got {max_poses}")
+    if not sim and (controller is None or tracker is None):
+        raise ConfigError("give the controller and the tracker (HOST:PORT each), or use the simulated cell")
+    plan = read_plan(run.path, poses_csv)
+    robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv))
+    kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
+              verbose=verbose, plan=plan)
+    with run.lock("run"):
+        if sim:
+            from campaign.sim.launcher import SimulatedCell
+
+            with SimulatedCell(cfg.path, run.path, start_clock_s=run.clock_s()) as cell:
+                return run_campaign(run.path, robot, cell.controller, cell.tracker, opts, **kw)
+        return run_campaign(run.path, robot, controller, tracker, opts, **kw)

@@ -1,0 +1,314 @@
+"""A run folder: one object that finds a run's configuration, robot, scene, effects,
+measurement log and outputs. Every command and every library user goes through it.
+
+Layout (DESIGN.md)::
+
+    RUN/campaign.yaml          the run's configuration: robot (+ tool_frame, base_frame), scene, effects, ...
+    RUN/plan/                  poses.csv, vias.csv, dropped.csv, summary.json, tour.png   (`campaign plan`)
+    RUN/measurements.sqlite    the measurement log                                         (`run`, `import`)
+    RUN/calibration/           metrics.json, params.yaml, history.json, report.html        (`calibrate`)
+    RUN/diagnose/              diagnosis.json, report.html                                 (`diagnose`)
+    RUN/sim/                   the simulated cell's own files (its truth: never read by plan/calibrate/diagnose)
+    RUN/.lock                  held by the one process that drives or re-plans the run
+
+A run remembers its robot in RUN/campaign.yaml; no command falls back to the default robot
+for a run that records another.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import functools
+import inspect
+import json
+import os
+import sqlite3
+import time
+from pathlib import Path
+
+from campaign.config import CampaignConfig, check_names, load_config, parse_config, write_run_config
+from campaign.errors import ConfigError, DataError, RunBusy, RunHoldsMeasurements, StorageError
+from campaign.fileio import atomic_write, read_yaml_mapping
+from campaign.measure.store import MEASUREMENTS_FILE
+from campaign.paths import DEFAULT_CONFIG
+
+CONFIG_FILE = "campaign.yaml"
+LOCK_FILE = ".lock"
+
+
+def load_robot(spec, *, tool_frame=None, base_frame=None):
+    """``RobotModel.load(spec, tool_frame=..., base_frame=...)``: the frames are passed only
+    when given, so a loader without them still loads the default frames."""
+    from campaign.model.robot import RobotModel
+
+    kw = {k: v for k, v in (("tool_frame", tool_frame), ("base_frame", base_frame)) if v is not None}
+    if kw:
+        params = inspect.signature(RobotModel.load).parameters
+        missing = [k for k in kw if k not in params]
+        if missing:
+            raise ConfigError(f"{missing[0]}: this version of campaign loads only the robot's own frames")
+    return RobotModel.load(spec, **kw)
+
+
+class RunFolder:
+    """The run folder at ``path``.
+
+    config: a campaign.yaml (path or :class:`CampaignConfig`) to use instead of
+    RUN/campaign.yaml (``campaign run --config``); by default RUN/campaign.yaml, or, for a
+    folder without one, the embedded default configuration.
+    """
+
+    def __init__(self, path, *, config=None):
+        self.path = Path(path)
+        self._config_override = config
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.path)!r})"
+
+    # -- where things are -------------------------------------------------------------------
+    @property
+    def config_path(self) -> Path:
+        return self.path / CONFIG_FILE
+
+    @property
+    def measurements_path(self) -> Path:
+        return self.path / MEASUREMENTS_FILE
+
+    @property
+    def plan_dir(self) -> Path:
+        return self.path / "plan"
+
+    @property
+    def poses_csv(self) -> Path:
+        return self.plan_dir / "poses.csv"
+
+    @property
+    def calibration_dir(self) -> Path:
+        return self.path / "calibration"
+
+    @property
+    def diagnose_dir(self) -> Path:
+        return self.path / "diagnose"
+
+    @property
+    def sim_dir(self) -> Path:
+        return self.path / "sim"
+
+    @property
+    def lock_path(self) -> Path:
+        return self.path / LOCK_FILE
+
+    @property
+    def has_config(self) -> bool:
+        return self.config_path.is_file()
+
+    # -- what the run is made of --------------------------------------------------------------
+    @functools.cached_property
+    def config(self) -> CampaignConfig:
+        """The validated configuration (every bad value one ConfigError line, before any work)."""
+        if isinstance(self._config_override, CampaignConfig):
+            return self._config_override
+        if self._config_override is not None:
+            return load_config(self._config_override)
+        if self.has_config:
+            return load_config(self.config_path)
+        cfg = load_config(DEFAULT_CONFIG)
+        self._check_recorded_robot(cfg)
+        return cfg
+
+    def _check_recorded_robot(self, cfg):
+        """A folder without campaign.yaml whose log records another robot must not get the default."""
+        recorded = self.meta("robot")
+        if recorded is None:
+            return
+        default = load_robot(cfg.robot_spec)
+        if recorded != default.name:
+            raise ConfigError(f"{self.path}: its measurements record robot {recorded!r} but it has no {CONFIG_FILE}; "
+                              f"write one with `robot: <name or path>`")
+
+    @functools.cached_property
+    def _robot(self):
+        cfg = self.config
+        return load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
+
+    def robot(self):
+        """The run's RobotModel: ``RobotModel.load(cfg.robot, tool_frame=..., base_frame=...)``,
+        the robot path relative to the run's campaign.yaml."""
+        return self._robot
+
+    def scene(self):
+        """The run's cell (campaign.plan.scene.Scene)."""
+        from campaign.plan.scene import load_scene
+
+        return load_scene(self.config.scene_path)
+
+    @property
+    def effects(self) -> tuple:
+        """Effects enabled for calibration in the run's campaign.yaml, as written there."""
+        return self.config.effects
+
+    # -- the measurement log ------------------------------------------------------------------
+    def store(self, *, create: bool = False):
+        """The run's MeasurementStore (``create``: make the folder and the log if missing)."""
+        from campaign.measure.store import open_run
+
+        return open_run(self.path, create=create)
+
+    @contextlib.contextmanager
+    def _read_only_db(self):
+        """A read-only connection to the log, or None when there is none (never creates files)."""
+        if not self.measurements_path.is_file():
+            yield None
+            return
+        try:
+            db = sqlite3.connect(self.measurements_path.resolve().as_uri() + "?mode=ro", uri=True, timeout=5.0)
+        except sqlite3.Error as exc:
+            raise StorageError(f"{self.measurements_path}: cannot open ({exc})") from None
+        try:
+            yield db
+        except sqlite3.OperationalError as exc:
+            raise StorageError(f"{self.measurements_path}: cannot read ({exc})") from None
+        except sqlite3.DatabaseError as exc:
+            raise DataError(f"{self.measurements_path}: not a measurement log ({exc})") from None
+        finally:
+            db.close()
+
+    def stored_pose_count(self) -> int:
+        """Poses with a stored outcome (measured or failed); 0 without a log."""
+        with self._read_only_db() as db:
+            if db is None or not _has_table(db, "poses"):
+                return 0
+            return int(db.execute("SELECT COUNT(*) FROM poses").fetchone()[0])
+
+    def meta(self, key, default=None):
+        """A value of the log's meta table (read-only), ``default`` when absent."""
+        with self._read_only_db() as db:
+            if db is None or not _has_table(db, "meta"):
+                return default
+            row = db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+            return default if row is None else json.loads(row[0])
+
+    def clock_s(self) -> float:
+        """The campaign clock at the last thing stored (s; 0 without a log): a resumed campaign
+        starts here, so the clock never runs backwards, even after the driver was killed."""
+        if not self.measurements_path.is_file():
+            return 0.0
+        with self.store() as store:
+            return store.clock_s()
+
+    def refuse_if_measured(self, action: str, advice: str) -> None:
+        """RunHoldsMeasurements (one line) when the log holds any pose: ``action`` would lose
+        them; ``advice`` says what to do instead."""
+        n = self.stored_pose_count()
+        if n:
+            raise RunHoldsMeasurements(f"{self.path} holds {n:,} measured poses; {action} would replace them, "
+                                       f"so it refuses: {advice}")
+
+    # -- one driver at a time -----------------------------------------------------------------
+    @contextlib.contextmanager
+    def lock(self, command: str):
+        """Hold RUN/.lock (``flock``) for the block: a second holder is refused at once with
+        RunBusy naming the process that holds it. The lock goes with the process: released
+        on any exit, even kill -9, so a stale lock never blocks a resume. When the block
+        fails, a lock file (and run folder) that this call created is removed again, so a
+        refused command leaves no trace."""
+        made_dir = not self.path.exists()
+        fd, made_file = self._acquire(command)
+        ok = False
+        try:
+            yield self
+            ok = True
+        finally:
+            if not ok and made_file:
+                with contextlib.suppress(OSError):
+                    self.lock_path.unlink()
+                if made_dir:
+                    with contextlib.suppress(OSError):
+                        self.path.rmdir()  # only when empty
+            os.close(fd)  # releases the flock
+
+    def _acquire(self, command: str):
+        """(fd holding the flock on RUN/.lock, whether this call created the file)."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StorageError(f"{self.path}: cannot create the run folder ({exc.strerror})") from None
+        for _ in range(100):
+            made = False
+            try:
+                try:
+                    fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+                    made = True
+                except FileExistsError:
+                    fd = os.open(self.lock_path, os.O_RDWR)
+            except FileNotFoundError:
+                continue  # removed between the two opens: try again
+            except OSError as exc:
+                raise StorageError(f"{self.lock_path}: cannot open the run lock ({exc.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _read_holder(fd)
+                os.close(fd)
+                raise RunBusy(f"{self.path} is in use by `campaign {holder.get('command', '?')}` "
+                              f"(process {holder.get('pid', '?')}); one process drives a run at a time: "
+                              "wait for it to finish or stop it") from None
+            try:  # the file may have been removed by a failing holder while we waited: lock the one on disk
+                same = os.stat(self.lock_path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:
+                os.close(fd)
+                continue
+            info = json.dumps({"pid": os.getpid(), "command": command, "since_unix_s": time.time()})
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, info.encode(), 0)
+            return fd, made
+        raise StorageError(f"{self.lock_path}: the run lock keeps disappearing")
+
+    # -- writing the run's configuration --------------------------------------------------------
+    def write_config(self, cfg: CampaignConfig) -> Path:
+        """Make ``cfg`` (paths made absolute) the run's campaign.yaml."""
+        path = write_run_config(cfg, self.path)
+        self.__dict__.pop("config", None)
+        self.__dict__.pop("_robot", None)
+        return path
+
+    def record_robot(self, spec: str, *, tool_frame=None, base_frame=None) -> Path:
+        """Write RUN/campaign.yaml for a folder without one, recording its robot (import)."""
+        doc = {"robot": str(spec), "tool_frame": tool_frame, "base_frame": base_frame, "effects": []}
+        cfg = parse_config(doc, self.config_path)
+        return self.write_config(cfg)
+
+    def add_effects(self, names) -> tuple:
+        """Enable effects in RUN/campaign.yaml (kept in order, no duplicates); the new list.
+
+        The rest of the file is kept as it is (only its ``effects:`` key changes)."""
+        names = check_names(list(names), "effects")
+        if not self.has_config:
+            raise ConfigError(f"{self.config_path}: no such file (the run has no configuration to add effects to)")
+        doc = read_yaml_mapping(self.config_path)
+        cfg = parse_config(doc, self.config_path)  # refuse to edit a file that does not validate
+        effects = tuple(dict.fromkeys([*cfg.effects, *names]))
+        doc["effects"] = list(effects)
+        parse_config(doc, self.config_path)
+        import yaml
+
+        atomic_write(self.config_path, yaml.safe_dump(doc, sort_keys=False))
+        self.__dict__.pop("config", None)
+        return effects
+
+
+def _has_table(db, name) -> bool:
+    return db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)).fetchone() is not None
+
+
+def _read_holder(fd) -> dict:
+    try:
+        return json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+    except (OSError, ValueError):
+        return {}
+
+
+__all__ = ["RunFolder", "load_robot", "CONFIG_FILE", "MEASUREMENTS_FILE"]
