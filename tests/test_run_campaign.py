@@ -133,7 +133,7 @@ def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, r
 
 
 def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot, capsys):
-    from campaign.measure.driver import SimulatedCell
+    from campaign.sim.launcher import SimulatedCell
 
     run = make_run(tmp_path, robot, n=10)
     with SimulatedCell(run / "campaign.yaml", run) as cell:

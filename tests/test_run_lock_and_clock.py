@@ -1,0 +1,212 @@
+"""One driver per run, a campaign clock that never runs backwards, storage errors without loss."""
+
+import os
+import resource
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from campaign.cli import main
+from campaign.paths import DEFAULT_SCENE
+from campaign.sim.truth import random_joint_poses
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def planned_run(tmp_path, robot, n, name="run", sim=None):
+    """A run folder with ``n`` random poses planned and a campaign.yaml for the simulated cell."""
+    run = tmp_path / name
+    (run / "plan").mkdir(parents=True)
+    q = random_joint_poses(robot, n, seed=5)
+    lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{500 + i}," + ",".join(repr(float(v)) for v in q[i]) for i in range(n)]
+    (run / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
+    cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
+           "run": {"timeout_s": 2.0, "backoff_s": 0.01, "drift_check_every": 0},
+           "sim": {"seed": 0, "time_factor": 0.0, **(sim or {})}}
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    return run
+
+
+def rows(run, sql):
+    with sqlite3.connect(f"file:{run / 'measurements.sqlite'}?mode=ro", uri=True) as db:
+        return db.execute(sql).fetchall()
+
+
+def stored_count(run):
+    try:
+        return rows(run, "SELECT COUNT(*) FROM poses")[0][0]
+    except sqlite3.OperationalError:
+        return 0
+
+
+def start_driver(run, *extra, **kw):
+    return subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet", *extra],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV, **kw)
+
+
+def wait_for(predicate, timeout_s=60.0):
+    deadline = time.time() + timeout_s
+    while time.time() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+class Listener:
+    """A TCP port that records whether anyone connected or sent a byte."""
+
+    def __init__(self):
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(16)
+        self.port = self.sock.getsockname()[1]
+        self.connections = 0
+        self.bytes = 0
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self):
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            self.connections += 1
+            conn.settimeout(0.5)
+            try:
+                self.bytes += len(conn.recv(65536))
+            except OSError:
+                pass
+            conn.close()
+
+    def close(self):
+        self.sock.close()
+
+
+def test_a_second_driver_is_refused_before_it_contacts_the_cell_or_the_store(tmp_path, robot, capsys):
+    run = planned_run(tmp_path, robot, n=40, sim={"time_factor": 5e-3})
+    first = start_driver(run)
+    try:
+        assert wait_for(lambda: stored_count(run) >= 2)
+        controller, tracker = Listener(), Listener()
+        sessions_before = rows(run, "SELECT COUNT(*) FROM events WHERE kind = 'session_start'")[0][0]
+        rc = main(["run", str(run), "--controller", f"127.0.0.1:{controller.port}",
+                   "--tracker", f"127.0.0.1:{tracker.port}", "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        time.sleep(0.3)
+        assert rc == 1 and len(err) == 1
+        assert f"in use by `campaign run` (process {first.pid})" in err[0]
+        assert controller.connections == tracker.connections == 0 and controller.bytes == tracker.bytes == 0
+        # a second simulated driver too: no second cell, no second session, no second set-up
+        rc = main(["run", str(run), "--sim", "--quiet"])
+        assert rc == 1 and "in use by `campaign run`" in capsys.readouterr().err
+        assert rows(run, "SELECT COUNT(*) FROM events WHERE kind = 'session_start'")[0][0] == sessions_before
+        controller.close()
+        tracker.close()
+        assert first.wait(120) == 0
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert stored_count(run) == 40
+    assert rows(run, "SELECT COUNT(*) FROM events WHERE kind = 'setup'")[0][0] == 1
+    assert rows(run, "SELECT COUNT(*) FROM events WHERE kind = 'session_start'")[0][0] == 1
+    # the lock is released at the end: a re-run has nothing to measure and succeeds
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+
+
+def test_plan_is_refused_while_a_driver_holds_the_run(tmp_path, robot, capsys):
+    run = planned_run(tmp_path, robot, n=30, sim={"time_factor": 5e-3})
+    first = start_driver(run)
+    try:
+        assert wait_for(lambda: (run / ".lock").is_file() and (run / ".lock").read_text().strip() != "")
+        plan_before = (run / "plan" / "poses.csv").read_bytes()
+        rc = main(["plan", "--run", str(run), "--grid-scale", "0.2", "--quiet"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 1 and len(err) == 1
+        assert "in use by `campaign run`" in err[0] or "measured poses" in err[0]
+        assert (run / "plan" / "poses.csv").read_bytes() == plan_before
+    finally:
+        first.kill()
+        first.wait()
+
+
+def test_kill_9_and_resume_keep_the_campaign_clock_monotone(tmp_path, robot):
+    sim = {"time_factor": 1e-3}
+    reference = planned_run(tmp_path, robot, n=60, name="reference", sim=sim)
+    assert main(["run", str(reference), "--sim", "--quiet"]) == 0
+    clock_reference = rows(reference, "SELECT value FROM meta WHERE key = 'campaign_clock_s'")[0][0]
+
+    run = planned_run(tmp_path, robot, n=60, name="killed", sim=sim)
+    proc = start_driver(run)
+    assert wait_for(lambda: stored_count(run) >= 20)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    before = rows(run, "SELECT seq, time_s FROM poses ORDER BY seq")
+    t_kill = max(t for _, t in before)
+    assert 20 <= len(before) < 60 and t_kill > 0
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0  # the killed driver's lock is gone with it
+    after = rows(run, "SELECT seq, time_s FROM poses ORDER BY seq")
+    assert after[: len(before)] == before and len(after) == 60
+    times = [t for _, t in after]
+    assert all(b >= a for a, b in zip(times, times[1:])), "the campaign clock ran backwards"
+    assert min(times[len(before):]) > t_kill
+    clock = float(rows(run, "SELECT value FROM meta WHERE key = 'campaign_clock_s'")[0][0])
+    # the same poses (plus the one repeated after the kill) take at least as long as without a kill
+    assert clock >= 0.98 * float(clock_reference)
+    sessions = rows(run, "SELECT time_s FROM events WHERE kind = 'session_end'")
+    assert sessions and sessions[-1][0] == pytest.approx(clock)
+
+
+def _limit_file_size(limit_bytes):
+    def set_limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return set_limit
+
+
+def test_a_full_disk_is_one_line_and_loses_nothing(tmp_path, robot):
+    run = planned_run(tmp_path, robot, n=300)
+    proc = subprocess.run([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
+                          capture_output=True, text=True, env=ENV, timeout=300,
+                          preexec_fn=_limit_file_size(96 * 1024))
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1, proc.stderr
+    assert len(err) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "measurements.sqlite" in err[0] and "full" in err[0] and "everything stored before is kept" in err[0]
+    stored = rows(run, "SELECT pose_id FROM poses ORDER BY pose_id")
+    assert 0 < len(stored) < 300
+    # with room again, a re-run measures the rest, each pose once
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    assert [r[0] for r in rows(run, "SELECT pose_id FROM poses ORDER BY pose_id")] == list(range(500, 800))
+
+
+def test_a_locked_database_is_one_line_and_loses_nothing(tmp_path, robot, capsys, monkeypatch):
+    from campaign.measure import store as store_module
+
+    run = planned_run(tmp_path, robot, n=10)
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "4"]) == 0
+    capsys.readouterr()
+    before = rows(run, "SELECT pose_id, time_s, x, y, z FROM poses ORDER BY pose_id")
+    monkeypatch.setattr(store_module, "BUSY_TIMEOUT_S", 0.2)
+    other = sqlite3.connect(run / "measurements.sqlite", timeout=0.2)
+    other.execute("BEGIN EXCLUSIVE")
+    try:
+        rc = main(["run", str(run), "--sim", "--quiet"])
+    finally:
+        other.rollback()
+        other.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1 and "database is locked" in err[0]
+    assert rows(run, "SELECT pose_id, time_s, x, y, z FROM poses ORDER BY pose_id") == before
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    assert len(rows(run, "SELECT pose_id FROM poses")) == 10
