@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import ConfigError
-from campaign.model.kinematics import forward, pose_error
+from campaign.model.kinematics import pose_error
 
 #: hidden sizes tried by default: the paper's four and one beyond
 DEFAULT_SIZES = ((16, 16), (32, 16), (32, 32), (64, 32), (128, 64))
@@ -92,7 +92,3 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
              "report_html": "<h2>Cross-validation of the residual network (Table 5)</h2>"
                             f"<pre>{html.escape(table5)}</pre>"}
     return residuals, extra
-
-
-def nominal_poses(robot, q):
-    return forward(robot, q)

@@ -190,25 +190,3 @@ def point_primitive_distance(points, kind, size, R, c):
         d = points - c[:, None, :] if points.ndim == 3 else points - c
         local = [d[0] * R[0, k] + d[1] * R[1, k] + d[2] * R[2, k] for k in range(3)]
     return local_point_distance(local, kind, size)
-
-
-def point_box_distance(p, obstacle):
-    """Distance (…,) from points (…, 3) in F_I to a box obstacle (0 inside)."""
-    T = obstacle.T_I
-    local = (p - T[:3, 3]) @ T[:3, :3]
-    half = 0.5 * np.asarray(obstacle.size)
-    d = np.maximum(np.abs(local) - half, 0.0)
-    return np.linalg.norm(d, axis=-1)
-
-
-def point_cylinder_distance(p, obstacle):
-    T = obstacle.T_I
-    local = (p - T[:3, 3]) @ T[:3, :3]
-    radius, height = obstacle.size
-    dr = np.maximum(np.linalg.norm(local[..., :2], axis=-1) - radius, 0.0)
-    dz = np.maximum(np.abs(local[..., 2]) - 0.5 * height, 0.0)
-    return np.hypot(dr, dz)
-
-
-def point_obstacle_distance(p, obstacle):
-    return point_box_distance(p, obstacle) if obstacle.kind == "box" else point_cylinder_distance(p, obstacle)

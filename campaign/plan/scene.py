@@ -45,10 +45,6 @@ class Scene:
     wall_offset_m: float
 
     @property
-    def tracker_pose_in_I(self) -> np.ndarray:
-        return self.T_IL
-
-    @property
     def T_LI(self) -> np.ndarray:
         from campaign.measure.reflectors import invert
 
