@@ -75,6 +75,12 @@ class Information:
     def n_unknowns(self) -> int:
         return self.J.shape[2]
 
+    def subset(self, index) -> "Information":
+        """The candidates ``index`` alone (same column scale)."""
+        index = np.asarray(index, dtype=np.int64)
+        return Information(self.names, self.units, self.J[index], self.noise_cov[index], self.blocks[index],
+                           self.scale)
+
     def information(self, index) -> np.ndarray:
         """Scaled information matrix (p, p) of the poses ``index`` (repeats count twice)."""
         B = self.blocks[np.asarray(index, dtype=np.int64)].reshape(-1, self.n_unknowns)
