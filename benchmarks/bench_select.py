@@ -14,7 +14,9 @@ ground_compliance, `calibrate`'s estimator) and scored by
 * the held-out mean position error (measured held-out poses: model + tracker noise),
 * the mean position error against the noise-free truth over all suitable poses (the truth
   seen in the campaign's own set-up frame),
-* the prediction of the same two from the design alone (selection.predict_accuracy),
+* the prediction of the same two from the design alone (selection.predict_accuracy), checked
+  against the mean of ``--mc`` fresh noise draws of each D-optimal campaign (the prediction is
+  an expectation; one campaign's error against the truth varies by ~15 % at 30 poses),
 * the campaign's hours (tour in Ruckig time + settle + tracker; the plan's validation poses and
   repeats added in ``hours_with_validation``).
 
@@ -77,6 +79,8 @@ def main():
     ap.add_argument("--sizes", default="20,30,40,60,120,250,1000,all")
     ap.add_argument("--seeds", type=int, default=5, help="random subsets per size")
     ap.add_argument("--a-max", type=int, default=250, help="largest size for the A-optimal design")
+    ap.add_argument("--mc", type=int, default=8,
+                    help="fresh noise draws per D-optimal design (<= 1000 poses) for the prediction check")
     ap.add_argument("--no-cli", action="store_true", help="skip the end-to-end CLI check")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "select.json"))
     ap.add_argument("--plot", default=str(ROOT / "docs" / "img" / "select.png"))
@@ -110,13 +114,29 @@ def main():
     t_info = time.perf_counter() - t0
     info_pool = info.subset(pool)
 
-    def evaluate(idx):
-        model = CalibrationModel(robot=robot, effects=EFFECTS).fit(meas.q[idx], meas.T_IE[idx])
+    def measured(idx, seed=None):
+        """(held-out, truth) mean position errors (mm) of the model calibrated on idx; with a
+        seed, a fresh campaign (design + held-out poses measured with one set-up)."""
+        if seed is None:
+            mq, mT, hT, Tt = meas.q[idx], meas.T_IE[idx], meas.T_IE[held], T_true
+        else:
+            both = synthesize(truth, q_all[np.concatenate([idx, held])], seed=seed)
+            mq, mT, hT = both.q[: len(idx)], both.T_IE[: len(idx)], both.T_IE[len(idx):]
+            Tt = truth.pose_in_measured_frame(q_all, both.T_LI)
+        model = CalibrationModel(robot=robot, effects=EFFECTS).fit(mq, mT)
         T = model.predict(q_all)
+        return mean_pos_mm(pose_error(T[held], hT)), mean_pos_mm(pose_error(T, Tt))
+
+    def evaluate(idx, mc=0):
+        h, t = measured(idx)
         pred = S.predict_accuracy(info, idx)
-        return {"heldout_mm": mean_pos_mm(pose_error(T[held], meas.T_IE[held])),
-                "truth_mm": mean_pos_mm(pose_error(T, T_true)),
-                "predicted_heldout_mm": pred.heldout_position_mm, "predicted_truth_mm": pred.model_position_mm}
+        out = {"heldout_mm": h, "truth_mm": t,
+               "predicted_heldout_mm": pred.heldout_position_mm, "predicted_truth_mm": pred.model_position_mm}
+        if mc:
+            draws = np.array([measured(idx, seed=100 + k) for k in range(mc)])
+            out["mc"] = {"draws": mc, "heldout_mm_mean": float(draws[:, 0].mean()),
+                         "truth_mm_mean": float(draws[:, 1].mean()), "truth_mm_sd": float(draws[:, 1].std(ddof=1))}
+        return out
 
     sizes = [len(pool) if s == "all" else int(s) for s in args.sizes.split(",")]
     rows = []
@@ -126,7 +146,7 @@ def main():
         sel = S.select(info_pool, n) if n < len(pool) else None
         idx = pool[sel.index] if sel else pool
         row["select_time_s"] = time.perf_counter() - t0
-        row["D"] = evaluate(idx)
+        row["D"] = evaluate(idx, mc=args.mc if n <= 1000 else 0)
         row["D"]["hours"] = hours(idx)
         nv = max(S.MIN_VALIDATION, int(round(S.VALIDATION_FRACTION * n)))
         row["D"]["hours_with_validation"] = hours(np.concatenate([idx, held[:nv]])) + \
@@ -174,8 +194,14 @@ def main():
     if 120 in by_n:
         checks["D120_heldout_ratio"] = by_n[120]["D"]["heldout_ratio_to_full"]
         checks["D120_within_1.10"] = by_n[120]["D"]["heldout_ratio_to_full"] <= 1.10
-    rel = {str(r["n"]): {"heldout": r["D"]["predicted_heldout_mm"] / r["D"]["heldout_mm"] - 1,
-                         "truth": r["D"]["predicted_truth_mm"] / r["D"]["truth_mm"] - 1} for r in rows}
+    # the prediction is an expectation: against the mean of fresh campaigns where there are
+    # draws (one campaign's truth error varies by ~15 % at 30 poses), else the one campaign
+    def ref(d, key):
+        return d["mc"][f"{key}_mm_mean"] if "mc" in d else d[f"{key}_mm"]
+
+    rel = {str(r["n"]): {"heldout": r["D"]["predicted_heldout_mm"] / ref(r["D"], "heldout") - 1,
+                         "truth": r["D"]["predicted_truth_mm"] / ref(r["D"], "truth") - 1,
+                         "truth_single_campaign": r["D"]["predicted_truth_mm"] / r["D"]["truth_mm"] - 1} for r in rows}
     checks["prediction_relative_error_D"] = rel
     checks["prediction_within_20_percent"] = all(abs(v["heldout"]) <= 0.2 and abs(v["truth"]) <= 0.2 for v in rel.values())
     report["checks"] = checks

@@ -193,3 +193,20 @@ def test_budget_plan_fits_its_hours(tmp_path):
     s = json.loads((run / "plan" / "summary.json").read_text())
     assert s["estimated_campaign"]["total_s"] <= 0.4 * 3600 * 1.02
     assert s["selection"]["selected"] >= 5
+
+
+def test_a_small_campaign_is_tested_on_its_validation_poses_and_trains_no_network(tmp_path, selected_run, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(selected_run, run)
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "no neural compensator" in out and "below the 250" in out
+    m = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert m["order"] == ["nominal", "geometric"]
+    _, val = _read_csv(run / "plan" / "validation.csv")
+    assert m["stages"]["geometric"]["test"]["n_poses"] == len(val)
+    assert m["stages"]["geometric"]["train"]["n_poses"] == 12 + 6

@@ -30,6 +30,11 @@ from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
 
 CALIBRATION_DIR = "calibration"
+#: fewer training poses than this: `calibrate` trains no network unless asked (``ann=True``).
+#: benchmarks/bench_select_ann.py (smooth effects the physical model lacks, the case most
+#: favourable to the network): its cross-validation does not beat the geometric model with 120
+#: training poses (the Bayesian regularisation leaves it at zero) and does with 250
+ANN_MIN_TRAIN_POSES = 250
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
 
     effects: names of physical effects to identify jointly with the geometric parameters
     (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
-    compensator (campaign.ann). progress: optional callable receiving status lines (str) and,
+    compensator (campaign.ann); ``"auto"``: only with at least ANN_MIN_TRAIN_POSES training
+    poses. progress: optional callable receiving status lines (str) and,
     during ANN training, campaign.ann.selection.TrainingProgress reports.
     """
     run_dir = Path(run_dir)
@@ -140,6 +146,13 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model)
     extra = {"identification_time_s": t_geo, "effects": list(effects)}
+    if ann == "auto":
+        ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
+        if not ann:
+            extra["ann_skipped"] = (f"no neural compensator: {int(tr.sum())} training poses are below the "
+                                    f"{ANN_MIN_TRAIN_POSES} where its cross-validation beats the physical model "
+                                    "(a short campaign calibrates the physical model; --ann trains one anyway)")
+            say(extra["ann_skipped"])
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
@@ -253,5 +266,7 @@ def summary_text(result: CalibrationResult) -> str:
                      + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
     if m.correlated_pairs_:
         lines.append("strongly correlated: " + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in m.correlated_pairs_))
+    if "ann_skipped" in result.extra:
+        lines.append(result.extra["ann_skipped"])
     lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml, report.html")
     return "\n".join(lines)

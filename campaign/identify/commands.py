@@ -25,7 +25,7 @@ def register(sub):
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
     ann = p.add_mutually_exclusive_group()
     ann.add_argument("--ann", dest="ann", action="store_true", default=None,
-                     help="train the neural residual compensator (default)")
+                     help="train the neural residual compensator (default from 250 training poses)")
     ann.add_argument("--no-ann", dest="ann", action="store_false", help="geometric (and effects) only")
     p.add_argument("--sizes", default=None, metavar="N1xN2,...",
                    help="hidden sizes for the ANN's cross-validation, e.g. 16x16,32x16,32x32,64x32")
@@ -86,7 +86,7 @@ def _calibrate(args):
         ann_options["max_epochs"] = args.epochs
     check_ann_options(ann_options)
     progress = None if args.quiet else _CalibrateProgress()
-    ann = True if args.ann is None else args.ann
+    ann = "auto" if args.ann is None else args.ann  # auto: not for a campaign too small for a network
     result = calibrate(args.run, effects=args.effects, position_only=args.position_only, ann=ann,
                        ann_options=ann_options, progress=progress)
     if progress is not None:
