@@ -25,7 +25,7 @@ from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split
 from campaign.measure.store import open_run
-from campaign.model.kinematics import PARAM_NAMES, forward, pose_error
+from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
 
@@ -197,7 +197,7 @@ def _param_block(model: CalibrationModel) -> dict:
         ],
         "p_e": [float(v) for v in model.params_],
         "p_e_min_norm": [float(v) for v in model.params_min_norm_],
-        "p_e_names": list(PARAM_NAMES),
+        "p_e_names": list(model.robot.param_names),
         "effects": {},
         "absorbed_effect_parameters": [model.unknown_names_[i] for i in model.absorbed_],
         "noise_sigma": model.noise_sigma_,

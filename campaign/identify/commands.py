@@ -13,9 +13,12 @@ def register(sub):
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
     p.set_defaults(func=_import)
 
-    p = sub.add_parser("export", help="write a run's measured poses as a measured-pose CSV")
+    p = sub.add_parser("export", help="write a run's measured poses as a measured-pose CSV, or its calibrated "
+                                      "geometric model as a URDF")
     p.add_argument("run", metavar="DIR", help="run folder")
-    p.add_argument("--csv", required=True, metavar="OUT", help="CSV file to write")
+    p.add_argument("--csv", metavar="OUT", help="CSV file to write (the measured poses)")
+    p.add_argument("--urdf", metavar="OUT", help="URDF to write: the robot's URDF with the identified geometric "
+                                                  "model folded into its joint origins (after `campaign calibrate`)")
     p.set_defaults(func=_export)
 
     p = sub.add_parser("calibrate", help="identify the model of a run; write calibration/metrics.json and params.yaml")
@@ -64,9 +67,21 @@ def _import(args):
 
 
 def _export(args):
+    from campaign.errors import ConfigError
     from campaign.measure.csvio import write_measured_csv
     from campaign.run import RunFolder
 
+    if not args.csv and not args.urdf:
+        raise ConfigError("export: give --csv OUT and/or --urdf OUT")
+    if args.urdf:
+        from campaign.identify.use import calibrated_geometry
+        from campaign.model.export import write_calibrated_urdf
+
+        robot, p_e = calibrated_geometry(args.run)
+        write_calibrated_urdf(robot, p_e, args.urdf)
+        print(f"wrote the calibrated geometric model of {robot.name} ({robot.n_params} parameters) to {args.urdf}")
+        if not args.csv:
+            return 0
     with RunFolder(args.run).store() as store:
         poses = store.load_measured()
     write_measured_csv(args.csv, poses)

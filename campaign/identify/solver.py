@@ -22,7 +22,7 @@ import numpy as np
 from campaign.effects.base import EffectSet, make_effect, model_pose
 from campaign.errors import DataError, IdentificationError, NotFittedError
 from campaign.model.base_params import BaseParameters, base_parameters
-from campaign.model.kinematics import JOINT_OFFSET_INDEX, error_jacobian, forward, pose_error
+from campaign.model.kinematics import error_jacobian, forward, pose_error
 from campaign.model.rotations import rotvec_to_matrix
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
 
@@ -92,7 +92,7 @@ class CalibrationModel:
         cols = [J_b]
         if es.n_params:
             J_th = np.empty((len(q), 6, es.n_params))
-            J_q = J_map @ J_chain[:, :, list(JOINT_OFFSET_INDEX)]  # d dz / d q
+            J_q = J_map @ J_chain[:, :, list(self.robot.joint_offset_index)]  # d dz / d q
             for k in range(es.n_params):
                 th = theta.copy()
                 th[k] += _FD_STEP
@@ -111,14 +111,16 @@ class CalibrationModel:
     def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None, init: dict | None = None):
         """Identify the base parameters (and effect parameters) from measured poses.
 
-        q: (n, 6) rad; T_meas: (n, 4, 4) measured T_IE (m); context: per-pose values.
+        q: (n, N) rad (m for prismatic joints); T_meas: (n, 4, 4) measured T_IE (m); context:
+        per-pose values.
         init: optional start values by unknown name (e.g. another fit's ``values_``);
         unknowns not named start at 0 (the paper's start point).
         """
         q = np.asarray(q, dtype=float)
         T_meas = np.asarray(T_meas, dtype=float)
-        if q.ndim != 2 or q.shape[1] != 6 or T_meas.shape != (len(q), 4, 4):
-            raise DataError(f"fit: expected q (n, 6) and T_meas (n, 4, 4), got {q.shape} and {T_meas.shape}")
+        N = self.robot.n_joints
+        if q.ndim != 2 or q.shape[1] != N or T_meas.shape != (len(q), 4, 4):
+            raise DataError(f"fit: expected q (n, {N}) and T_meas (n, 4, 4), got {q.shape} and {T_meas.shape}")
         context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
         self.effect_set_ = self._effect_set()
         self.effect_set_.check_context(context, len(q))
@@ -267,7 +269,7 @@ class CalibrationModel:
             raise NotFittedError("CalibrationModel is not fitted; call fit() first")
 
     def predict(self, q, context=None) -> np.ndarray:
-        """Model pose T_IE (n, 4, 4) for joint coordinates q (n, 6) rad."""
+        """Model pose T_IE (n, 4, 4) for joint coordinates q (n, N) rad (m for prismatic joints)."""
         self._check()
         return self._model_T(np.asarray(q, dtype=float), self.params_, self.effect_params_, context or {})
 

@@ -25,11 +25,16 @@ from campaign.effects.base import EffectSet, make_effect, model_pose
 from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_open, read_yaml_mapping
 from campaign.measure.csvio import read_numeric_table
-from campaign.model.kinematics import N_PARAMS, PARAM_NAMES, forward, pose_error
+from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.model.rotations import matrix_to_rotvec
 
-JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
+JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")  # the default 6-joint robot's
+
+
+def joint_columns(n_joints: int) -> tuple:
+    """``q1..qN``."""
+    return tuple(f"q{j}" for j in range(1, n_joints + 1))
 POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
 #: networks by the prior model they were trained after ("nominal" or the identified model)
 ANN_FILES = {"nominal": "ann_nominal.pt", "model": "ann_geometric.pt"}
@@ -50,8 +55,9 @@ def _block(robot, block: dict, source: Path, where: str) -> _Model:
         names = list(block["p_e_names"])
         p_e = np.asarray(block["p_e"], dtype=float)
         effects = block.get("effects") or {}
-        if names != list(PARAM_NAMES) or p_e.shape != (N_PARAMS,) or not np.all(np.isfinite(p_e)):
-            raise DataError(f"{source}: {where}p_e must be the {N_PARAMS} finite values named as in Table 2")
+        if names != list(robot.param_names) or p_e.shape != (robot.n_params,) or not np.all(np.isfinite(p_e)):
+            raise DataError(f"{source}: {where}p_e must be the {robot.n_params} finite values named as "
+                            f"robot.param_names of {robot.name}")
         made, theta = [], []
         for name, spec in effects.items():
             eff = make_effect(name, robot)
@@ -99,7 +105,7 @@ class CalibratedRobot:
         main = _block(self.robot, params, params_path, "")
         geo = _block(self.robot, params["geometric_only"], params_path, "geometric_only.") \
             if "geometric_only" in params else main
-        models = {"nominal": _Model("nominal", np.zeros(N_PARAMS)), "geometric": geo, main.stage: main}
+        models = {"nominal": _Model("nominal", np.zeros(self.robot.n_params)), "geometric": geo, main.stage: main}
         prior, net_file = self.stage, None
         if self.stage == "ann":
             prior, net_file = "nominal", ANN_FILES["nominal"]
@@ -124,8 +130,8 @@ class CalibratedRobot:
         return tuple(k for e in self.model.effects.effects for k in e.context_keys)
 
     def predict(self, q, context=None) -> np.ndarray:
-        """Calibrated pose of E in F_I, (n, 4, 4), for joint coordinates q (n, 6) rad."""
-        q = np.asarray(q, dtype=float).reshape(-1, 6)
+        """Calibrated pose of E in F_I, (n, 4, 4), for joint coordinates q (n, N) rad."""
+        q = np.asarray(q, dtype=float).reshape(-1, self.robot.n_joints)
         self.model.effects.check_context(context or {}, len(q))
         T = model_pose(self.robot, q, self.model.p_e, self.model.effects, self.model.theta, context or {})
         if self.network is not None:
@@ -136,7 +142,7 @@ class CalibratedRobot:
 
     def compensate(self, T_target, q_start, context=None, *, tol_m: float = 1e-9, tol_rad: float = 1e-8,
                    max_iter: int = 50, step_rad: float = 1e-6, max_step_rad: float = 0.1):
-        """Joint commands q (n, 6) with predict(q) = T_target, iterated from q_start.
+        """Joint commands q (n, N) with predict(q) = T_target, iterated from q_start.
 
         Levenberg-Marquardt per pose (a Newton step where the Jacobian is well conditioned,
         damped near a singularity, steps of at most ``max_step_rad``), the Jacobian of the
@@ -146,7 +152,7 @@ class CalibratedRobot:
         folded) ends unconverged, with its remaining residual.
         """
         T_target = np.asarray(T_target, dtype=float).reshape(-1, 4, 4)
-        q, r, ok = self._solve(T_target, np.array(q_start, dtype=float).reshape(-1, 6), context,
+        q, r, ok = self._solve(T_target, np.array(q_start, dtype=float).reshape(-1, self.robot.n_joints), context,
                                tol_m, tol_rad, max_iter, step_rad, max_step_rad)
         return q, r, ok
 
@@ -162,16 +168,17 @@ class CalibratedRobot:
             if len(idx) == 0:
                 break
             ctx = _rows(context, idx)
-            J = np.empty((len(idx), 6, 6))
-            for j in range(6):
-                dq = np.zeros(6)
+            N = q.shape[1]
+            J = np.empty((len(idx), 6, N))
+            for j in range(N):
+                dq = np.zeros(N)
                 dq[j] = step_rad
                 r_plus = pose_error(self.predict(q[idx] + dq, ctx), T_target[idx])
                 r_minus = pose_error(self.predict(q[idx] - dq, ctx), T_target[idx])
                 J[:, :, j] = (r_plus - r_minus) / (2 * step_rad)
             JtJ = np.einsum("nki,nkj->nij", J, J)
             g = np.einsum("nki,nk->ni", J, r[idx])
-            damping = lam[idx, None, None] * (np.eye(6) * np.einsum("nii->ni", JtJ)[:, None, :] + 1e-12 * np.eye(6))
+            damping = lam[idx, None, None] * (np.eye(N) * np.einsum("nii->ni", JtJ)[:, None, :] + 1e-12 * np.eye(N))
             step = -np.linalg.solve(JtJ + damping, g[:, :, None])[:, :, 0]
             big = np.abs(step).max(axis=1) > max_step_rad
             step[big] *= (max_step_rad / np.abs(step[big]).max(axis=1))[:, None]
@@ -184,6 +191,20 @@ class CalibratedRobot:
         return q, r, converged
 
 
+def calibrated_geometry(run_dir) -> tuple:
+    """(robot, p_e (6N + 12,)) of a calibrated run: the geometric-only identification."""
+    from campaign.identify.calibrate import CALIBRATION_DIR, load_robot_for_run
+
+    params_path = Path(run_dir) / CALIBRATION_DIR / "params.yaml"
+    if not params_path.is_file():
+        raise DataError(f"{params_path}: not found; run `campaign calibrate {run_dir}` first")
+    params = read_yaml_mapping(params_path, DataError)
+    robot = load_robot_for_run(run_dir)
+    block = params.get("geometric_only", params)
+    return robot, _block(robot, {"p_e_names": block.get("p_e_names"), "p_e": block.get("p_e")}, params_path,
+                         "geometric_only." if "geometric_only" in params else "").p_e
+
+
 def _rows(context, idx):
     return {k: np.asarray(v)[idx] for k, v in (context or {}).items()}
 
@@ -191,18 +212,23 @@ def _rows(context, idx):
 def read_joint_csv(path, robot: RobotModel, context_keys=()) -> tuple:
     """Joint coordinates (and the context columns an effect needs) from a CSV.
 
-    Header: ``q1..q6`` (rad), optionally ``pose_id`` and any context columns (``time_s``,
-    ``temperature_c``, ...). Returns (pose_id (n,), q (n, 6), context dict).
+    Header: ``q1..qN`` (rad, m for prismatic joints; in the controller's convention, converted
+    by robot.yaml's ``controller``), optionally ``pose_id`` and any context columns
+    (``time_s``, ``temperature_c``, ...). Returns (pose_id (n,), q (n, N) model, context dict).
     """
-    header, col, lines = read_numeric_table(path, JOINT_COLUMNS)
+    cols = joint_columns(robot.n_joints)
+    header, col, lines = read_numeric_table(path, cols)
     missing = [k for k in context_keys if k not in col]
     if missing:
         raise DataError(f"{path}: the calibrated model needs the column(s) {', '.join(missing)} "
                         f"(context of its effects)")
-    q = np.stack([col[c] for c in JOINT_COLUMNS], axis=1)
+    extra = [h for h in header if h.startswith("q") and h[1:].isdigit() and h not in cols]
+    if extra:
+        raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
+    q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1))
     robot.check_joints(q, field=f"{path}: q", slack=1e-6)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
-    context = {k: col[k] for k in header if k not in JOINT_COLUMNS and k != "pose_id"}
+    context = {k: col[k] for k in header if k not in cols and k != "pose_id"}
     return pose_id, q, context
 
 
@@ -226,9 +252,10 @@ def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):
     """Rows ``pose_id,q1..q6,x,y,z,rx,ry,rz`` (m, rad) of the calibrated poses."""
     T = calibrated.predict(q, context)
     rv = matrix_to_rotvec(T[:, :3, :3])
-    header = ["pose_id", *JOINT_COLUMNS, *POSE_COLUMNS]
+    header = ["pose_id", *joint_columns(calibrated.robot.n_joints), *POSE_COLUMNS]
+    q_out = calibrated.robot.to_controller_q(q)
     rows = [[int(i), *(repr(float(v)) for v in qq), *(repr(float(v)) for v in T[k, :3, 3]),
-             *(repr(float(v)) for v in rv[k])] for k, (i, qq) in enumerate(zip(pose_id, q))]
+             *(repr(float(v)) for v in rv[k])] for k, (i, qq) in enumerate(zip(pose_id, q_out))]
     return header, rows
 
 
@@ -243,12 +270,14 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context):
     T_target = forward(robot, q_nominal)
     q, r, ok = calibrated.compensate(T_target, q_nominal, context)
     inside = np.all((q >= robot.q_lower) & (q <= robot.q_upper), axis=1)
-    header = ["pose_id", *JOINT_COLUMNS, *(f"d{c}" for c in JOINT_COLUMNS),
+    q_ctrl, q_nominal_ctrl = robot.to_controller_q(q), robot.to_controller_q(q_nominal)
+    cols = joint_columns(robot.n_joints)
+    header = ["pose_id", *cols, *(f"d{c}" for c in cols),
               "residual_position_mm", "residual_orientation_mrad", "converged", "within_limits"]
     rows = []
     for k in range(len(q)):
-        rows.append([int(pose_id[k]), *(repr(float(v)) for v in q[k]),
-                     *(repr(float(v)) for v in q[k] - q_nominal[k]),
+        rows.append([int(pose_id[k]), *(repr(float(v)) for v in q_ctrl[k]),
+                     *(repr(float(v)) for v in q_ctrl[k] - q_nominal_ctrl[k]),
                      f"{np.linalg.norm(r[k, :3]) * 1e3:.3e}", f"{np.linalg.norm(r[k, 3:]) * 1e3:.3e}",
                      int(ok[k]), int(inside[k])])
     return header, rows, ok, inside

@@ -17,16 +17,17 @@ import numpy as np
 import scipy.linalg
 
 from campaign.errors import IdentificationError
-from campaign.model.kinematics import N_PARAMS, PARAM_NAMES, PARAM_UNITS, error_jacobian
+from campaign.model.kinematics import PARAM_NAMES, PARAM_UNITS, error_jacobian
 from campaign.model.robot import RobotModel
 from campaign.tolerances import BASE_PARAM_COEFF_ATOL, BASE_PARAM_RANK_RTOL
 
 
-def paper_priority():
-    """Column order in which base parameters are chosen: pL..., pq1..6, then pR...."""
-    lengths = [i for i, n in enumerate(PARAM_NAMES) if n.startswith("pL")]
-    offsets = [i for i, n in enumerate(PARAM_NAMES) if n.startswith("pq")]
-    rotations = [i for i, n in enumerate(PARAM_NAMES) if n.startswith("pR")]
+def paper_priority(names=PARAM_NAMES):
+    """Column order in which base parameters are chosen: lengths pL..., joint zero offsets
+    (pq<j>, pd<j>), then rotations pR.... ``names``: the robot's ``param_names``."""
+    lengths = [i for i, n in enumerate(names) if n.startswith("pL")]
+    offsets = [i for i, n in enumerate(names) if n.startswith(("pq", "pd"))]
+    rotations = [i for i, n in enumerate(names) if n.startswith("pR")]
     return lengths + offsets + rotations
 
 
@@ -34,8 +35,9 @@ def paper_priority():
 class BaseParameters:
     """The identifiable parameter set of a robot.
 
-    ``independent``: indices (into the 48) of the parameters that stand for the base set,
-    in priority order; ``combination``: (r, 48), so that ``p_b = combination @ p_e``.
+    ``independent``: indices (into the 6N + 12; 48 for the COMAU) of the parameters that
+    stand for the base set, in priority order; ``combination``: (r, 6N + 12), so that
+    ``p_b = combination @ p_e``; ``param_names`` / ``param_units``: the robot's.
     """
 
     independent: tuple
@@ -43,6 +45,12 @@ class BaseParameters:
     position_only: bool
     rank_pivoted: int
     singular_values: np.ndarray
+    param_names: tuple = PARAM_NAMES
+    param_units: tuple = PARAM_UNITS
+
+    @property
+    def n_params(self) -> int:
+        return int(self.combination.shape[1])
 
     @property
     def n_base(self) -> int:
@@ -50,15 +58,15 @@ class BaseParameters:
 
     @property
     def names(self) -> tuple:
-        return tuple(PARAM_NAMES[i] for i in self.independent)
+        return tuple(self.param_names[i] for i in self.independent)
 
     @property
     def units(self) -> tuple:
-        return tuple(PARAM_UNITS[i] for i in self.independent)
+        return tuple(self.param_units[i] for i in self.independent)
 
     def expand(self, p_b) -> np.ndarray:
-        """The 48-vector with ``p_b`` at the independent parameters and zeros elsewhere."""
-        p = np.zeros(N_PARAMS)
+        """The full vector with ``p_b`` at the independent parameters and zeros elsewhere."""
+        p = np.zeros(self.n_params)
         p[list(self.independent)] = p_b
         return p
 
@@ -76,11 +84,11 @@ class BaseParameters:
         row = self.combination[j]
         terms = []
         lead = self.independent[j]
-        for i in [lead] + [i for i in range(N_PARAMS) if i != lead]:
+        for i in [lead] + [i for i in range(self.n_params) if i != lead]:
             c = row[i]
             if abs(c) < max(BASE_PARAM_COEFF_ATOL, 0.5 * 10.0**-digits) and i != lead:
                 continue
-            name = PARAM_NAMES[i]
+            name = self.param_names[i]
             mag = abs(c)
             coef = "" if abs(mag - 1.0) < 1e-9 else f"{mag:.{digits}f} "
             sign = "-" if c < 0 else "+"
@@ -93,7 +101,7 @@ class BaseParameters:
     def table(self) -> str:
         """The base parameters printed like the paper's Table 3."""
         kind = "position only" if self.position_only else "position + orientation"
-        lines = [f"{self.n_base} identifiable base parameters of 48 ({kind}; rank by pivoted QR: "
+        lines = [f"{self.n_base} identifiable base parameters of {self.n_params} ({kind}; rank by pivoted QR: "
                  f"{self.rank_pivoted})", f"{'#':>3}  {'unit':<4} combination"]
         for j in range(self.n_base):
             lines.append(f"{j + 1:>3}  {self.units[j]:<4} {self.expression(j)}")
@@ -101,13 +109,13 @@ class BaseParameters:
 
 
 def regressor(robot: RobotModel, n_poses: int = 200, seed: int = 0, position_only: bool = False):
-    """The stacked nominal regressor of random poses, (6 n or 3 n, 48)."""
+    """The stacked nominal regressor of random poses, (6 n or 3 n, 6N + 12)."""
     rng = np.random.default_rng(seed)
-    q = rng.uniform(robot.q_lower, robot.q_upper, size=(n_poses, 6))
+    q = rng.uniform(robot.q_lower, robot.q_upper, size=(n_poses, robot.n_joints))
     J = error_jacobian(robot, q)
     if position_only:
         J = J[:, :3, :]
-    return J.reshape(-1, N_PARAMS)
+    return J.reshape(-1, robot.n_params)
 
 
 def base_parameters(robot: RobotModel, *, position_only: bool = False, n_poses: int = 200,
@@ -123,14 +131,15 @@ def base_parameters(robot: RobotModel, *, position_only: bool = False, n_poses: 
     d = np.abs(np.diag(R_piv))
     rank = int(np.sum(d > BASE_PARAM_RANK_RTOL * d[0]))
 
-    order = list(paper_priority() if priority is None else priority)
-    if sorted(order) != list(range(N_PARAMS)):
-        raise IdentificationError("priority must be a permutation of the 48 parameter indices")
+    n_params = robot.n_params
+    order = list(paper_priority(robot.param_names) if priority is None else priority)
+    if sorted(order) != list(range(n_params)):
+        raise IdentificationError(f"priority must be a permutation of the {n_params} parameter indices")
     _, R_ord = scipy.linalg.qr(Ws[:, order], mode="economic")
     d_ord = np.abs(np.diag(R_ord))
     keep = d_ord > BASE_PARAM_RANK_RTOL * d[0]
-    independent = [order[i] for i in range(N_PARAMS) if keep[i]]
-    dependent = [order[i] for i in range(N_PARAMS) if not keep[i]]
+    independent = [order[i] for i in range(n_params) if keep[i]]
+    dependent = [order[i] for i in range(n_params) if not keep[i]]
     if len(independent) != rank:
         raise IdentificationError(
             f"base-parameter analysis is ill-conditioned: ordered QR keeps {len(independent)} columns, "
@@ -139,7 +148,7 @@ def base_parameters(robot: RobotModel, *, position_only: bool = False, n_poses: 
     resid = np.linalg.norm(W[:, independent] @ X - W[:, dependent]) / max(np.linalg.norm(W), 1.0)
     if resid > 1e-8:
         raise IdentificationError(f"dependent columns are not combinations of the base set (residual {resid:.2e})")
-    C = np.zeros((rank, N_PARAMS))
+    C = np.zeros((rank, n_params))
     for j, i in enumerate(independent):
         C[j, i] = 1.0
     for col, i in enumerate(dependent):
@@ -148,4 +157,4 @@ def base_parameters(robot: RobotModel, *, position_only: bool = False, n_poses: 
     C.setflags(write=False)
     sv = np.linalg.svd(Ws, compute_uv=False)
     sv.setflags(write=False)
-    return BaseParameters(tuple(independent), C, position_only, rank, sv)
+    return BaseParameters(tuple(independent), C, position_only, rank, sv, robot.param_names, robot.param_units)

@@ -7,16 +7,34 @@ def register(sub):
     p = sub.add_parser("model", help="inspect the robot model (base parameters, chain)")
     msub = p.add_subparsers(dest="model_command", metavar="WHAT", required=True)
     b = msub.add_parser("base-params", help="print the identifiable base parameters like the paper's Table 3")
-    b.add_argument("--robot", default="comau_racer5_080", help="robot folder name or path (default: %(default)s)")
+    b.add_argument("--robot", default="comau_racer5_080",
+                   help="robot: a name under robot_models/, a URDF or a robot.yaml (default: %(default)s)")
+    b.add_argument("--tool-frame", default=None, metavar="LINK", help="tool frame (default: robot.yaml's, or the "
+                                                                      "chain's last link)")
+    b.add_argument("--base-frame", default=None, metavar="LINK", help="base frame (default: the URDF's root)")
     b.add_argument("--position-only", action="store_true", help="position measurements only (no orientation)")
     b.add_argument("--poses", type=int, default=200, help="random poses in the regressor (default: %(default)s)")
     b.set_defaults(func=_base_params)
+    c = msub.add_parser("chain", help="print the chain: its transforms, joints and error parameters")
+    c.add_argument("--robot", default="comau_racer5_080", help="robot: name, URDF or robot.yaml")
+    c.add_argument("--tool-frame", default=None, metavar="LINK")
+    c.add_argument("--base-frame", default=None, metavar="LINK")
+    c.set_defaults(func=_chain)
 
 
 def _base_params(args):
     from campaign.model.base_params import base_parameters
     from campaign.model.robot import RobotModel
 
-    robot = RobotModel.load(args.robot)
+    robot = RobotModel.load(args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
     print(base_parameters(robot, position_only=args.position_only, n_poses=args.poses).table())
+    return 0
+
+
+def _chain(args):
+    from campaign.model.robot import RobotModel
+
+    robot = RobotModel.load(args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
+    print(robot.describe())
+    print("error parameters: " + ", ".join(robot.param_names))
     return 0

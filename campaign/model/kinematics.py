@@ -1,12 +1,17 @@
-"""Batched forward kinematics with the paper's 48 geometric error parameters.
+"""Batched forward kinematics with the geometric error parameters (paper eqs. 5-13, generalised).
 
-Parameter vector ``p_e`` (48,), ordered as Table 2: for each transform
-k in (I0, 01, 12, 23, 34, 45, 56, 6E) the six entries
-``pL_k_x, pL_k_y, pL_k_z`` (m), ``pR_k_x, pR_k_y`` (rad) and a third rotation,
-``pR_k_z`` for I0 and 6E, ``pq<i>`` for the joint transforms (rad), so that (eqs. 6-11)
+Parameter vector ``p_e`` (6N + 12,) for a chain of N moving joints (campaign.model.robot), six
+entries per transform k of ``robot.transform_names`` (COMAU: I0, 01, .., 56, 6E; the 48 of
+Table 2 in its order). Base, tool and revolute joints (eqs. 6-11):
 
-    R̂_k = R̄_k R(pR_k_x, pR_k_y, c_k),   c_k = q_i + pq_i  or  pR_k_z,
+    R̂_k = R̄_k R(pR_k_x, pR_k_y, c_k),   c_k = q_j + pq_j  or  pR_k_z,
     t̂_k = t̄_k + pL_k.
+
+A prismatic joint j (names ``pL_k_x, pL_k_y, pR_k_z, pR_k_x, pR_k_y, pd<j>``):
+
+    R̂_k = R̄_k R(pR_k_x, pR_k_y, pR_k_z),   t̂_k = t̄_k + R̄_k (pL_k_x, pL_k_y, 0) + R̂_k e_z (q_j + pd_j).
+
+Optional joint twists ξ (n, N, 6) act right after each joint's motion: ``… A_j(q_j) exp(ξ_j) A_{j+1} …``.
 
 Pose error (eq. 13): ``Δz = (t_model - t_meas, log(R_model R_measᵀ))``, position in m,
 rotation vector in rad, both resolved in F_I.
@@ -17,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from campaign.model.robot import TRANSFORM_NAMES, RobotModel
-from campaign.model.rotations import cardan_xyz, inverse_left_jacobian, matrix_to_rotvec, rot_x, rot_y
+from campaign.model.rotations import (cardan_xyz, inverse_left_jacobian, matrix_to_rotvec, rot_x, rot_y,
+                                      rotvec_to_matrix, skew)
 
 N_PARAMS = 48
 
@@ -33,7 +39,7 @@ def _make_names():
     return tuple(names)
 
 
-#: Names of the 48 error parameters, Table 2's order.
+#: Names of the 48 error parameters of the default COMAU, Table 2's order (any robot: robot.param_names).
 PARAM_NAMES = _make_names()
 #: SI unit of each parameter.
 PARAM_UNITS = tuple("m" if n.startswith("pL") else "rad" for n in PARAM_NAMES)
@@ -41,79 +47,139 @@ PARAM_UNITS = tuple("m" if n.startswith("pL") else "rad" for n in PARAM_NAMES)
 JOINT_OFFSET_INDEX = tuple(6 * k + 5 for k in range(1, 7))
 
 
-def _as_q(q):
+def _as_q(q, robot: RobotModel | None = None):
+    N = robot.n_joints if robot is not None else 6
     q = np.asarray(q, dtype=float)
     if q.ndim == 1:
         q = q[None, :]
-    if q.ndim != 2 or q.shape[1] != 6:
-        raise ValueError(f"q must have shape (n, 6), got {q.shape}")
+    if q.ndim != 2 or q.shape[1] != N:
+        raise ValueError(f"q must have shape (n, {N}), got {q.shape}")
     return q
 
 
-def _as_p(p_e):
+def _as_p(p_e, robot: RobotModel | None = None):
+    n_params = robot.n_params if robot is not None else N_PARAMS
     if p_e is None:
-        return np.zeros(N_PARAMS)
+        return np.zeros(n_params)
     p = np.asarray(p_e, dtype=float)
-    if p.shape != (N_PARAMS,):
-        raise ValueError(f"p_e must have shape (48,), got {p.shape}")
+    if p.shape != (n_params,):
+        raise ValueError(f"p_e must have shape ({n_params},), got {p.shape}")
     return p
 
 
+def _as_twists(joint_twists, robot, n):
+    if joint_twists is None:
+        return None
+    xi = np.asarray(joint_twists, dtype=float)
+    if xi.shape != (n, robot.n_joints, 6):
+        raise ValueError(f"joint_twists must have shape (n, N, 6) = ({n}, {robot.n_joints}, 6), got {xi.shape}")
+    return xi
+
+
+def se3_exp(xi):
+    """Exponential of twists ``xi = (v, ω)`` (..., 6): rotations (..., 3, 3) and translations (..., 3)."""
+    xi = np.asarray(xi, dtype=float)
+    v, w = xi[..., :3], xi[..., 3:]
+    R = rotvec_to_matrix(w)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    c = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    V = np.eye(3) + b * K + c * (K @ K)
+    return R, (V @ v[..., None])[..., 0]
+
+
 def _transform_rotations(robot: RobotModel, q, p):
-    """Rotations R̂_k for each pose: list of 8 arrays (n, 3, 3) (or (3, 3) if constant)."""
+    """Rotations R̂_k for each pose: list of N + 2 arrays (n, 3, 3) (or (3, 3) if constant)."""
     out = []
-    for k in range(8):
+    N = robot.n_joints
+    for k in range(N + 2):
         a, b, c = p[6 * k + 3], p[6 * k + 4], p[6 * k + 5]
-        if 1 <= k <= 6:
-            out.append(robot.R_nominal[k] @ cardan_xyz(a, b, q[:, k - 1] + c))
+        if 1 <= k <= N:
+            if robot.joint_types[k - 1] == "prismatic":
+                out.append(robot.R_nominal[k] @ cardan_xyz(a, b, p[6 * k + 2]))
+            else:
+                out.append(robot.R_nominal[k] @ cardan_xyz(a, b, q[:, k - 1] + c))
         else:
             out.append(robot.R_nominal[k] @ cardan_xyz(a, b, c))
     return out
 
 
-def frames(robot: RobotModel, q, p_e=None):
-    """Poses of frames 0..6 and E in F_I for each joint vector.
+def _translation(robot: RobotModel, k, p):
+    """t̂_k (3,) in the parent model frame, before any prismatic motion."""
+    if 1 <= k <= robot.n_joints and robot.joint_types[k - 1] == "prismatic":
+        return robot.t_nominal[k] + robot.R_nominal[k] @ np.array([p[6 * k], p[6 * k + 1], 0.0])
+    return robot.t_nominal[k] + p[6 * k : 6 * k + 3]
 
-    Returns ``(R, t)`` with ``R`` of shape (n, 8, 3, 3) and ``t`` (n, 8, 3): entry k is
-    the frame *after* transform k (0 -> F_0, ..., 7 -> F_E). Not chunked; use for
-    moderate n.
-    """
-    q = _as_q(q)
-    p = _as_p(p_e)
-    n = q.shape[0]
+
+def _chain(robot: RobotModel, q, p, xi, *, keep: bool):
+    """Walk the chain for poses q (m, N). Returns (R, t) of the tool and, with ``keep``,
+    (R_after (m, K, 3, 3), t_after (m, K, 3), t_pre (m, K, 3)): each transform's frame after
+    its motion (and twist), and its origin before the motion (where its parameter rotations act)."""
+    m = q.shape[0]
+    N = robot.n_joints
+    K = N + 2
     Rk = _transform_rotations(robot, q, p)
-    R_out = np.empty((n, 8, 3, 3))
-    t_out = np.empty((n, 8, 3))
-    R = np.broadcast_to(np.eye(3), (n, 3, 3))
-    t = np.zeros((n, 3))
-    for k in range(8):
-        tk = robot.t_nominal[k] + p[6 * k : 6 * k + 3]
-        t = t + R @ tk
+    R = np.broadcast_to(np.eye(3), (m, 3, 3))
+    t = np.zeros((m, 3))
+    if keep:
+        R_out = np.empty((m, K, 3, 3))
+        t_out = np.empty((m, K, 3))
+        t_pre = np.empty((m, K, 3))
+    rot = xi_t = None
+    if xi is not None:
+        rot, xi_t = se3_exp(xi)
+    for k in range(K):
+        t = t + R @ _translation(robot, k, p)
+        if keep:
+            t_pre[:, k] = t
         R = R @ Rk[k]
-        R_out[:, k] = R
-        t_out[:, k] = t
+        if 1 <= k <= N:
+            if robot.joint_types[k - 1] == "prismatic":
+                t = t + R[:, :, 2] * (q[:, k - 1] + p[6 * k + 5])[:, None]
+            if xi is not None:
+                t = t + (R @ xi_t[:, k - 1, :, None])[..., 0]
+                R = R @ rot[:, k - 1]
+        if keep:
+            R_out[:, k] = R
+            t_out[:, k] = t
+    if keep:
+        return R, t, (R_out, t_out, t_pre)
+    return R, t, None
+
+
+def frames(robot: RobotModel, q, p_e=None, *, joint_twists=None):
+    """Poses of the model frames after each of the N + 2 transforms, in F_I.
+
+    Returns ``(R, t)`` with ``R`` of shape (n, N + 2, 3, 3) and ``t`` (n, N + 2, 3): entry k is
+    the frame *after* transform k (0 -> F_0, ..., N -> F_N, N + 1 -> F_E); for a moving joint
+    the frame after its motion (and its twist, if ``joint_twists`` (n, N, 6) is given).
+    Not chunked; use for moderate n.
+    """
+    q = _as_q(q, robot)
+    p = _as_p(p_e, robot)
+    _, _, (R_out, t_out, _) = _chain(robot, q, p, _as_twists(joint_twists, robot, len(q)), keep=True)
     return R_out, t_out
 
 
-def forward(robot: RobotModel, q, p_e=None, *, chunk: int = CHUNK):
+def forward(robot: RobotModel, q, p_e=None, *, chunk: int = CHUNK, joint_twists=None):
     """``T_IE(q, p_e)`` for an array of joint vectors.
 
-    q: (n, 6) rad; p_e: (48,) or None for the nominal model.
+    q: (n, N) rad (m for prismatic joints); p_e: (6N + 12,) or None for the nominal model;
+    joint_twists: optional (n, N, 6) twists (v [m], ω [rad]) applied right after each moving
+    joint's motion, in its frame: ``T = … A_j(q_j) exp(ξ_j) A_{j+1} …``.
     Returns (n, 4, 4) homogeneous transforms (m). Memory is bounded by ``chunk``.
     """
-    q = _as_q(q)
-    p = _as_p(p_e)
+    q = _as_q(q, robot)
+    p = _as_p(p_e, robot)
     n = q.shape[0]
+    xi = _as_twists(joint_twists, robot, n)
     T = np.zeros((n, 4, 4))
     T[:, 3, 3] = 1.0
     for s in range(0, n, chunk):
-        qs = q[s : s + chunk]
-        Rk = _transform_rotations(robot, qs, p)
-        R = np.broadcast_to(np.eye(3), (qs.shape[0], 3, 3))
-        t = np.zeros((qs.shape[0], 3))
-        for k in range(8):
-            t = t + R @ (robot.t_nominal[k] + p[6 * k : 6 * k + 3])
-            R = R @ Rk[k]
+        R, t, _ = _chain(robot, q[s : s + chunk], p, None if xi is None else xi[s : s + chunk], keep=False)
         T[s : s + chunk, :3, :3] = R
         T[s : s + chunk, :3, 3] = t
     return T
@@ -128,46 +194,60 @@ def pose_error(T_model, T_meas):
     return np.concatenate([dt, dphi], axis=-1)
 
 
-def error_jacobian(robot: RobotModel, q, p_e=None, T_meas=None, *, chunk: int = CHUNK):
-    """Analytic ``∂Δz/∂p_e`` for each pose: (n, 6, 48).
+def error_jacobian(robot: RobotModel, q, p_e=None, T_meas=None, *, chunk: int = CHUNK, joint_twists=None):
+    """Analytic ``∂Δz/∂p_e`` for each pose: (n, 6, 6N + 12).
 
     Rows 0-2 are ∂t_IE/∂p (m per unit). Rows 3-5 are the derivative of the rotation-vector
     error: if ``T_meas`` is given, ``J_l⁻¹(Δφ) ω`` (exact); without it, the spatial
-    angular velocity ω itself (exact at Δφ = 0).
+    angular velocity ω itself (exact at Δφ = 0). The zero-offset columns (``pq<j>``,
+    ``pd<j>``) are also ∂Δz/∂q_j. ``joint_twists`` as in :func:`forward`.
     """
-    q = _as_q(q)
-    p = _as_p(p_e)
+    q = _as_q(q, robot)
+    p = _as_p(p_e, robot)
     n = q.shape[0]
-    J = np.empty((n, 6, N_PARAMS))
+    N = robot.n_joints
+    xi = _as_twists(joint_twists, robot, n)
+    J = np.empty((n, 6, robot.n_params))
     ex, ey, ez = np.eye(3)
     for s in range(0, n, chunk):
         qs = q[s : s + chunk]
         m = qs.shape[0]
-        R_after, t_after = frames(robot, qs, p)
-        tE = t_after[:, 7]
+        _, _, (R_after, t_after, t_pre) = _chain(robot, qs, p, None if xi is None else xi[s : s + chunk], keep=True)
+        tE = t_after[:, N + 1]
         Js = J[s : s + chunk]
-        for k in range(8):
+        for k in range(N + 2):
             if k == 0:
                 R_before = np.broadcast_to(np.eye(3), (m, 3, 3))
             else:
                 R_before = R_after[:, k - 1]
-            ok = t_after[:, k]  # origin of frame k in F_I
-            # translations: along the parent's axes
-            Js[:, 0:3, 6 * k : 6 * k + 3] = R_before
-            Js[:, 3:6, 6 * k : 6 * k + 3] = 0.0
+            prismatic = 1 <= k <= N and robot.joint_types[k - 1] == "prismatic"
+            ok = t_pre[:, k]  # origin of frame k in F_I, before its motion
             a, b = p[6 * k + 3], p[6 * k + 4]
             RbN = R_before @ robot.R_nominal[k]
             w_a = RbN @ ex
             w_b = RbN @ (rot_x(a) @ ey)
             w_c = RbN @ (rot_x(a) @ rot_y(b) @ ez)
             lever = tE - ok
-            for col, w in ((3, w_a), (4, w_b), (5, w_c)):
+            if prismatic:
+                # translations perpendicular to the axis in the joint's nominal frame, then the
+                # rotation about the axis, a, b, and the zero offset along the axis
+                Js[:, 0:3, 6 * k : 6 * k + 2] = RbN[..., :, 0:2]
+                Js[:, 3:6, 6 * k : 6 * k + 2] = 0.0
+                cols = ((2, w_c), (3, w_a), (4, w_b))
+                Js[:, 0:3, 6 * k + 5] = np.broadcast_to(w_c, (m, 3))
+                Js[:, 3:6, 6 * k + 5] = 0.0
+            else:
+                # translations: along the parent's axes
+                Js[:, 0:3, 6 * k : 6 * k + 3] = R_before
+                Js[:, 3:6, 6 * k : 6 * k + 3] = 0.0
+                cols = ((3, w_a), (4, w_b), (5, w_c))
+            for col, w in cols:
                 w = np.broadcast_to(w, (m, 3))
                 Js[:, 0:3, 6 * k + col] = np.cross(w, lever)
                 Js[:, 3:6, 6 * k + col] = w
         if T_meas is not None:
             Tm = np.asarray(T_meas, dtype=float)[s : s + chunk]
-            R_model = R_after[:, 7]
+            R_model = R_after[:, N + 1]
             dphi = matrix_to_rotvec(R_model @ np.swapaxes(Tm[:, :3, :3], -1, -2))
             Js[:, 3:6, :] = inverse_left_jacobian(dphi) @ Js[:, 3:6, :]
     return J

@@ -1,33 +1,53 @@
-"""The robot description: URDF + metadata, loaded once, never mutated.
+"""The robot description: a serial chain of a URDF (+ optional ``robot.yaml``), loaded once.
 
-:class:`RobotModel` reads a URDF with yourdfpy and its companion ``robot.yaml``, and
-exposes the paper's chain (frames I, 0..6, E) as nominal rotations and translations,
-the joint limits, the reflectors on the tool and a Pinocchio model of the same file
-with gravity stated in F_I.
+:meth:`RobotModel.load` accepts a name under ``campaign/data/robot_models/``, a path to a
+URDF, or a path to a ``robot.yaml`` (or its folder) naming its URDF. The URDF is parsed once
+with yourdfpy. The chain runs from the root link (or ``base_frame``) to ``tool_frame``
+(default: walking down from the base while a link has exactly one child joint, the link
+where the walk stops: a leaf or a branch; for the COMAU, link ``E``).
+
+The chain is cut into N + 2 transforms, the paper's eq. (5) generalised:
+
+    T_IE = T_base · A_1(q_1) · A_2(q_2) · ... · A_N(q_N) · T_tool
+
+* ``T_base``: the fixed joints from the base to the parent link of moving joint 1;
+* ``A_j``: the fixed joints between moving joint j-1 and j, then joint j's origin; its
+  motion is ``Rz(q_j)`` (revolute, continuous) or a translation ``q_j`` along z
+  (prismatic), in a *model frame* whose z is the joint's axis: if the URDF axis ``u`` is not
+  ``+z``, the child link frame is rotated by a constant ``S_j`` with ``S_j z = u`` (so the
+  model frame of joint j is ``link_j · S_j``), and ``S_j^T`` is folded into the next
+  transform;
+* ``T_tool``: the fixed joints from the last moving joint's child link to the tool frame.
+
+Joints outside the chain (fingers, other branches) are locked at 0 or at ``robot.yaml``'s
+``locked_joints``; a moving joint of the chain named there is locked too (folded as fixed).
+Every array this module returns is read-only. SI units: m, rad, s.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import ConfigError
-
 from campaign.paths import DEFAULT_ROBOT, ROBOT_MODELS  # noqa: F401  (re-exported)
 
-#: Names of the eight transforms of eq. (5), in order.
+#: Names of the eight transforms of eq. (5) of the default 6R robot, in order.
 TRANSFORM_NAMES = ("I0", "01", "12", "23", "34", "45", "56", "6E")
+
+#: Default gravity in the base frame, m/s² (−z of the root).
+DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 
 
 @dataclass(frozen=True)
 class Reflector:
     """A spherically mounted reflector on the calibration tool.
 
-    ``position_in_E`` in m, ``axis_in_E`` a unit vector (the nest's axis), ``half_angle``
-    the acceptance half-angle in rad.
+    ``position_in_E`` in m (tool frame), ``axis_in_E`` a unit vector (the nest's axis),
+    ``half_angle`` the acceptance half-angle in rad.
     """
 
     name: str
@@ -43,187 +63,649 @@ def _read_only(a):
     return a
 
 
+def transform_names(n_joints: int) -> tuple:
+    """Names of the N + 2 transforms: ``I0``, ``01`` .. ``(N-1)N``, ``NE`` (``_`` between
+    indices when N >= 10 so that names stay unambiguous)."""
+    sep = "_" if n_joints >= 10 else ""
+    return ("I0",) + tuple(f"{j - 1}{sep}{j}" for j in range(1, n_joints + 1)) + (f"{n_joints}E",)
+
+
+def parameter_layout(joint_types) -> tuple:
+    """(names, units) of the 6N + 12 error parameters for joints of these types.
+
+    Per transform k, six consecutive entries. Base and tool: ``pL_k_x, pL_k_y, pL_k_z`` (m),
+    ``pR_k_x, pR_k_y, pR_k_z`` (rad). Revolute joint j: ``pL_k_x, pL_k_y, pL_k_z``,
+    ``pR_k_x, pR_k_y`` and the zero offset ``pq<j>`` (rad) — the paper's Table 2. Prismatic
+    joint j: ``pL_k_x, pL_k_y`` (m, resolved in the joint's nominal frame, perpendicular to
+    its axis), ``pR_k_z`` (rad, rotation about the axis, which a prismatic joint does not
+    carry), ``pR_k_x, pR_k_y`` (rad) and the zero offset ``pd<j>`` (m): the translation along
+    the axis is the zero offset, so it is not repeated.
+    """
+    n = len(joint_types)
+    names, units = [], []
+    for k, tname in enumerate(transform_names(n)):
+        kind = joint_types[k - 1] if 1 <= k <= n else "fixed"
+        if kind == "prismatic":
+            nm = [f"pL_{tname}_x", f"pL_{tname}_y", f"pR_{tname}_z", f"pR_{tname}_x", f"pR_{tname}_y", f"pd{k}"]
+            un = ["m", "m", "rad", "rad", "rad", "m"]
+        else:
+            nm = [f"pL_{tname}_x", f"pL_{tname}_y", f"pL_{tname}_z", f"pR_{tname}_x", f"pR_{tname}_y"]
+            nm.append(f"pq{k}" if kind != "fixed" else f"pR_{tname}_z")
+            un = ["m", "m", "m", "rad", "rad", "rad"]
+        names += nm
+        units += un
+    return tuple(names), tuple(units)
+
+
 @dataclass(frozen=True, eq=False)
 class RobotModel:
-    """A serial 6R arm described by a URDF whose chain follows the paper's frames.
+    """A serial chain of N moving joints described by a URDF.
 
-    Build it with :meth:`load`. Every array it returns is read-only.
+    Build it with :meth:`load`. Every array it holds is read-only.
     """
 
     name: str
     urdf_path: Path
-    #: nominal rotations R̄ of the 8 transforms, (8, 3, 3)
+    #: nominal rotations R̄ of the N + 2 transforms, (N + 2, 3, 3)
     R_nominal: np.ndarray
-    #: nominal translations t̄ of the 8 transforms in the parent frame, (8, 3), m
+    #: nominal translations t̄ of the N + 2 transforms in the parent model frame, (N + 2, 3), m
     t_nominal: np.ndarray
-    #: joint limits, (6,) each, rad
+    #: joint limits, (N,) each, rad or m (continuous joints: ±pi for sampling, not checked)
     q_lower: np.ndarray
     q_upper: np.ndarray
     joint_names: tuple
+    #: the base frame's name, then the link after each of the N + 2 transforms
     link_names: tuple
+    #: gravity in the base frame F_I, (3,) m/s²
     gravity_in_I: np.ndarray
     max_velocity: np.ndarray
     max_acceleration: np.ndarray
     max_jerk: np.ndarray
     reflectors: tuple
+    #: "revolute", "continuous" or "prismatic" per moving joint
+    joint_types: tuple = ()
+    #: S_j (N, 3, 3): model frame of joint j = URDF child link frame · S_j
+    axis_alignment: np.ndarray = None
+    #: URDF joint names folded into each of the N + 2 transforms, in order
+    transform_joints: tuple = ()
+    #: tool and base frame (URDF link names)
+    tool_frame: str = "E"
+    base_frame: str = "I"
+    #: values (rad or m) of the locked URDF joints, by name
+    locked_joints: dict = field(default_factory=dict)
+    #: controller convention q_model = A q_controller + b: A (N, N), b (N,)
+    controller_matrix: np.ndarray = None
+    controller_offset: np.ndarray = None
+    #: what `load` was given (stored in RUN/campaign.yaml)
+    spec: str = DEFAULT_ROBOT
+    #: the robot.yaml read, if any
+    meta_path: Path | None = None
+    #: pose of F_I (the base frame) in the URDF's root link, (4, 4), with locked joints applied
+    T_root_base: np.ndarray = None
 
+    # -- loading ------------------------------------------------------------------------
     @classmethod
-    def load(cls, name_or_path: str | Path = DEFAULT_ROBOT) -> "RobotModel":
-        """Load a robot folder (name under ``robot_models/`` or a path) holding ``robot.yaml``."""
-        folder = Path(name_or_path)
-        if not folder.is_dir():
-            folder = ROBOT_MODELS / str(name_or_path)
-        meta_path = folder / "robot.yaml"
-        if not meta_path.is_file():
-            raise ConfigError(f"{meta_path}: robot description not found (expected robot.yaml beside a URDF)")
-        return _load_cached(str(meta_path.resolve()))
+    def load(cls, spec: str | Path = DEFAULT_ROBOT, *, tool_frame: str | None = None,
+             base_frame: str | None = None) -> "RobotModel":
+        """Load a robot: a name under ``robot_models/``, a URDF path, a robot.yaml path or its folder.
+
+        ``tool_frame`` / ``base_frame`` (URDF link names) override robot.yaml's and the defaults.
+        Any problem is one :class:`ConfigError` line naming the file and the element.
+        """
+        urdf, meta = _resolve(spec)
+        # files edited in place are read again (the cache key holds their modification times)
+        files = [urdf] if urdf else [meta, *sorted(meta.parent.glob("*.urdf"))]
+        stamp = tuple(f.stat().st_mtime_ns for f in files)
+        return _load_cached(str(urdf) if urdf else None, str(meta) if meta else None,
+                            tool_frame or None, base_frame or None, str(spec), stamp)
+
+    # -- derived views --------------------------------------------------------------------
+    @property
+    def n_joints(self) -> int:
+        """N, the number of moving joints of the chain."""
+        return len(self.joint_names)
+
+    @functools.cached_property
+    def param_names(self) -> tuple:
+        """Names of the 6N + 12 geometric error parameters (COMAU: Table 2's 48)."""
+        return parameter_layout(self.joint_types)[0]
+
+    @functools.cached_property
+    def param_units(self) -> tuple:
+        """SI unit ("m" or "rad") of each error parameter."""
+        return parameter_layout(self.joint_types)[1]
+
+    @property
+    def n_params(self) -> int:
+        return 6 * self.n_joints + 12
+
+    @property
+    def transform_names(self) -> tuple:
+        return transform_names(self.n_joints)
+
+    @property
+    def joint_offset_index(self) -> tuple:
+        """Index of each moving joint's zero offset (pq<j> or pd<j>) in ``p_e``."""
+        return tuple(6 * k + 5 for k in range(1, self.n_joints + 1))
+
+    @property
+    def joint_frame_index(self) -> tuple:
+        """For each moving joint j, the index along frames()'s axis 1 of the frame right after
+        joint j's motion (COMAU: (1, .., 6))."""
+        return tuple(range(1, self.n_joints + 1))
+
+    @property
+    def prismatic(self) -> np.ndarray:
+        """(N,) bool: which joints are prismatic."""
+        return np.array([t == "prismatic" for t in self.joint_types], dtype=bool)
+
+    @property
+    def gravity_in_root(self) -> np.ndarray:
+        """Gravity in the chain's base frame F_I, (3,) m/s² (COMAU: (0, 9.81, 0))."""
+        return self.gravity_in_I
+
+    @property
+    def joint_units(self) -> tuple:
+        """"rad" or "m" per moving joint."""
+        return tuple("m" if t == "prismatic" else "rad" for t in self.joint_types)
 
     @functools.cached_property
     def urdf(self):
-        """The yourdfpy ``URDF`` of this robot (loaded on first use)."""
+        """The yourdfpy ``URDF`` of this robot with its scene graph (loaded on first use)."""
         import yourdfpy
 
         return yourdfpy.URDF.load(str(self.urdf_path), load_meshes=False, build_scene_graph=True)
 
     @functools.cached_property
     def pinocchio_model(self):
-        """A Pinocchio model of the same URDF, with ``gravity`` set from ``robot.yaml``."""
+        """A Pinocchio model of the chain's moving joints (others locked), gravity in its world.
+
+        The world of the model is the URDF's root; ``gravity`` is ``gravity_in_I`` rotated into
+        it. Its configuration for joint vectors ``q`` (n, N) is :meth:`pinocchio_q`.
+        """
         import pinocchio as pin
 
         model = pin.buildModelFromUrdf(str(self.urdf_path))
-        model.gravity.linear = np.array(self.gravity_in_I, dtype=float)
+        keep = set(self.joint_names)
+        lock_ids, q_ref = [], pin.neutral(model)
+        for jid in range(1, model.njoints):
+            jname = model.names[jid]
+            if jname in keep:
+                continue
+            lock_ids.append(jid)
+            value = float(self.locked_joints.get(jname, 0.0))
+            idx, nq = model.joints[jid].idx_q, model.joints[jid].nq
+            if nq == 1:
+                q_ref[idx] = value
+            elif nq == 2:
+                q_ref[idx:idx + 2] = (np.cos(value), np.sin(value))
+        if lock_ids:
+            model = pin.buildReducedModel(model, lock_ids, q_ref)
+        names = [model.names[j] for j in range(1, model.njoints)]
+        if names != list(self.joint_names):
+            raise ConfigError(f"{self.urdf_path}: Pinocchio orders the chain's joints {names}, "
+                              f"expected {list(self.joint_names)}")
+        R = np.asarray(self.T_root_base)[:3, :3] if self.T_root_base is not None else np.eye(3)
+        model.gravity.linear = R @ np.asarray(self.gravity_in_I, dtype=float)
         return model
+
+    def pinocchio_q(self, q) -> np.ndarray:
+        """Pinocchio configurations (n, nq) for joint vectors q (n, N) (continuous joints: cos, sin)."""
+        q = np.asarray(q, dtype=float).reshape(-1, self.n_joints)
+        if "continuous" not in self.joint_types:
+            return q
+        cols = []
+        for j, t in enumerate(self.joint_types):
+            cols += [np.cos(q[:, j]), np.sin(q[:, j])] if t == "continuous" else [q[:, j]]
+        return np.stack(cols, axis=1)
 
     @property
     def reflector_positions_in_E(self) -> np.ndarray:
-        """(3, 3): row j is reflector j's centre in F_E, m."""
-        return _read_only([r.position_in_E for r in self.reflectors])
+        """(k, 3): row j is reflector j's centre in the tool frame, m."""
+        return _read_only(np.reshape([r.position_in_E for r in self.reflectors], (-1, 3)))
 
     @property
     def q_mid(self) -> np.ndarray:
         return _read_only(0.5 * (self.q_lower + self.q_upper))
 
-    def check_joints(self, q, *, field: str = "q", slack: float = 0.0) -> np.ndarray:
-        """Validate joint vectors; return them as float64 (n, 6).
+    def to_model_q(self, q_controller) -> np.ndarray:
+        """q_model = A q_controller + b, (n, N) (robot.yaml's ``controller`` convention)."""
+        q = np.asarray(q_controller, dtype=float)
+        if self.controller_matrix is None:
+            return q
+        return q @ self.controller_matrix.T + self.controller_offset
 
-        Raises :class:`campaign.errors.DataError` naming the row, the joint, the value
-        and the limit.
+    def to_controller_q(self, q_model) -> np.ndarray:
+        """Inverse of :meth:`to_model_q`, (n, N)."""
+        q = np.asarray(q_model, dtype=float)
+        if self.controller_matrix is None:
+            return q
+        return np.linalg.solve(self.controller_matrix, (q - self.controller_offset).T).T
+
+    def check_joints(self, q, *, field: str = "q", slack: float = 0.0) -> np.ndarray:
+        """Validate joint vectors; return them as float64 (n, N).
+
+        Raises :class:`campaign.errors.DataError` naming the robot, the row, the joint, the
+        value and the limit (continuous joints have none).
         """
         from campaign.errors import DataError
 
         q = np.asarray(q, dtype=float)
         if q.ndim == 1:
             q = q[None, :]
-        if q.ndim != 2 or q.shape[1] != 6:
-            raise DataError(f"{field}: expected shape (n, 6), got {q.shape}")
+        N = self.n_joints
+        if q.ndim != 2 or q.shape[1] != N:
+            raise DataError(f"{field}: expected shape (n, {N}) for {self.name} ({N} joints), got {q.shape}")
         bad = ~np.isfinite(q)
         if bad.any():
             i, j = np.argwhere(bad)[0]
             raise DataError(f"{field}: row {i}, q{j + 1} is {q[i, j]} (not a finite number)")
-        lo = q < self.q_lower - slack
-        hi = q > self.q_upper + slack
+        limited = np.array([t != "continuous" for t in self.joint_types], dtype=bool)
+        lo = (q < self.q_lower - slack) & limited
+        hi = (q > self.q_upper + slack) & limited
         if lo.any() or hi.any():
             i, j = np.argwhere(lo | hi)[0]
             lim = self.q_lower[j] if lo[i, j] else self.q_upper[j]
-            raise DataError(
-                f"{field}: row {i}, q{j + 1} = {q[i, j]:.6g} rad is outside the joint limit {lim:.6g} rad"
-            )
+            u = self.joint_units[j]
+            raise DataError(f"{field}: row {i}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
+                            f"{lim:.6g} {u} of {self.name}")
         return q
 
+    def describe(self) -> str:
+        """One line per transform: its URDF joints and type."""
+        lines = [f"{self.name}: {self.n_joints} moving joints from '{self.base_frame}' to '{self.tool_frame}' "
+                 f"({self.urdf_path}); {self.n_params} error parameters; gravity "
+                 f"{np.round(self.gravity_in_I, 4).tolist()} m/s² in '{self.base_frame}'"]
+        for k, tname in enumerate(self.transform_names):
+            kind = self.joint_types[k - 1] if 1 <= k <= self.n_joints else "fixed"
+            lines.append(f"  T_{tname:<6} {kind:<10} {', '.join(self.transform_joints[k]) or '(identity)'}")
+        return "\n".join(lines)
 
-@functools.lru_cache(maxsize=8)
-def _load_cached(meta_path: str) -> RobotModel:
-    from campaign.fileio import read_yaml_mapping
-    from campaign.model.rotations import urdf_rpy
 
-    meta_file = Path(meta_path)
-    meta = read_yaml_mapping(meta_file)
-    required = ("urdf", "chain", "gravity_in_I_m_s2", "reflectors", "max_velocity_rad_s",
-                "max_acceleration_rad_s2", "max_jerk_rad_s3")
-    for key in required:
-        if key not in meta:
-            raise ConfigError(f"{meta_file}: missing field '{key}'")
-    urdf_path = meta_file.parent / meta["urdf"]
-    if not urdf_path.is_file():
-        raise ConfigError(f"{meta_file}: field 'urdf' names {urdf_path}, which does not exist")
+# -- resolution of the spec ----------------------------------------------------------------
+def _resolve(spec) -> tuple:
+    """(urdf path or None, robot.yaml path or None) for what `load` was given."""
+    p = Path(spec)
+    if p.is_dir():
+        meta = p / "robot.yaml"
+        if not meta.is_file():
+            raise ConfigError(f"{meta}: robot description not found (expected robot.yaml beside a URDF)")
+        return None, meta.resolve()
+    if p.is_file():
+        if p.suffix.lower() in (".yaml", ".yml"):
+            return None, p.resolve()
+        return p.resolve(), None
+    named = ROBOT_MODELS / str(spec)
+    if "/" not in str(spec) and named.is_dir():
+        return _resolve(named)
+    known = ", ".join(sorted(d.name for d in ROBOT_MODELS.iterdir() if d.is_dir())) if ROBOT_MODELS.is_dir() else ""
+    raise ConfigError(f"robot '{spec}': neither a URDF file, a robot.yaml (or its folder), nor a name under "
+                      f"{ROBOT_MODELS} ({known})")
 
+
+def _xml_diagnosis(urdf_path: Path) -> str:
+    """Which element of a URDF yourdfpy could not read (only used to word an error)."""
     import xml.etree.ElementTree as ET
 
     try:
         root = ET.parse(urdf_path).getroot()
     except ET.ParseError as exc:
-        raise ConfigError(f"{urdf_path}: not valid XML ({exc})") from None
-    joints = {j.get("name"): j for j in root.findall("joint")}
-    chain = list(meta["chain"])
-    if len(chain) != 8:
-        raise ConfigError(f"{meta_file}: field 'chain' must list 8 joints (I0, joint1..joint6, 6E), got {len(chain)}")
-    R_nom, t_nom, lower, upper, jnames, links = [], [], [], [], [], []
-    for k, jname in enumerate(chain):
-        if jname not in joints:
-            raise ConfigError(f"{meta_file}: chain joint '{jname}' is not in {urdf_path.name}")
-        j = joints[jname]
-        origin = j.find("origin")
-        xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
-        rpy = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
-        R_nom.append(urdf_rpy(*rpy))
-        t_nom.append(xyz)
-        jtype = j.get("type")
-        moving = 1 <= k <= 6
-        if moving != (jtype in ("revolute", "continuous")):
-            raise ConfigError(f"{urdf_path}: joint '{jname}' has type '{jtype}', "
-                              f"expected {'revolute' if moving else 'fixed'} at chain position {k}")
-        if moving:
-            axis = j.find("axis")
-            ax = [float(v) for v in axis.get("xyz").split()] if axis is not None else [1.0, 0, 0]
-            if not np.allclose(ax, [0, 0, 1]):
-                raise ConfigError(f"{urdf_path}: joint '{jname}' axis is {ax}; the paper's chain needs z (0 0 1)")
-            lim = j.find("limit")
-            if lim is None:
-                raise ConfigError(f"{urdf_path}: joint '{jname}' has no <limit>")
-            lower.append(float(lim.get("lower")))
-            upper.append(float(lim.get("upper")))
-            jnames.append(jname)
-        links.append(j.find("child").get("link"))
+        return f"not valid XML ({exc})"
+    for kind in ("joint", "link"):
+        for el in root.iter(kind):
+            for sub in el.iter():
+                for attr, val in sub.attrib.items():
+                    if attr in ("xyz", "rpy", "lower", "upper", "velocity", "effort", "value", "radius",
+                                "length", "size", "ixx", "iyy", "izz", "ixy", "ixz", "iyz", "multiplier", "offset"):
+                        try:
+                            [float(v) for v in val.split()]
+                        except ValueError:
+                            return f"{kind} '{el.get('name')}': <{sub.tag} {attr}=\"{val}\"> is not numeric"
+    return ""
 
-    link_of_joint = {j.get("name"): j.find("child").get("link") for j in joints.values()}
-    parent_of_link = {j.find("child").get("link"): (j.find("parent").get("link"), j) for j in joints.values()}
-    reflectors = []
-    for r in meta["reflectors"]:
-        for key in ("name", "link", "axis_in_E", "half_angle_deg"):
-            if key not in r:
-                raise ConfigError(f"{meta_file}: a reflector lacks field '{key}'")
-        if r["link"] not in parent_of_link or parent_of_link[r["link"]][0] != "E":
-            raise ConfigError(f"{meta_file}: reflector '{r['name']}' link '{r['link']}' is not a child of link E")
-        origin = parent_of_link[r["link"]][1].find("origin")
-        pos = tuple(float(v) for v in origin.get("xyz").split())
-        axis = np.asarray(r["axis_in_E"], dtype=float)
-        axis = axis / np.linalg.norm(axis)
-        reflectors.append(Reflector(r["name"], r.get("kind", "smr"), pos, tuple(axis),
-                                    float(np.deg2rad(r["half_angle_deg"]))))
-    if len(reflectors) != 3:
-        raise ConfigError(f"{meta_file}: the calibration tool needs exactly 3 reflectors, got {len(reflectors)}")
-    if links[-1] != "E":
-        raise ConfigError(f"{urdf_path}: the chain must end in a link named 'E', ends in '{links[-1]}'")
-    del link_of_joint
 
-    def vec6(key):
-        v = np.asarray(meta[key], dtype=float)
-        if v.shape != (6,) or np.any(v <= 0):
-            raise ConfigError(f"{meta_file}: field '{key}' must be 6 positive numbers")
-        return _read_only(v)
+def _parse_urdf(urdf_path: Path):
+    import yourdfpy
 
+    try:
+        return yourdfpy.URDF.load(str(urdf_path), load_meshes=False, build_scene_graph=False,
+                                  build_collision_scene_graph=False)
+    except Exception as exc:  # yourdfpy raises plain exceptions; word them as one line
+        where = _xml_diagnosis(urdf_path)
+        raise ConfigError(f"{urdf_path}: cannot read the URDF: {where or str(exc).splitlines()[0]}") from None
+
+
+def _origin(joint) -> np.ndarray:
+    return np.array(joint.origin, dtype=float) if joint.origin is not None else np.eye(4)
+
+
+def _rot(axis, angle) -> np.ndarray:
+    from campaign.model.rotations import rotvec_to_matrix
+
+    return rotvec_to_matrix(np.asarray(axis, dtype=float) * angle)
+
+
+def _motion(joint, value: float) -> np.ndarray:
+    """URDF joint motion (4, 4) at ``value`` (for locked joints)."""
+    M = np.eye(4)
+    if joint.type in ("revolute", "continuous"):
+        M[:3, :3] = _rot(_unit_axis(joint), value)
+    elif joint.type == "prismatic":
+        M[:3, 3] = _unit_axis(joint) * value
+    return M
+
+
+def _unit_axis(joint) -> np.ndarray:
+    a = np.array(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), dtype=float)
+    n = np.linalg.norm(a)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ConfigError(f"joint '{joint.name}': axis {a.tolist()} is not a direction")
+    return a / n
+
+
+def axis_alignment(u) -> np.ndarray:
+    """A rotation S (3, 3) with ``S @ z = u``: identity for +z, Rx(pi) for −z, else the
+    smallest rotation taking z to u."""
+    u = np.asarray(u, dtype=float)
+    z = np.array([0.0, 0.0, 1.0])
+    if np.allclose(u, z, atol=1e-12):
+        return np.eye(3)
+    if np.allclose(u, -z, atol=1e-12):
+        return np.diag([1.0, -1.0, -1.0])
+    c = np.cross(z, u)
+    angle = np.arctan2(np.linalg.norm(c), z @ u)
+    S = _rot(c / np.linalg.norm(c), angle)
+    # snap round-off (e.g. cos(pi/2) = 6e-17) so that axis-aligned joints stay exact
+    S[np.abs(S) < 1e-15] = 0.0
+    return S
+
+
+def _as_T(R=None, t=None) -> np.ndarray:
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+@functools.lru_cache(maxsize=16)
+def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> RobotModel:
+    from campaign.fileio import read_yaml_mapping
+
+    meta_file = Path(meta_str) if meta_str else None
+    meta = read_yaml_mapping(meta_file) if meta_file else {}
+    where = str(meta_file) if meta_file else None
+    if meta_file is not None:
+        if "chain" in meta and "gravity_in_I_m_s2" not in meta:
+            # the explicit paper-chain format states its gravity (F_I need not have z up)
+            raise ConfigError(f"{meta_file}: missing field 'gravity_in_I_m_s2'")
+        if "urdf" in meta:
+            urdf_path = meta_file.parent / str(meta["urdf"])
+            if not urdf_path.is_file():
+                raise ConfigError(f"{meta_file}: field 'urdf' names {urdf_path}, which does not exist")
+        else:
+            found = sorted(meta_file.parent.glob("*.urdf"))
+            if len(found) != 1:
+                raise ConfigError(f"{meta_file}: missing field 'urdf' (and {len(found)} .urdf files beside it)")
+            urdf_path = found[0]
+    else:
+        urdf_path = Path(urdf_str)
+    urdf_path = urdf_path.resolve()
+    src = where or str(urdf_path)
+
+    u = _parse_urdf(urdf_path)
+    joints = {j.name: j for j in u.robot.joints}
+    links = {lk.name for lk in u.robot.links}
+    child_of = {}  # link -> joint whose child it is
+    children = {lk: [] for lk in links}
+    for j in u.robot.joints:
+        for end in (j.parent, j.child):
+            if end not in links:
+                raise ConfigError(f"{urdf_path}: joint '{j.name}' names link '{end}', which the URDF does not define")
+        if j.child in child_of:
+            raise ConfigError(f"{urdf_path}: link '{j.child}' is the child of two joints "
+                              f"('{child_of[j.child].name}', '{j.name}'): not a tree")
+        child_of[j.child] = j
+        children[j.parent].append(j)
+        if j.type not in ("fixed", "revolute", "continuous", "prismatic"):
+            raise ConfigError(f"{urdf_path}: joint '{j.name}' has type '{j.type}' (a serial chain takes revolute, "
+                              "continuous, prismatic and fixed joints)")
+    roots = sorted(links - set(child_of))
+    if len(roots) != 1:
+        raise ConfigError(f"{urdf_path}: expected one root link, found {len(roots)} ({', '.join(roots[:5])})")
+    root = roots[0]
+
+    def text_field(key, given):
+        v = given if given is not None else meta.get(key)
+        if v is not None and not isinstance(v, str):
+            raise ConfigError(f"{src}: field '{key}' must be a link name, got {v!r}")
+        return v
+
+    base = text_field("base_frame", base_frame) or root
+    for label, name in (("base frame", base),):
+        if name not in links:
+            raise ConfigError(f"{src}: {label} '{name}' is not a link of {urdf_path.name}")
+    locked_in = meta.get("locked_joints") or {}
+    if not isinstance(locked_in, dict):
+        raise ConfigError(f"{src}: field 'locked_joints' must map joint names to values (rad or m)")
+    locked = {}
+    for jn, v in locked_in.items():
+        if jn not in joints:
+            raise ConfigError(f"{src}: locked_joints names '{jn}', which is not a joint of {urdf_path.name}")
+        try:
+            locked[jn] = float(v)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{src}: locked_joints '{jn}': {v!r} is not a number") from None
+    tool = text_field("tool_frame", tool_frame)
+    if tool is None:
+        tool = base
+        while len(children[tool]) == 1:
+            tool = children[tool][0].child
+    if tool not in links:
+        raise ConfigError(f"{src}: tool frame '{tool}' is not a link of {urdf_path.name}")
+
+    # the path from the tool up to the base
+    path, cur = [], tool
+    while cur != base:
+        if cur not in child_of:
+            raise ConfigError(f"{src}: tool frame '{tool}' is not below base frame '{base}' in {urdf_path.name} "
+                              "(no serial path between them)")
+        path.append(child_of[cur])
+        cur = child_of[cur].parent
+    path.reverse()
+    moving = [j for j in path if j.type != "fixed" and j.name not in locked]
+    if not moving:
+        raise ConfigError(f"{src}: no moving joint between '{base}' and '{tool}'"
+                          + ("" if tool_frame or meta.get("tool_frame") else
+                             f" (the tree branches at '{tool}': name the tool with --tool-frame or "
+                             "tool_frame in robot.yaml)"))
+    for j in moving:
+        if j.mimic is not None:
+            raise ConfigError(f"{urdf_path}: joint '{j.name}' mimics '{j.mimic.joint}': a mimic joint cannot be "
+                              "part of the calibrated chain (lock it in robot.yaml's locked_joints)")
+    if "chain" in meta:
+        listed = list(meta["chain"] or [])
+        if listed != [j.name for j in path]:
+            raise ConfigError(f"{meta_file}: field 'chain' lists {listed}, the URDF's chain from '{base}' to "
+                              f"'{tool}' is {[j.name for j in path]}")
+
+    def fixed_T(j):
+        T = _origin(j)
+        if j.type != "fixed":  # a locked moving joint
+            T = T @ _motion(j, locked.get(j.name, 0.0))
+        return T
+
+    # cut the path into N + 2 transforms (model frames: z along each moving joint's axis)
+    N = len(moving)
+    moving_names = {j.name for j in moving}
+    Ts, tj = [], []
+    acc, names = np.eye(4), []
+    S_prev = np.eye(3)
+    S_all, types, lower, upper, vel = [], [], [], [], []
+    for j in path:
+        if j.name not in moving_names:
+            acc = acc @ fixed_T(j)
+            names.append(j.name)
+            continue
+        if not Ts:  # the base transform: everything before joint 1
+            Ts.append(acc)
+            tj.append(tuple(names))
+            acc, names = np.eye(4), []
+        S = axis_alignment(_unit_axis(j))
+        Ts.append(_as_T(S_prev.T) @ acc @ _origin(j) @ _as_T(S))
+        tj.append(tuple(names + [j.name]))
+        acc, names, S_prev = np.eye(4), [], S
+        S_all.append(S)
+        types.append(j.type)
+        lim = j.limit
+        if j.type == "continuous":
+            lo, hi = -np.pi, np.pi
+        else:
+            if lim is None or lim.lower is None or lim.upper is None:
+                raise ConfigError(f"{urdf_path}: joint '{j.name}' ({j.type}) has no <limit lower upper>")
+            lo, hi = float(lim.lower), float(lim.upper)
+            if not lo < hi:
+                raise ConfigError(f"{urdf_path}: joint '{j.name}': limit lower {lo} is not below upper {hi}")
+        lower.append(lo)
+        upper.append(hi)
+        vel.append(float(lim.velocity) if lim is not None and lim.velocity else np.nan)
+    Ts.append(_as_T(S_prev.T) @ acc)  # the tool transform
+    tj.append(tuple(names))
+    tj = tuple(tj)
+    link_after = [base, moving[0].parent] + [j.child for j in moving] + [tool]
+
+    # pose of the base frame in the URDF root (locked joints applied), for gravity in Pinocchio
+    T_rb, cur = np.eye(4), base
+    while cur != root:
+        j = child_of[cur]
+        T_rb = fixed_T(j) @ T_rb
+        cur = j.parent
+
+    # -- robot.yaml's extras ---------------------------------------------------------------
+    g = meta.get("gravity_in_I_m_s2", meta.get("gravity_m_s2", DEFAULT_GRAVITY))
+    g = np.asarray(g, dtype=float) if _is_numeric_list(g, 3) else None
+    if g is None:
+        raise ConfigError(f"{src}: field 'gravity_m_s2' must be 3 numbers (m/s² in '{base}')")
+
+    def vecN(keys, default, what):
+        for key in keys:
+            if key in meta:
+                if not _is_numeric_list(meta[key], N):
+                    raise ConfigError(f"{src}: field '{key}' must be {N} numbers ({what})")
+                v = np.asarray(meta[key], dtype=float)
+                if np.any(v <= 0):
+                    raise ConfigError(f"{src}: field '{key}' must be {N} positive numbers")
+                return v
+        return np.asarray(default, dtype=float)
+
+    v_def = np.where(np.isfinite(vel) & (np.asarray(vel) > 0), vel, 1.0)
+    max_vel = vecN(("max_velocity_rad_s", "max_velocity"), v_def, "per joint, rad/s or m/s")
+    max_acc = vecN(("max_acceleration_rad_s2", "max_acceleration"), 2.5 * max_vel, "rad/s² or m/s²")
+    max_jerk = vecN(("max_jerk_rad_s3", "max_jerk"), 10.0 * max_acc, "rad/s³ or m/s³")
+
+    reflectors = _reflectors(meta, src, tool, children, fixed_T)
+
+    A = b = None
+    ctrl = meta.get("controller")
+    if ctrl is not None:
+        if not isinstance(ctrl, dict) or set(ctrl) - {"sign", "offset", "coupling"}:
+            raise ConfigError(f"{src}: field 'controller' takes 'sign', 'offset' and 'coupling' "
+                              "(q_model = coupling·diag(sign)·q_controller + offset)")
+        A = np.eye(N)
+        if "coupling" in ctrl:
+            c = ctrl["coupling"]
+            if not (isinstance(c, list) and len(c) == N and all(_is_numeric_list(r, N) for r in c)):
+                raise ConfigError(f"{src}: controller.coupling must be a {N}x{N} matrix")
+            A = np.asarray(c, dtype=float)
+        if "sign" in ctrl:
+            if not _is_numeric_list(ctrl["sign"], N) or not set(map(float, ctrl["sign"])) <= {1.0, -1.0}:
+                raise ConfigError(f"{src}: controller.sign must be {N} values of 1 or -1")
+            A = A @ np.diag(np.asarray(ctrl["sign"], dtype=float))
+        b = np.zeros(N)
+        if "offset" in ctrl:
+            if not _is_numeric_list(ctrl["offset"], N):
+                raise ConfigError(f"{src}: controller.offset must be {N} numbers (rad or m)")
+            b = np.asarray(ctrl["offset"], dtype=float)
+        if abs(np.linalg.det(A)) < 1e-9:
+            raise ConfigError(f"{src}: controller coupling matrix is singular")
+        A, b = _read_only(A), _read_only(b)
+
+    name = str(meta.get("name", meta_file.parent.name if meta_file else u.robot.name or urdf_path.stem))
     return RobotModel(
-        name=str(meta.get("name", meta_file.parent.name)),
+        name=name,
         urdf_path=urdf_path,
-        R_nominal=_read_only(np.stack(R_nom)),
-        t_nominal=_read_only(t_nom),
+        R_nominal=_read_only(np.stack([T[:3, :3] for T in Ts])),
+        t_nominal=_read_only(np.stack([T[:3, 3] for T in Ts])),
         q_lower=_read_only(lower),
         q_upper=_read_only(upper),
-        joint_names=tuple(jnames),
-        link_names=tuple(["I"] + links),
-        gravity_in_I=_read_only(meta["gravity_in_I_m_s2"]),
-        max_velocity=vec6("max_velocity_rad_s"),
-        max_acceleration=vec6("max_acceleration_rad_s2"),
-        max_jerk=vec6("max_jerk_rad_s3"),
+        joint_names=tuple(j.name for j in moving),
+        link_names=tuple(link_after),
+        gravity_in_I=_read_only(g),
+        max_velocity=_read_only(max_vel),
+        max_acceleration=_read_only(max_acc),
+        max_jerk=_read_only(max_jerk),
         reflectors=tuple(reflectors),
+        joint_types=tuple(types),
+        axis_alignment=_read_only(np.stack(S_all)),
+        transform_joints=tj,
+        tool_frame=tool,
+        base_frame=base,
+        locked_joints=dict(locked),
+        controller_matrix=A,
+        controller_offset=b,
+        spec=spec,
+        meta_path=meta_file,
+        T_root_base=_read_only(T_rb),
     )
+
+
+def _is_numeric_list(v, n) -> bool:
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        return False
+    try:
+        return all(np.isfinite(float(x)) for x in v)
+    except (TypeError, ValueError):
+        return False
+
+
+def _reflectors(meta, src, tool, children, fixed_T) -> list:
+    """Reflectors on the tool: ``position_m`` in the tool frame, or a ``link`` below the tool."""
+    out = []
+    items = meta.get("reflectors") or []
+    if not isinstance(items, list):
+        raise ConfigError(f"{src}: field 'reflectors' must be a list")
+    below = {}  # link -> pose in the tool frame, for links hanging from the tool by fixed joints
+    stack = [(tool, np.eye(4))]
+    while stack:
+        lk, T = stack.pop()
+        below[lk] = T
+        for j in children.get(lk, []):
+            if j.type == "fixed":
+                stack.append((j.child, T @ fixed_T(j)))
+    for i, r in enumerate(items):
+        if not isinstance(r, dict):
+            raise ConfigError(f"{src}: reflectors[{i}] must be a mapping")
+        name = str(r.get("name", f"m{i + 1}"))
+        if "position_m" in r:
+            if not _is_numeric_list(r["position_m"], 3):
+                raise ConfigError(f"{src}: reflector '{name}': position_m must be 3 numbers (m, tool frame)")
+            pos = tuple(float(v) for v in r["position_m"])
+        elif "link" in r:
+            if r["link"] not in below or r["link"] == tool:
+                raise ConfigError(f"{src}: reflector '{name}' link '{r['link']}' is not a child of link {tool}")
+            pos = tuple(float(v) for v in below[r["link"]][:3, 3])
+        else:
+            raise ConfigError(f"{src}: reflector '{name}' needs 'position_m' (tool frame, m) or 'link'")
+        axis = r.get("axis_in_E", r.get("axis", [0, 0, 1]))
+        if not _is_numeric_list(axis, 3) or np.linalg.norm(np.asarray(axis, dtype=float)) < 1e-9:
+            raise ConfigError(f"{src}: reflector '{name}': axis must be 3 numbers, not all zero")
+        axis = np.asarray(axis, dtype=float)
+        axis = axis / np.linalg.norm(axis)
+        half = r.get("half_angle_deg", 30.0)
+        try:
+            half = float(half)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{src}: reflector '{name}': half_angle_deg must be a number") from None
+        out.append(Reflector(name, str(r.get("kind", "smr")), pos, tuple(axis), float(np.deg2rad(half))))
+    return out

@@ -36,6 +36,17 @@ TRACKER_NOISE_M = 10e-6
 TRACKER_RESOLUTION_M = 1e-6
 
 
+#: Reflectors assumed on the tool of a robot whose robot.yaml names fewer than three, m in the
+#: tool frame (a 10 cm triad: enough for a pose from Kabsch).
+DEFAULT_TOOL_TRIAD = np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]])
+
+
+def tool_points(robot: RobotModel) -> np.ndarray:
+    """The reflector centres the simulated tracker sees, (k, 3) m in the tool frame."""
+    P = robot.reflector_positions_in_E
+    return P if len(P) >= 3 else DEFAULT_TOOL_TRIAD
+
+
 def default_T_LI() -> np.ndarray:
     """A plausible pose of F_I in the tracker frame: tracker 3 m in front of the robot."""
     T = np.eye(4)
@@ -85,9 +96,10 @@ class TruthRobot:
         return model.base_params_
 
     def reflectors_in_L(self, q, rng, context=None) -> np.ndarray:
-        """Noisy reflector centres in F_L as the tracker reports them, (n, 3, 3), m."""
+        """Noisy reflector centres in F_L as the tracker reports them, (n, k, 3), m."""
         T_LE = self.T_LI @ self.pose(q, context)
-        P = transform_points(T_LE, np.broadcast_to(self.robot.reflector_positions_in_E, (len(T_LE), 3, 3)))
+        P_E = tool_points(self.robot)
+        P = transform_points(T_LE, np.broadcast_to(P_E, (len(T_LE),) + P_E.shape))
         return self._measure_points(P, rng)
 
     def setup_points_in_L(self, rng, spacing_m: float = 0.3, repeats: int = 10) -> np.ndarray:
@@ -150,9 +162,12 @@ def make_truth(robot: RobotModel | None = None, *, seed: int | None = 0, scale: 
 
 
 def random_joint_poses(robot: RobotModel, n: int, seed: int = 0, margin: float = 0.05) -> np.ndarray:
-    """n joint vectors uniformly inside the joint limits (shrunk by ``margin`` rad), (n, 6)."""
+    """n joint vectors uniformly inside the joint limits (shrunk by ``margin`` rad, or by
+    ``margin`` x 10 % of the range for a prismatic joint), (n, N)."""
     rng = np.random.default_rng(seed)
-    return rng.uniform(robot.q_lower + margin, robot.q_upper - margin, size=(n, 6))
+    span = robot.q_upper - robot.q_lower
+    m = np.where(robot.prismatic, np.minimum(0.1 * span, margin), margin)
+    return rng.uniform(robot.q_lower + m, robot.q_upper - m, size=(n, robot.n_joints))
 
 
 def synthesize(truth: TruthRobot, q, *, seed: int = 0, time_s=None, context=None) -> MeasuredPoses:
@@ -168,7 +183,7 @@ def synthesize(truth: TruthRobot, q, *, seed: int = 0, time_s=None, context=None
     t = np.arange(n, dtype=float) * 20.0 if time_s is None else np.asarray(time_s, dtype=float)
     T_LI_measured = frame_from_setup_points(*truth.setup_points_in_L(rng))
     P_L = truth.reflectors_in_L(q, rng, effect_context(context, t))
-    T_IE, _ = pose_from_reflectors(T_LI_measured, truth.robot.reflector_positions_in_E, P_L)
+    T_IE, _ = pose_from_reflectors(T_LI_measured, tool_points(truth.robot), P_L)
     return MeasuredPoses(np.arange(1, n + 1, dtype=np.int64), t, q, T_IE, context, T_LI_measured)
 
 

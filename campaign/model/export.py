@@ -1,0 +1,115 @@
+"""The calibrated geometric model as a URDF (`campaign export RUN --urdf OUT.urdf`).
+
+The robot's own URDF is read with yourdfpy, the chain's joint origins are replaced by the
+calibrated transforms and the file is written by yourdfpy again, so every link, inertia,
+geometry and joint outside the chain is kept. For moving joint j with model-frame transform
+``T̂_j(0)`` (the identified ``[R̄ R(a, b, c), t̂]`` with the zero offset folded in: ``Rz(pq_j)``
+for a revolute joint, a translation ``pd_j`` along z for a prismatic one):
+
+    origin_j' = F_j⁻¹ · S_{j-1} · T̂_j(0) · S_jᵀ
+
+where ``F_j`` is the product of the fixed joints between joint j-1 and joint j (unchanged) and
+``S_j`` the model frame's axis alignment (campaign.model.robot). The base transform's error
+``D_0 = T̄_0⁻¹ T̂_0`` is folded into joint 1's origin; the tool's ``D_E = T̄_E⁻¹ T̂_E`` into the
+last fixed joint before the tool frame, or, when the tool frame is the last moving joint's
+child link itself, into a new fixed joint ``<tool>_calibration`` above the tool link (its
+parent becomes a new empty link ``<tool>_uncalibrated``). The joint axes stay as written.
+Relative mesh file names are made absolute so the written file finds them from anywhere.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import ConfigError
+from campaign.model.robot import RobotModel
+from campaign.model.rotations import cardan_xyz
+
+
+def _T(R, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def calibrated_transforms(robot: RobotModel, p_e) -> list:
+    """The N + 2 calibrated transforms at q = 0, zero offsets folded in: list of (4, 4)."""
+    p = np.asarray(p_e, dtype=float)
+    if p.shape != (robot.n_params,):
+        raise ConfigError(f"p_e must have {robot.n_params} values for {robot.name}, got {p.shape}")
+    out = []
+    N = robot.n_joints
+    for k in range(N + 2):
+        a, b, c = p[6 * k + 3 : 6 * k + 6]
+        Rn, tn = robot.R_nominal[k], robot.t_nominal[k]
+        if 1 <= k <= N and robot.joint_types[k - 1] == "prismatic":
+            R = Rn @ cardan_xyz(a, b, p[6 * k + 2])
+            t = tn + Rn @ np.array([p[6 * k], p[6 * k + 1], 0.0]) + R[:, 2] * c
+        else:
+            R = Rn @ cardan_xyz(a, b, c)
+            t = tn + p[6 * k : 6 * k + 3]
+        out.append(_T(R, t))
+    return out
+
+
+def write_calibrated_urdf(robot: RobotModel, p_e, out_path) -> Path:
+    """Write the URDF of ``robot`` with the calibrated chain ``p_e`` (6N + 12,) to ``out_path``."""
+    import yourdfpy
+
+    out_path = Path(out_path)
+    u = yourdfpy.URDF.load(str(robot.urdf_path), load_meshes=False, build_scene_graph=False,
+                           build_collision_scene_graph=False)
+    joints = {j.name: j for j in u.robot.joints}
+    N = robot.n_joints
+    That = calibrated_transforms(robot, p_e)
+    S = [np.eye(3)] + [np.asarray(s) for s in robot.axis_alignment]  # S_0 = I, S_1..S_N
+
+    def fixed_T(name):
+        j = joints[name]
+        T = np.array(j.origin, dtype=float) if j.origin is not None else np.eye(4)
+        if j.type != "fixed":  # a joint of the chain locked in robot.yaml
+            from campaign.model.robot import _motion
+
+            T = T @ _motion(j, robot.locked_joints.get(j.name, 0.0))
+        return T
+
+    D0 = np.linalg.solve(_T(robot.R_nominal[0], robot.t_nominal[0]), That[0])
+    for k in range(1, N + 1):
+        names = robot.transform_joints[k]
+        F = np.eye(4)
+        for nm in names[:-1]:
+            F = F @ fixed_T(nm)
+        origin = np.linalg.solve(F, _T(S[k - 1], np.zeros(3)) @ That[k] @ _T(S[k].T, np.zeros(3)))
+        if k == 1:
+            origin = D0 @ origin
+        joints[names[-1]].origin = origin
+    DE = np.linalg.solve(_T(robot.R_nominal[N + 1], robot.t_nominal[N + 1]), That[N + 1])
+    tool_names = robot.transform_joints[N + 1]
+    if tool_names:
+        last = joints[tool_names[-1]]
+        last.origin = (np.array(last.origin, dtype=float) if last.origin is not None else np.eye(4)) @ DE
+    else:
+        tool = robot.tool_frame
+        jN = joints[robot.joint_names[-1]]
+        hook = f"{tool}_uncalibrated"
+        if hook in {lk.name for lk in u.robot.links}:
+            raise ConfigError(f"{robot.urdf_path}: link '{hook}' exists already; cannot add the tool's calibration")
+        u.robot.links.append(yourdfpy.Link(name=hook))
+        jN.child = hook
+        u.robot.joints.append(yourdfpy.Joint(name=f"{tool}_calibration", type="fixed", parent=hook, child=tool,
+                                             origin=DE))
+    base_dir = Path(robot.urdf_path).parent
+    for link in u.robot.links:
+        for item in list(link.visuals or []) + list(link.collisions or []):
+            mesh = item.geometry.mesh if item.geometry is not None else None
+            if mesh is not None and mesh.filename and "://" not in mesh.filename \
+                    and not Path(mesh.filename).is_absolute():
+                mesh.filename = str((base_dir / mesh.filename).resolve())
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(out_path.name + ".partial")
+    u.write_xml_file(str(tmp))
+    tmp.replace(out_path)
+    return out_path
