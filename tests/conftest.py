@@ -1,7 +1,10 @@
 import os
+import sqlite3
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -23,3 +26,53 @@ def base(robot):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+class SimRuns:
+    """Run folders for the simulated cell: a random plan (pose ids 1000, 1001, ...) and a
+    campaign.yaml with short timeouts; what a run stored; the cell processes of a run."""
+
+    def __init__(self, tmp_path, robot):
+        self.tmp_path, self.robot = tmp_path, robot
+
+    def make(self, n=60, seed=0, sim=None, run=None, name="run") -> Path:
+        from campaign.paths import DEFAULT_SCENE
+        from campaign.sim.truth import random_joint_poses
+
+        run_dir = self.tmp_path / name
+        (run_dir / "plan").mkdir(parents=True)
+        q = random_joint_poses(self.robot, n, seed=seed)
+        lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{1000 + i}," + ",".join(repr(float(v)) for v in q[i])
+                                                for i in range(n)]
+        (run_dir / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
+        cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
+               "run": {"timeout_s": 0.5, "retries": 3, "backoff_s": 0.01, "drift_check_every": 20, **(run or {})},
+               "sim": {"seed": seed, "time_factor": 0.0, **(sim or {})}}
+        (run_dir / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+        return run_dir
+
+    @staticmethod
+    def stored(run_dir) -> list:
+        """[(pose_id, status, reason), ...] of the run's log, by pose id."""
+        with sqlite3.connect(Path(run_dir) / "measurements.sqlite") as db:
+            return db.execute("SELECT pose_id, status, reason FROM poses ORDER BY pose_id").fetchall()
+
+    @staticmethod
+    def cell_pids(run_dir) -> list:
+        """Process ids of simulated cells serving ``run_dir``."""
+        pids = []
+        for d in Path("/proc").iterdir():
+            if d.name.isdigit():
+                try:
+                    cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+                except OSError:
+                    continue
+                if "campaign.sim.cell" in cmd and str(run_dir) in cmd:
+                    pids.append(int(d.name))
+        return pids
+
+
+@pytest.fixture
+def runs(tmp_path, robot):
+    """A :class:`SimRuns` in this test's tmp_path."""
+    return SimRuns(tmp_path, robot)

@@ -8,7 +8,6 @@ import struct
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,27 +16,9 @@ import yaml
 from campaign.cli import main
 from campaign.measure import protocol as P
 from campaign.measure.store import open_run
-from campaign.paths import DEFAULT_SCENE
-from campaign.sim.truth import random_joint_poses, read_truth
+from campaign.sim.truth import read_truth
 
 
-def make_run(tmp_path, robot, n=60, seed=0, sim=None, run=None, name="run"):
-    """A run folder with a random plan and a campaign.yaml for the simulated cell."""
-    run_dir = tmp_path / name
-    (run_dir / "plan").mkdir(parents=True)
-    q = random_joint_poses(robot, n, seed=seed)
-    lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{1000 + i}," + ",".join(repr(float(v)) for v in q[i]) for i in range(n)]
-    (run_dir / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
-    cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
-           "run": {"timeout_s": 0.5, "retries": 3, "backoff_s": 0.01, "drift_check_every": 20, **(run or {})},
-           "sim": {"seed": seed, "time_factor": 0.0, **(sim or {})}}
-    (run_dir / "campaign.yaml").write_text(yaml.safe_dump(cfg))
-    return run_dir
-
-
-def stored(run_dir):
-    with sqlite3.connect(run_dir / "measurements.sqlite") as db:
-        return db.execute("SELECT pose_id, status, reason FROM poses ORDER BY pose_id").fetchall()
 
 
 def test_messages_round_trip_and_bad_ones_are_named():
@@ -57,8 +38,8 @@ def test_messages_round_trip_and_bad_ones_are_named():
         P.encode(P.ErrorReply(1, "x" * (P.MAX_FRAME + 10)))
 
 
-def test_zero_noise_campaign_derives_the_truth_poses_to_1e9_m(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=40, sim={"noise_m": 0.0, "hidden_effects": ["ground_compliance", "joint_compliance"]})
+def test_zero_noise_campaign_derives_the_truth_poses_to_1e9_m(tmp_path, robot, runs):
+    run = runs.make(n=40, sim={"noise_m": 0.0, "hidden_effects": ["ground_compliance", "joint_compliance"]})
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
     with open_run(run) as store:
         poses = store.load_measured()
@@ -71,11 +52,11 @@ def test_zero_noise_campaign_derives_the_truth_poses_to_1e9_m(tmp_path, robot):
     assert np.max(np.abs(T_true[:, :3, :3] - poses.T_IE[:, :3, :3])) < 1e-9
 
 
-def test_every_fault_at_a_few_percent_leaves_no_pose_lost_or_duplicated(tmp_path, robot, capsys):
+def test_every_fault_at_a_few_percent_leaves_no_pose_lost_or_duplicated(tmp_path, robot, capsys, runs):
     faults = {"drop": 0.03, "late": 0.01, "late_delay_s": 0.7, "garble": 0.03, "beam_lost": 0.03, "robot_fault": 0.03}
-    run = make_run(tmp_path, robot, n=500, sim={"faults": faults}, run={"timeout_s": 0.4})
+    run = runs.make(n=500, sim={"faults": faults}, run={"timeout_s": 0.4})
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
-    rows = stored(run)
+    rows = runs.stored(run)
     ids = [r[0] for r in rows]
     assert sorted(ids) == list(range(1000, 1500))  # each pose exactly once
     failed = [r for r in rows if r[1] == "failed"]
@@ -84,46 +65,34 @@ def test_every_fault_at_a_few_percent_leaves_no_pose_lost_or_duplicated(tmp_path
     assert sum(r[1] == "measured" for r in rows) > 440
 
 
-def _cell_pids(run_dir):
-    pids = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-            except OSError:
-                continue
-            if "campaign.sim.cell" in cmd and str(run_dir) in cmd:
-                pids.append(int(d.name))
-    return pids
 
-
-def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, robot):
+def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, robot, runs):
     sim = {"faults": {"beam_lost": 0.05, "robot_fault": 0.03}, "time_factor": 2e-4}
-    ref = make_run(tmp_path, robot, n=150, sim=sim, name="reference")
+    ref = runs.make(n=150, sim=sim, name="reference")
     assert main(["run", str(ref), "--sim", "--quiet"]) == 0
-    run = make_run(tmp_path, robot, n=150, sim=sim, name="killed")
+    run = runs.make(n=150, sim=sim, name="killed")
     proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 60
     while time.time() < deadline:
         if (run / "measurements.sqlite").exists():
             try:
-                if len(stored(run)) >= 40:
+                if len(runs.stored(run)) >= 40:
                     break
             except sqlite3.OperationalError:
                 pass
         time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    partial = len(stored(run))
+    partial = len(runs.stored(run))
     assert 0 < partial < 150
     for _ in range(100):  # the cell notices its parent is gone
-        if not _cell_pids(run):
+        if not runs.cell_pids(run):
             break
         time.sleep(0.05)
-    assert _cell_pids(run) == []
+    assert runs.cell_pids(run) == []
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
-    a, b = stored(ref), stored(run)
+    a, b = runs.stored(ref), runs.stored(run)
     assert [r[0] for r in a if r[1] == "measured"] == [r[0] for r in b if r[1] == "measured"]
     assert len(b) == 150
     with open_run(ref) as s1, open_run(run) as s2:  # same seeds, same requests: the same values
@@ -132,10 +101,10 @@ def test_kill_9_then_rerun_gives_the_same_measured_set_and_no_orphan(tmp_path, r
     np.testing.assert_array_equal(p1.rotvec, p2.rotvec)
 
 
-def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot, capsys):
+def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path, robot, capsys, runs):
     from campaign.sim.launcher import SimulatedCell
 
-    run = make_run(tmp_path, robot, n=10)
+    run = runs.make(n=10)
     with SimulatedCell(run / "campaign.yaml", run) as cell:
         for port in (cell.controller[1], cell.tracker[1]):
             for payload in (b"GET / HTTP/1.0\r\n\r\n", struct.pack(">I", 10**9) + b"x" * 100,
@@ -153,23 +122,23 @@ def test_garbage_oversized_and_half_sent_messages_do_not_crash_the_cell(tmp_path
     assert "10/10 poses" in bar and "ok 10 failed 0" in bar and "sim 0.1 h" in bar and "h to go" in bar
 
 
-def test_an_emergency_stop_ends_the_campaign_cleanly_and_a_rerun_resumes(tmp_path, robot, capsys):
-    run = make_run(tmp_path, robot, n=80, seed=3, sim={"faults": {"estop": 0.03}})
+def test_an_emergency_stop_ends_the_campaign_cleanly_and_a_rerun_resumes(tmp_path, robot, capsys, runs):
+    run = runs.make(n=80, seed=3, sim={"faults": {"estop": 0.03}})
     assert main(["run", str(run), "--sim", "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert "emergency_stop" in err[-1] and "re-run to resume" in err[-1]
-    n_before = len(stored(run))
-    assert 0 < n_before < 80 and all(r[1] == "measured" for r in stored(run))
+    n_before = len(runs.stored(run))
+    assert 0 < n_before < 80 and all(r[1] == "measured" for r in runs.stored(run))
     for _ in range(10):  # the operator resets the stop and runs again, as often as it takes
         if main(["run", str(run), "--sim", "--quiet"]) == 0:
             break
-    assert [r[0] for r in stored(run)] == list(range(1000, 1080))
+    assert [r[0] for r in runs.stored(run)] == list(range(1000, 1080))
     with open_run(run) as store:
         assert len(store.events("stop")) >= 1 and all(e[3]["kind"] == "robot_fault" for e in store.events("stop"))
 
 
-def test_refused_connection_names_the_peer(tmp_path, robot, capsys):
-    run = make_run(tmp_path, robot, n=3, run={"reconnect_attempts": 1, "retries": 0})
+def test_refused_connection_names_the_peer(tmp_path, robot, capsys, runs):
+    run = runs.make(n=3, run={"reconnect_attempts": 1, "retries": 0})
     s = socket.socket()
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
@@ -179,8 +148,8 @@ def test_refused_connection_names_the_peer(tmp_path, robot, capsys):
     assert len(err) == 1 and f"127.0.0.1:{port}" in err[0] and "refused" in err[0]
 
 
-def test_export_of_a_measured_run_is_the_measured_pose_csv(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=20)
+def test_export_of_a_measured_run_is_the_measured_pose_csv(tmp_path, robot, runs):
+    run = runs.make(n=20)
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
     out = tmp_path / "out.csv"
     assert main(["export", str(run), "--csv", str(out)]) == 0
@@ -189,16 +158,16 @@ def test_export_of_a_measured_run_is_the_measured_pose_csv(tmp_path, robot):
     assert len(out.read_text().splitlines()) == 21
 
 
-def test_retry_failed_measures_the_failed_poses_again_and_stores_each_once(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=30, sim={"faults": {"beam_lost": 0.4}}, run={"retries": 1})
+def test_retry_failed_measures_the_failed_poses_again_and_stores_each_once(tmp_path, robot, runs):
+    run = runs.make(n=30, sim={"faults": {"beam_lost": 0.4}}, run={"retries": 1})
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
-    failed = [r[0] for r in stored(run) if r[1] == "failed"]
+    failed = [r[0] for r in runs.stored(run) if r[1] == "failed"]
     assert failed
     cfg = yaml.safe_load((run / "campaign.yaml").read_text())
     cfg["sim"]["faults"] = {}
     (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
     assert main(["run", str(run), "--sim", "--quiet", "--retry-failed"]) == 0
-    rows = stored(run)
+    rows = runs.stored(run)
     assert [r[0] for r in rows] == list(range(1000, 1030)) and all(r[1] == "measured" for r in rows)
     with open_run(run) as store:
         assert store.get_meta("id_epoch") == 1 and store.events("retry_failed")[0][3]["pose_ids"] == failed

@@ -12,28 +12,15 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 
 from campaign.cli import main
-from campaign.paths import DEFAULT_SCENE
-from campaign.sim.truth import random_joint_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
-def planned_run(tmp_path, robot, n, name="run", sim=None):
-    """A run folder with ``n`` random poses planned and a campaign.yaml for the simulated cell."""
-    run = tmp_path / name
-    (run / "plan").mkdir(parents=True)
-    q = random_joint_poses(robot, n, seed=5)
-    lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{500 + i}," + ",".join(repr(float(v)) for v in q[i]) for i in range(n)]
-    (run / "plan" / "poses.csv").write_text("\n".join(lines) + "\n")
-    cfg = {"robot": "comau_racer5_080", "scene": str(DEFAULT_SCENE),
-           "run": {"timeout_s": 2.0, "backoff_s": 0.01, "drift_check_every": 0},
-           "sim": {"seed": 0, "time_factor": 0.0, **(sim or {})}}
-    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
-    return run
+#: a driver that waits long enough on a loaded machine and never re-measures a reference pose
+RUN_OPTIONS = {"timeout_s": 2.0, "drift_check_every": 0}
 
 
 def rows(run, sql):
@@ -92,8 +79,8 @@ class Listener:
         self.sock.close()
 
 
-def test_a_second_driver_is_refused_before_it_contacts_the_cell_or_the_store(tmp_path, robot, capsys):
-    run = planned_run(tmp_path, robot, n=40, sim={"time_factor": 5e-3})
+def test_a_second_driver_is_refused_before_it_contacts_the_cell_or_the_store(capsys, runs):
+    run = runs.make(n=40, sim={"time_factor": 5e-3}, run=RUN_OPTIONS)
     first = start_driver(run)
     try:
         assert wait_for(lambda: stored_count(run) >= 2)
@@ -124,8 +111,8 @@ def test_a_second_driver_is_refused_before_it_contacts_the_cell_or_the_store(tmp
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
 
 
-def test_plan_is_refused_while_a_driver_holds_the_run(tmp_path, robot, capsys):
-    run = planned_run(tmp_path, robot, n=30, sim={"time_factor": 5e-3})
+def test_plan_is_refused_while_a_driver_holds_the_run(capsys, runs):
+    run = runs.make(n=30, sim={"time_factor": 5e-3}, run=RUN_OPTIONS)
     first = start_driver(run)
     try:
         assert wait_for(lambda: (run / ".lock").is_file() and (run / ".lock").read_text().strip() != "")
@@ -140,13 +127,13 @@ def test_plan_is_refused_while_a_driver_holds_the_run(tmp_path, robot, capsys):
         first.wait()
 
 
-def test_kill_9_and_resume_keep_the_campaign_clock_monotone(tmp_path, robot):
+def test_kill_9_and_resume_keep_the_campaign_clock_monotone(runs):
     sim = {"time_factor": 1e-3}
-    reference = planned_run(tmp_path, robot, n=60, name="reference", sim=sim)
+    reference = runs.make(n=60, name="reference", sim=sim, run=RUN_OPTIONS)
     assert main(["run", str(reference), "--sim", "--quiet"]) == 0
     clock_reference = rows(reference, "SELECT value FROM meta WHERE key = 'campaign_clock_s'")[0][0]
 
-    run = planned_run(tmp_path, robot, n=60, name="killed", sim=sim)
+    run = runs.make(n=60, name="killed", sim=sim, run=RUN_OPTIONS)
     proc = start_driver(run)
     assert wait_for(lambda: stored_count(run) >= 20)
     os.kill(proc.pid, signal.SIGKILL)
@@ -174,8 +161,8 @@ def _limit_file_size(limit_bytes):
     return set_limit
 
 
-def test_a_full_disk_is_one_line_and_loses_nothing(tmp_path, robot):
-    run = planned_run(tmp_path, robot, n=300)
+def test_a_full_disk_is_one_line_and_loses_nothing(runs):
+    run = runs.make(n=300, run=RUN_OPTIONS)
     proc = subprocess.run([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
                           capture_output=True, text=True, env=ENV, timeout=300,
                           preexec_fn=_limit_file_size(96 * 1024))
@@ -187,13 +174,13 @@ def test_a_full_disk_is_one_line_and_loses_nothing(tmp_path, robot):
     assert 0 < len(stored) < 300
     # with room again, a re-run measures the rest, each pose once
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
-    assert [r[0] for r in rows(run, "SELECT pose_id FROM poses ORDER BY pose_id")] == list(range(500, 800))
+    assert [r[0] for r in rows(run, "SELECT pose_id FROM poses ORDER BY pose_id")] == list(range(1000, 1300))
 
 
-def test_a_locked_database_is_one_line_and_loses_nothing(tmp_path, robot, capsys, monkeypatch):
+def test_a_locked_database_is_one_line_and_loses_nothing(capsys, monkeypatch, runs):
     from campaign.measure import store as store_module
 
-    run = planned_run(tmp_path, robot, n=10)
+    run = runs.make(n=10, run=RUN_OPTIONS)
     assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "4"]) == 0
     capsys.readouterr()
     before = rows(run, "SELECT pose_id, time_s, x, y, z FROM poses ORDER BY pose_id")

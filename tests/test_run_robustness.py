@@ -25,7 +25,6 @@ from campaign.measure import protocol as P
 from campaign.measure.driver import RunOptions, run_campaign
 from campaign.measure.store import open_run
 from campaign.sim.cell import parse_faults
-from test_run_campaign import _cell_pids, make_run, stored
 
 #: replies a broken peer may send instead of a valid one
 BAD_REPLIES = {
@@ -33,7 +32,7 @@ BAD_REPLIES = {
     "oversized": struct.pack(">I", P.MAX_FRAME + 1) + b"{" * 64,
     "half_sent": struct.pack(">I", 200) + b'{"type": "reached", "id": ',
     "not_utf8": struct.pack(">I", 8) + b"\xff\xfe\xfd\xfc\xfb\xfa\xf9\xf8",
-    "wrong_schema": P._HEADER.pack(30) + b'{"type":"reached","id":1,"q":1}',
+    "wrong_schema": struct.pack(">I", 30) + b'{"type":"reached","id":1,"q":1}',
     "trickled": None,  # a valid reply, one byte every 20 ms: complete only long after the timeout
 }
 
@@ -93,8 +92,8 @@ class BadPeer:
 
 @pytest.mark.parametrize("port", ["controller", "tracker"])
 @pytest.mark.parametrize("kind", sorted(BAD_REPLIES))
-def test_bad_replies_on_either_port_mark_poses_failed_and_never_crash_the_driver(tmp_path, robot, kind, port):
-    run = make_run(tmp_path, robot, n=2)
+def test_bad_replies_on_either_port_mark_poses_failed_and_never_crash_the_driver(tmp_path, robot, kind, port, runs):
+    run = runs.make(n=2)
     ctrl = BadPeer("controller", kind if port == "controller" else None)
     trk = BadPeer("tracker", kind)  # the tracker is only asked when the controller behaves
     try:
@@ -106,13 +105,13 @@ def test_bad_replies_on_either_port_mark_poses_failed_and_never_crash_the_driver
         trk.close()
     assert (res.measured, res.failed, res.stopped) == (0, 2, None)
     assert (ctrl if port == "controller" else trk).bad_sent >= 2
-    rows = stored(run)
+    rows = runs.stored(run)
     assert [r[1] for r in rows] == ["failed", "failed"]
     assert all(f"{port} 127.0.0.1:" in r[2] and "no valid reply after 2 attempts" in r[2] for r in rows)
 
 
-def test_a_peer_that_is_not_the_expected_one_is_named(tmp_path, robot, capsys):
-    run = make_run(tmp_path, robot, n=2)
+def test_a_peer_that_is_not_the_expected_one_is_named(tmp_path, robot, capsys, runs):
+    run = runs.make(n=2)
     a, b = BadPeer("controller", None), BadPeer("tracker", None)
     try:
         rc = main(["run", str(run), "--controller", f"127.0.0.1:{b.port}", "--tracker", f"127.0.0.1:{a.port}"])
@@ -124,14 +123,14 @@ def test_a_peer_that_is_not_the_expected_one_is_named(tmp_path, robot, capsys):
     assert f"controller 127.0.0.1:{b.port}: the peer there is a 'tracker'" in err[0] and "swapped" in err[0]
 
 
-def test_ctrl_c_stops_after_the_current_pose_with_everything_stored(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=120, sim={"time_factor": 5e-4})  # ~10 ms per pose
+def test_ctrl_c_stops_after_the_current_pose_with_everything_stored(tmp_path, robot, runs):
+    run = runs.make(n=120, sim={"time_factor": 5e-4})  # ~10 ms per pose
     proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.time() + 60
     while time.time() < deadline:
         try:
-            if len(stored(run)) >= 20:
+            if len(runs.stored(run)) >= 20:
                 break
         except sqlite3.OperationalError:
             pass
@@ -140,15 +139,15 @@ def test_ctrl_c_stops_after_the_current_pose_with_everything_stored(tmp_path, ro
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130
     assert "Ctrl-C" in err.strip().splitlines()[-1] and "re-run to resume" in err
-    rows = stored(run)
+    rows = runs.stored(run)
     assert 20 <= len(rows) < 120 and all(r[1] == "measured" for r in rows)  # no pose failed by the stop
-    assert _cell_pids(run) == []
+    assert runs.cell_pids(run) == []
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
-    assert [r[0] for r in stored(run)] == list(range(1000, 1120))
+    assert [r[0] for r in runs.stored(run)] == list(range(1000, 1120))
 
 
-def test_the_cell_alone_serves_a_driver_given_its_ports(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=15)
+def test_the_cell_alone_serves_a_driver_given_its_ports(tmp_path, robot, runs):
+    run = runs.make(n=15)
     cell = subprocess.Popen([sys.executable, "-m", "campaign.cli", "sim", "--config", str(run / "campaign.yaml"),
                              "--run", str(tmp_path / "cell")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -161,13 +160,13 @@ def test_the_cell_alone_serves_a_driver_given_its_ports(tmp_path, robot):
         cell.send_signal(signal.SIGINT)
         cell.wait(timeout=10)
     assert cell.returncode == 0
-    assert [r[1] for r in stored(run)] == ["measured"] * 15
+    assert [r[1] for r in runs.stored(run)] == ["measured"] * 15
     assert (tmp_path / "cell" / "sim" / "truth.yaml").is_file() and not (run / "sim").exists()
 
 
 @pytest.mark.parametrize("hidden, warned", [(["drift"], True), ([], False)])
-def test_the_drift_check_warns_when_the_reference_pose_moves(tmp_path, robot, hidden, warned):
-    run = make_run(tmp_path, robot, n=40, sim={"noise_m": 0.0, "hidden_effects": hidden},
+def test_the_drift_check_warns_when_the_reference_pose_moves(tmp_path, robot, hidden, warned, runs):
+    run = runs.make(n=40, sim={"noise_m": 0.0, "hidden_effects": hidden},
                    run={"drift_check_every": 10, "drift_threshold_mm": 1e-4})
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
     with open_run(run) as store:
@@ -189,8 +188,8 @@ def test_fault_rates_are_validated():
         parse_faults({"drop": 5})
 
 
-def test_a_measurement_carries_the_tracker_temperature_into_the_export(tmp_path, robot):
-    run = make_run(tmp_path, robot, n=5)
+def test_a_measurement_carries_the_tracker_temperature_into_the_export(tmp_path, robot, runs):
+    run = runs.make(n=5)
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
     out = tmp_path / "out.csv"
     assert main(["export", str(run), "--csv", str(out)]) == 0
