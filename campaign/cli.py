@@ -25,8 +25,17 @@ COMMAND_MODULES = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the package's error convention: a bad argument is one line on stderr and
+    exit status 1 (``--help`` still shows the usage)."""
+
+    def error(self, message):
+        _one_line(self.prog.removeprefix("campaign").strip(), f"{message} (see {self.prog} --help)")
+        sys.exit(1)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="campaign",
         description="Plan, run and evaluate a laser-tracker calibration campaign of a 6-axis robot.",
     )
@@ -36,18 +45,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(command, message) -> int:
+    red, reset = ("\033[31m", "\033[0m") if sys.stderr.isatty() else ("", "")
+    prefix = f"campaign {command}" if command else "campaign"
+    print(f"{red}{prefix}: {' '.join(message.split())}{reset}", file=sys.stderr)
+    return 1
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad argument (1, one line already printed)
+        return int(exc.code or 0)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     try:
         rc = args.func(args)
     except CampaignError as exc:
-        red, reset = ("\033[31m", "\033[0m") if sys.stderr.isatty() else ("", "")
-        print(f"{red}campaign {args.command}: {exc}{reset}", file=sys.stderr)
-        return 1
+        return _one_line(args.command, str(exc))
+    except OSError as exc:  # the system refused (full disk, permissions, ...): where and why, in one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _one_line(args.command, f"{where}{exc.strerror or exc}")
     except KeyboardInterrupt:
         print(f"campaign {args.command}: interrupted", file=sys.stderr)
         return 130

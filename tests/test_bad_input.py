@@ -199,6 +199,16 @@ def test_a_bad_grid_scale_is_one_line(tmp_path, capsys, scale):
             tmp_path)
 
 
+@pytest.mark.parametrize("argv,match", [
+    (["plan", "--grid-scale", "abc"], r"^campaign plan: argument --grid-scale: invalid float value: 'abc'"),
+    (["calibrate", "{run}", "--folds", "x"], r"^campaign calibrate: argument --folds: invalid int value: 'x'"),
+    (["run", "{run}", "--sim", "--controller", "h:1"], r"^campaign run: argument --controller: not allowed with"),
+    (["teleport"], r"^campaign: argument COMMAND: invalid choice: 'teleport'"),
+])
+def test_a_bad_command_line_argument_is_one_line_and_exit_status_1(tmp_path, capsys, argv, match):
+    refused(capsys, [a.format(run=tmp_path / "run") for a in argv], match, tmp_path)
+
+
 # -- import -----------------------------------------------------------------------------------
 
 def measured_csv(tmp_path, robot, pose_id=None, n=30) -> Path:
