@@ -32,3 +32,15 @@ METRES_MAX_ABS = 20.0
 
 #: Joint-limit slack (rad) when validating measured joint values (encoder rounding).
 JOINT_LIMIT_SLACK = 1e-6
+
+#: Joint-limit slack (rad) of the simulated controller: a command at a limit, computed in
+#: float64 from the limits themselves (grid cells, via postures), lies within round-off of it.
+JOINT_COMMAND_SLACK = 1e-9
+
+#: Slack (rad) on |rotation vector| <= pi in a CSV: a rotation of exactly pi written with 17
+#: significant digits may read back a few ulps above pi.
+ROTVEC_NORM_SLACK = 1e-6
+
+#: Smallest distance (m) between the base-frame set-up points, and of the y point from the
+#: x axis, for the frame they define to be meaningful (the tracker's resolution is ~1 µm).
+SETUP_POINT_MIN_SEPARATION_M = 1e-3

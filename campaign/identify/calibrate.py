@@ -28,6 +28,7 @@ from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
+from campaign.tolerances import JOINT_LIMIT_SLACK
 
 CALIBRATION_DIR = "calibration"
 #: fewer training poses than this: `calibrate` trains no network unless asked (``ann=True``).
@@ -111,7 +112,7 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         poses = store.load_measured()
     if len(poses) < 20:
         raise DataError(f"{run_dir}: only {len(poses)} measured poses; at least 20 are needed")
-    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=1e-6)
+    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK)
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
     if tr.sum() < 10 or te.sum() < 2:

@@ -28,6 +28,7 @@ from campaign.measure.csvio import read_numeric_table
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.model.rotations import matrix_to_rotvec
+from campaign.tolerances import JOINT_LIMIT_SLACK
 
 JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")  # the default 6-joint robot's
 
@@ -226,7 +227,7 @@ def read_joint_csv(path, robot: RobotModel, context_keys=()) -> tuple:
     if extra:
         raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
     q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1))
-    robot.check_joints(q, field=f"{path}: q", slack=1e-6)
+    robot.check_joints(q, field=f"{path}: q", slack=JOINT_LIMIT_SLACK)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
     context = {k: col[k] for k in header if k not in cols and k != "pose_id"}
     return pose_id, q, context

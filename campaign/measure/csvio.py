@@ -16,7 +16,7 @@ import numpy as np
 from campaign.errors import DataError
 from campaign.fileio import atomic_open
 from campaign.measure.data import CSV_COLUMNS, MAX_STORED_POSE_ID, MeasuredPoses
-from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS
+from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS, ROTVEC_NORM_SLACK
 
 
 def read_numeric_table(path, required) -> tuple:
@@ -94,7 +94,7 @@ def read_measured_csv(path, robot=None) -> MeasuredPoses:
         if big.any():
             fail(big, name, f"exceeds {METRES_MAX_ABS:g} m: positions must be in m (this looks like mm)")
     rv = np.stack([col["rx"], col["ry"], col["rz"]], axis=1)
-    big = np.linalg.norm(rv, axis=1) > math.pi + 1e-6
+    big = np.linalg.norm(rv, axis=1) > math.pi + ROTVEC_NORM_SLACK
     if big.any():
         k = int(np.argmax(big))
         raise DataError(f"{path}: line {lines[k]}, columns rx,ry,rz: rotation vector norm "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from campaign.errors import DataError
+from campaign.tolerances import SETUP_POINT_MIN_SEPARATION_M
 
 
 def frame_from_setup_points(origin_L, x_point_L, y_point_L) -> np.ndarray:
@@ -24,12 +25,13 @@ def frame_from_setup_points(origin_L, x_point_L, y_point_L) -> np.ndarray:
     px = np.asarray(x_point_L, dtype=float) - o
     py = np.asarray(y_point_L, dtype=float) - o
     nx = np.linalg.norm(px)
-    if nx < 1e-3:
-        raise DataError(f"set-up points: the x point is {nx * 1e3:.3f} mm from the origin (need >= 1 mm)")
+    if nx < SETUP_POINT_MIN_SEPARATION_M:
+        raise DataError(f"set-up points: the x point is {nx * 1e3:.3f} mm from the origin "
+                        f"(need >= {SETUP_POINT_MIN_SEPARATION_M * 1e3:g} mm)")
     x = px / nx
     y = py - (py @ x) * x
     ny = np.linalg.norm(y)
-    if ny < 1e-3:
+    if ny < SETUP_POINT_MIN_SEPARATION_M:
         raise DataError("set-up points: the y point is (nearly) on the x axis")
     y = y / ny
     z = np.cross(x, y)

@@ -39,6 +39,7 @@ from campaign.plan.scene import load_scene
 from campaign.plan.timing import rest_to_rest_time
 from campaign.run import load_robot
 from campaign.sim.truth import make_truth, write_truth
+from campaign.tolerances import JOINT_COMMAND_SLACK
 
 _KIND_CODE = {k: i + 1 for i, k in enumerate(FAULT_KINDS)}
 #: distances of the base-frame set-up points from F_I's origin along x and y (m)
@@ -101,7 +102,7 @@ class World:
 
     def move(self, msg: P.Move):
         q = np.array(msg.q)
-        if np.any(q < self.robot.q_lower - 1e-9) or np.any(q > self.robot.q_upper + 1e-9):
+        if np.any(q < self.robot.q_lower - JOINT_COMMAND_SLACK) or np.any(q > self.robot.q_upper + JOINT_COMMAND_SLACK):
             return P.Fault(msg.id, "joint_limit", "target outside the joint limits")
         if msg.id not in self.estops and self.fault("estop", msg.id):
             with self.lock:
