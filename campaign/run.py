@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import functools
-import inspect
 import json
 import os
 import sqlite3
@@ -38,17 +37,10 @@ LOCK_FILE = ".lock"
 
 
 def load_robot(spec, *, tool_frame=None, base_frame=None):
-    """``RobotModel.load(spec, tool_frame=..., base_frame=...)``: the frames are passed only
-    when given, so a loader without them still loads the default frames."""
+    """``RobotModel.load(spec, tool_frame=..., base_frame=...)`` (imported on first use)."""
     from campaign.model.robot import RobotModel
 
-    kw = {k: v for k, v in (("tool_frame", tool_frame), ("base_frame", base_frame)) if v is not None}
-    if kw:
-        params = inspect.signature(RobotModel.load).parameters
-        missing = [k for k in kw if k not in params]
-        if missing:
-            raise ConfigError(f"{missing[0]}: this version of campaign loads only the robot's own frames")
-    return RobotModel.load(spec, **kw)
+    return RobotModel.load(spec, tool_frame=tool_frame, base_frame=base_frame)
 
 
 class RunFolder:

@@ -183,6 +183,28 @@ def robot_copy(tmp_path, edit_yaml=None, edit_urdf=None) -> Path:
     return folder
 
 
+@pytest.mark.parametrize("field,value,match", [
+    ("max_velocity_rad_s", [float("nan")] * 6, "max_velocity_rad_s"),
+    ("max_velocity_rad_s", "fast", "max_velocity_rad_s"),
+    ("max_acceleration_rad_s2", [1, 2, 3], "max_acceleration_rad_s2"),
+    ("max_jerk_rad_s3", [-1.0] * 6, "max_jerk_rad_s3"),
+    ("gravity_in_I_m_s2", "down", "gravity"),
+    ("gravity_in_I_m_s2", [0.0, float("inf"), 0.0], "gravity"),
+])
+def test_a_bad_robot_yaml_field_is_one_line_naming_the_file_and_the_field(tmp_path, capsys, field, value, match):
+    folder = robot_copy(tmp_path, edit_yaml=lambda m: m.__setitem__(field, value))
+    cfg = write_yaml(tmp_path / "campaign.yaml", tiny_config(tmp_path, robot=str(folder)))
+    line = refused(capsys, ["plan", "--config", cfg, "--run", tmp_path / "run"], match, tmp_path)
+    assert "robot.yaml" in line
+
+
+def test_a_urdf_with_a_non_numeric_origin_is_one_line(tmp_path, capsys):
+    folder = robot_copy(tmp_path, edit_urdf=lambda text: re.sub(r'xyz="[^"]*"', 'xyz="abc"', text, count=3))
+    cfg = write_yaml(tmp_path / "campaign.yaml", tiny_config(tmp_path, robot=str(folder)))
+    line = refused(capsys, ["plan", "--config", cfg, "--run", tmp_path / "run"], r"abc", tmp_path)
+    assert ".urdf" in line
+
+
 # -- plan -------------------------------------------------------------------------------------
 
 def test_a_plan_with_no_suitable_pose_is_one_line_and_writes_nothing(tmp_path, capsys):
