@@ -231,13 +231,29 @@ class SimConfig:
         return cls(**kw)
 
 
-SECTIONS = {"plan": PlanConfig, "run": RunConfig, "sim": SimConfig}
+@dataclass(frozen=True)
+class TrackerConfig:
+    """``tracker:``: what the user states about the instrument. ``noise_m``: σ per coordinate
+    of a reflector centre (m), the noise floor of `diagnose` when no pose is measured twice."""
+
+    noise_m: float | None = None
+
+    @classmethod
+    def parse(cls, doc: dict, where: _Where) -> "TrackerConfig":
+        kw = {}
+        if doc.get("noise_m") is not None:
+            kw["noise_m"] = check_number(doc["noise_m"], where("noise_m"), low=0.0, high=0.01, low_open=True)
+        return cls(**kw)
+
+
+SECTIONS = {"plan": PlanConfig, "run": RunConfig, "sim": SimConfig, "tracker": TrackerConfig}
 #: keys of each section as written in campaign.yaml
 SECTION_KEYS = {
     "plan": {f.name for f in fields(PlanConfig)},
     "run": {f.name for f in fields(RunConfig)},
     "sim": {f.name for f in fields(SimConfig)} - {"late_delay_s"},
     "calibrate": {"effects"},
+    "tracker": {f.name for f in fields(TrackerConfig)},
 }
 TOP_KEYS = {"robot", "scene", "tool_frame", "base_frame", "effects", *SECTION_KEYS}
 
@@ -262,6 +278,7 @@ class CampaignConfig:
     plan: PlanConfig = field(default_factory=PlanConfig)
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
 
     @property
     def dir(self) -> Path:
@@ -302,7 +319,15 @@ class CampaignConfig:
             out["tool_frame"] = self.tool_frame
         if self.base_frame is not None:
             out["base_frame"] = self.base_frame
-        out.update({"effects": list(self.effects), "plan": plan, "run": asdict(self.run), "sim": sim})
+        if absolute:
+            from campaign.effects.base import resolve_effect_spec
+
+            effects = [resolve_effect_spec(e, self.dir) for e in self.effects]
+        else:
+            effects = list(self.effects)
+        out.update({"effects": effects, "plan": plan, "run": asdict(self.run), "sim": sim})
+        if self.tracker.noise_m is not None:
+            out["tracker"] = asdict(self.tracker)
         return out
 
 

@@ -137,8 +137,11 @@ class RunFolder:
 
     @property
     def effects(self) -> tuple:
-        """Effects enabled for calibration in the run's campaign.yaml, as written there."""
-        return self.config.effects
+        """Effects enabled for calibration in the run's campaign.yaml; user effect files
+        (``path/file.py:ClassName``) made absolute against that file's folder."""
+        from campaign.effects.base import resolve_effect_spec
+
+        return tuple(resolve_effect_spec(e, self.config.dir) for e in self.config.effects)
 
     # -- the measurement log ------------------------------------------------------------------
     def store(self, *, create: bool = False):

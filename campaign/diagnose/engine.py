@@ -1,13 +1,29 @@
-"""Which physical effect is missing? Fit each candidate on training folds, score it on held-out folds.
+"""Where does the model fail, how far is it from the measurement noise, and what is missing?
 
 For a run, the *current model* is the geometric model plus the effects enabled in the run's
-campaign.yaml (or given). Every registered effect not in it is a candidate. On the training
-part of the fixed 80/20 split, K folds: for each fold the current model and the current
-model + candidate are fitted on the other folds and predict the held-out fold. A candidate is
-*significant* when its held-out per-pose position errors are smaller than the current
-model's by a one-sided paired t-test at p < 0.01 / (number of candidates) (Bonferroni) and
-the mean improves by at least 2 %; the verdict is the significant candidate with the lowest
-held-out error. The test set is not touched. Nothing here reads a simulator's truth.
+campaign.yaml (or given). On the training part of the fixed 80/20 split, K folds: for each
+fold the current model is fitted on the other folds and predicts the held-out fold. Three
+questions are answered on those held-out residuals (the test set is not touched, nothing
+here reads a simulator's truth):
+
+1. **How far from the noise?** The held-out mean position error over the noise floor
+   (:mod:`campaign.diagnose.floor`, from repeated measurements or the stated tracker noise,
+   never from the model's fit): ``model_to_noise``.
+2. **Is there structure left?** A flexible regressor of the residual on the joint
+   coordinates and the per-pose context (:mod:`campaign.diagnose.structure`), fitted on the
+   same folds: its held-out gain, significance and the inputs it depends on.
+3. **Which catalogued (or user) effect explains it?** Every registered effect not in the
+   model, and any installed or named user effect, is fitted on the folds with the current
+   model: a candidate is *significant* when its held-out per-pose position errors are smaller
+   by a one-sided paired t-test at p < 0.01 / (number of candidates) (Bonferroni) and the mean
+   improves by at least 2 % — or, when the model is already at the noise floor, by more than
+   the detection limit (parsimony).
+
+The verdict: the best significant candidate when it explains the structure (its held-out
+error is within 5 % of the regressor's, or the regressor finds nothing); ``"unexplained"`` when
+systematic error remains that no candidate explains (the regressor finds it, or the model
+is above the floor's uncertainty); ``None`` only when the model is at the floor and the
+regressor finds nothing either (or, with no floor, when nothing at all is found).
 """
 
 from __future__ import annotations
@@ -18,7 +34,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from campaign.effects.base import available, effect_context, make_effect, parse_effect_list
+from campaign.diagnose.floor import NoiseFloor, noise_floor
+from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, parse_effect_list,
+                                   resolve_effect_spec)
 from campaign.errors import DataError
 from campaign.identify.calibrate import configured_effects, load_robot_for_run
 from campaign.identify.solver import CalibrationModel
@@ -26,10 +44,17 @@ from campaign.identify.split import train_test_split
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
 
-#: family-wise significance level of the candidate ranking
+#: family-wise significance level of the candidate ranking and of the structure test
 ALPHA = 0.01
 #: smallest relative improvement of the held-out mean position error that counts
 MIN_RELATIVE_GAIN = 0.02
+#: how much a correct model's held-out error may exceed the pure noise (its own parameter
+#: estimation error, a few per cent for tens of parameters on hundreds of poses)
+AT_FLOOR_MARGIN = 0.05
+#: an input is named in depends_on when it has this share of the summed permutation importance
+MIN_IMPORTANCE_SHARE = 0.05
+#: a candidate explains the structure when its held-out error is within this factor of the regressor's
+EXPLAINS_FACTOR = 1.05
 
 
 @dataclass(frozen=True)
@@ -44,10 +69,16 @@ class CandidateScore:
     r2: float
     absorbed: tuple = ()
     description: str = ""
+    spec: str = ""
+
+    @property
+    def gain(self) -> float:
+        return 1 - self.heldout_mean_position_mm_after / max(self.heldout_mean_position_mm_before, 1e-300)
 
     def as_json(self) -> dict:
         return {
             "effect": self.effect,
+            "spec": self.spec or self.effect,
             "heldout_mean_position_mm_before": self.heldout_mean_position_mm_before,
             "heldout_mean_position_mm_after": self.heldout_mean_position_mm_after,
             "significant": self.significant,
@@ -68,16 +99,78 @@ class Diagnosis:
     folds: int
     residuals: np.ndarray = field(repr=False, default=None)  # Δz of the current model, (n, 6)
     is_test: np.ndarray = field(repr=False, default=None)
+    floor: NoiseFloor = field(default_factory=lambda: NoiseFloor("none"))
+    heldout_mean_position_mm: float = float("nan")
+    structure: object = None  # campaign.diagnose.structure.StructureResult
+    structure_significant: bool = False
+    detection_limit: float = MIN_RELATIVE_GAIN
+    at_floor: bool | None = None
+    signature: object = None  # campaign.diagnose.signature.Signature
+    #: training-pose indices (into the run's poses) in the order of ``structure``'s arrays
+    train_index: np.ndarray = field(repr=False, default=None)
+    inputs: np.ndarray = field(repr=False, default=None)  # (n_train, d) regressor inputs
+
+    @property
+    def model_to_noise(self) -> float | None:
+        if not self.floor.known:
+            return None
+        return float(self.heldout_mean_position_mm / self.floor.mean_position_mm)
+
+    @property
+    def depends_on(self) -> list:
+        if self.structure is None:
+            return []
+        return self.structure.depends_on(MIN_IMPORTANCE_SHARE) if self.structure_significant else []
 
     def as_json(self) -> dict:
+        s = self.structure
         return {
             "verdict": self.verdict,
             "ranking": [c.as_json() for c in self.ranking],
+            "noise_floor_mm": self.floor.mean_position_mm,
+            "model_to_noise": self.model_to_noise,
+            "heldout_mean_position_mm": self.heldout_mean_position_mm,
+            "at_noise_floor": self.at_floor,
+            "noise_floor": self.floor.as_json(),
+            "unexplained": {
+                "significant": bool(self.structure_significant),
+                "heldout_gain": None if s is None else s.heldout_gain,
+                "p_value": None if s is None else s.p_value,
+                "detection_limit": self.detection_limit,
+                "depends_on": self.depends_on,
+                "importance": {} if s is None else dict(sorted(s.importance.items(), key=lambda kv: -kv[1])),
+                "signature": None if self.signature is None else self.signature.as_json(),
+                "regressor_fit_time_s": None if s is None else s.fit_time_s,
+            },
             "current_effects": list(self.current_effects),
-            "config_line": config_line(self.current_effects, self.verdict),
+            "config_line": config_line(self.current_effects, self._verdict_spec()),
             "folds": self.folds,
             "n_train_poses": self.n_train,
         }
+
+    def _verdict_spec(self):
+        if self.verdict in (None, "unexplained"):
+            return None
+        c = next(c for c in self.ranking if c.effect == self.verdict)
+        return c.spec or c.effect
+
+    def floor_line(self) -> str:
+        held = f"held-out mean {self.heldout_mean_position_mm:.3f} mm"
+        if not self.floor.known:
+            return f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in campaign.yaml)"
+        return f"{held} = {self.model_to_noise:.1f}× the measurement noise ({self.floor.text()})"
+
+    def structure_line(self) -> str:
+        s = self.structure
+        if s is None:
+            return "model-free test: not run"
+        inputs = ", ".join(s.input_names)
+        verdict = "significant" if self.structure_significant else "not significant"
+        out = (f"model-free test: a flexible regressor on {inputs} predicts {100 * s.heldout_gain:.1f} % of the "
+               f"held-out error (p = {s.p_value:.2g}; detection limit {100 * self.detection_limit:.1f} %): {verdict}")
+        if self.structure_significant:
+            out += "\n  depends on " + ", ".join(f"{k} ({100 * s.importance[k]:.0f} %)" for k in self.depends_on)
+        return out
 
     def text(self) -> str:
         lines = [f"current model: geometric" + "".join(f" + {e}" for e in self.current_effects),
@@ -85,30 +178,49 @@ class Diagnosis:
                  f"(test set untouched):", "",
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
         for c in self.ranking:
-            gain = 1 - c.heldout_mean_position_mm_after / max(c.heldout_mean_position_mm_before, 1e-300)
             note = " (absorbed: " + ", ".join(c.absorbed) + ")" if c.absorbed else ""
             lines.append(f"{c.effect:<20}{c.heldout_mean_position_mm_before:>11.4f}{c.heldout_mean_position_mm_after:>11.4f}"
-                         f"{100 * gain:>7.1f}%{c.r2:>7.2f}{c.p_value:>10.2g}  {'yes' if c.significant else 'no'}{note}")
-        lines.append("")
-        lines.append(verdict_text(self))
+                         f"{100 * c.gain:>7.1f}%{c.r2:>7.2f}{c.p_value:>10.2g}  {'yes' if c.significant else 'no'}{note}")
+        lines += ["", self.floor_line(), self.structure_line()]
+        if self.signature is not None and self.structure_significant:
+            lines.append("  signature: " + self.signature.text())
+        lines += ["", verdict_text(self)]
         return "\n".join(lines)
 
 
-def config_line(current, verdict) -> str | None:
-    if verdict is None:
+def config_line(current, verdict_spec) -> str | None:
+    if verdict_spec is None:
         return None
-    return f"effects: [{', '.join([*current, verdict])}]"
+    return f"effects: [{', '.join([*current, verdict_spec])}]"
+
+
+#: the line diagnose ends with when the model is at the noise floor and nothing is found
+AT_NOISE_TEXT = "verdict: at the measurement noise: nothing left to find."
 
 
 def verdict_text(d: Diagnosis) -> str:
     if d.verdict is None:
-        return "verdict: no missing effect found above the noise."
+        if d.at_floor:
+            return AT_NOISE_TEXT
+        return ("verdict: no missing effect found above the noise — but with no noise floor, how close the model "
+                "is to the measurement noise is unknown (add repeat poses or `tracker: {noise_m: ...}`).")
+    if d.verdict == "unexplained":
+        if d.structure_significant:
+            words = d.signature.text() if d.signature is not None else ", ".join(d.depends_on)
+            partial = [c for c in d.ranking if c.significant]
+            extra = (f"\n  {partial[0].effect} explains only part of it ({100 * partial[0].gain:.0f} % vs the regressor's "
+                     f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
+            return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
+                    f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
+        return (f"verdict: unexplained — the model is {d.model_to_noise:.1f}× the measurement noise, but neither a "
+                "candidate nor the regressor finds on which input the rest depends (a pose-to-pose error the inputs "
+                "do not carry, or a floor that is too low)")
     c = next(c for c in d.ranking if c.effect == d.verdict)
     return (f"verdict: add {c.effect} ({c.description}).\n"
             f"  the held-out residual follows it: R² {c.r2:.2f}; held-out mean position error "
             f"{c.heldout_mean_position_mm_before:.3f} → {c.heldout_mean_position_mm_after:.3f} mm (p = {c.p_value:.2g}).\n"
-            f"  add to {d.run_dir}/campaign.yaml:   {config_line(d.current_effects, d.verdict)}\n"
-            f"  or run:   campaign calibrate {d.run_dir} --effects {','.join([*d.current_effects, c.effect])}")
+            f"  add to {d.run_dir}/campaign.yaml:   {config_line(d.current_effects, c.spec or c.effect)}\n"
+            f"  or run:   campaign calibrate {d.run_dir} --effects {','.join([*d.current_effects, c.spec or c.effect])}")
 
 
 def _folds(pose_id, k):
@@ -118,16 +230,52 @@ def _folds(pose_id, k):
     return rank % k
 
 
-def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress=None) -> Diagnosis:
-    """Rank the candidate effects of a run's current model by held-out error reduction."""
+def regressor_inputs(q, context) -> tuple:
+    """Inputs of the model-free test: q1..qN, time_s, then the other per-pose context columns
+    (finite and not constant); returns (X (n, d), names)."""
+    cols = [q[:, j] for j in range(q.shape[1])]
+    names = [f"q{j + 1}" for j in range(q.shape[1])]
+    keys = ["time_s"] + sorted(k for k in context if k != "time_s")
+    for key in keys:
+        if key not in context:
+            continue
+        v = np.asarray(context[key], dtype=float)
+        if v.shape != (len(q),) or not np.all(np.isfinite(v)) or np.ptp(v) == 0:
+            continue
+        cols.append(v)
+        names.append(key)
+    return np.stack(cols, axis=1), tuple(names)
+
+
+def residual_in_joint1_frame(robot, q, dt):
+    """Position residuals dt (n, 3) resolved in the frame after joint 1 (nominal), so that an
+    effect inside the arm does not appear to depend on q1 merely because the arm turns."""
+    from campaign.model.kinematics import frames
+
+    R, _ = frames(robot, q)
+    R1 = R[:, robot.joint_frame_index[0]]
+    return np.einsum("nji,nj->ni", R1, dt)
+
+
+def _candidate_specs(candidates, current, run_dir):
+    """Candidate specs: the built-ins and installed entry points not in the model, or those given."""
+    if candidates is None:
+        specs = list(available()) + sorted(set(entry_point_effects()) - set(available()))
+    else:
+        specs = [resolve_effect_spec(s) for s in parse_effect_list(candidates)]
+    current_names = {effect_class(e).name for e in current}
+    return [s for s in specs if s not in current and effect_class(s).name not in current_names]
+
+
+def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress=None,
+             structure: bool = True) -> Diagnosis:
+    """Diagnose a run's current model: noise floor, model-free structure test, candidate ranking."""
     run_dir = Path(run_dir)
     say = progress or (lambda msg: None)
     robot = load_robot_for_run(run_dir)
-    current = configured_effects(run_dir) if effects is None else parse_effect_list(effects)
-    names = list(available()) if candidates is None else list(parse_effect_list(candidates))
-    names = [n for n in names if n not in current]
-    for name in (*current, *names):  # an unknown name is one line now, not after the fits
-        make_effect(name, robot)
+    current = configured_effects(run_dir) if effects is None else tuple(resolve_effect_spec(e)
+                                                                        for e in parse_effect_list(effects))
+    names = _candidate_specs(candidates, current, run_dir)
     with open_run(run_dir) as store:
         poses = store.load_measured()
     is_test = train_test_split(poses.pose_id)
@@ -143,10 +291,11 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     full = CalibrationModel(robot=robot, effects=list(current)).fit(poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
     noise = full.noise_sigma_
 
-    def heldout_errors(effs):
+    def heldout_errors(effs, keep_fit_residuals=False):
         """Fold fits start from the full fit and keep its noise weights: a few LM steps each."""
         err = np.empty(len(tr))
         dz_all = np.empty((len(tr), 3))
+        fit_res = {}
         absorbed = set()
         for k in range(folds):
             fit_idx, out_idx = tr[fold != k], tr[fold == k]
@@ -160,20 +309,47 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
             dz = m.residuals(poses.q[out_idx], poses.T_IE[out_idx], ctx_out)
             err[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
             dz_all[fold == k] = dz[:, :3]
-        return err, dz_all, tuple(sorted(absorbed))
+            if keep_fit_residuals:
+                fit_res[k] = m.residuals(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit)[:, :3]
+        return err, dz_all, tuple(sorted(absorbed)), fit_res
 
     say(f"current model on {folds} folds")
-    before, dz_before, _ = heldout_errors(list(current))
+    before, dz_before, _, fit_res = heldout_errors(list(current), keep_fit_residuals=True)
     ss_before = float(np.sum((dz_before - dz_before.mean(axis=0)) ** 2))
+    held_mean = float(before.mean())
+
+    floor = noise_floor(run_dir, poses, robot)
+    at_floor = None
+    detection = MIN_RELATIVE_GAIN
+    if floor.known:
+        threshold = 1.0 + AT_FLOOR_MARGIN + 2.0 * floor.relative_uncertainty
+        at_floor = held_mean / floor.mean_position_mm <= threshold
+        if at_floor:
+            # at the floor a gain must exceed what the floor's own uncertainty allows
+            detection = max(MIN_RELATIVE_GAIN, 1.0 - 1.0 / threshold)
+
+    X, input_names = regressor_inputs(poses.q[tr], ctx_tr)
+    struct = None
+    struct_sig = False
+    if structure:
+        from campaign.diagnose.structure import structure_test
+
+        say("model-free structure test (flexible regressor on the same folds)")
+        q_tr = poses.q[tr]
+        r_out = residual_in_joint1_frame(robot, q_tr, dz_before)
+        r_fit = {k: residual_in_joint1_frame(robot, q_tr[fold != k], fit_res[k]) for k in fit_res}
+        struct = structure_test(X, input_names, fold, r_fit, r_out)
+        struct_sig = bool(struct.p_value < ALPHA and struct.heldout_gain >= detection)
+
     scores = []
     n_cand = max(len(names), 1)
-    for i, name in enumerate(names):
-        say(f"candidate {i + 1}/{len(names)}: {name}")
-        cls = available()[name]
+    for i, spec in enumerate(names):
+        cls = effect_class(spec)
+        say(f"candidate {i + 1}/{len(names)}: {cls.name}")
         if any(key not in context for key in getattr(cls, "context_keys", ())):
-            say(f"  {name}: skipped (needs context {', '.join(cls.context_keys)})")
+            say(f"  {cls.name}: skipped (needs context {', '.join(cls.context_keys)})")
             continue
-        after, dz_after, absorbed = heldout_errors([*current, name])
+        after, dz_after, absorbed, _ = heldout_errors([*current, spec])
         d = before - after
         if np.all(d == 0):
             p = 1.0
@@ -181,12 +357,32 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
             p = float(stats.ttest_rel(before, after, alternative="greater").pvalue)
         gain = 1 - after.mean() / max(before.mean(), 1e-300)
         r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
-        n_params = len(getattr(cls(robot), "param_names", ()))
+        from campaign.effects.base import make_effect
+
+        n_params = make_effect(spec, robot).n_params
         fully_absorbed = len(absorbed) >= n_params and n_params > 0
-        significant = (p < ALPHA / n_cand) and gain >= MIN_RELATIVE_GAIN and not fully_absorbed
-        scores.append(CandidateScore(name, float(before.mean()), float(after.mean()), p, bool(significant),
-                                     float(r2), absorbed, cls.description))
+        significant = (p < ALPHA / n_cand) and gain >= detection and not fully_absorbed
+        scores.append(CandidateScore(cls.name, float(before.mean()), float(after.mean()), p, bool(significant),
+                                     float(r2), absorbed, cls.description, spec))
     scores.sort(key=lambda c: (not c.significant, c.heldout_mean_position_mm_after))
-    verdict = scores[0].effect if scores and scores[0].significant else None
+
+    verdict = None
+    best = scores[0] if scores and scores[0].significant else None
+    if best is not None:
+        reg_after = struct.after.mean() if struct is not None else np.inf
+        explains = not struct_sig or best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
+        verdict = best.effect if explains else "unexplained"
+    elif struct_sig:
+        verdict = "unexplained"
+    elif floor.known and not at_floor:
+        verdict = "unexplained"
+
+    signature = None
+    if struct is not None and struct_sig:
+        from campaign.diagnose.signature import describe
+
+        signature = describe(robot, poses.q[tr], X, input_names, struct, struct.depends_on(MIN_IMPORTANCE_SHARE),
+                             r_out, poses.time_s[tr])
     residuals = full.residuals(poses.q, poses.T_IE, context)
-    return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test)
+    return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
+                     floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X)

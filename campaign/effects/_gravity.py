@@ -70,14 +70,43 @@ def moving_mass(robot) -> float:
     return float(data.mass[0])
 
 
+def gravity_vector(robot) -> np.ndarray:
+    """Gravity (3,) m/s² in the robot's root frame F_I: ``robot.gravity_in_root`` when the model
+    states it, else ``robot.gravity_in_I``."""
+    g = getattr(robot, "gravity_in_root", None)
+    if g is None:
+        g = robot.gravity_in_I
+    return np.asarray(g, dtype=float)
+
+
+def horizontal_axes(robot):
+    """Two unit vectors of F_I perpendicular to gravity, (2, 3), and their labels.
+
+    Each is the root axis least aligned with gravity, made exactly perpendicular to it
+    (Gram-Schmidt), so a robot whose gravity lies along a root axis gets the other two
+    axes themselves (COMAU: gravity along −y, horizontal axes x and z)."""
+    g = gravity_vector(robot)
+    up = -g / np.linalg.norm(g)
+    order = np.argsort(np.abs(up), kind="stable")[:2]
+    order = np.sort(order)
+    axes = []
+    for i in order:
+        e = np.eye(3)[i]
+        h = e - (e @ up) * up
+        for a in axes:
+            h = h - (h @ a) * a
+        axes.append(h / np.linalg.norm(h))
+    return np.array(axes), tuple("xyz"[i] for i in order)
+
+
 def overturning_moment(robot, q, payload_kg=None, tool_position=None) -> np.ndarray:
     """Moment of the moving arm's (and payload's) weight about the base axis, (n, 3) N·m in F_I.
 
-    The base axis is the vertical through F_I's origin; gravity is ``robot.gravity_in_I``.
-    A payload (kg, per pose) acts at ``tool_position`` (n, 3) m.
+    The base axis is the vertical (along gravity, :func:`gravity_vector`) through F_I's
+    origin. A payload (kg, per pose) acts at ``tool_position`` (n, 3) m.
     """
     mass, com = weight_and_com(robot, q)
-    g = np.asarray(robot.gravity_in_I, dtype=float)
+    g = gravity_vector(robot)
     vertical = g / np.linalg.norm(g)
     lever = com - (com @ vertical)[:, None] * vertical
     M = np.cross(lever, mass * g)

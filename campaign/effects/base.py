@@ -1,28 +1,37 @@
 """Physical effects: the interface and the registry.
 
 An effect is a small immutable object with a name, parameter names and units, a short
-physical description, and its contribution to the model, in one or both of two places:
+physical description, and its contribution to the model, in one or more of three places:
 
-* :meth:`Effect.joint_offset` — Δq (n, 6) rad added to the joint coordinates before the
+* :meth:`Effect.joint_offset` — Δq (n, N) rad added to the joint coordinates before the
   kinematic chain (joint compliance, backlash, cyclic transmission errors);
+* :meth:`Effect.joint_twist` — for each pose and moving joint j a small twist
+  ξ_j = (v, ω) (n, N, 6), m and rad, in joint j's frame after its motion, applied right after
+  that joint: ``T = … A_j R_j(q_j) exp(ξ_j) A_{j+1} …`` (link bending, bearing run-out, an
+  axis that tilts with its angle);
 * :meth:`Effect.pose_map` — a map of the pose after the chain, ``T_IE -> T'_IE`` (base
   tilt of a compliant ground, thermal growth, tracker scale).
 
 The full model of a measured pose is therefore ::
 
-    T = pose_map_k( ... pose_map_1( FK(q + Σ Δq_j, p_e) ) )
+    T = pose_map_k( ... pose_map_1( FK_ξ(q + Σ Δq, p_e) ) )
 
+with FK_ξ the chain with the twists Σ ξ inserted. Every hook receives the commanded q.
 The same objects serve the simulator's hidden truth and the identification; the solver
-differentiates the contributions numerically with respect to the effect parameters (they
-are cheap: no kinematics is re-run), so a new effect is one new file in this package,
-decorated with :func:`register`, and the solver does not change.
+differentiates the contributions numerically with respect to the effect parameters, so a
+new effect is one new class — in this package decorated with :func:`register`, in a user's
+file named ``path/to/file.py:ClassName`` in campaign.yaml, or an installed entry point of
+group ``campaign.effects`` — and the solver does not change (docs/effects.md).
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import pkgutil
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -47,25 +56,119 @@ def _discover():
             importlib.import_module(f"campaign.effects.{mod.name}")
 
 
+#: entry-point group through which installed packages offer effects
+ENTRY_POINT_GROUP = "campaign.effects"
+
+
 def available() -> dict:
     """All registered effects: name -> class (every module in campaign/effects is loaded)."""
     _discover()
     return dict(sorted(_REGISTRY.items()))
 
 
+def entry_point_effects() -> dict:
+    """Effects offered by installed packages (entry points of group ``campaign.effects``): name -> entry point."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def is_file_spec(spec: str) -> bool:
+    """True for a user effect given as ``path/to/file.py:ClassName``."""
+    path, sep, cls = str(spec).rpartition(":")
+    return bool(sep) and path.endswith(".py") and cls.isidentifier()
+
+
+def resolve_effect_spec(spec: str, base_dir=None) -> str:
+    """A spec with a relative ``file.py:ClassName`` path made absolute against ``base_dir``
+    (the folder of the campaign.yaml that names it; None: the current directory)."""
+    spec = str(spec).strip()
+    if not is_file_spec(spec):
+        return spec
+    path, _, cls = spec.rpartition(":")
+    p = Path(path).expanduser()
+    if not p.is_absolute():
+        p = (Path(base_dir) if base_dir is not None else Path.cwd()) / p
+    return f"{p.resolve()}:{cls}"
+
+
+_FILE_MODULES: dict = {}
+
+
+def _load_file_class(spec: str):
+    path, _, cls_name = spec.rpartition(":")
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"effect '{spec}': no such file {p}")
+    key = (str(p.resolve()), p.stat().st_mtime_ns)
+    module = _FILE_MODULES.get(key)
+    if module is None:
+        mod_name = f"campaign_user_effect_{abs(hash(key)):x}"
+        loader_spec = importlib.util.spec_from_file_location(mod_name, p)
+        module = importlib.util.module_from_spec(loader_spec)
+        sys.modules[mod_name] = module
+        try:
+            loader_spec.loader.exec_module(module)
+        except Exception as exc:  # the user's file: report it in one line, whatever it raised
+            sys.modules.pop(mod_name, None)
+            raise ConfigError(f"effect '{spec}': {p} failed to load ({exc.__class__.__name__}: {exc})") from None
+        _FILE_MODULES[key] = module
+    cls = getattr(module, cls_name, None)
+    if cls is None:
+        raise ConfigError(f"effect '{spec}': {p} defines no class '{cls_name}'")
+    return cls
+
+
+def effect_class(spec: str):
+    """The class of an effect spec: a built-in name, ``path/file.py:ClassName`` (absolute, or
+    relative to the current directory) or the name of an entry point of group ``campaign.effects``."""
+    spec = str(spec).strip()
+    if is_file_spec(spec):
+        cls = _load_file_class(resolve_effect_spec(spec))
+    else:
+        effects = available()
+        if spec in effects:
+            return effects[spec]
+        eps = entry_point_effects()
+        if spec not in eps:
+            known = sorted(set(effects) | set(eps))
+            raise ConfigError(f"unknown effect '{spec}' (known: {', '.join(known) or 'none'}; "
+                              "a user effect is 'path/to/file.py:ClassName')")
+        try:
+            cls = eps[spec].load()
+        except Exception as exc:  # an installed package's code: one line, whatever it raised
+            raise ConfigError(f"effect '{spec}': entry point {eps[spec].value} failed to load "
+                              f"({exc.__class__.__name__}: {exc})") from None
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise ConfigError(f"effect '{spec}': {getattr(cls, '__name__', cls)!r} is not a subclass of "
+                          "campaign.effects.Effect")
+    if not getattr(cls, "name", ""):
+        raise ConfigError(f"effect '{spec}': class {cls.__name__} sets no `name`")
+    return cls
+
+
 def make_effect(name: str, robot, **options) -> "Effect":
-    """Build the effect called ``name`` for ``robot``; unknown names are a ConfigError."""
-    effects = available()
-    if name not in effects:
-        raise ConfigError(f"unknown effect '{name}' (known: {', '.join(effects) or 'none'})")
+    """Build the effect ``name`` (a spec, see :func:`effect_class`) for ``robot``; a ConfigError
+    names what is wrong."""
+    cls = effect_class(name)
     try:
-        return effects[name](robot, **options)
+        effect = cls(robot, **options)
     except TypeError as exc:
         raise ConfigError(f"effect '{name}': {exc}") from None
+    if len(effect.param_names) != len(effect.param_units):
+        raise ConfigError(f"effect '{name}': {len(effect.param_names)} param_names but "
+                          f"{len(effect.param_units)} param_units")
+    effect.spec = str(name)
+    return effect
+
+
+def effect_name(spec: str) -> str:
+    """The short name of an effect spec (the class's ``name``), used in stage and parameter names."""
+    return effect_class(spec).name
 
 
 def parse_effect_list(text) -> tuple:
-    """``"a,b"`` or a list -> tuple of names (empty entries dropped)."""
+    """``"a,b"`` or a list -> tuple of specs (empty entries dropped)."""
     if text is None:
         return ()
     if isinstance(text, str):
@@ -91,6 +194,8 @@ class Effect:
 
     def __init__(self, robot):
         self.robot = robot
+        #: how the effect was named (built-in name, file spec or entry point); set by make_effect
+        self.spec = self.name
 
     #: parameter names and units (instances may compute them, e.g. per harmonic)
     param_names: tuple = ()
@@ -104,7 +209,12 @@ class Effect:
         return np.zeros(self.n_params)
 
     def joint_offset(self, params, q, context):
-        """Δq (n, 6) rad to add to the joint coordinates, or None."""
+        """Δq (n, N) rad to add to the joint coordinates, or None."""
+        return None
+
+    def joint_twist(self, params, q, context):
+        """Twists (n, N, 6) = (vx, vy, vz [m], ωx, ωy, ωz [rad]) in joint j's frame after its
+        motion, applied right after joint j; or None."""
         return None
 
     def pose_map(self, params, T_IE, q, context):
@@ -171,10 +281,28 @@ class EffectSet:
                 dq = dq + d
         return dq
 
+    def joint_twist(self, theta, q, context):
+        """Σ ξ over the effects, (n, N, 6), or None when no effect has twists."""
+        total = None
+        for e, th in zip(self.effects, self.split(theta)):
+            xi = e.joint_twist(th, q, context)
+            if xi is not None:
+                total = xi if total is None else total + xi
+        return total
+
+    def twist_params(self) -> np.ndarray:
+        """Boolean mask over the flat parameter vector: parameters of effects that define joint_twist."""
+        return np.array([has_twist(e) for e in self.effects for _ in range(e.n_params)], dtype=bool)
+
     def pose_map(self, theta, T_IE, q, context):
         for e, th in zip(self.effects, self.split(theta)):
             T_IE = e.pose_map(th, T_IE, q, context)
         return T_IE
+
+
+def has_twist(effect) -> bool:
+    """Whether an effect overrides :meth:`Effect.joint_twist`."""
+    return type(effect).joint_twist is not Effect.joint_twist
 
 
 def effect_context(context, time_s) -> dict:
@@ -184,8 +312,8 @@ def effect_context(context, time_s) -> dict:
     return out
 
 
-def model_pose(robot, q, p_e=None, effects: EffectSet = EffectSet(), theta=None, context=None):
-    """The full model: ``pose_map(FK(q + Δq, p_e))``, (n, 4, 4)."""
+def chain_pose(robot, q, p_e=None, effects: EffectSet = EffectSet(), theta=None, context=None):
+    """The chain before the pose maps: ``FK_ξ(q + Δq, p_e)``, (n, 4, 4)."""
     from campaign.model.kinematics import forward
 
     q = np.asarray(q, dtype=float)
@@ -194,5 +322,15 @@ def model_pose(robot, q, p_e=None, effects: EffectSet = EffectSet(), theta=None,
         return forward(robot, q, p_e)
     theta = effects.initial_params() if theta is None else np.asarray(theta, dtype=float)
     dq = effects.joint_offset(theta, q, context)
-    T = forward(robot, q + dq, p_e)
+    return forward(robot, q + dq, p_e, joint_twists=effects.joint_twist(theta, q, context))
+
+
+def model_pose(robot, q, p_e=None, effects: EffectSet = EffectSet(), theta=None, context=None):
+    """The full model: ``pose_map(FK_ξ(q + Δq, p_e))``, (n, 4, 4)."""
+    q = np.asarray(q, dtype=float)
+    context = context or {}
+    T = chain_pose(robot, q, p_e, effects, theta, context)
+    if not effects.effects:
+        return T
+    theta = effects.initial_params() if theta is None else np.asarray(theta, dtype=float)
     return effects.pose_map(theta, T, q, context)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import effect_context, make_effect, parse_effect_list
+from campaign.effects.base import effect_context, effect_name, make_effect, parse_effect_list, resolve_effect_spec
 from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_write
 from campaign.identify.metrics import error_stats, format_table6
@@ -63,7 +63,8 @@ class CalibrationResult:
 
 
 def configured_effects(run_dir) -> tuple:
-    """Effects enabled in the run's campaign.yaml (``RunFolder(run_dir).effects``)."""
+    """Effects enabled in the run's campaign.yaml (``RunFolder(run_dir).effects``), user effect
+    files (``path/file.py:ClassName``) made absolute against that file's folder."""
     return RunFolder(run_dir).effects
 
 
@@ -85,7 +86,8 @@ def check_ann_options(options: dict) -> dict:
 
 
 def stage_name(effects) -> str:
-    return "+".join(["geometric", *effects])
+    """``geometric+<effect>+...`` with each effect's short name (a user file's class ``name``)."""
+    return "+".join(["geometric", *(effect_name(e) for e in effects)])
 
 
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
@@ -105,7 +107,7 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     if ann:
         check_ann_options(ann_options or {})
     robot = robot or run.robot()
-    effects = run.effects if effects is None else parse_effect_list(effects)
+    effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
     for name in effects:  # an unknown effect is one line before any fit
         make_effect(name, robot)
     with open_run(run_dir) as store:
@@ -209,6 +211,7 @@ def _param_block(model: CalibrationModel) -> dict:
     i0 = base.n_base
     for e, th in zip(model.effect_set_.effects, model.effect_set_.split(model.effect_params_)):
         out["effects"][e.name] = {
+            "spec": e.spec,
             "description": e.description,
             "parameters": [
                 {"name": pn, "unit": pu, "value": float(v), "sigma": float(model.sigma_[i0 + k])}

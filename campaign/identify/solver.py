@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects.base import EffectSet, make_effect, model_pose
+from campaign.effects.base import EffectSet, chain_pose, make_effect, model_pose
 from campaign.errors import DataError, IdentificationError, NotFittedError
 from campaign.model.base_params import BaseParameters, base_parameters
-from campaign.model.kinematics import error_jacobian, forward, pose_error
+from campaign.model.kinematics import error_jacobian, pose_error
 from campaign.model.rotations import rotvec_to_matrix
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
 
@@ -69,7 +69,8 @@ class CalibrationModel:
         if not es.effects:
             return error_jacobian(self.robot, q, p_e, T_meas)[:, :, list(self.base_.independent)]
         qq = q + es.joint_offset(theta, q, context)
-        T_chain = forward(self.robot, qq, p_e)
+        xi = es.joint_twist(theta, q, context)  # the chain with any joint twists
+        T_chain = chain_pose(self.robot, q, p_e, es, theta, context)
         # pose maps after the chain: propagate the chain's derivative through them, and
         # differentiate the effects numerically (no kinematics re-run)
         T0 = es.pose_map(theta, T_chain, q, context)
@@ -87,17 +88,23 @@ class CalibrationModel:
                 w[a - 3] = eps
                 Tp[:, :3, :3] = rotvec_to_matrix(w) @ Tp[:, :3, :3]
             J_map[:, :, a] = (pose_error(es.pose_map(theta, Tp, q, context), T_meas) - dz0) / eps
-        J_chain = error_jacobian(self.robot, qq, p_e)
+        J_chain = error_jacobian(self.robot, qq, p_e, joint_twists=xi)
         J_b = J_map @ J_chain[:, :, list(self.base_.independent)]
         cols = [J_b]
         if es.n_params:
             J_th = np.empty((len(q), 6, es.n_params))
             J_q = J_map @ J_chain[:, :, list(self.robot.joint_offset_index)]  # d dz / d q
+            twist = es.twist_params()
             for k in range(es.n_params):
                 th = theta.copy()
                 th[k] += _FD_STEP
                 th_m = theta.copy()
                 th_m[k] -= _FD_STEP
+                if twist[k]:
+                    # joint twists move the chain itself: central differences of the whole model
+                    J_th[:, :, k] = (pose_error(self._model_T(q, p_e, th, context), T_meas)
+                                     - pose_error(self._model_T(q, p_e, th_m, context), T_meas)) / (2 * _FD_STEP)
+                    continue
                 ddq = (es.joint_offset(th, q, context) - es.joint_offset(th_m, q, context)) / (2 * _FD_STEP)
                 col = np.einsum("nij,nj->ni", J_q, ddq)
                 Tp = es.pose_map(th, T_chain, q, context)

@@ -61,7 +61,7 @@ def _block(robot, block: dict, source: Path, where: str) -> _Model:
                             f"robot.param_names of {robot.name}")
         made, theta = [], []
         for name, spec in effects.items():
-            eff = make_effect(name, robot)
+            eff = make_effect((spec.get("spec") if isinstance(spec, dict) else None) or name, robot)
             values = [float(p["value"]) for p in spec["parameters"]]
             if [p["name"] for p in spec["parameters"]] != list(eff.param_names):
                 raise DataError(f"{source}: {where}effects.{name}: parameters do not match the effect's "
