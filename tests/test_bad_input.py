@@ -265,6 +265,15 @@ def test_import_with_another_robot_than_the_run_records_is_refused(tmp_path, rob
     refused(capsys, ["import", csv_path, "--run", run, "--robot", "comau_racer5_080"], r"records robot", tmp_path)
 
 
+def test_import_with_another_tool_frame_than_the_run_records_is_refused(tmp_path, robot, capsys):
+    run = tmp_path / "run"
+    urdf = next((ROBOT_MODELS / "comau_racer5_080").glob("*.urdf"))
+    write_yaml(run / "campaign.yaml", {"robot": str(urdf)})  # tool frame: the URDF's last link, E
+    csv_path = measured_csv(tmp_path, robot)
+    refused(capsys, ["import", csv_path, "--run", run, "--tool-frame", "link6"], r"records robot .*not the one asked",
+            tmp_path)
+
+
 # -- calibrate and diagnose options -----------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -313,9 +322,7 @@ def test_a_run_that_records_another_robot_never_gets_the_default(tmp_path, robot
     assert cfg["robot"] == "comau_racer5_080"  # import recorded the robot
     cfg["robot"] = str(tmp_path / "no_such_robot")
     (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
-    for argv in (["calibrate", run, "--no-ann"], ["diagnose", run], ["export", run, "--csv", tmp_path / "o.csv"]):
-        if argv[0] == "export":
-            continue  # export needs no robot
+    for argv in (["calibrate", run, "--no-ann"], ["diagnose", run], ["plan", "--run", run]):
         refused(capsys, argv, r"no_such_robot", run)
 
 

@@ -11,6 +11,8 @@ def register(sub):
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
     p.add_argument("--robot", default=None,
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
+    p.add_argument("--tool-frame", metavar="NAME", default=None, help="URDF link of the measured tool (with --robot)")
+    p.add_argument("--base-frame", metavar="NAME", default=None, help="URDF link of the base frame F_I (with --robot)")
     p.set_defaults(func=_import)
 
     p = sub.add_parser("export", help="write a run's measured poses as a measured-pose CSV, or its calibrated "
@@ -61,7 +63,7 @@ def register(sub):
 def _import(args):
     from campaign.measure.importer import import_run
 
-    n = import_run(args.csv, args.run, robot=args.robot)
+    n = import_run(args.csv, args.run, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
     print(f"imported {n} poses into {args.run}/measurements.sqlite")
     return 0
 

@@ -23,12 +23,14 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
     run = RunFolder(run_dir)
     if run.has_config:
         cfg = run.config
-        recorded = (cfg.robot_spec, cfg.tool_frame, cfg.base_frame)
-        if robot is not None and load_robot(robot, tool_frame=tool_frame, base_frame=base_frame).name \
-                != run.robot().name:
-            raise ConfigError(f"--robot {robot}: {run.config_path} records robot {cfg.robot!r}; "
-                              "import into a new run folder for another robot")
-        spec, tool_frame, base_frame = recorded
+        if (robot, tool_frame, base_frame) != (None, None, None):
+            asked = load_robot(robot or cfg.robot_spec, tool_frame=tool_frame or cfg.tool_frame,
+                               base_frame=base_frame or cfg.base_frame)
+            if not _same_robot(asked, run.robot()):
+                raise ConfigError(f"{run.config_path} records robot {cfg.robot!r}"
+                                  f"{_frames(cfg.tool_frame, cfg.base_frame)}, not the one asked for; "
+                                  "import into a new run folder for another robot or frame")
+        spec, tool_frame, base_frame = cfg.robot_spec, cfg.tool_frame, cfg.base_frame
     else:
         spec = robot if robot is not None else DEFAULT_ROBOT
         if robot is not None and Path(robot).exists():
@@ -43,3 +45,14 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
     return n
+
+
+def _same_robot(a, b) -> bool:
+    """The same URDF with the same base and tool frames."""
+    return (Path(a.urdf_path).resolve(), a.base_frame, a.tool_frame) == \
+        (Path(b.urdf_path).resolve(), b.base_frame, b.tool_frame)
+
+
+def _frames(tool_frame, base_frame) -> str:
+    given = [f"{k} {v!r}" for k, v in (("tool_frame", tool_frame), ("base_frame", base_frame)) if v]
+    return f" ({', '.join(given)})" if given else ""
