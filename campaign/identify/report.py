@@ -1,8 +1,9 @@
 """The calibration report: ``RUN/calibration/report.html`` with PNG plots beside it.
 
-Plots: error distributions per stage (like the paper's Figs. 3, 4, 6, 7), error against
-each joint coordinate, error over the workspace, and the history of held-out errors over
-successive calibrate runs.
+Plots: error distributions of every stage as small multiples (like the paper's Figs. 3, 4,
+6, 7), the signed error components of every stage against each joint coordinate (bin means
+and 90 % bands), the error over the workspace, and the history of held-out errors over
+successive calibrate runs with the tracker noise floor (campaign.identify.noise_floor).
 """
 
 from __future__ import annotations
@@ -119,7 +120,10 @@ def plot_distributions(residuals: dict, is_test, out: Path) -> list:
     names = list(residuals)
     with_rot = all(orientation_measured(residuals[s]) for s in names)
     blocks = [("position error ‖Δt‖", "mm", 0)] + ([("orientation error ‖Δφ‖", "mrad", 1)] if with_rot else [])
-    fig, axes = plt.subplots(len(names), len(blocks), figsize=(6.5 * len(blocks), 0.4 + 1.35 * len(names)),
+    # a panel's title holds its stage and statistics on one line, or on two for long stage names
+    two_lines = max(len(s) for s in names) > 44
+    row_h = 1.6 if two_lines else 1.35
+    fig, axes = plt.subplots(len(names), len(blocks), figsize=(6.5 * len(blocks), 0.4 + row_h * len(names)),
                              sharex="col", squeeze=False)
     for c, (label, unit, k) in enumerate(blocks):
         vals = [_norms(residuals[s][use])[k] for s in names]
@@ -135,14 +139,16 @@ def plot_distributions(residuals: dict, is_test, out: Path) -> list:
             ax.axvline(mean, color="k", linewidth=1.0)
             ax.axvline(q90, color="k", linewidth=1.0, linestyle="--")
             ax.set_xscale("log")
-            ax.set_title(f"{name}:  mean {mean:.3g} {unit} (solid line), q90 {q90:.3g} {unit} (dashed)",
+            ax.set_title(f"{name}:{chr(10) if two_lines else '  '}mean {mean:.3g} {unit}, q90 {q90:.3g} {unit}",
                          loc="left", fontsize=9, pad=3)
             ax.tick_params(labelsize=8)
             if c == 0:
                 ax.set_ylabel("poses", fontsize=8)
         axes[-1, c].set_xlabel(f"{label} [{unit}], log scale", fontsize=9)
-    fig.suptitle(f"error distribution of each model stage ({words})", fontsize=11)
-    _margins_in(fig, left=0.65, right=0.2, bottom=0.55, top=0.55, hspace=0.6, wspace=0.12)
+    fig.suptitle(f"error distribution of each model stage ({words}); solid line: mean, dashed: 90 % quantile",
+                 fontsize=11)
+    _margins_in(fig, left=0.65, right=0.2, bottom=0.55, top=0.55 + (0.2 if two_lines else 0.0),
+                hspace=1.0 if two_lines else 0.6, wspace=0.12)
     name = "distributions.png"
     fig.savefig(out / name, dpi=100)
     plt.close(fig)
@@ -332,8 +338,9 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
         "<h2>Training set</h2>", f"<pre>{html.escape(table_train)}</pre>",
     ]
     if hist_img:
-        floor_words = (f" The dotted line is the tracker noise floor: the mean ‖Δt‖ a perfect model would still "
-                       f"show, σ·2√2/√π for noise σ per coordinate ({html.escape(noise_floor.source)})."
+        floor_words = (f" The dotted line is the tracker noise floor: the mean ‖Δt‖ that measurement noise alone "
+                       f"leaves to a perfect model, {noise_floor.position_mm:.3g} mm "
+                       f"({html.escape(noise_floor.source)}; campaign/identify/noise_floor.py)."
                        if noise_floor is not None else " No tracker noise floor: no repeated measurements and no "
                        "configured tracker noise.")
         parts += ["<h2>Watch the error fall</h2>", f"<p>Held-out mean position error of each model stage.{floor_words}</p>",
