@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from campaign.identify.metrics import error_stats
-from campaign.identify.noise_floor import (MAXWELL_MEAN_PER_SIGMA, fitted_origin_covariance, mean_norm,
-                                           noise_floor_from_repeats, noise_floor_from_sigma, tracker_noise_floor)
+from campaign.diagnose.floor import floor_from_stated
+from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 from campaign.identify.report import binned_quantiles, signed_components, workspace_colour_scale, write_report
 from campaign.model.kinematics import pose_error
 
@@ -62,53 +62,43 @@ def test_the_workspace_colour_scale_reaches_the_largest_error(rng):
     assert lo == 0.0 and hi >= pos.max()
 
 
-def test_mean_norm_is_the_maxwell_mean_for_isotropic_noise_and_matches_sampling_otherwise(rng):
-    sigma = 7e-6
-    assert mean_norm(sigma ** 2 * np.eye(3)) == pytest.approx(sigma * 2 * np.sqrt(2 / np.pi), rel=1e-9)
-    assert MAXWELL_MEAN_PER_SIGMA == pytest.approx(1.5957691216, rel=1e-10)
-    A = rng.normal(size=(3, 3))
-    cov = A @ A.T + 0.1 * np.eye(3)
-    e = rng.multivariate_normal(np.zeros(3), cov, size=400_000)
-    assert mean_norm(cov) == pytest.approx(np.linalg.norm(e, axis=1).mean(), rel=4e-3)
-
-
-def test_configured_noise_floor_equals_the_simulated_campaigns_error_of_the_true_robot(robot):
+def test_the_noise_floor_of_a_stated_tracker_noise_equals_the_simulated_campaigns_error_of_the_true_robot(robot):
     """Truth in simulation: the tracker measures three reflectors with σ = 10 µm each, Kabsch
     gives the tool pose; the true robot's mean position error is the floor (read after)."""
     from campaign.sim.truth import make_truth, random_joint_poses, synthesize
 
-    floor = noise_floor_from_sigma(10e-6, robot.reflector_positions_in_E)
+    floor = floor_from_stated(10e-6, robot.reflector_positions_in_E)
     truth = make_truth(robot, seed=1, noise_m=10e-6, resolution_m=0.0)
     meas = synthesize(truth, random_joint_poses(robot, 3000, seed=2), seed=3)
     dz = pose_error(truth.pose_in_measured_frame(meas.q, meas.T_LI), meas.T_IE)
     observed_mm = np.linalg.norm(dz[:, :3], axis=1).mean() * 1e3
-    assert floor.position_mm == pytest.approx(observed_mm, rel=0.03)
-    # one point measured with σ would be 1.6 σ = 16 µm: the fit of three is well below it
-    assert floor.position_mm < 0.7 * noise_floor_from_sigma(10e-6).position_mm
-    assert fitted_origin_covariance(np.zeros((1, 3)), 2.0) == pytest.approx(4.0 * np.eye(3))
+    assert floor.mean_position_mm == pytest.approx(observed_mm, rel=0.03)
+    # one point measured with σ would give σ·2√2/√π = 16 µm: the fit of three is well below it
+    assert floor.mean_position_mm < 0.7 * 10e-3 * 2 * np.sqrt(2 / np.pi)
 
 
-def test_noise_floor_from_repeated_poses_recovers_the_noise(rng):
-    q_unique = rng.uniform(-1, 1, size=(60, 6))
-    q = np.repeat(q_unique, 4, axis=0)
-    xyz = rng.uniform(-1, 1, size=(60, 3)).repeat(4, axis=0) + rng.normal(0, 20e-6, size=(240, 3))
-    floor = noise_floor_from_repeats(q, xyz)
-    assert floor.position_mm == pytest.approx(20e-3 * MAXWELL_MEAN_PER_SIGMA, rel=0.06)
-    assert "repeats of 60 poses" in floor.source
-    assert noise_floor_from_repeats(q_unique, xyz[::4]) is None  # no repeats, no floor
+def test_the_chart_floor_is_the_runs_stated_noise_else_the_simulated_trackers_else_none(tmp_path, robot):
+    from campaign.cli import main
+    from campaign.measure.csvio import write_measured_csv
+    from campaign.sim.truth import make_truth, random_joint_poses, synthesize
 
-
-def test_the_run_floor_comes_from_repeats_first_then_from_the_configured_tracker_noise(tmp_path, rng):
-    (tmp_path / "campaign.yaml").write_text("robot: comau_racer5_080\nsim:\n  noise_m: 2.0e-05\n")
-    q = rng.uniform(-1, 1, size=(50, 6))
-    xyz = rng.uniform(-1, 1, size=(50, 3))
-    configured = tracker_noise_floor(tmp_path, q, xyz)
-    assert "sim.noise_m" in configured.source and "3-reflector fit" in configured.source
-    assert configured.position_mm == pytest.approx(2 * tracker_noise_floor(tmp_path, q, xyz, sigma_m=10e-6).position_mm)
-    q_rep, xyz_rep = np.repeat(q, 2, axis=0), np.repeat(xyz, 2, axis=0) + rng.normal(0, 5e-6, (100, 3))
-    assert "repeats" in tracker_noise_floor(tmp_path, q_rep, xyz_rep).source
-    (tmp_path / "campaign.yaml").write_text("robot: comau_racer5_080\n")
-    assert tracker_noise_floor(tmp_path, q, xyz) is None
+    meas = synthesize(make_truth(robot, seed=3), random_joint_poses(robot, 40, seed=4), seed=5)
+    write_measured_csv(tmp_path / "m.csv", meas)
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "m.csv"), "--run", str(run)]) == 0
+    assert tracker_noise_floor(run) is None  # no repeats, no drift checks, no stated noise, not simulated
+    cfg = (run / "campaign.yaml").read_text() if (run / "campaign.yaml").is_file() else "robot: comau_racer5_080\n"
+    (run / "campaign.yaml").write_text(cfg + "sim:\n  noise_m: 2.0e-05\n")
+    assert tracker_noise_floor(run) is None  # sim.noise_m says nothing about a run measured elsewhere
+    (run / "sim").mkdir()
+    simulated = tracker_noise_floor(run)
+    assert simulated.source == "simulated" and "sim.noise_m" in floor_label(simulated)
+    assert simulated.mean_position_mm == pytest.approx(
+        floor_from_stated(20e-6, robot.reflector_positions_in_E).mean_position_mm, rel=1e-12)
+    (run / "campaign.yaml").write_text(cfg + "sim:\n  noise_m: 2.0e-05\ntracker:\n  noise_m: 5.0e-06\n")
+    stated = tracker_noise_floor(run)
+    assert stated.source == "stated"
+    assert stated.mean_position_mm == pytest.approx(simulated.mean_position_mm / 4, rel=1e-5)
 
 
 def test_parameter_table_keeps_every_name_whole(robot):
@@ -125,7 +115,7 @@ def test_parameter_table_keeps_every_name_whole(robot):
         assert f" {name} " in line
 
 
-def synthetic_report(folder: Path, rng, n: int = 300) -> Path:
+def synthetic_report(folder: Path, rng, reflectors_in_E, n: int = 300) -> Path:
     """A calibration report from made-up residuals (a trend in q2 left in 'geometric', two
     identical stages), with a two-run history: no calibration needed, fast."""
     q = np.deg2rad(rng.choice(np.linspace(-120, 120, 9), size=(n, 6)))
@@ -146,12 +136,13 @@ def synthetic_report(folder: Path, rng, n: int = 300) -> Path:
     long_name = "pL_I0_x - pL_01_y - 0.189 pR_01_x + pL_12_y - 0.050 pR_12_x"
     return write_report(folder, stages, order, residuals, q, xyz, is_test,
                         param_text=f"  # parameter\n  1 {long_name}  0.00052  2.1e-06  m",
-                        noise_floor=noise_floor_from_sigma(10e-6))
+                        noise_floor=floor_from_stated(10e-6, reflectors_in_E))
 
 
 @pytest.fixture(scope="module")
-def report_page(tmp_path_factory):
-    return synthetic_report(tmp_path_factory.mktemp("report") / "run", np.random.default_rng(7))
+def report_page(tmp_path_factory, robot):
+    return synthetic_report(tmp_path_factory.mktemp("report") / "run", np.random.default_rng(7),
+                            robot.reflector_positions_in_E)
 
 
 def test_the_report_shows_every_stage_against_the_joints_the_floor_and_whole_names(report_page):

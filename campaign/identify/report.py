@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.identify.metrics import format_table6
-from campaign.identify.noise_floor import tracker_noise_floor
+from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 
 
 def _plt():
@@ -258,8 +258,8 @@ def _wrap_stage(name: str, width: int = 22) -> str:
 
 def plot_history(history_path: Path, out: Path, name: str = "history.png", noise_floor="auto"):
     """Held-out mean position error of the current model after each calibrate run, and per stage,
-    with the tracker noise floor as a line (``noise_floor``: a :class:`NoiseFloor`, None for
-    none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
+    with the tracker noise floor as a line (``noise_floor``: a campaign.diagnose.floor.NoiseFloor,
+    None for none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
     rows = history_rows(history_path)
     if not rows:
         return None
@@ -286,9 +286,9 @@ def plot_history(history_path: Path, out: Path, name: str = "history.png", noise
         ax.plot(side, [values[x] for x in side], "s", color="0.6", label="ANN on the nominal model (comparison)")
     lo, hi = min(values), max(values)
     if noise_floor is not None:
-        ax.axhline(noise_floor.position_mm, color="C3", linestyle=":", linewidth=1.5,
-                   label=f"tracker noise floor {noise_floor.position_mm:.3g} mm ({noise_floor.source})")
-        lo = min(lo, noise_floor.position_mm)
+        ax.axhline(noise_floor.mean_position_mm, color="C3", linestyle=":", linewidth=1.5,
+                   label=f"tracker noise floor {floor_label(noise_floor)}")
+        lo = min(lo, noise_floor.mean_position_mm)
     ax.set_yscale("log")
     ax.set_ylim(lo / 2.5, hi * 3.0)
     ax.legend(fontsize=8, loc="upper right")
@@ -314,14 +314,14 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
     """Write ``RUN/calibration/report.html`` and its PNGs; return the HTML path.
 
     residuals: stage name -> Δz (n, 6) for every pose; q (n, N) rad; xyz (n, 3) m measured
-    tool positions; is_test (n,) bool. noise_floor: a :class:`NoiseFloor`, None, or "auto"
-    (:func:`tracker_noise_floor` from the run's repeats or its configured tracker noise).
+    tool positions; is_test (n,) bool. noise_floor: a campaign.diagnose.floor.NoiseFloor, None,
+    or "auto" (:func:`tracker_noise_floor` of the run: repeats, drift checks, stated noise).
     """
     out = Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
     is_test = np.asarray(is_test, dtype=bool)
     if isinstance(noise_floor, str) and noise_floor == "auto":
-        noise_floor = tracker_noise_floor(run_dir, q, xyz)
+        noise_floor = tracker_noise_floor(run_dir)
     imgs = plot_distributions(residuals, is_test, out)
     current = order[-1]
     joint_imgs = [(s, plot_against_joints(q, residuals[s], is_test, s, out, f"joints_{s.replace('+', '_')}.png"))
@@ -339,10 +339,9 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
     ]
     if hist_img:
         floor_words = (f" The dotted line is the tracker noise floor: the mean ‖Δt‖ that measurement noise alone "
-                       f"leaves to a perfect model, {noise_floor.position_mm:.3g} mm "
-                       f"({html.escape(noise_floor.source)}; campaign/identify/noise_floor.py)."
-                       if noise_floor is not None else " No tracker noise floor: no repeated measurements and no "
-                       "configured tracker noise.")
+                       f"leaves to a perfect model, {html.escape(floor_label(noise_floor))}."
+                       if noise_floor is not None else " No tracker noise floor: no repeated measurements, no "
+                       "drift checks and no stated tracker noise (tracker: {noise_m: σ} in campaign.yaml).")
         parts += ["<h2>Watch the error fall</h2>", f"<p>Held-out mean position error of each model stage.{floor_words}</p>",
                   f"<img src='{hist_img}'>"]
     parts += ["<h2>Error distributions</h2>", "<p>One row per model stage, on shared axes.</p>"]
