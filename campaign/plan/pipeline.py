@@ -23,19 +23,17 @@ from campaign.model.kinematics import frames
 from campaign.plan import checks
 from campaign.plan.grid import Grid, iter_tool_points
 from campaign.plan.geometry import nominal_frames_entry_first
+from campaign.plan.outputs import write_tour
 from campaign.plan.plot import plot_tour
+from campaign.plan.repair import check_segments, repair_tour, tour_path
 from campaign.plan.timing import GridTimes, path_time
-from campaign.plan.tour import interior_samples, nearest_neighbour, neighbour_lists, or_opt, two_opt
+from campaign.plan.tour import nearest_neighbour, neighbour_lists, or_opt, two_opt
 from campaign.progress import Progress
 from campaign.run import RunFolder
 
 #: the paper's campaign: 13,919 poses measured in about 3.5 days
 PAPER_POSES = 13919
 PAPER_DURATION_S = 3.5 * 86400.0
-#: joints 2 and 3 of the via posture that lifts the arm clear of the wall (rad)
-VIA_Q2, VIA_Q3 = 0.0, -np.pi / 2
-#: motion samples checked together (bounds memory at about 2 kB a sample)
-MOTION_CHUNK = 32_768
 
 
 def _filter_grid(robot, scene, grid, clearance, progress):
@@ -81,24 +79,6 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     counts["filter_order"] = list(removed)
     counts["suitable"] = int(len(suitable))
     return suitable, counts, checker
-
-
-def _check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK):
-    """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, 6) clear by
-    ``clearance`` (m) at every sample ≤ ``max_step`` (rad) of joint motion apart.
-
-    The end poses themselves are not re-checked here (they passed the pose filter at the
-    stricter pose clearance); all inner samples of all segments are generated at once and
-    checked ``chunk`` at a time (FK, sphere bounds, FCL for what the bounds leave)."""
-    ok = np.ones(len(Q_from), dtype=bool)
-    if len(Q_from) == 0:
-        return ok
-    q, seg = interior_samples(Q_from, Q_to, max_step)
-    for s in range(0, len(q), chunk):
-        R, t = nominal_frames_entry_first(robot, q[s : s + chunk])
-        good = checker.clear_entry_first(R, t, clearance)
-        ok[seg[s : s + chunk][~good]] = False
-    return ok
 
 
 def _order_group(times, grid, members, start_cells):
@@ -209,57 +189,16 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     max_step = np.deg2rad(pc.motion_sample_deg)
     mc = pc.motion_clearance_m
     bar = Progress("stage 3: motion check", len(order), progress, " segments")
-    ok = _check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
+    ok = check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
     bar.update(len(order))
     bar.close()
     lap("motion_check")
-    # fix colliding segments: via postures that lift the arm, else drop the pose
-    vias, dropped = {}, []
-    via_from = {}  # tour index of a pose reached through vias → tour index its via path starts from
-    keep = np.ones(len(order), dtype=bool)
-    bad = list(np.flatnonzero(~ok))
-    prev_of = lambda k: max(i for i in range(k + 1) if keep[i])  # noqa: E731
-    for m in bad:
-        k = m + 1  # pose that the colliding motion reaches
-        a = Q[prev_of(m)]
-        b = Q[k]
-        v1 = np.array([a[0], VIA_Q2, VIA_Q3, a[3], a[4], a[5]])
-        v2 = np.array([b[0], VIA_Q2, VIA_Q3, b[3], b[4], b[5]])
-        path = np.array([a, v1, v2, b])
-        if checker.clear(*frames(robot, path[1:3]), mc).all() and \
-                _check_segments(robot, checker, path[:-1], path[1:], max_step, mc).all():
-            vias[int(order[k])] = [v1, v2]
-            via_from[k] = prev_of(m)
-        else:
-            keep[k] = False
-            dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"))
-    # segments after a dropped pose start elsewhere: re-check those (only those: every other
-    # segment is unchanged and already checked) and repeat until clean
-    known_ok = {(m, m + 1) for m in np.flatnonzero(ok)} | {(via_from[k], k) for k in via_from}
-    for _ in range(5):
-        kept = np.flatnonzero(keep)
-        starts = [i for i in range(1, len(kept)) if (kept[i - 1], kept[i]) not in known_ok]
-        if not starts:
-            break
-        starts = np.array(starts)
-        # a pose reached through vias: its first via posture is the segment's target
-        targets = np.array([vias[int(order[kept[i]])][0] if int(order[kept[i]]) in vias else Q[kept[i]] for i in starts])
-        seg_ok = _check_segments(robot, checker, Q[kept[starts - 1]], targets, max_step, mc)
-        known_ok |= {(kept[i - 1], kept[i]) for i in starts[seg_ok]}
-        if seg_ok.all():
-            break
-        for i in starts[~seg_ok]:
-            keep[kept[i]] = False
-            dropped.append((int(order[kept[i]]), "no collision-free motion after re-ordering"))
-    order_final = order[keep]
+    repair = repair_tour(robot, checker, order, Q, ok, max_step, mc)
+    vias, dropped = repair.vias, repair.dropped
+    order_final = order[repair.keep]
     Q_final = grid.q(_grid_index(order_final))
-    # travel time including vias
-    path = [Q_final[0]] if len(Q_final) else []
-    for i in range(1, len(order_final)):
-        for v in vias.get(int(order_final[i]), []):
-            path.append(v)
-        path.append(Q_final[i])
-    tour_time = path_time(robot, np.array(path)) if len(path) > 1 else 0.0
+    path = tour_path(order_final, Q_final, vias)
+    tour_time = path_time(robot, path) if len(path) > 1 else 0.0
     n = len(order_final)
     per_pose = pc.settle_time_s + 3 * pc.tracker_time_per_reflector_s
     duration = tour_time + n * per_pose
@@ -269,7 +208,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         raise PlanError(f"{cfg.path}: every one of the {len(order):,} suitable poses was dropped from the tour "
                         f"(no collision-free motion at plan.motion_clearance_m = {mc:g} m)")
     run.write_config(cfg)
-    _write_outputs(out, order_final, Q_final, vias, dropped)
+    write_tour(out, order_final, Q_final, vias, dropped)
     front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, 7]) if n else np.zeros(0, bool)
     summary = {
         "robot": robot.name, "scene": str(scene.path), "grid_cells": [int(c) for c in cells],
@@ -319,16 +258,3 @@ def _selection_times(robot, scene, grid, times, home, suitable):
     cells = grid.cell_indices(suitable)
     return {"travel_from": lambda k: times.from_one(cells[k], cells), "start_s": times.from_one(home, cells),
             "tour_time": lambda ids: path_time(robot, grid.q(_order_tour(robot, scene, grid, times, home, ids)))}
-
-
-def _write_outputs(out, order, Q, vias, dropped):
-    lines = ["pose_id,q1,q2,q3,q4,q5,q6"]
-    lines += [f"{int(p)}," + ",".join(repr(float(v)) for v in q) for p, q in zip(order, Q)]
-    atomic_write(out / "poses.csv", "\n".join(lines) + "\n")
-    vl = ["before_pose_id,q1,q2,q3,q4,q5,q6"]
-    for pid in order:
-        for v in vias.get(int(pid), []):
-            vl.append(f"{int(pid)}," + ",".join(repr(float(x)) for x in v))
-    atomic_write(out / "vias.csv", "\n".join(vl) + "\n")
-    dl = ["pose_id,reason"] + [f"{p},{r}" for p, r in dropped]
-    atomic_write(out / "dropped.csv", "\n".join(dl) + "\n")
