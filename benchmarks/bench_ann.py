@@ -4,6 +4,7 @@
     flock /tmp/campaign-bench.lock python benchmarks/bench_ann.py --reference  # + full-Jacobian LM
     flock /tmp/campaign-bench.lock python benchmarks/bench_ann.py --cv-grid    # + the 5-fold CV grid
     ... --skip-cg   (only the other parts; keeps the stored matrix-free figures)
+    nice -n 5 python benchmarks/bench_ann.py --skip-cg --adam-rules   # Adam stop rules (issue 15)
 
 Data: a simulated campaign with hidden geometric errors, hidden smooth non-geometric effects
 (joint compliance and cyclic transmission errors) and 10 µm tracker noise; the targets are
@@ -100,6 +101,9 @@ def main():
     ap.add_argument("--cv-grid", action="store_true", help="time the full 5-fold CV grid")
     ap.add_argument("--sizes", default="16x16,32x16,32x32,64x32,128x64", help="CV grid sizes")
     ap.add_argument("--skip-cg", action="store_true", help="don't rerun the matrix-free training")
+    ap.add_argument("--adam-rules", action="store_true",
+                    help="batched Adam: 5 folds of --rule-size under several stop rules (patience, plateau schedule)")
+    ap.add_argument("--rule-size", default="64x32")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     out = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
@@ -156,8 +160,42 @@ def main():
                                   "load_average_before": load0, "load_average_after": os.getloadavg()}
                 save()
             print(f"CV grid, prior {name}: {grid[name]['wall_s']:.0f} s; best {grid[name]['best']}", flush=True)
+    if args.adam_rules:
+        out["adam_stop_rules"] = adam_rules(robot, q, dz_geo, n, tuple(int(v) for v in args.rule_size.split("x")))
+        save()
     out["load_average"] = os.getloadavg()
     save()
+
+
+def adam_rules(robot, q, dz, n, hidden):
+    """The batched Adam's stop rules measured: for each rule, the 5 fold networks of one size
+    trained as one batch; CV RMSE (held-out folds), the fold ensemble's error on the held-out
+    poses, epochs, CPU seconds."""
+    from campaign.ann.grid import run_grid
+
+    rules = {"patience 30, no schedule": dict(patience=30, lr_decay_after=0),
+             "patience 60, no schedule": dict(patience=60, lr_decay_after=0),
+             "patience 60, lr ×0.3 after 30 (default)": dict(),
+             "patience 120, lr ×0.3 after 60": dict(patience=120, lr_decay_after=60),
+             "patience 60, lr ×0.3 after 30, batch 128": dict(batch=128)}
+    rows = {}
+    for name, opts in rules.items():
+        c0, t0 = time.process_time(), time.perf_counter()
+        (net, cv), = run_grid(q[:n], {"geometric": dz[:n]}, sizes=[hidden], folds=5, solver="adam",
+                              q_lower=robot.q_lower, q_upper=robot.q_upper, **opts).values()
+        res = dz[n:] - net.predict(q[n:])
+        row = cv["sizes"][0]
+        rows[name] = {"options": opts, "cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - t0,
+                      "epochs": row["epochs"], "cv_rmse_normalised": row["rmse_normalised"],
+                      "cv_mean_position_mm": row["mean_position_mm"],
+                      "test_mean_position_mm": float(np.linalg.norm(res[:, :3], axis=1).mean() * 1e3),
+                      "test_max_position_mm": float(np.linalg.norm(res[:, :3], axis=1).max() * 1e3),
+                      "test_mean_orientation_mrad": float(np.linalg.norm(res[:, 3:], axis=1).mean() * 1e3)}
+        r = rows[name]
+        print(f"  {name}: {r['cpu_s']:.0f} s CPU, epochs {r['epochs']}, CV RMSE {r['cv_rmse_normalised']:.4f}, "
+              f"test mean {r['test_mean_position_mm']:.4f} mm / {r['test_mean_orientation_mrad']:.4f} mrad",
+              flush=True)
+    return {"hidden": list(hidden), "folds": 5, "rules": rows}
 
 
 if __name__ == "__main__":

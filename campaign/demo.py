@@ -20,7 +20,8 @@ def register(sub):
     p.add_argument("--run", default="runs/demo", metavar="DIR",
                    help="run folder (default: %(default)s); a folder holding measurements is refused, never replaced")
     p.add_argument("--grid-scale", type=float, default=1.0, help="plan grid scale (default: 1 = 1,428,000 candidates)")
-    p.add_argument("--ann-epochs", type=int, default=150, help="epochs of each network training (default: %(default)s)")
+    p.add_argument("--ann-epochs", type=int, default=None,
+                   help="epochs of each network training at most (default: the ANN solver's own bound)")
     p.set_defaults(func=_demo)
 
 
@@ -54,7 +55,7 @@ def _demo(args):
         effects = folder.add_effects([verdict])
         print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(effects)}]` in {folder.config_path}")
     _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
-          "--sizes", "32x16,64x32", "--folds", "3", "--epochs", args.ann_epochs)
+          "--sizes", "32x16,64x32", "--folds", "3", *(["--epochs", args.ann_epochs] if args.ann_epochs else []))
     print("\n=== 7. watch the error fall (held-out test set)")
     print(history_table(run))
     print(f"\nreports: {run}/calibration/report.html, {run}/diagnose/report.html, {run}/plan/tour.png")

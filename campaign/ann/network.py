@@ -570,19 +570,50 @@ class ResidualNetwork:
             raise NotFittedError("ResidualNetwork is not fitted; call fit() first")
 
     def predict(self, q) -> np.ndarray:
-        """Predicted residual Δz (n, 6) (m, rad) for joint coordinates q (n, 6) rad."""
+        """Predicted residual Δz (n, 6) (m, rad) for joint coordinates q (n, 6) rad.
+
+        For an ensemble (weights_ of shape (K, N_w), see :meth:`from_members`) the mean of the
+        K members' predictions, each mapped back with its own target mapping.
+        """
         self._check()
         x = torch.as_tensor(self.input_mapping_.apply(np.asarray(q, dtype=float).reshape(-1, 6)),
                             dtype=self.weights_.dtype)
+        W = self.weights_ if self.weights_.ndim == 2 else self.weights_[None]
+        mean = np.asarray(self.target_mapping_.mean, dtype=float).reshape(len(W), -1)
+        scale = np.asarray(self.target_mapping_.scale, dtype=float).reshape(len(W), -1)
+        out = 0.0
         with torch.no_grad(), _threads(getattr(self, "n_threads", None)):
-            y, _ = self.net_.forward(self.weights_, x)
-        return self.target_mapping_.invert(y.numpy().astype(float))
+            for w, mu, sd in zip(W, mean, scale):
+                y, _ = self.net_.forward(w, x)
+                out = out + (y.numpy().astype(float) * sd + mu)
+        return out / len(W)
+
+    @classmethod
+    def from_members(cls, hidden, weights, input_mapping: Mapping, target_means, target_scales,
+                     **attributes) -> "ResidualNetwork":
+        """A fitted network from trained weights: one member (weights (N_w,), target mapping (6,))
+        or an ensemble whose prediction is the members' mean (weights (K, N_w), mappings (K, 6)).
+        attributes: fitted-state values to set (e.g. ``alpha_``, ``n_epochs_``)."""
+        net = cls(hidden=tuple(int(h) for h in hidden))
+        net.net_ = MLP(6, net.hidden, 6)
+        w = torch.as_tensor(np.asarray(weights, dtype=float))
+        if w.shape[-1] != net.net_.n_weights or w.ndim not in (1, 2):
+            raise DataError(f"weights of shape {tuple(w.shape)} do not fit hidden sizes {net.hidden}")
+        net.weights_ = w
+        net.input_mapping_ = input_mapping
+        net.target_mapping_ = Mapping(np.asarray(target_means, dtype=float), np.asarray(target_scales, dtype=float))
+        net.alpha_ = net.beta_ = net.gamma_ = float("nan")
+        net.n_epochs_ = 0
+        for k, v in attributes.items():
+            setattr(net, k, v)
+        return net
 
     # -- safe persistence: tensors and plain values only, loaded with weights_only=True ---------
     def save(self, path) -> None:
         self._check()
         state = {
-            "format": "campaign.ResidualNetwork/1",
+            # /1: one network; /2: an ensemble (weights (K, N_w), target mappings (K, 6))
+            "format": "campaign.ResidualNetwork/2" if self.weights_.ndim == 2 else "campaign.ResidualNetwork/1",
             "hidden": torch.tensor(list(self.hidden), dtype=torch.int64),
             "weights": self.weights_.detach().clone(),
             "input_mean": torch.tensor(self.input_mapping_.mean), "input_scale": torch.tensor(self.input_mapping_.scale),
@@ -598,13 +629,14 @@ class ResidualNetwork:
             state = torch.load(str(path), weights_only=True)
         except Exception as exc:  # torch raises several types for a bad file
             raise DataError(f"{path}: not a saved residual network ({exc.__class__.__name__})") from None
-        if not isinstance(state, dict) or state.get("format") != "campaign.ResidualNetwork/1":
+        if not isinstance(state, dict) or state.get("format") not in ("campaign.ResidualNetwork/1",
+                                                                     "campaign.ResidualNetwork/2"):
             raise DataError(f"{path}: not a saved residual network (unknown format)")
         hidden = tuple(int(v) for v in state["hidden"])
         net = cls(hidden=hidden)
         net.net_ = MLP(6, hidden, 6)
         net.weights_ = state["weights"]
-        if net.weights_.numel() != net.net_.n_weights:
+        if net.weights_.shape[-1] != net.net_.n_weights or net.weights_.ndim != (2 if state["format"].endswith("/2") else 1):
             raise DataError(f"{path}: weights do not match hidden sizes {hidden}")
         net.input_mapping_ = Mapping(state["input_mean"].numpy(), state["input_scale"].numpy())
         net.target_mapping_ = Mapping(state["target_mean"].numpy(), state["target_scale"].numpy())

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.errors import DataError
+from campaign.ann.grid import cv_stats, fold_of
 from campaign.ann.network import ResidualNetwork
 from campaign.model.rotations import rotvec_to_matrix
 
@@ -56,17 +57,7 @@ def _reporter(progress, hidden, fold, folds):
 
 
 def _fold_of(n, folds, seed):
-    rng = np.random.default_rng(seed)
-    return rng.permutation(n) % folds
-
-
-def cv_stats(dz_true, dz_pred, target_scale) -> dict:
-    """Table 5 statistics of held-out predictions: RMSE of normalised Δz_tot, max ‖Δr‖ mm, max ‖Δφ‖ mrad."""
-    res = dz_true - dz_pred
-    return {"rmse_normalised": float(np.sqrt(np.mean((res / target_scale) ** 2))),
-            "max_position_mm": float(np.max(np.linalg.norm(res[:, :3], axis=1)) * 1e3),
-            "max_orientation_mrad": float(np.max(np.linalg.norm(res[:, 3:], axis=1)) * 1e3),
-            "mean_position_mm": float(np.mean(np.linalg.norm(res[:, :3], axis=1)) * 1e3)}
+    return fold_of(n, folds, seed)
 
 
 def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None, progress=None, **net_options):

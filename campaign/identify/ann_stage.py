@@ -9,7 +9,6 @@ is evaluated once, at the end.
 
 from __future__ import annotations
 
-import dataclasses
 import html
 import json
 from pathlib import Path
@@ -21,6 +20,13 @@ from campaign.model.kinematics import pose_error
 
 #: hidden sizes tried by default: the paper's four and one beyond
 DEFAULT_SIZES = ((16, 16), (32, 16), (32, 32), (64, 32), (128, 64))
+
+#: training method by default: "auto" = the paper's BR-LM on small runs (fewer than
+#: AUTO_ADAM_MIN_POSES training poses), where it measured better and faster, and batched Adam
+#: with early stopping and the fold networks' ensemble on larger runs, where it measured better
+#: on the test set and ~10× faster (docs/ann.md: 960 and 11,200 training poses measured)
+DEFAULT_SOLVER = "auto"
+AUTO_ADAM_MIN_POSES = 4000
 
 
 def parse_sizes(text: str) -> tuple:
@@ -50,7 +56,19 @@ def format_table5(cv: dict) -> str:
             mark = " *" if tuple(row["hidden"]) == tuple(block["best"]) else ""
             lines.append(f"{str(tuple(row['hidden'])):<16}{row['rmse_normalised']:>14.3f}"
                          f"{row['max_position_mm']:>14.3f}{row['max_orientation_mrad']:>15.3f}  {variant:<20}{mark}")
-    lines.append("* best by cross-validation (lowest RMSE of the normalised Δz_tot), retrained on the whole training set")
+    solvers = {block.get("solver", "br-lm") for block in cv.values()}
+    if solvers == {"adam"}:
+        lines.append("* best by cross-validation (lowest RMSE of the normalised Δz_tot); the stage's network is the "
+                     "mean of its fold networks (Adam, early stopping)")
+    else:
+        lines.append("* best by cross-validation (lowest RMSE of the normalised Δz_tot), retrained on the whole "
+                     "training set")
+    for variant, block in cv.items():
+        fin = block.get("final", {})
+        if "gamma" in fin:  # the BR-LM's evidence quantities of the final network
+            lines.append(f"  {variant}: final {tuple(fin['hidden'])} γ = {fin['gamma']:.0f} of "
+                         f"{fin.get('n_weights', '?')} weights, α = {fin['alpha']:.4g}, β = {fin['beta']:.4g}, "
+                         f"{fin['epochs']} epochs ({fin.get('stop', '')})")
     return "\n".join(lines)
 
 
@@ -59,29 +77,52 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
 
     T_prior: stage name of the prior model -> its poses (n, 4, 4) for every measured pose,
     e.g. {"nominal": ..., "geometric": ...}. The ANN stage after "nominal" is called
-    ``ann``; after any other model ``<model>+ann``.
+    ``ann``; after any other model ``<model>+ann``. options: ``sizes``, ``folds``, ``solver``
+    ("auto" default, "adam" or "br-lm"), ``workers`` (local processes; default: the usable cores),
+    ``scheduler`` (a Dask scheduler address), ``dask`` (a local Dask cluster of ``workers``),
+    ``device`` (torch device; default "cuda" when torch finds one, else "cpu"), and the
+    solver's own hyperparameters (e.g. ``max_epochs``). All (prior, size) trainings of the
+    grid are one map over the executor.
     """
     try:
-        from campaign.ann import compensate_pose, fit_ann_stage
+        from campaign.ann import compensate_pose
+        from campaign.ann.grid import make_executor, run_grid, default_workers
     except ImportError as exc:
         raise ConfigError(f"the neural compensator is unavailable ({exc}); run with --no-ann") from None
 
     out = Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
     tr = ~np.asarray(is_test, dtype=bool)
-    sizes = tuple(options.get("sizes", DEFAULT_SIZES))
-    folds = int(options.get("folds", 5))
-    fit_kwargs = {k: v for k, v in options.items() if k not in ("sizes", "folds")}
-    residuals, cv_all, files = {}, {}, {}
+    options = dict(options)
+    sizes = tuple(options.pop("sizes", DEFAULT_SIZES))
+    folds = int(options.pop("folds", 5))
+    solver = options.pop("solver", None) or DEFAULT_SOLVER
+    if solver == "auto":
+        solver = "adam" if int(tr.sum()) >= AUTO_ADAM_MIN_POSES else "br-lm"
+    workers = options.pop("workers", None)
+    scheduler = options.pop("scheduler", None)
+    use_dask = bool(options.pop("dask", False))
+    device = options.pop("device", None) or default_device()
+    executor = make_executor(workers=default_workers() if workers is None and not scheduler else workers,
+                             scheduler=scheduler, dask=use_dask)
+    dz_by_prior, stage_of = {}, {}
     for prior, T_model in T_prior.items():
-        stage = "ann" if prior == "nominal" else f"{prior}+ann"
-        dz = pose_error(T_model, poses.T_IE)
-        say = (lambda msg, _s=stage: progress(f"[{_s}] {msg}" if isinstance(msg, str)
-                                              else dataclasses.replace(msg, stage=_s))) if progress else None
-        net, cv = fit_ann_stage(poses.q[tr], dz[tr], sizes=sizes, folds=folds, progress=say,
-                                q_lower=robot.q_lower, q_upper=robot.q_upper, **fit_kwargs)
+        stage_of[prior] = "ann" if prior == "nominal" else f"{prior}+ann"
+        dz_by_prior[prior] = pose_error(T_model, poses.T_IE)
+    if progress:
+        progress(f"ANN: {len(sizes)} sizes × {folds} folds × {len(T_prior)} priors, solver {solver}, "
+                 f"{executor.name} ({executor.workers} worker{'s' if executor.workers != 1 else ''}), {device}")
+    try:
+        fitted = run_grid(poses.q[tr], {p: dz[tr] for p, dz in dz_by_prior.items()}, sizes=sizes, folds=folds,
+                          solver=solver, q_lower=robot.q_lower, q_upper=robot.q_upper, executor=executor,
+                          progress=progress, device=device, **options)
+    finally:
+        executor.close()
+    residuals, cv_all, files = {}, {}, {}
+    for prior, (net, cv) in fitted.items():
+        stage = stage_of[prior]
         dz_hat = net.predict(poses.q)
-        residuals[stage] = pose_error(compensate_pose(T_model, dz_hat), poses.T_IE)
+        residuals[stage] = pose_error(compensate_pose(T_prior[prior], dz_hat), poses.T_IE)
         cv_all[prior] = cv
         fname = "ann_nominal.pt" if prior == "nominal" else "ann_geometric.pt"
         net.save(out / fname)
@@ -92,3 +133,10 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
              "report_html": "<h2>Cross-validation of the residual network (Table 5)</h2>"
                             f"<pre>{html.escape(table5)}</pre>"}
     return residuals, extra
+
+
+def default_device() -> str:
+    """"cuda" when torch finds a GPU, else "cpu"."""
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"

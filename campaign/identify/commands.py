@@ -35,7 +35,19 @@ def register(sub):
     p.add_argument("--sizes", default=None, metavar="N1xN2,...",
                    help="hidden sizes for the ANN's cross-validation, e.g. 16x16,32x16,32x32,64x32")
     p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default: %(default)s)")
-    p.add_argument("--epochs", type=int, default=None, help="ANN training epochs at most (default: 2048)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="ANN training epochs at most (default: 2000 for adam, 2048 for br-lm)")
+    p.add_argument("--ann-solver", choices=("auto", "adam", "br-lm"), default=None,
+                   help="ANN training: adam (batched folds, early stopping, fold ensemble), br-lm (the paper's "
+                        "Bayesian-regularised Levenberg-Marquardt, reports γ, α, β), or auto (default: br-lm "
+                        "below 4,000 training poses, adam from there on)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes for the ANN grid (default: the usable cores); with --dask, "
+                        "the local Dask cluster's workers")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run the ANN grid's trainings on this Dask distributed scheduler")
+    p.add_argument("--dask", action="store_true", help="run the ANN grid on a local Dask cluster of --workers")
+    p.add_argument("--device", default=None, help="torch device for adam training (default: cuda if found, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_calibrate)
 
@@ -101,6 +113,13 @@ def _calibrate(args):
         ann_options["sizes"] = parse_sizes(args.sizes)
     if args.epochs is not None:
         ann_options["max_epochs"] = args.epochs
+    for key in ("workers", "scheduler", "device"):
+        if getattr(args, key) is not None:
+            ann_options[key] = getattr(args, key)
+    if args.ann_solver:
+        ann_options["solver"] = args.ann_solver
+    if args.dask:
+        ann_options["dask"] = True
     check_ann_options(ann_options)
     progress = None if args.quiet else _CalibrateProgress()
     ann = "auto" if args.ann is None else args.ann  # auto: not for a campaign too small for a network
@@ -126,6 +145,14 @@ class _CalibrateProgress:
         if isinstance(msg, str):
             self.close()
             print(msg, file=sys.stderr, flush=True)
+            return
+        if hasattr(msg, "tasks_done"):  # the whole ANN grid: one bar, in per mille of the expected work
+            if self.task != "grid":
+                self.close()
+                self.task = "grid"
+                self.bar = Progress("ANN grid", total=1000, enabled=True, unit="‰")
+            self.bar.update(max(0, int(1000 * msg.done / max(msg.total, 1e-300)) - self.bar.done),
+                            extra=f"{msg.tasks_done}/{msg.tasks} trainings")
             return
         if msg.task != self.task:
             self.close()

@@ -1,0 +1,496 @@
+"""The cross-validation grid as a list of training tasks mapped over a pluggable executor.
+
+A task trains the K fold networks of one hidden size on one prior model's residuals (and, for
+the paper's BR-LM, a final network on the whole training set). Every task is a plain dict of
+numpy arrays and numbers in, a plain dict out (:func:`run_task`), so the same function runs
+
+* in this process (:class:`SerialExecutor`),
+* in local worker processes, one torch thread each (:class:`ProcessExecutor`, ``--workers N``),
+* on a Dask distributed cluster (:class:`DaskExecutor`, ``--scheduler tcp://HOST:PORT``, or a
+  local cluster of N workers).
+
+Solvers: ``"adam"`` — the K folds of a task as one batched computation (campaign.ann.adam),
+early stopping on a validation share of each fold's training part; the stage's network is the
+ensemble of the chosen size's K fold networks (mean prediction). ``"br-lm"`` — the paper's
+Bayesian-regularised LM (campaign.ann.network), one fold after the other inside a task, then a
+final network of the chosen size on the whole training set, with its evidence quantities γ, α, β.
+
+Tasks are dispatched largest first (cost ~ members × weights), so the two largest trainings of
+the default grid ((128, 64) on both priors) start at once and the small ones fill the gaps.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from campaign.errors import ConfigError, DataError
+
+SOLVERS = ("adam", "br-lm")
+
+#: expected epochs per member, for the grid's ETA before any task has finished (measured on the
+#: 14,000-pose benchmark: Adam members stop after 300-1,300 epochs, BR-LM after 130-1,400)
+_EPOCH_GUESS = {"adam": 700, "br-lm": 500}
+
+
+def fold_of(n: int, folds: int, seed: int) -> np.ndarray:
+    """Fold index (n,) of each training row: a seeded random partition."""
+    rng = np.random.default_rng(seed)
+    return rng.permutation(n) % folds
+
+
+def fit_and_val_rows(rows: np.ndarray, val_share: float, seed: int):
+    """Split a member's training rows into fitting rows and early-stopping rows (seeded)."""
+    perm = np.random.default_rng(seed).permutation(rows)
+    n_val = max(1, int(round(val_share * len(rows)))) if val_share > 0 else 0
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+# -- the task function (runs wherever the executor puts it) ----------------------------------
+
+_PROGRESS_QUEUE = None  # set in local worker processes by the pool's initializer
+
+
+def _worker_init(q, threads):
+    global _PROGRESS_QUEUE
+    _PROGRESS_QUEUE = q
+    import torch
+
+    torch.set_num_threads(int(threads))
+
+
+def run_task(task: dict, report=None) -> dict:
+    """Train one task's networks. Inputs and outputs are plain values (see :func:`make_tasks`).
+
+    Returns ``{"id", "weights" (M, N_w), "target_mean" (M, 6), "target_scale" (M, 6),
+    "heldout_pred" {fold: (n_k, 6)}, "members": [info...], "wall_s", "cpu_s"}``.
+    report: optional callable(units) with the work done since the last call (members × epochs
+    × weights); inside a local worker process the units go to the parent's progress queue.
+    """
+    import torch
+
+    from campaign.ann.network import MLP, ResidualNetwork
+
+    if report is None and _PROGRESS_QUEUE is not None:
+        report = lambda units: _PROGRESS_QUEUE.put((task["id"], units))  # noqa: E731
+    t0, c0 = time.perf_counter(), time.process_time()
+    device = task.get("device", "cpu")
+    x, dz, hidden = task["x"], task["dz"], tuple(task["hidden"])
+    n_w = MLP(6, hidden, 6).n_weights
+    members = task["members"]
+    out = {"id": task["id"], "members": []}
+    if task["solver"] == "adam":
+        from campaign.ann.adam import AdamOptions, train_batched
+
+        opts = AdamOptions(**task.get("options", {}))
+        fits, vals, means, scales, targets = [], [], [], [], []
+        for m in members:
+            fit, val = fit_and_val_rows(m["train_rows"], opts.val_share, m["seed"])
+            mu, sd = dz[fit].mean(0), dz[fit].std(0)
+            sd = np.where(sd > 0, sd, 1.0)
+            fits.append(fit), vals.append(val), means.append(mu), scales.append(sd)
+            targets.append((dz - mu) / sd)
+        W, info = train_batched(hidden, x, np.stack(targets), fits, vals, seeds=[m["seed"] for m in members],
+                                options=opts,
+                                device=device,
+                                progress=None if report is None else lambda ep, act: report(ep * act * n_w))
+        out["members"] = info
+    else:
+        W, means, scales = [], [], []
+        opts = dict(task.get("options", {}))
+        for m in members:
+            rows = m["train_rows"]
+            last = [0]
+
+            def tick(epoch, max_epochs, mse, gamma, _last=last):
+                if report is not None:
+                    report((epoch - _last[0]) * n_w)
+                    _last[0] = epoch
+
+            net = ResidualNetwork(hidden=hidden, q_lower=task["q_lower"], q_upper=task["q_upper"], seed=task["seed"],
+                                  progress=tick, progress_every=5, **opts)
+            net.fit(task["q"][rows], dz[rows])
+            W.append(net.weights_.numpy())
+            means.append(net.target_mapping_.mean)
+            scales.append(net.target_mapping_.scale)
+            out["members"].append({"epochs": int(net.n_epochs_), "stop": net.stop_reason_, "gamma": net.gamma_,
+                                   "alpha": net.alpha_, "beta": net.beta_, "n_weights": n_w,
+                                   "mse_normalised": net.mse_normalised_})
+        W = np.stack(W)
+    net = MLP(6, hidden, 6)
+    preds = {}
+    with torch.no_grad():
+        for i, m in enumerate(members):
+            if m.get("heldout_rows") is not None and len(m["heldout_rows"]):
+                y, _ = net.forward(torch.as_tensor(W[i]), torch.as_tensor(x[m["heldout_rows"]]))
+                preds[int(m["fold"])] = y.numpy() * scales[i] + means[i]
+    out.update({"weights": np.asarray(W), "target_mean": np.stack(means), "target_scale": np.stack(scales),
+                "heldout_pred": preds, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
+    return out
+
+
+# -- executors --------------------------------------------------------------------------------
+
+class SerialExecutor:
+    """Tasks one after another in this process, with ``threads`` torch threads (default 1: on a
+    shared machine more threads were 3-10× slower, docs/ann.md)."""
+
+    name = "serial"
+    workers = 1
+
+    def __init__(self, threads: int | None = 1):
+        self.threads = threads
+
+    def map(self, fn, tasks, on_units, on_done):
+        from campaign.ann.network import _threads
+
+        results = []
+        with _threads(self.threads):
+            for t in tasks:
+                r = fn(t, on_units and (lambda u, _id=t["id"]: on_units(_id, u)))
+                on_done(r)
+                results.append(r)
+        return results
+
+    def close(self):
+        pass
+
+
+class ProcessExecutor:
+    """Tasks on N local worker processes (spawned, one torch thread each), progress through a queue."""
+
+    name = "processes"
+
+    def __init__(self, workers: int = 2, threads_per_worker: int = 1):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = int(workers)
+        ctx = mp.get_context("spawn")
+        self._queue = ctx.Queue()
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init,
+                                         initargs=(self._queue, threads_per_worker))
+
+    def map(self, fn, tasks, on_units, on_done):
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        futures = {self._pool.submit(fn, t): i for i, t in enumerate(tasks)}
+        results = [None] * len(tasks)
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+            self._drain(on_units)
+            for f in done:
+                r = f.result()
+                results[futures[f]] = r
+                on_done(r)
+        self._drain(on_units)
+        return results
+
+    def _drain(self, on_units):
+        while True:
+            try:
+                tid, units = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if on_units:
+                on_units(tid, units)
+
+    def close(self):
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor:
+    """Tasks on a Dask distributed cluster: an existing scheduler (``address``) or a local
+    cluster of ``workers`` processes (one thread each). Progress is reported per finished task.
+
+    Dask moves tasks and results between machines with its own (pickle-based) protocol: use it
+    on a network you trust, or configure Dask's TLS security.
+    """
+
+    name = "dask"
+
+    def __init__(self, address: str | None = None, workers: int | None = None):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise ConfigError("Dask is not installed: pip install 'campaign[dask]' (or dask[distributed])") from None
+        self._cluster = None
+        try:
+            if address:
+                self.client = Client(address, timeout="5s")
+            else:
+                self._cluster = LocalCluster(n_workers=int(workers or 2), threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=logging.ERROR)
+                self.client = Client(self._cluster)
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler ({exc})") from None
+        self.workers = len(self.client.scheduler_info().get("workers", {})) or int(workers or 1)
+
+    def map(self, fn, tasks, on_units, on_done):
+        from distributed import as_completed
+
+        futures = [self.client.submit(fn, t, key=f"campaign-ann-{t['id']}-{os.getpid()}-{time.time_ns()}",
+                                      pure=False) for t in tasks]
+        index = {f.key: i for i, f in enumerate(futures)}
+        results = [None] * len(tasks)
+        for f in as_completed(futures):
+            r = f.result()
+            results[index[f.key]] = r
+            if on_units:
+                on_units(r["id"], None)
+            on_done(r)
+        return results
+
+    def close(self):
+        self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+def make_executor(workers: int | None = None, scheduler: str | None = None, dask: bool = False):
+    """The executor for these options: a Dask scheduler address, a local Dask cluster
+    (``dask=True``), N worker processes (N > 1), or this process."""
+    if scheduler:
+        return DaskExecutor(address=scheduler)
+    if dask:
+        return DaskExecutor(workers=workers or 2)
+    if workers is not None and int(workers) < 1:
+        raise ConfigError(f"--workers must be at least 1, not {workers}")
+    if workers and int(workers) > 1:
+        return ProcessExecutor(int(workers))
+    return SerialExecutor()
+
+
+def check_device(device) -> None:
+    """A clear ConfigError for a device torch does not know or cannot use here."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"--device {device!r}: not a torch device (e.g. cpu, cuda, cuda:1)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {device}: torch finds no CUDA GPU on this machine")
+    if dev.type not in ("cpu", "cuda"):
+        raise ConfigError(f"--device {device}: only cpu and cuda devices are supported")
+
+
+def default_workers() -> int:
+    """Worker processes for the local run: the usable cores, at most 2 per the issue's machine."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# -- the grid ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class GridProgress:
+    """Whole-grid progress (what the progress bar shows): work units (members × epochs ×
+    weights) done and expected in all, tasks finished of all. ``str()`` is one status line."""
+
+    done: float
+    total: float
+    tasks_done: int
+    tasks: int
+    elapsed_s: float
+    last: str = ""
+
+    @property
+    def eta_s(self) -> float:
+        return self.elapsed_s * (self.total - self.done) / self.done if self.done > 0 else float("inf")
+
+    def __str__(self) -> str:
+        return (f"ANN grid: {self.tasks_done}/{self.tasks} trainings, {100 * self.done / max(self.total, 1):.0f} %, "
+                f"ETA {self.eta_s:.0f} s {self.last}")
+
+
+class _GridMeter:
+    """Turns the tasks' unit reports into GridProgress: the expected total is the finished tasks'
+    actual work plus, for the others, members × weights × the mean epochs of finished members
+    (a measured guess per solver before any has finished)."""
+
+    def __init__(self, tasks, solver, progress):
+        self.progress = progress
+        self.t0 = time.perf_counter()
+        self.size = {t["id"]: len(t["members"]) * t["n_weights"] for t in tasks}
+        self.done_units = {t["id"]: 0.0 for t in tasks}
+        self.finished = {}
+        self.epochs_seen = []
+        self.guess = _EPOCH_GUESS[solver]
+        self.lock = threading.Lock()
+        self.n = len(tasks)
+
+    def units(self, tid, units):
+        if units is None:
+            return
+        with self.lock:
+            self.done_units[tid] += units
+        self._emit()
+
+    def done(self, result):
+        with self.lock:
+            eps = [m["epochs"] for m in result["members"]]
+            self.epochs_seen += eps
+            n_w = self.size[result["id"]] / max(1, len(eps))
+            self.finished[result["id"]] = sum(eps) * n_w
+            self.done_units[result["id"]] = self.finished[result["id"]]
+        self._emit(last=f"(last: {result['id']}, {result['wall_s']:.0f} s)")
+
+    def _emit(self, last=""):
+        if self.progress is None:
+            return
+        mean_ep = float(np.mean(self.epochs_seen)) if self.epochs_seen else self.guess
+        total = 0.0
+        for tid, size in self.size.items():
+            if tid in self.finished:
+                total += self.finished[tid]
+            else:
+                total += max(size * mean_ep, self.done_units[tid] * 1.05)
+        done = sum(self.done_units.values())
+        self.progress(GridProgress(done, total, len(self.finished), self.n, time.perf_counter() - self.t0, last))
+
+
+def make_tasks(q, dz_by_prior: dict, *, sizes, folds, seed, solver, input_mapping, options=None,
+               device="cpu") -> list:
+    """One task per (prior, size): the K folds as members (cross-validation)."""
+    x = input_mapping.apply(q)
+    fold = fold_of(len(q), folds, seed)
+    tasks = []
+    for prior, dz in dz_by_prior.items():
+        for hidden in sizes:
+            members = [{"fold": k, "train_rows": np.flatnonzero(fold != k), "heldout_rows": np.flatnonzero(fold == k),
+                        "seed": seed + 101 * k} for k in range(folds)]
+            tasks.append(_task(f"{prior}/{hidden[0]}x{hidden[1]}/cv", q, x, dz, hidden, members, seed, solver,
+                               input_mapping, options, device, prior))
+    return tasks
+
+
+def _task(tid, q, x, dz, hidden, members, seed, solver, input_mapping, options, device, prior):
+    from campaign.ann.network import MLP
+
+    return {"id": tid, "prior": prior, "hidden": [int(h) for h in hidden], "solver": solver, "seed": int(seed),
+            "q": q, "x": x, "dz": dz, "members": members, "options": dict(options or {}), "device": device,
+            "q_lower": input_mapping.mean - np.sqrt(3.0) * input_mapping.scale,
+            "q_upper": input_mapping.mean + np.sqrt(3.0) * input_mapping.scale,
+            "n_weights": MLP(6, tuple(hidden), 6).n_weights}
+
+
+def cv_stats(dz_true, dz_pred, target_scale) -> dict:
+    """Table 5 statistics of held-out predictions: RMSE of normalised Δz_tot, max ‖Δr‖ mm, max ‖Δφ‖ mrad."""
+    res = dz_true - dz_pred
+    return {"rmse_normalised": float(np.sqrt(np.mean((res / target_scale) ** 2))),
+            "max_position_mm": float(np.max(np.linalg.norm(res[:, :3], axis=1)) * 1e3),
+            "max_orientation_mrad": float(np.max(np.linalg.norm(res[:, 3:], axis=1)) * 1e3),
+            "mean_position_mm": float(np.mean(np.linalg.norm(res[:, :3], axis=1)) * 1e3)}
+
+
+def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_lower=None, q_upper=None,
+             executor=None, progress=None, device="cpu", **options):
+    """Cross-validate every size for every prior model and build each prior's network.
+
+    q (n, 6) rad training poses; dz_by_prior: prior name -> residuals (n, 6) (m, rad) of that
+    prior model on the same poses. Returns {prior: (ResidualNetwork, cv dict)} where the cv dict
+    is the Table 5 block: ``{"sizes": [row...], "best", "folds", "solver", "final": {...}}``.
+    options: AdamOptions fields (solver "adam") or ResidualNetwork hyperparameters ("br-lm").
+    progress: optional callable receiving :class:`GridProgress` reports and status lines (str).
+    """
+    from campaign.ann.network import ResidualNetwork, joint_mapping
+
+    if solver not in SOLVERS:
+        raise ConfigError(f"--ann-solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or q.shape[1] != 6 or len(q) < 2 * folds:
+        raise DataError(f"ANN cross-validation: need q (n, 6) with n >= {2 * folds}, got {q.shape}")
+    for prior, dz in dz_by_prior.items():
+        if np.shape(dz) != (len(q), 6) or not np.all(np.isfinite(dz)):
+            raise DataError(f"ANN cross-validation: residuals of {prior} must be finite (n, 6), got {np.shape(dz)}")
+    if not (np.all(np.isfinite(q))):
+        raise DataError("ANN cross-validation: q must be finite")
+    if q_lower is None or q_upper is None:
+        from campaign.model.robot import RobotModel
+
+        robot = RobotModel.load()
+        q_lower, q_upper = robot.q_lower, robot.q_upper
+    mapping = joint_mapping(q_lower, q_upper)
+    check_device(device)
+    if solver == "adam":
+        if "max_epochs" in options and options["max_epochs"] is None:
+            options.pop("max_epochs")
+        from campaign.ann.adam import AdamOptions
+
+        unknown = set(options) - set(AdamOptions.__dataclass_fields__)
+        if unknown:
+            raise ConfigError(f"options not used by the adam solver: {', '.join(sorted(unknown))}")
+    tasks = make_tasks(q, {p: np.asarray(d, dtype=float) for p, d in dz_by_prior.items()}, sizes=sizes,
+                       folds=folds, seed=seed, solver=solver, input_mapping=mapping, options=options, device=device)
+    tasks.sort(key=lambda t: -len(t["members"]) * t["n_weights"])  # largest first
+    own = executor is None
+    executor = executor or SerialExecutor()
+    say = progress if progress is not None else None
+    meter = _GridMeter(tasks, solver, say)
+    try:
+        t0 = time.perf_counter()
+        results = executor.map(run_task, tasks, meter.units, meter.done)
+        cv_wall = time.perf_counter() - t0
+        by_id = {r["id"]: r for r in results}
+        out = {}
+        fold = fold_of(len(q), folds, seed)
+        finals = []
+        for prior, dz in dz_by_prior.items():
+            dz = np.asarray(dz, dtype=float)
+            scale = np.where(dz.std(axis=0) > 0, dz.std(axis=0), 1.0)
+            rows = []
+            for hidden in sizes:
+                r = by_id[f"{prior}/{hidden[0]}x{hidden[1]}/cv"]
+                pred = np.empty_like(dz)
+                for k in range(folds):
+                    pred[fold == k] = r["heldout_pred"][k]
+                rows.append({"hidden": list(hidden), **cv_stats(dz, pred, scale),
+                             "epochs": [m["epochs"] for m in r["members"]], "wall_s": r["wall_s"],
+                             "cpu_s": r["cpu_s"]})
+                if say:
+                    say(f"[{prior}] CV {tuple(hidden)}: RMSE {rows[-1]['rmse_normalised']:.3f}, "
+                        f"max ‖Δr‖ {rows[-1]['max_position_mm']:.3f} mm ({r['wall_s']:.0f} s)")
+            best = min(rows, key=lambda row: row["rmse_normalised"])
+            out[prior] = {"sizes": rows, "best": list(best["hidden"]), "folds": folds, "solver": solver,
+                          "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall}
+            if solver == "br-lm":
+                members = [{"fold": None, "train_rows": np.arange(len(q)), "heldout_rows": None, "seed": seed}]
+                finals.append(_task(f"{prior}/{best['hidden'][0]}x{best['hidden'][1]}/final", q, mapping.apply(q),
+                                    dz, best["hidden"], members, seed, solver, mapping, options, device, prior))
+        nets = {}
+        if finals:
+            fmeter = _GridMeter(finals, solver, say)
+            for r in executor.map(run_task, finals, fmeter.units, fmeter.done):
+                prior = r["id"].split("/")[0]
+                m = r["members"][0]
+                nets[prior] = ResidualNetwork.from_members(
+                    out[prior]["best"], r["weights"][0], mapping, r["target_mean"][0], r["target_scale"][0],
+                    alpha_=m["alpha"], beta_=m["beta"], gamma_=m["gamma"], n_epochs_=m["epochs"],
+                    stop_reason_=m["stop"])
+                out[prior]["final"] = {"hidden": out[prior]["best"], "epochs": m["epochs"], "gamma": m["gamma"],
+                                       "alpha": m["alpha"], "beta": m["beta"], "n_weights": m["n_weights"],
+                                       "stop": m["stop"], "wall_s": r["wall_s"]}
+        else:
+            for prior in dz_by_prior:
+                hidden = out[prior]["best"]
+                r = by_id[f"{prior}/{hidden[0]}x{hidden[1]}/cv"]
+                nets[prior] = ResidualNetwork.from_members(
+                    hidden, r["weights"], mapping, r["target_mean"], r["target_scale"],
+                    n_epochs_=max(m["epochs"] for m in r["members"]), stop_reason_="early_stopping")
+                out[prior]["final"] = {"hidden": list(hidden), "kind": f"ensemble of the {folds} fold networks",
+                                       "epochs": [m["epochs"] for m in r["members"]],
+                                       "best_epochs": [m["best_epoch"] for m in r["members"]]}
+        return {prior: (nets[prior], out[prior]) for prior in dz_by_prior}
+    finally:
+        if own:
+            executor.close()

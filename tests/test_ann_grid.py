@@ -1,0 +1,164 @@
+"""The batched cross-validation grid (issue 15): batched Adam against single trainings with
+torch.optim.Adam, the executors (this process, worker processes, a two-worker Dask
+LocalCluster) against each other, BR-LM through the grid against the sequential
+cross-validation, ensembles saved and reloaded, device and scheduler errors named."""
+
+import numpy as np
+import pytest
+import torch
+
+from campaign.ann import ResidualNetwork, cross_validate
+from campaign.ann.adam import AdamOptions, train_batched
+from campaign.ann.grid import GridProgress, ProcessExecutor, run_grid
+from campaign.ann.network import MLP, joint_mapping
+from campaign.errors import ConfigError
+
+LO, HI = -np.ones(6) * 2.5, np.ones(6) * 2.5
+
+
+def smooth_data(n, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(LO, HI, size=(n, 6))
+    dz = np.stack([1e-4 * np.sin(q[:, 1]) * np.cos(q[:, 2]), 2e-4 * np.sin(q[:, 0] + q[:, 1]),
+                   1e-4 * np.cos(2 * q[:, 2]), 1e-3 * np.sin(q[:, 3]), 5e-4 * np.cos(q[:, 4]),
+                   1e-3 * np.sin(q[:, 1] - q[:, 2])], axis=1)
+    return q, dz + rng.normal(0, 1e-6, dz.shape)
+
+
+def test_batched_adam_equals_each_member_trained_alone_with_torch_adam():
+    """Three members with their own rows and targets, batched, against torch.optim.Adam on one
+    network at a time with the same initial weights and mini-batches (float64)."""
+    q, dz = smooth_data(90)
+    x = joint_mapping(LO, HI).apply(q)
+    net = MLP(6, (5, 4), 6)
+    rng = np.random.default_rng(3)
+    fits = [np.sort(rng.permutation(90)[:60]) for _ in range(3)]
+    vals = [np.setdiff1d(np.arange(90), f)[:20] for f in fits]
+    targets = np.stack([dz / dz.std(0) * (1 + b) for b in range(3)])
+    seeds = [11, 12, 13]
+    opts = AdamOptions(lr=1e-2, batch=16, max_epochs=4, patience=100, eval_every=1, lr_decay_after=0,
+                       dtype="float64")
+    W, info = train_batched((5, 4), x, targets, fits, vals, seeds=seeds, options=opts)
+    for b in range(3):
+        w = net.init(torch.Generator().manual_seed(seeds[b]), torch.float64).requires_grad_(True)
+        adam = torch.optim.Adam([w], lr=1e-2, betas=(0.9, 0.999), eps=1e-8)
+        gen = torch.Generator().manual_seed(seeds[b] + 7919)
+        X, Y = torch.as_tensor(x), torch.as_tensor(targets[b])
+        best, best_w = np.inf, None
+        for _ in range(4):
+            order = torch.as_tensor(fits[b])[torch.randperm(60, generator=gen)]
+            for i in range(0, 60, 16):
+                idx = order[i:i + 16]
+                adam.zero_grad()
+                loss = ((net.forward(w, X[idx])[0] - Y[idx]) ** 2).mean()
+                loss.backward()
+                adam.step()
+            with torch.no_grad():
+                v = float(((net.forward(w, X[vals[b]])[0] - Y[vals[b]]) ** 2).mean())
+            if v < best:
+                best, best_w = v, w.detach().clone()
+        np.testing.assert_allclose(W[b], best_w.numpy(), rtol=1e-9, atol=1e-11)
+        assert info[b]["val_mse"] == pytest.approx(best, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def grid_data():
+    q, dz = smooth_data(330, seed=1)
+    return q[:300], {"a": dz[:300], "b": dz[:300] ** 2 * 1e3}, q[300:], dz[300:]
+
+
+def _grid(grid_data, **kw):
+    q, priors, _, _ = grid_data
+    reports = []
+    out = run_grid(q, priors, sizes=[(6, 4), (8, 6)], folds=3, q_lower=LO, q_upper=HI,
+                   progress=lambda m: reports.append(m), **kw)
+    return out, reports
+
+
+def test_grid_on_worker_processes_and_on_dask_gives_the_local_selection_and_errors(grid_data):
+    opts = dict(solver="adam", max_epochs=40, patience=15)
+    local, reports = _grid(grid_data, **opts)
+    bars = [r for r in reports if isinstance(r, GridProgress)]
+    assert bars[-1].tasks_done == bars[-1].tasks == 4 and bars[-1].done == pytest.approx(bars[-1].total)
+    assert all(b.done <= b.total + 1e-9 for b in bars)
+    ex = ProcessExecutor(2)
+    try:
+        procs, _ = _grid(grid_data, executor=ex, **opts)
+    finally:
+        ex.close()
+    pytest.importorskip("distributed")
+    from campaign.ann.grid import DaskExecutor
+
+    dask = DaskExecutor(workers=2)
+    try:
+        assert dask.workers == 2
+        on_dask, _ = _grid(grid_data, executor=dask, **opts)
+    finally:
+        dask.close()
+    q_test = grid_data[2]
+    for other in (procs, on_dask):
+        for prior in ("a", "b"):
+            net, cv = local[prior]
+            net2, cv2 = other[prior]
+            assert cv2["best"] == cv["best"]
+            for r, r2 in zip(cv["sizes"], cv2["sizes"]):
+                assert r2["rmse_normalised"] == pytest.approx(r["rmse_normalised"], rel=1e-5)
+                assert r2["epochs"] == r["epochs"]
+            np.testing.assert_allclose(net2.predict(q_test), net.predict(q_test), rtol=1e-5, atol=1e-10)
+
+
+def test_br_lm_through_the_grid_equals_the_sequential_cross_validation(grid_data):
+    q, priors, _, _ = grid_data
+    out, reports = _grid(grid_data, solver="br-lm", max_epochs=8)
+    ref = cross_validate(q, priors["a"], sizes=[(6, 4), (8, 6)], folds=3, q_lower=LO, q_upper=HI, max_epochs=8)
+    _, cv = out["a"]
+    assert cv["best"] == ref["best"]
+    for r, r2 in zip(cv["sizes"], ref["sizes"]):
+        assert r["rmse_normalised"] == pytest.approx(r2["rmse_normalised"], rel=1e-9)
+        assert r["epochs"] == r2["epochs"]
+    fin = cv["final"]  # the evidence quantities of the final BR-LM network are reported
+    assert 0 < fin["gamma"] <= fin["n_weights"] and fin["alpha"] > 0 and fin["beta"] > 0
+    single = ResidualNetwork(hidden=tuple(cv["best"]), q_lower=LO, q_upper=HI, max_epochs=8).fit(q, priors["a"])
+    np.testing.assert_allclose(out["a"][0].predict(q), single.predict(q), rtol=1e-9, atol=1e-12)
+    assert out["a"][0].gamma_ == pytest.approx(single.gamma_, rel=1e-9)
+
+
+def test_an_ensemble_predicts_its_members_mean_and_reloads_identically(tmp_path, grid_data):
+    q, priors, q_test, _ = grid_data
+    rng = np.random.default_rng(0)
+    net = MLP(6, (6, 4), 6)
+    W = rng.normal(0, 0.5, (3, net.n_weights))
+    mu, sd = rng.normal(0, 1e-4, (3, 6)), rng.uniform(1e-4, 1e-3, (3, 6))
+    mapping = joint_mapping(LO, HI)
+    ens = ResidualNetwork.from_members((6, 4), W, mapping, mu, sd)
+    singles = [ResidualNetwork.from_members((6, 4), W[k], mapping, mu[k], sd[k]).predict(q_test) for k in range(3)]
+    # member k by hand: tanh layers on the mapped joints, mapped back
+    x = torch.as_tensor(mapping.apply(q_test))
+    by_hand = net.forward(torch.as_tensor(W[1]), x)[0].numpy() * sd[1] + mu[1]
+    np.testing.assert_allclose(singles[1], by_hand, rtol=1e-12)
+    np.testing.assert_allclose(ens.predict(q_test), np.mean(singles, axis=0), rtol=1e-12, atol=1e-15)
+    ens.save(tmp_path / "ens.pt")
+    np.testing.assert_array_equal(ResidualNetwork.load(tmp_path / "ens.pt").predict(q_test), ens.predict(q_test))
+
+
+def test_device_and_solver_errors_are_named(grid_data):
+    q, priors, _, _ = grid_data
+    with pytest.raises(ConfigError, match="--device"):
+        run_grid(q, priors, sizes=[(4, 4)], folds=3, q_lower=LO, q_upper=HI, device="tpu:0")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA GPU"):
+            run_grid(q, priors, sizes=[(4, 4)], folds=3, q_lower=LO, q_upper=HI, device="cuda")
+    with pytest.raises(ConfigError, match="--ann-solver"):
+        run_grid(q, priors, sizes=[(4, 4)], folds=3, q_lower=LO, q_upper=HI, solver="sgd")
+    with pytest.raises(ConfigError, match="not used by the adam solver"):
+        run_grid(q, priors, sizes=[(4, 4)], folds=3, q_lower=LO, q_upper=HI, solver="adam", cg_maxiter=3)
+
+
+def test_an_unreachable_scheduler_and_a_bad_worker_count_are_named():
+    pytest.importorskip("distributed")
+    from campaign.ann.grid import make_executor
+
+    with pytest.raises(ConfigError, match=r"--scheduler tcp://127\.0\.0\.1:9: cannot reach"):
+        make_executor(scheduler="tcp://127.0.0.1:9")
+    with pytest.raises(ConfigError, match="--workers must be at least 1"):
+        make_executor(workers=0)
