@@ -157,11 +157,18 @@ class ClearanceChecker:
         res = fcl.DistanceResult()
         return fcl.distance(a, b, fcl.DistanceRequest(), res)
 
+    def pair_distances(self, R, t) -> tuple:
+        """Exact FCL distances (m) of every checked pair for one pose (frames R (8,3,3), t (8,3)):
+        ``(robot-scene (len(scene_pairs),), robot-robot (len(self_pairs),))``."""
+        self._place(R, t)
+        d_scene = np.array([self._dist(self.robot_objs[i], self.scene_objs[j]) for i, j in self.scene_pairs])
+        d_self = np.array([self._dist(self.robot_objs[i], self.robot_objs[j]) for i, j in self.self_pairs])
+        return d_scene, d_self
+
     def exact_min_distance(self, R, t) -> float:
         """Exact FCL minimum distance over all checked pairs for one pose (frames R (8,3,3), t (8,3))."""
-        self._place(R, t)
-        d = min(self._dist(self.robot_objs[i], self.scene_objs[j]) for i, j in self.scene_pairs)
-        return min(d, min(self._dist(self.robot_objs[i], self.robot_objs[j]) for i, j in self.self_pairs))
+        d_scene, d_self = self.pair_distances(R, t)
+        return float(min(d_scene.min(initial=np.inf), d_self.min(initial=np.inf)))
 
     def undecided_pairs(self, R, t, clearance):
         """Which pairs the sphere bounds cannot clear, for poses with frames given entry-first:
