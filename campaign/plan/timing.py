@@ -1,19 +1,22 @@
 """Motion timing: how long the robot takes between two poses, computed by Ruckig.
 
 Every motion of a campaign is a rest-to-rest, time-optimal, jerk-limited move under the
-robot's per-joint limits (``max_velocity`` rad/s, ``max_acceleration`` rad/s²,
-``max_jerk`` rad/s³ from robot.yaml). Its duration is what Ruckig computes for that move
-(:func:`ruckig_trajectory`). With phase synchronisation every joint follows the same
-normalised profile, so the motion is a straight line in joint space (tour.py samples it as
-one for the collision check) and its duration is the largest of the joints' single-axis
-minimum times. That is what makes the tour ordering's lookup tables exact: the time
-between two grid poses is the maximum over joints of a per-joint table indexed by the cell
-difference (:class:`GridTimes`), each entry a one-axis Ruckig duration.
+robot's per-joint limits (``max_velocity`` rad/s, ``max_acceleration`` rad/s², ``max_jerk``
+rad/s³ from robot.yaml). Its duration is what Ruckig computes for that move
+(:func:`rest_to_rest_time`, :func:`path_time`: the plan's motion time, the simulated cell's
+clock). With phase synchronisation every joint follows the same normalised profile, so the
+motion is a straight line in joint space (tour.py samples it as one for the collision check)
+and its duration is the largest of the joints' single-axis minimum times.
 
-The tests compare these durations with a hand-derived closed form of the seven-phase jerk-
-limited profile (tests/test_timing.py) and check that the trajectory is a straight line.
-Ruckig's calculation costs about 6 µs a move, so even the final tour's path time (about
-10,000 moves on the default cell) takes well under a second.
+That last fact makes the tour ordering cheap: the time between two grid poses is the maximum
+over joints of a per-joint table indexed by the cell difference (:class:`GridTimes`). The
+tables hold the closed form of the one-axis profile (:func:`joint_min_time`), which equals
+Ruckig's one-axis duration to the last bit or one (tests/test_timing.py, every regime); it is
+kept for the tables because the ordering breaks ties between equally short tours by those
+values, and Ruckig's 1-ulp differences would reorder a few equal-time neighbours of the
+published demo's tour (and with them the neural network's cross-validation folds). Ruckig's
+calculation costs about 6 µs a move, so the final tour's path time (about 10,000 moves on
+the default cell) takes well under a second.
 """
 
 from __future__ import annotations
@@ -73,11 +76,32 @@ def ruckig_trajectory(robot, qa, qb):
 
 def joint_min_time(d, v, a, j):
     """Minimum rest-to-rest time (s) of one axis moving distances |d| (rad, any shape) under the
-    limits v (rad/s), a (rad/s²), j (rad/s³): Ruckig's one-axis duration for each."""
+    limits v (rad/s), a (rad/s²), j (rad/s³): the closed form of the symmetric jerk-limited
+    profile (equal to Ruckig's one-axis duration, :func:`ruckig_joint_time`). Vectorised.
+
+    Accelerating from rest to a peak velocity vp takes t(vp) = vp/a + a/j when the acceleration
+    limit is reached (vp ≥ a²/j), else 2·sqrt(vp/j), and covers vp·t(vp)/2; with a cruise phase
+    vp = v, without one vp solves d = vp·t(vp).
+    """
+    d = np.abs(np.asarray(d, dtype=float))
+    t_acc = v / a + a / j if v >= a * a / j else 2.0 * np.sqrt(v / j)
+    d_acc = v * t_acc / 2.0  # distance of a full acceleration phase up to v
+    cruise = d >= 2 * d_acc
+    out = np.empty_like(d)
+    out[cruise] = 2 * t_acc + (d[cruise] - 2 * d_acc) / v
+    ds = d[~cruise]
+    vp = 0.5 * a * (-a / j + np.sqrt((a / j) ** 2 + 4 * ds / a))  # d = vp (vp/a + a/j)
+    full_acc = vp >= a * a / j
+    vp_tri = (ds * np.sqrt(j) / 2.0) ** (2.0 / 3.0)  # triangular acceleration: d = 2 vp sqrt(vp/j)
+    out[~cruise] = np.where(full_acc, 2 * (vp / a + a / j), 4.0 * np.sqrt(vp_tri / j))
+    return out
+
+
+def ruckig_joint_time(d, v, a, j):
+    """Ruckig's minimum rest-to-rest time (s) of one axis over distances |d| (rad, any shape)."""
     d = np.abs(np.asarray(d, dtype=float))
     r = _Ruckig(v, a, j)
-    out = np.array([r.duration([0.0], [x]) for x in d.reshape(-1).tolist()])
-    return out.reshape(d.shape)
+    return np.array([r.duration([0.0], [x]) for x in d.reshape(-1).tolist()]).reshape(d.shape)
 
 
 def rest_to_rest_time(robot, qa, qb):
@@ -98,9 +122,9 @@ def path_time(robot, Q) -> float:
 
 
 class GridTimes:
-    """Travel times between grid poses by lookup: for grid poses, |Δq_i| is a whole number of
-    cells, so each joint's time is a table (Ruckig's one-axis durations) indexed by the cell
-    difference, and a move's time is the largest of its joints' table entries."""
+    """Travel times between grid poses by lookup, for the tour ordering: for grid poses, |Δq_i|
+    is a whole number of cells, so each joint's time is a table (:func:`joint_min_time`)
+    indexed by the cell difference, and a move's time is the largest of its joints' entries."""
 
     def __init__(self, robot, grid):
         v, a, j = _limits(robot)
