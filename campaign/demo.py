@@ -39,7 +39,8 @@ def _demo(args):
     from campaign.run import RunFolder
 
     check_number(args.grid_scale, "--grid-scale", low=0.0, low_open=True)
-    check_int(args.ann_epochs, "--ann-epochs", low=1)
+    if args.ann_epochs is not None:
+        check_int(args.ann_epochs, "--ann-epochs", low=1)
     run = Path(args.run)
     folder = RunFolder(run)
     folder.refuse_if_measured("the demo", f"give the demo a new folder (--run {run}-2)")

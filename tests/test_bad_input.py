@@ -154,6 +154,24 @@ def test_campaign_run_checks_the_runs_own_config_before_it_touches_anything(tmp_
     assert not (run / "measurements.sqlite").exists() and not (run / "sim").exists()
 
 
+def test_an_unknown_hidden_effect_is_refused_before_the_simulated_cell_starts(tmp_path, robot, capsys):
+    run = planned_run(tmp_path, robot, sim={"hidden_effects": ["bogus"]})
+    refused(capsys, ["run", run, "--sim", "--quiet"], r"unknown effect 'bogus'", run)
+    assert not (run / "sim").exists()
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["model", "base-params", "--poses", "0"], r"--poses: must be an integer >= 8, got 0"),
+    (["model", "base-params", "--poses", "15", "--position-only"], r"--poses: must be an integer >= 16, got 15"),
+    (["synth", "--csv", "{tmp}/s.csv", "--poses", "0"], r"--poses must be a positive integer, got 0"),
+    (["synth", "--csv", "{tmp}/s.csv", "--noise-um", "nan"], r"--noise-um must be a finite number"),
+    (["synth", "--csv", "{tmp}/s.csv", "--hidden", "bogus"], r"unknown effect 'bogus'"),
+    (["plan", "--run", "{tmp}/run", "--grid-scale", "1e6"], r"plan\.grid_cells: .* candidates exceed"),
+])
+def test_bad_options_of_other_commands_are_one_line(tmp_path, capsys, argv, match):
+    refused(capsys, [a.format(tmp=tmp_path) for a in argv], match, tmp_path)
+
+
 def test_a_bad_scene_value_is_one_line_naming_the_scene_file(tmp_path, capsys):
     scene = yaml.safe_load(DEFAULT_SCENE.read_text())
     scene["tracker"]["min_range_m"] = float("nan")

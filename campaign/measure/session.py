@@ -30,6 +30,11 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
         raise ConfigError("give the controller and the tracker (HOST:PORT each), or use the simulated cell")
     plan = read_plan(run.path, poses_csv)
     robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv))
+    if sim:  # what the simulated cell would refuse, refused before it is started
+        from campaign.effects.base import make_effect
+
+        for name in cfg.sim.hidden_effects:
+            make_effect(name, robot)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
               verbose=verbose, plan=plan)
     with run.lock("run"):

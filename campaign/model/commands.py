@@ -26,7 +26,11 @@ def _base_params(args):
     from campaign.model.base_params import base_parameters
     from campaign.model.robot import RobotModel
 
+    from campaign.config import check_int
+
     robot = RobotModel.load(args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
+    rows = 3 if args.position_only else 6  # regressor rows per pose
+    check_int(args.poses, "--poses", low=-(-robot.n_params // rows))  # at least as many rows as parameters
     print(base_parameters(robot, position_only=args.position_only, n_poses=args.poses).table())
     return 0
 
