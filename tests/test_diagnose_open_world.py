@@ -8,6 +8,7 @@ noise-only floor (computed from the simulator's truth, read only after the pipel
 
 import inspect
 import json
+import re
 import textwrap
 
 import numpy as np
@@ -149,6 +150,11 @@ def test_unknown_effect_is_unexplained_with_its_input_first_then_a_user_file_rea
     floor = truth_floor_mm(truth, poses, is_test)
     after = result.stages[stage]["test"]["position_mm"]["mean"]
     assert after <= 1.2 * floor, (after, floor)
+    # the calibration report states the model against the floor from the repeats, not from the truth
+    m = re.search(rf"{re.escape(stage)}: held-out mean ([0-9.]+) mm = ([0-9.]+)× the measurement noise",
+                  result.floor_line())
+    assert m and float(m.group(2)) == pytest.approx(float(m.group(1)) / result.metrics["noise_floor"]["mean_position_mm"],
+                                                    abs=0.06), result.floor_line()
     params = yaml.safe_load((run / "calibration" / "params.yaml").read_text())
     fitted = params["effects"][cls.name]["parameters"]
     assert [p["name"] for p in fitted] == list(cls.param_names)

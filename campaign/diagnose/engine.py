@@ -109,6 +109,8 @@ class Diagnosis:
     #: training-pose indices (into the run's poses) in the order of ``structure``'s arrays
     train_index: np.ndarray = field(repr=False, default=None)
     inputs: np.ndarray = field(repr=False, default=None)  # (n_train, d) regressor inputs
+    #: held-out position residual (n_train, 3) m of the current model, in the frame after joint 1
+    heldout_residual_j1: np.ndarray = field(repr=False, default=None)
 
     @property
     def model_to_noise(self) -> float | None:
@@ -385,4 +387,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
                              r_out, poses.time_s[tr])
     residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
-                     floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X)
+                     floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
+                     residual_in_joint1_frame(robot, poses.q[tr], dz_before))
