@@ -1,7 +1,8 @@
 """`campaign demo`: the whole story on the embedded defaults, as the README's first command.
 
 plan → simulated campaign with a hidden physical effect → calibrate → diagnose → add the
-suggested effect → calibrate again with the neural compensator → the error, step by step.
+suggested effect → calibrate again with the neural compensator → the error, step by step →
+diagnose again, which ends the demo with "at the measurement noise: nothing left to find".
 Each step is the command line a user would type; the one step that is not a command (adding
 the effect to RUN/campaign.yaml) is :meth:`campaign.run.RunFolder.add_effects`.
 """
@@ -52,7 +53,7 @@ def _demo(args):
     if rc != 0:
         sys.exit(rc)
     verdict = json.loads((folder.diagnose_dir / "diagnosis.json").read_text())["verdict"]
-    if verdict:
+    if verdict not in (None, "unexplained"):
         effects = folder.add_effects([verdict])
         print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(effects)}]` in {folder.config_path}")
     _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
@@ -60,4 +61,8 @@ def _demo(args):
     print("\n=== 7. watch the error fall (held-out test set)")
     print(history_table(run))
     print(f"\nreports: {run}/calibration/report.html, {run}/diagnose/report.html, {run}/plan/tour.png")
+    print(f"\n=== 8. is anything left to find?\n$ campaign diagnose {run}", flush=True)
+    rc = cli(["diagnose", str(run)])
+    if rc != 0:
+        sys.exit(rc)
     return 0

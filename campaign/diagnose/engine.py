@@ -159,7 +159,8 @@ class Diagnosis:
     def floor_line(self) -> str:
         held = f"held-out mean {self.heldout_mean_position_mm:.3f} mm"
         if not self.floor.known:
-            return f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in campaign.yaml)"
+            return (f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in "
+                    "campaign.yaml): how far the model is from the measurement noise cannot be said")
         return f"{held} = {self.model_to_noise:.1f}× the measurement noise ({self.floor.text()})"
 
     def structure_line(self) -> str:
