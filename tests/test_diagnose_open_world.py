@@ -191,3 +191,26 @@ def test_diagnose_json_carries_floor_and_structure(tmp_path, robot, capsys):
     assert {"significant", "heldout_gain", "depends_on"} <= set(out["unexplained"])
     assert out["unexplained"]["depends_on"][0] == "time_s"
     assert (run / "diagnose" / "report.html").is_file()
+
+
+def test_the_docs_example_effect_brings_a_hidden_runout_to_the_floor(tmp_path, robot):
+    """docs/effects.md's complete example, copied from the page: hidden in the truth it is
+    `unexplained`; written as runout.py and enabled, the model reaches the floor."""
+    from pathlib import Path
+
+    doc = (Path(__file__).parent.parent / "docs" / "effects.md").read_text()
+    source = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    namespace = {}
+    exec(compile(source, "docs/effects.md", "exec"), namespace)  # the page's own code, as a user copies it
+    runout = namespace["Runout"](robot)
+    theta = np.array([1.2e-4, -0.8e-4, 0.9e-4, 1.1e-4])
+    run, truth, poses = make_open_run(tmp_path, robot, [runout], theta, n=420)
+    d = diagnose(run, folds=4, candidates=CANDIDATES)
+    assert d.verdict == "unexplained" and d.depends_on[0] in ("q2", "q3"), d.text()
+    (run / "runout.py").write_text(source)
+    enable(run, "runout.py:Runout")
+    result = calibrate(run, write=False)
+    is_test = train_test_split(poses.pose_id)
+    assert result.stages["geometric+runout"]["test"]["position_mm"]["mean"] <= 1.2 * truth_floor_mm(truth, poses, is_test)
+    after = diagnose(run, folds=4, candidates=CANDIDATES)
+    assert after.verdict is None and after.at_floor, after.text()

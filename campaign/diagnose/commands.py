@@ -32,6 +32,7 @@ def _diagnose(args):
     if args.json:
         print(json.dumps(d.as_json(), indent=2))
     else:
-        print(d.text())
+        # the verdict is the last line a person reads (the demo ends with it)
         print(f"{'report' if not args.no_report else 'written'}: {report}")
+        print(d.text())
     return 0
