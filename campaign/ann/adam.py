@@ -54,17 +54,37 @@ def _init(net: MLP, seeds, dtype) -> torch.Tensor:
     return torch.stack([net.init(torch.Generator().manual_seed(int(s)), torch.float64) for s in seeds]).to(dtype)
 
 
-def _forward(net: MLP, P, x):
-    """Outputs (B, m, n_out) for stacked weights P (B, N_w) and inputs x (B, m, n_in)."""
+def _unpack(net: MLP, P):
     B = P.shape[0]
     i, parts = 0, []
     for s, n in zip(net.shapes, net.sizes):
         parts.append(P[:, i:i + n].reshape(B, *s))
         i += n
-    W1, b1, W2, b2, W3, b3 = parts
+    return parts
+
+
+def _forward(net: MLP, P, x, cache=False):
+    """Outputs (B, m, n_out) for stacked weights P (B, N_w) and inputs x (B, m, n_in)
+    (with cache: also the hidden activations, for :func:`_mse_grad`)."""
+    W1, b1, W2, b2, W3, b3 = _unpack(net, P)
     h1 = torch.tanh(torch.baddbmm(b1[:, None, :], x, W1.transpose(1, 2)))
     h2 = torch.tanh(torch.baddbmm(b2[:, None, :], h1, W2.transpose(1, 2)))
-    return torch.baddbmm(b3[:, None, :], h2, W3.transpose(1, 2))
+    out = torch.baddbmm(b3[:, None, :], h2, W3.transpose(1, 2))
+    return (out, (h1, h2)) if cache else out
+
+
+def _mse_grad(net: MLP, P, x, y):
+    """Gradient (B, N_w) of Σ_b mean((out_b − y_b)²) by the chain rule written out (a dozen batched
+    products; autograd's bookkeeping cost more than the small products themselves)."""
+    W1, b1, W2, b2, W3, b3 = _unpack(net, P)
+    out, (h1, h2) = _forward(net, P, x, cache=True)
+    B, m, k = out.shape
+    g3 = (out - y).mul_(2.0 / (m * k))
+    a2 = torch.bmm(g3, W3).mul_(1 - h2 * h2)
+    a1 = torch.bmm(a2, W2).mul_(1 - h1 * h1)
+    return torch.cat([torch.bmm(a1.transpose(1, 2), x).reshape(B, -1), a1.sum(1),
+                      torch.bmm(a2.transpose(1, 2), h1).reshape(B, -1), a2.sum(1),
+                      torch.bmm(g3.transpose(1, 2), h2).reshape(B, -1), g3.sum(1)], dim=1)
 
 
 def train_batched(hidden, x, targets, fit_rows, val_rows, *, seeds, options: AdamOptions = AdamOptions(),
@@ -118,11 +138,7 @@ def train_batched(hidden, x, targets, fit_rows, val_rows, *, seeds, options: Ada
         for s in range(steps):
             idx = order[:, s * bs:(s + 1) * bs]
             xb, yb = X[idx], Ya[ar, idx]
-            P.requires_grad_(True)
-            out = _forward(net, P, xb)
-            loss = ((out - yb) ** 2).mean(dim=(1, 2)).sum()
-            (g,) = torch.autograd.grad(loss, P)
-            P = P.detach()
+            g = _mse_grad(net, P, xb, yb)
             t += 1
             m.mul_(b1).add_(g, alpha=1 - b1)
             v.mul_(b2).addcmul_(g, g, value=1 - b2)

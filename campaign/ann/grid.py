@@ -69,7 +69,7 @@ def run_task(task: dict, report=None) -> dict:
     """Train one task's networks. Inputs and outputs are plain values (see :func:`make_tasks`).
 
     Returns ``{"id", "weights" (M, N_w), "target_mean" (M, 6), "target_scale" (M, 6),
-    "heldout_pred" {fold: (n_k, 6)}, "members": [info...], "wall_s", "cpu_s"}``.
+    "heldout_pred" {"prior/fold": (n_k, 6)}, "members": [info...], "wall_s", "cpu_s"}``.
     report: optional callable(units) with the work done since the last call (members × epochs
     × weights); inside a local worker process the units go to the parent's progress queue.
     """
@@ -81,7 +81,7 @@ def run_task(task: dict, report=None) -> dict:
         report = lambda units: _PROGRESS_QUEUE.put((task["id"], units))  # noqa: E731
     t0, c0 = time.perf_counter(), time.process_time()
     device = task.get("device", "cpu")
-    x, dz, hidden = task["x"], task["dz"], tuple(task["hidden"])
+    x, dz_of, hidden = task["x"], task["dz"], tuple(task["hidden"])
     n_w = MLP(6, hidden, 6).n_weights
     members = task["members"]
     out = {"id": task["id"], "members": []}
@@ -92,6 +92,7 @@ def run_task(task: dict, report=None) -> dict:
         fits, vals, means, scales, targets = [], [], [], [], []
         for m in members:
             fit, val = fit_and_val_rows(m["train_rows"], opts.val_share, m["seed"])
+            dz = dz_of[m["prior"]]
             mu, sd = dz[fit].mean(0), dz[fit].std(0)
             sd = np.where(sd > 0, sd, 1.0)
             fits.append(fit), vals.append(val), means.append(mu), scales.append(sd)
@@ -115,7 +116,7 @@ def run_task(task: dict, report=None) -> dict:
 
             net = ResidualNetwork(hidden=hidden, q_lower=task["q_lower"], q_upper=task["q_upper"], seed=task["seed"],
                                   progress=tick, progress_every=5, **opts)
-            net.fit(task["q"][rows], dz[rows])
+            net.fit(task["q"][rows], dz_of[m["prior"]][rows])
             W.append(net.weights_.numpy())
             means.append(net.target_mapping_.mean)
             scales.append(net.target_mapping_.scale)
@@ -129,7 +130,7 @@ def run_task(task: dict, report=None) -> dict:
         for i, m in enumerate(members):
             if m.get("heldout_rows") is not None and len(m["heldout_rows"]):
                 y, _ = net.forward(torch.as_tensor(W[i]), torch.as_tensor(x[m["heldout_rows"]]))
-                preds[int(m["fold"])] = y.numpy() * scales[i] + means[i]
+                preds[f"{m['prior']}/{int(m['fold'])}"] = y.numpy() * scales[i] + means[i]
     out.update({"weights": np.asarray(W), "target_mean": np.stack(means), "target_scale": np.stack(scales),
                 "heldout_pred": preds, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
     return out
@@ -359,25 +360,40 @@ class _GridMeter:
         self.progress(GridProgress(done, total, len(self.finished), self.n, time.perf_counter() - self.t0, last))
 
 
+#: with the adam solver, sizes with fewer weights than this train both priors' folds in one batch
+#: (small products: the per-step overhead, not the flops, sets their time, and a batch of 10
+#: members costs little more than one of 5); larger sizes get one task per prior, so that the
+#: two workers share the largest trainings
+MERGE_PRIORS_BELOW_WEIGHTS = 2000
+
+
 def make_tasks(q, dz_by_prior: dict, *, sizes, folds, seed, solver, input_mapping, options=None,
                device="cpu") -> list:
-    """One task per (prior, size): the K folds as members (cross-validation)."""
+    """The CV trainings as tasks: per size, the K folds of each prior as members, in one task
+    per prior, or (adam, small sizes) one task for all priors."""
+    from campaign.ann.network import MLP
+
     x = input_mapping.apply(q)
     fold = fold_of(len(q), folds, seed)
     tasks = []
-    for prior, dz in dz_by_prior.items():
-        for hidden in sizes:
-            members = [{"fold": k, "train_rows": np.flatnonzero(fold != k), "heldout_rows": np.flatnonzero(fold == k),
-                        "seed": seed + 101 * k} for k in range(folds)]
-            tasks.append(_task(f"{prior}/{hidden[0]}x{hidden[1]}/cv", q, x, dz, hidden, members, seed, solver,
-                               input_mapping, options, device, prior))
+    for hidden in sizes:
+        groups = [[p] for p in dz_by_prior]
+        if solver == "adam" and MLP(6, tuple(hidden), 6).n_weights < MERGE_PRIORS_BELOW_WEIGHTS:
+            groups = [list(dz_by_prior)]
+        for group in groups:
+            members = [{"prior": p, "fold": k, "train_rows": np.flatnonzero(fold != k),
+                        "heldout_rows": np.flatnonzero(fold == k), "seed": seed + 101 * k}
+                       for p in group for k in range(folds)]
+            tasks.append(_task(f"{'+'.join(group)}/{hidden[0]}x{hidden[1]}/cv", q, x,
+                               {p: dz_by_prior[p] for p in group}, hidden, members, seed, solver,
+                               input_mapping, options, device))
     return tasks
 
 
-def _task(tid, q, x, dz, hidden, members, seed, solver, input_mapping, options, device, prior):
+def _task(tid, q, x, dz, hidden, members, seed, solver, input_mapping, options, device):
     from campaign.ann.network import MLP
 
-    return {"id": tid, "prior": prior, "hidden": [int(h) for h in hidden], "solver": solver, "seed": int(seed),
+    return {"id": tid, "hidden": [int(h) for h in hidden], "solver": solver, "seed": int(seed),
             "q": q, "x": x, "dz": dz, "members": members, "options": dict(options or {}), "device": device,
             "q_lower": input_mapping.mean - np.sqrt(3.0) * input_mapping.scale,
             "q_upper": input_mapping.mean + np.sqrt(3.0) * input_mapping.scale,
@@ -441,7 +457,11 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
         t0 = time.perf_counter()
         results = executor.map(run_task, tasks, meter.units, meter.done)
         cv_wall = time.perf_counter() - t0
-        by_id = {r["id"]: r for r in results}
+        # (prior, size) -> [(fold, member index in its task, task result)]
+        where = {}
+        for t, r in zip(tasks, results):
+            for i, m in enumerate(t["members"]):
+                where.setdefault((m["prior"], tuple(t["hidden"])), []).append((m["fold"], i, r))
         out = {}
         fold = fold_of(len(q), folds, seed)
         finals = []
@@ -450,13 +470,14 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
             scale = np.where(dz.std(axis=0) > 0, dz.std(axis=0), 1.0)
             rows = []
             for hidden in sizes:
-                r = by_id[f"{prior}/{hidden[0]}x{hidden[1]}/cv"]
+                parts = where[(prior, tuple(hidden))]
+                r = parts[0][2]
                 pred = np.empty_like(dz)
-                for k in range(folds):
-                    pred[fold == k] = r["heldout_pred"][k]
+                for k, _, rk in parts:
+                    pred[fold == k] = rk["heldout_pred"][f"{prior}/{k}"]
                 rows.append({"hidden": list(hidden), **cv_stats(dz, pred, scale),
-                             "epochs": [m["epochs"] for m in r["members"]], "wall_s": r["wall_s"],
-                             "cpu_s": r["cpu_s"]})
+                             "epochs": [rk["members"][i]["epochs"] for _, i, rk in parts],
+                             "task": r["id"], "task_wall_s": r["wall_s"], "task_cpu_s": r["cpu_s"]})
                 if say:
                     say(f"[{prior}] CV {tuple(hidden)}: RMSE {rows[-1]['rmse_normalised']:.3f}, "
                         f"max ‖Δr‖ {rows[-1]['max_position_mm']:.3f} mm ({r['wall_s']:.0f} s)")
@@ -464,9 +485,10 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
             out[prior] = {"sizes": rows, "best": list(best["hidden"]), "folds": folds, "solver": solver,
                           "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall}
             if solver == "br-lm":
-                members = [{"fold": None, "train_rows": np.arange(len(q)), "heldout_rows": None, "seed": seed}]
+                members = [{"prior": prior, "fold": None, "train_rows": np.arange(len(q)), "heldout_rows": None,
+                            "seed": seed}]
                 finals.append(_task(f"{prior}/{best['hidden'][0]}x{best['hidden'][1]}/final", q, mapping.apply(q),
-                                    dz, best["hidden"], members, seed, solver, mapping, options, device, prior))
+                                    {prior: dz}, best["hidden"], members, seed, solver, mapping, options, device))
         nets = {}
         if finals:
             fmeter = _GridMeter(finals, solver, say)
@@ -483,13 +505,16 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
         else:
             for prior in dz_by_prior:
                 hidden = out[prior]["best"]
-                r = by_id[f"{prior}/{hidden[0]}x{hidden[1]}/cv"]
+                parts = sorted(where[(prior, tuple(hidden))], key=lambda p: p[0])
+                infos = [rk["members"][i] for _, i, rk in parts]
                 nets[prior] = ResidualNetwork.from_members(
-                    hidden, r["weights"], mapping, r["target_mean"], r["target_scale"],
-                    n_epochs_=max(m["epochs"] for m in r["members"]), stop_reason_="early_stopping")
+                    hidden, np.stack([rk["weights"][i] for _, i, rk in parts]), mapping,
+                    np.stack([rk["target_mean"][i] for _, i, rk in parts]),
+                    np.stack([rk["target_scale"][i] for _, i, rk in parts]),
+                    n_epochs_=max(m["epochs"] for m in infos), stop_reason_="early_stopping")
                 out[prior]["final"] = {"hidden": list(hidden), "kind": f"ensemble of the {folds} fold networks",
-                                       "epochs": [m["epochs"] for m in r["members"]],
-                                       "best_epochs": [m["best_epoch"] for m in r["members"]]}
+                                       "epochs": [m["epochs"] for m in infos],
+                                       "best_epochs": [m["best_epoch"] for m in infos]}
         return {prior: (nets[prior], out[prior]) for prior in dz_by_prior}
     finally:
         if own:
