@@ -164,6 +164,7 @@ class StructureResult:
     importance: dict
     fit_time_s: float
     n_fit_poses: int
+    importance_time_s: float = 0.0
     models: dict = field(repr=False, default_factory=dict)  # fold -> fitted FourierRidge
     fold: np.ndarray = field(repr=False, default=None)
 
@@ -210,6 +211,7 @@ def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_s
     d = before - after
     p = 1.0 if np.all(d == 0) else float(stats.ttest_rel(before, after, alternative="greater").pvalue)
     # permutation importance on the held-out folds
+    t1 = time.perf_counter()
     lost = np.zeros(X.shape[1])
     for j in range(X.shape[1]):
         if not any(models[k].active_[j] for k in models):
@@ -228,4 +230,4 @@ def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_s
     share = lost / lost.sum() if lost.sum() > 0 else lost
     importance = {name: float(s) for name, s in zip(input_names, share)}
     return StructureResult(tuple(input_names), before, after, pred, float(gain), p, importance,
-                           float(fit_time), int(n_fit), models, np.asarray(fold))
+                           float(fit_time), int(n_fit), float(time.perf_counter() - t1), models, np.asarray(fold))
