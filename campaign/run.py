@@ -43,6 +43,12 @@ def load_robot(spec, *, tool_frame=None, base_frame=None):
     return RobotModel.load(spec, tool_frame=tool_frame, base_frame=base_frame)
 
 
+def same_robot(a, b) -> bool:
+    """Two RobotModels of the same URDF with the same base and tool frames."""
+    return (Path(a.urdf_path).resolve(), a.base_frame, a.tool_frame) == \
+        (Path(b.urdf_path).resolve(), b.base_frame, b.tool_frame)
+
+
 class RunFolder:
     """The run folder at ``path``.
 
@@ -128,6 +134,16 @@ class RunFolder:
         """The run's RobotModel: ``RobotModel.load(cfg.robot, tool_frame=..., base_frame=...)``,
         the robot path relative to the run's campaign.yaml."""
         return self._robot
+
+    def check_recorded_robot(self) -> None:
+        """ConfigError when a configuration given in place of RUN/campaign.yaml (``config=``)
+        names another robot or frame than the one the run records."""
+        if self._config_override is None or not self.has_config:
+            return
+        recorded = RunFolder(self.path)
+        if not same_robot(self.robot(), recorded.robot()):
+            raise ConfigError(f"{self.config.path}: robot {self.config.robot!r} is not the robot "
+                              f"{recorded.config.robot!r} that {self.config_path} records")
 
     def scene(self):
         """The run's cell (campaign.plan.scene.Scene)."""
@@ -306,4 +322,4 @@ def _read_holder(fd) -> dict:
         return {}
 
 
-__all__ = ["RunFolder", "load_robot", "CONFIG_FILE", "MEASUREMENTS_FILE"]
+__all__ = ["RunFolder", "load_robot", "same_robot", "CONFIG_FILE", "MEASUREMENTS_FILE"]

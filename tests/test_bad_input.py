@@ -292,6 +292,22 @@ def test_import_with_another_tool_frame_than_the_run_records_is_refused(tmp_path
             tmp_path)
 
 
+def test_a_run_without_campaign_yaml_whose_log_records_another_robot_is_refused(tmp_path, robot, capsys):
+    other = robot_copy(tmp_path, edit_yaml=lambda m: m.__setitem__("name", "other arm"))
+    run = tmp_path / "run"
+    assert main(["import", str(measured_csv(tmp_path, robot)), "--run", str(run), "--robot", str(other)]) == 0
+    (run / "campaign.yaml").unlink()
+    capsys.readouterr()
+    refused(capsys, ["calibrate", run, "--no-ann"], r"record robot 'other arm' but it has no campaign\.yaml", run)
+
+
+def test_campaign_run_with_a_config_naming_another_robot_than_the_run_records_is_refused(tmp_path, robot, capsys):
+    run = planned_run(tmp_path, robot)
+    other = robot_copy(tmp_path, edit_urdf=lambda text: text)
+    cfg = write_yaml(tmp_path / "other.yaml", tiny_config(tmp_path, robot=str(next(other.glob("*.urdf")))))
+    refused(capsys, ["run", run, "--sim", "--config", cfg, "--quiet"], r"is not the robot .* records", run)
+
+
 # -- calibrate and diagnose options -----------------------------------------------------------
 
 @pytest.fixture(scope="module")

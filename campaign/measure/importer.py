@@ -6,7 +6,7 @@ from pathlib import Path
 
 from campaign.errors import ConfigError, DataError
 from campaign.paths import DEFAULT_ROBOT
-from campaign.run import RunFolder, load_robot
+from campaign.run import RunFolder, load_robot, same_robot
 
 
 def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str | None = None,
@@ -26,7 +26,7 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         if (robot, tool_frame, base_frame) != (None, None, None):
             asked = load_robot(robot or cfg.robot_spec, tool_frame=tool_frame or cfg.tool_frame,
                                base_frame=base_frame or cfg.base_frame)
-            if not _same_robot(asked, run.robot()):
+            if not same_robot(asked, run.robot()):
                 raise ConfigError(f"{run.config_path} records robot {cfg.robot!r}"
                                   f"{_frames(cfg.tool_frame, cfg.base_frame)}, not the one asked for; "
                                   "import into a new run folder for another robot or frame")
@@ -45,12 +45,6 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
     return n
-
-
-def _same_robot(a, b) -> bool:
-    """The same URDF with the same base and tool frames."""
-    return (Path(a.urdf_path).resolve(), a.base_frame, a.tool_frame) == \
-        (Path(b.urdf_path).resolve(), b.base_frame, b.tool_frame)
 
 
 def _frames(tool_frame, base_frame) -> str:

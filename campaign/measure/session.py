@@ -23,6 +23,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     run = RunFolder(run_dir, config=config)
     cfg = run.config
     robot = run.robot()
+    run.check_recorded_robot()
     opts = RunOptions.from_config(cfg.run)
     if max_poses is not None and max_poses < 0:
         raise ConfigError(f"--max-poses must be >= 0, got {max_poses}")
