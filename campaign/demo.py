@@ -1,8 +1,9 @@
 """`campaign demo`: the whole story on the embedded defaults, as the README's first command.
 
-plan → simulated campaign with a hidden physical effect → calibrate → diagnose → add the
-suggested effect → calibrate again with the neural compensator → the error, step by step →
-diagnose again, which ends the demo with "at the measurement noise: nothing left to find".
+plan a short campaign (the most informative poses; ``--select 0``: all of them) → simulated
+campaign with a hidden physical effect → calibrate → diagnose → add the suggested effect →
+calibrate again (with the neural compensator when the campaign is long) → the error, step by
+step → diagnose again, which ends the demo with "at the measurement noise: nothing left to find".
 Each step is the command line a user would type; the one step that is not a command (adding
 the effect to RUN/campaign.yaml) is :meth:`campaign.run.RunFolder.add_effects`.
 """
@@ -21,6 +22,9 @@ def register(sub):
     p.add_argument("--run", default="runs/demo", metavar="DIR",
                    help="run folder (default: %(default)s); a folder holding measurements is refused, never replaced")
     p.add_argument("--grid-scale", type=float, default=1.0, help="plan grid scale (default: 1 = 1,428,000 candidates)")
+    p.add_argument("--select", type=int, default=120, metavar="N",
+                   help="a short campaign of the N most informative poses for the physical model (default: "
+                        "%(default)s); 0: every suitable pose, the long campaign a neural compensator needs")
     p.add_argument("--ann-epochs", type=int, default=None,
                    help="epochs of each network training at most (default: the ANN solver's own bound)")
     p.set_defaults(func=_demo)
@@ -45,7 +49,13 @@ def _demo(args):
     run = Path(args.run)
     folder = RunFolder(run)
     folder.refuse_if_measured("the demo", f"give the demo a new folder (--run {run}-2)")
-    _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run, "--grid-scale", args.grid_scale)
+    check_int(args.select, "--select", low=0)
+    if args.select:
+        _step(f"1. plan a short campaign (grid → suitable poses → the {args.select} most informative → "
+              "collision-free tour)", "plan", "--run", run, "--grid-scale", args.grid_scale, "--select", args.select)
+    else:
+        _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run,
+              "--grid-scale", args.grid_scale)
     _step("2. measure it on the simulated cell (hidden: geometric errors + the elastic ground)", "run", run, "--sim")
     _step("3. calibrate the geometric model", "calibrate", run, "--no-ann")
     print(f"\n=== 4. where does the model fail, and which effect is missing?\n$ campaign diagnose {run}", flush=True)
@@ -56,7 +66,8 @@ def _demo(args):
     if verdict not in (None, "unexplained"):
         effects = folder.add_effects([verdict])
         print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(effects)}]` in {folder.config_path}")
-    _step("6. calibrate again, with the effect and the neural residual compensator", "calibrate", run,
+    _step("6. calibrate again, with the effect (and the neural residual compensator if the campaign is long "
+          "enough for one)", "calibrate", run,
           "--sizes", "32x16,64x32", "--folds", "3", *(["--epochs", args.ann_epochs] if args.ann_epochs else []))
     print("\n=== 7. watch the error fall (held-out test set)")
     print(history_table(run))

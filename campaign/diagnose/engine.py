@@ -40,7 +40,7 @@ from campaign.effects.base import (available, effect_class, effect_context, entr
 from campaign.errors import DataError
 from campaign.identify.calibrate import configured_effects, load_robot_for_run
 from campaign.identify.solver import CalibrationModel
-from campaign.identify.split import train_test_split
+from campaign.identify.split import run_split, train_test_split
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
 
@@ -281,7 +281,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     names = _candidate_specs(candidates, current, run_dir)
     with open_run(run_dir) as store:
         poses = store.load_measured()
-    is_test = train_test_split(poses.pose_id)
+    is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
     tr = np.flatnonzero(~is_test)
     if len(tr) < 10 * folds:
         raise DataError(f"{run_dir}: {len(tr)} training poses are too few for {folds}-fold diagnosis")

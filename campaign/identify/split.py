@@ -33,7 +33,8 @@ def run_split(run_dir, pose_id):
     poses at random from the suitable set and listed them in ``RUN/plan/validation.csv``
     (``pose_id``): they are the test set, so the accuracy claim comes from poses the design did
     not choose. Otherwise the fixed 80/20 split, where a repeated measurement (pose id
-    ``p + r·10⁹``, RUN/plan/repeats.csv) lies on the side of the pose ``p`` it repeats.
+    ``p + r·10⁹``, when the plan wrote RUN/plan/repeats.csv) lies on the side of the pose ``p``
+    it repeats.
     """
     from pathlib import Path
 
@@ -43,7 +44,9 @@ def run_split(run_dir, pose_id):
     pose_id = np.asarray(pose_id, dtype=np.int64)
     path = Path(run_dir) / "plan" / "validation.csv"
     if not path.is_file():
-        return train_test_split(base_pose_id(pose_id))
+        if (Path(run_dir) / "plan" / "repeats.csv").is_file():
+            return train_test_split(base_pose_id(pose_id))
+        return train_test_split(pose_id)
     lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
     if not lines or lines[0] != "pose_id":
         raise DataError(f"{path}: header must be pose_id")

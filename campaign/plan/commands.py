@@ -44,12 +44,18 @@ def _plan(args):
     print(f"candidates {s['candidates']:,} (grid {' x '.join(map(str, s['grid_cells']))})")
     for name in s["filter_order"]:
         print(f"  removed by {name:<22} {rm[name]:>10,}")
-    print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %): "
-          f"{s['groups']['front_of_wall']:,} in front of the wall, {s['groups']['behind_wall']:,} behind")
-    if "selection" in s:
-        print(selection_text(s["selection"]))
     t = s["tour"]
-    print(f"tour: {t['poses']:,} poses, {t['via_poses']} via poses, {t['dropped']} dropped; motion {t['motion_time_s'] / 3600:.2f} h")
+    if "selection" in s:  # the wall groups are the tour's, not the suitable poses'
+        print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %)")
+        print(selection_text(s["selection"]))
+        print(f"tour: {t['poses']:,} poses ({s['groups']['front_of_wall']:,} in front of the wall, "
+              f"{s['groups']['behind_wall']:,} behind), {t['via_poses']} via poses, {t['dropped']} dropped; "
+              f"motion {t['motion_time_s'] / 3600:.2f} h")
+    else:
+        print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %): "
+              f"{s['groups']['front_of_wall']:,} in front of the wall, {s['groups']['behind_wall']:,} behind")
+        print(f"tour: {t['poses']:,} poses, {t['via_poses']} via poses, {t['dropped']} dropped; "
+              f"motion {t['motion_time_s'] / 3600:.2f} h")
     if "selection" in s:
         print(f"estimated campaign {est['total_s'] / 3600:.2f} h ({est['seconds_per_pose']:.1f} s a pose) "
               f"vs the paper's {est['paper']['duration_days']:.1f} days for {est['paper']['poses']:,} poses")

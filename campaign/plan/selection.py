@@ -648,6 +648,8 @@ def write_choice(out, choice: CampaignChoice | None, visited_ids) -> None:
     RUN/plan/repeats.csv (``pose_id,repeat_of``: each repeat's id and the pose it repeats)."""
     from pathlib import Path
 
+    from campaign.fileio import atomic_write
+
     out = Path(out)
     if choice is None:
         for name in ("validation.csv", "repeats.csv"):
@@ -655,13 +657,8 @@ def write_choice(out, choice: CampaignChoice | None, visited_ids) -> None:
         return
     visited = set(int(p) for p in visited_ids)
     lines = ["pose_id"] + [str(int(p)) for p in choice.validation if int(p) in visited]
-    _write_atomic(out / "validation.csv", "\n".join(lines) + "\n")
+    atomic_write(out / "validation.csv", "\n".join(lines) + "\n")
     rl = ["pose_id,repeat_of"] + [f"{int(p)},{int(p) % REPEAT_ID_STRIDE}" for p in visited_ids
                                   if int(p) >= REPEAT_ID_STRIDE]
-    _write_atomic(out / "repeats.csv", "\n".join(rl) + "\n")
+    atomic_write(out / "repeats.csv", "\n".join(rl) + "\n")
 
-
-def _write_atomic(path, text):
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text)
-    tmp.replace(path)
