@@ -453,12 +453,3 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E):
         raise
     except PeerError:
         return None, clock
-
-
-def __getattr__(name):
-    # the simulator's launcher moved to campaign.sim.launcher; old imports keep working
-    if name == "SimulatedCell":
-        from campaign.sim.launcher import SimulatedCell
-
-        return SimulatedCell
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
