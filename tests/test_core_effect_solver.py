@@ -57,22 +57,20 @@ def test_combined_jacobian_matches_central_differences(robot, rng):
     q = random_joint_poses(robot, 6, seed=2)
     T_meas = truth.pose(q)
     effects = [SineJoint2(robot), TiltAboutPivot(robot)]
-    model = CalibrationModel(robot=robot, effects=effects)
-    model.effect_set_ = EffectSet(tuple(effects))
-    from campaign.model.base_params import base_parameters
-
-    model.base_ = base_parameters(robot)
-    x = rng.normal(0, 1e-3, 32)
-    p_e, th = model.base_.expand(x[:30]), x[30:]
-    J = model._jacobian(q, p_e, th, {}, T_meas)
+    q_fit = random_joint_poses(robot, 60, seed=4)
+    model = CalibrationModel(robot=robot, effects=effects, max_iter=2).fit(q_fit, truth.pose(q_fit))
+    r = model.base_.n_base
+    x = rng.normal(0, 1e-3, r + 2)
+    J = model.jacobian(q, T_meas, base_params=x[:r], effect_params=x[r:])
+    effect_set = EffectSet(tuple(effects))
     h = 1e-7
     J_fd = np.empty_like(J)
-    for j in range(32):
-        d = np.zeros(32)
+    for j in range(r + 2):
+        d = np.zeros(r + 2)
         d[j] = h
         xp, xm = x + d, x - d
-        fp = pose_error(model_pose(robot, q, model.base_.expand(xp[:30]), model.effect_set_, xp[30:]), T_meas)
-        fm = pose_error(model_pose(robot, q, model.base_.expand(xm[:30]), model.effect_set_, xm[30:]), T_meas)
+        fp = pose_error(model_pose(robot, q, model.base_.expand(xp[:r]), effect_set, xp[r:]), T_meas)
+        fm = pose_error(model_pose(robot, q, model.base_.expand(xm[:r]), effect_set, xm[r:]), T_meas)
         J_fd[:, :, j] = (fp - fm) / (2 * h)
     np.testing.assert_allclose(J, J_fd, atol=2e-6)
 

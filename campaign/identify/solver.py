@@ -284,6 +284,15 @@ class CalibrationModel:
         """Δz (n, 6) of the fitted model against measured poses."""
         return pose_error(self.predict(q, context), T_meas)
 
+    def jacobian(self, q, T_meas, context=None, *, base_params=None, effect_params=None) -> np.ndarray:
+        """(n, 6, r + k): the derivative of Δz against the measured poses T_meas (n, 4, 4) with
+        respect to the r base parameters and the k effect parameters, at the given values
+        (default: the fitted ones); base_params (r,) m / rad, effect_params (k,) in their units."""
+        self._check()
+        x_b = self.base_params_ if base_params is None else np.asarray(base_params, dtype=float)
+        theta = self.effect_params_ if effect_params is None else np.asarray(effect_params, dtype=float)
+        return self._jacobian(np.asarray(q, dtype=float), self.base_.expand(x_b), theta, context or {}, T_meas)
+
     def parameter_table(self) -> list:
         """Rows (name, unit, value, sigma) for every unknown, base parameters first."""
         self._check()
