@@ -18,6 +18,14 @@ def tour_positions(robot, Q):
     return forward(robot, Q)[:, :3, 3] if len(Q) else np.zeros((0, 3))
 
 
+def _switch_words(switch) -> str:
+    """Legend text of the wall-group changes at visit indices ``switch`` (0-based)."""
+    if len(switch) <= 1:
+        return "next wall group begins"
+    shown = ", ".join(f"#{k + 1}" for k in switch[:6]) + (", …" if len(switch) > 6 else "")
+    return f"wall group changes ({len(switch)}: {shown})"
+
+
 def plot_tour(path, robot, scene, Q, front) -> None:
     """Write the tour picture. Q (n, N) rad in visiting order; front (n,) bool: pose in front of the wall."""
     import matplotlib
@@ -91,9 +99,10 @@ def plot_tour(path, robot, scene, Q, front) -> None:
                             weight="bold", zorder=7, bbox=dict(boxstyle="round,pad=0.2", fc="w", ec=color, alpha=0.9))
             for k in switch:
                 ax.plot(*xy[k], "D", ms=9, mfc="w", mec="k", zorder=6)
-                ax.annotate(f"#{k + 1}: {'front' if front[k] else 'behind'} group begins", xy[k], xytext=(9, -16),
-                            textcoords="offset points", fontsize=8, zorder=7,
-                            bbox=dict(boxstyle="round,pad=0.2", fc="w", ec="0.3", alpha=0.9))
+                if len(switch) == 1:  # several changes (a selected tour) are listed in the legend instead
+                    ax.annotate(f"#{k + 1}: {'front' if front[k] else 'behind'} group begins", xy[k], xytext=(9, -16),
+                                textcoords="offset points", fontsize=8, zorder=7,
+                                bbox=dict(boxstyle="round,pad=0.2", fc="w", ec="0.3", alpha=0.9))
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
         ax.set_xlabel(la)
@@ -105,7 +114,7 @@ def plot_tour(path, robot, scene, Q, front) -> None:
     fig.colorbar(sm, cax=cax, label=f"visit number (1 … {n})")
     handles = [Line2D([], [], ls="", marker="o", ms=9, mfc="C2", mec="k", label="first pose"),
                Line2D([], [], ls="", marker="o", ms=9, mfc="C3", mec="k", label="last pose"),
-               Line2D([], [], ls="", marker="D", ms=7, mfc="w", mec="k", label="next wall group begins"),
+               Line2D([], [], ls="", marker="D", ms=7, mfc="w", mec="k", label=_switch_words(switch)),
                Line2D([], [], ls="", marker="s", ms=6, color="k", label="robot base"),
                Patch(color="r", alpha=0.35, label="wall"),
                Line2D([], [], ls="", marker=">", ms=8, color="k", label=f"towards the tracker (at {np.round(o, 2).tolist()} m, out of view)")]
