@@ -270,3 +270,16 @@ def test_no_floor_is_said_and_a_bad_stated_noise_is_one_line(tmp_path, robot, ca
     assert main(["diagnose", str(run), "--folds", "2", "--candidates", "drift", "--no-report"]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "tracker.noise_m" in err
+
+
+def test_a_plans_repeat_measurements_share_the_fold_of_the_pose_they_repeat():
+    from campaign.diagnose.engine import _folds
+    from campaign.plan.selection import REPEAT_ID_STRIDE
+
+    ids = np.arange(1, 201, dtype=np.int64)
+    rep = np.concatenate([ids, ids[:30] + REPEAT_ID_STRIDE, ids[:30] + 2 * REPEAT_ID_STRIDE])
+    f, f_rep = _folds(ids, 4), _folds(rep, 4)
+    np.testing.assert_array_equal(f_rep[:200], f)  # the originals keep their folds
+    np.testing.assert_array_equal(f_rep[200:230], f[:30])
+    np.testing.assert_array_equal(f_rep[230:], f[:30])
+    assert np.bincount(f, minlength=4).min() == 50

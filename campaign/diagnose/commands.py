@@ -11,8 +11,10 @@ def register(sub):
     p.add_argument("run", metavar="DIR", help="run folder with measurements.sqlite")
     p.add_argument("--json", action="store_true", help="print the ranking as JSON on stdout")
     p.add_argument("--effects", metavar="NAME,...", default=None,
-                   help="effects already in the model (default: those in DIR/campaign.yaml)")
-    p.add_argument("--candidates", metavar="NAME,...", default=None, help="candidate effects (default: all registered)")
+                   help="effects already in the model: built-in names, path/file.py:ClassName (relative to the "
+                        "current directory) or installed entry points (default: those in DIR/campaign.yaml)")
+    p.add_argument("--candidates", metavar="NAME,...", default=None,
+                   help="candidate effects, named the same ways (default: every built-in and installed effect)")
     p.add_argument("--folds", type=int, default=5, help="held-out folds on the training set (default: %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report and plots")
     p.set_defaults(func=_diagnose)

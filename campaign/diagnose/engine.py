@@ -227,10 +227,14 @@ def verdict_text(d: Diagnosis) -> str:
 
 
 def _folds(pose_id, k):
-    """Fold index per pose, from a hash of the pose id (independent of the 80/20 split's hash)."""
-    u = train_test_split(pose_id, seed=7919, test_fraction=0.5)  # decorrelated bits
-    rank = np.argsort(np.argsort(pose_id * 2654435761 % 4294967291 + u))
-    return rank % k
+    """Fold index per pose, from a hash of the pose id (independent of the 80/20 split's hash);
+    a plan's repeat measurements (ids p + r·10⁹) share the fold of the pose p they repeat."""
+    from campaign.plan.selection import base_pose_id
+
+    ids, inverse = np.unique(base_pose_id(np.asarray(pose_id, dtype=np.int64)), return_inverse=True)
+    u = train_test_split(ids, seed=7919, test_fraction=0.5)  # decorrelated bits
+    rank = np.argsort(np.argsort(ids * 2654435761 % 4294967291 + u))
+    return (rank % k)[inverse.reshape(-1)]
 
 
 def regressor_inputs(q, context) -> tuple:

@@ -26,7 +26,9 @@ def register(sub):
     p = sub.add_parser("calibrate", help="identify the model of a run; write calibration/metrics.json and params.yaml")
     p.add_argument("run", metavar="DIR", help="run folder with measurements.sqlite")
     p.add_argument("--effects", metavar="NAME,...", default=None,
-                   help="physical effects to identify with the geometry (default: those in DIR/campaign.yaml)")
+                   help="physical effects to identify with the geometry: built-in names, path/file.py:ClassName "
+                        "(relative to the current directory) or installed entry points of group campaign.effects "
+                        "(default: those in DIR/campaign.yaml; docs/effects.md)")
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
     ann = p.add_mutually_exclusive_group()
     ann.add_argument("--ann", dest="ann", action="store_true", default=None,
