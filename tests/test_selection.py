@@ -210,3 +210,12 @@ def test_a_small_campaign_is_tested_on_its_validation_poses_and_trains_no_networ
     _, val = _read_csv(run / "plan" / "validation.csv")
     assert m["stages"]["geometric"]["test"]["n_poses"] == len(val)
     assert m["stages"]["geometric"]["train"]["n_poses"] == 12 + 6
+
+
+def test_plan_target_mm_picks_a_campaign_predicted_to_reach_it(tmp_path):
+    run = tmp_path / "run"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--target-mm", "0.004", "--quiet"]) == 0
+    sel = json.loads((run / "plan" / "summary.json").read_text())["selection"]
+    assert sel["target_mm"] == 0.004
+    assert sel["predicted"]["model_position_mm"] <= 0.004
+    assert 5 <= sel["selected"] < 200

@@ -400,6 +400,18 @@ class Prediction:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
+def predicted_model_position_mm(info: Information, index, evaluate=None, *, max_poses: int = 2000,
+                                n_samples: int = 64) -> float:
+    """A quick :attr:`Prediction.model_position_mm` (for searching sizes): evaluated on at most
+    ``max_poses`` of the evaluation poses (a fixed spread subset) with fewer normal samples."""
+    ev = np.arange(info.n_candidates) if evaluate is None else np.asarray(evaluate, dtype=np.int64)
+    if len(ev) > max_poses:
+        ev = ev[np.linspace(0, len(ev) - 1, max_poses).round().astype(np.int64)]
+    cov = estimator_covariance(info, index)
+    Jt = info.J[ev, :3, :]
+    return 1e3 * float(np.mean(expected_norm(Jt @ cov @ np.swapaxes(Jt, 1, 2), n_samples)))
+
+
 def predict_accuracy(info: Information, index, evaluate=None) -> Prediction:
     """What a campaign on the poses ``index`` will achieve, averaged over the candidates
     ``evaluate`` (default: all): expected mean errors from :func:`estimator_covariance`."""
@@ -428,24 +440,38 @@ def smallest_reaching(info: Information, target_mm: float, *, criterion: str = "
     chosen size is then improved by exchanges."""
     m = info.n_candidates
     max_n = min(max_n or m, m)
-    full = select(info, max_n, criterion=criterion, exchange=False)
-    order = full.index
     p_min = max(1, int(np.ceil(info.n_unknowns / 6)) + 1)
+    best = predict_accuracy(info, np.arange(m) if max_n == m else select(info, max_n, exchange=False).index,
+                            evaluate)
+    if best.model_position_mm > target_mm:
+        raise ConfigError(f"--target-mm {target_mm:g}: even {max_n} poses are predicted to reach only "
+                          f"{best.model_position_mm:.4f} mm")
+    # greedy designs are nested: grow the size by doubling until it reaches the target, then bisect
+    # within the last greedy order (its prefixes are the smaller greedy designs)
+    n_hi = min(max(2 * p_min, 16), max_n)
+    while True:
+        order = select(info, n_hi, criterion=criterion, exchange=False).index
+        if n_hi == max_n or predicted_model_position_mm(info, order, evaluate) <= target_mm:
+            break
+        n_hi = min(2 * n_hi, max_n)
 
     def pred(k):
         return predict_accuracy(info, order[:k], evaluate)
 
-    best = pred(len(order))
-    if best.model_position_mm > target_mm:
-        raise ConfigError(f"--target-mm {target_mm:g}: even {len(order)} poses are predicted to reach only "
-                          f"{best.model_position_mm:.4f} mm")
-    lo, hi = p_min, len(order)  # pred(hi) reaches the target
+    lo, hi = min(p_min, len(order)), len(order)  # the quick prediction of hi reaches the target
     while lo < hi:
         mid = (lo + hi) // 2
-        if pred(mid).model_position_mm <= target_mm:
+        if predicted_model_position_mm(info, order[:mid], evaluate) <= target_mm:
             hi = mid
         else:
             lo = mid + 1
+    # the full prediction decides: grow by 2 % steps while it misses (the quick one is a sample)
+    while hi < len(order) and pred(hi).model_position_mm > target_mm:
+        hi = min(len(order), hi + max(1, hi // 50))
+    for _ in range(5):  # ... and shrinks while a smaller prefix still reaches the target
+        if hi - 1 < p_min or pred(hi - 1).model_position_mm > target_mm:
+            break
+        hi -= 1
     sel = select(info, hi, criterion=criterion, exchange=True)
     p = predict_accuracy(info, sel.index, evaluate)
     if p.model_position_mm > target_mm:  # exchanges are for the criterion, not the target: keep greedy's
