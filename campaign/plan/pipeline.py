@@ -4,7 +4,9 @@ Writes ``RUN/plan/poses.csv`` (``pose_id,q1..q6``, rad, visiting order; pose_id 
 candidate's grid index), ``RUN/plan/vias.csv`` (via poses to pass before a pose),
 ``RUN/plan/dropped.csv`` (poses dropped from the tour, with the reason),
 ``RUN/plan/summary.json`` and ``RUN/plan/tour.png``, and copies the configuration to
-``RUN/campaign.yaml``.
+``RUN/campaign.yaml``. With a selection (campaign.plan.selection: ``--select``, ``--budget``,
+``--target-mm``) only the chosen poses, random validation poses (``RUN/plan/validation.csv``)
+and repeats (pose_id ``p + r·10⁹``, ``RUN/plan/repeats.csv``) are toured.
 """
 
 from __future__ import annotations
