@@ -283,3 +283,34 @@ def test_a_plans_repeat_measurements_share_the_fold_of_the_pose_they_repeat():
     np.testing.assert_array_equal(f_rep[200:230], f[:30])
     np.testing.assert_array_equal(f_rep[230:], f[:30])
     assert np.bincount(f, minlength=4).min() == 50
+
+
+# -- the model-free test's pieces on functions known in advance ------------------------------------
+
+def test_the_regressor_learns_a_known_function_of_two_inputs_and_drops_the_others():
+    from campaign.diagnose.structure import FourierRidge
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-2.5, 2.5, (1200, 6))
+    f = np.stack([np.sin(X[:, 1]) * X[:, 3], np.cos(X[:, 1]), 0.3 * X[:, 3] ** 2], axis=1) * 1e-5
+    Y = f + rng.normal(0, 2e-6, f.shape)
+    m = FourierRidge(random_state=1).fit(X[:900], Y[:900])
+    assert list(np.flatnonzero(m.active_)) == [1, 3]
+    resid = f[900:] - m.predict(X[900:])
+    assert np.sqrt(np.mean(resid ** 2)) < 0.15 * np.sqrt(np.mean((f[900:] - f[900:].mean(axis=0)) ** 2))
+    # noise only: the penalty chosen by leave-one-out keeps the prediction near zero
+    m0 = FourierRidge(random_state=1).fit(X[:900], rng.normal(0, 2e-6, (900, 3)))
+    assert np.sqrt(np.mean(m0.predict(X[900:]) ** 2)) < 0.3 * 2e-6
+
+
+def test_the_harmonic_order_of_a_periodic_residual_is_named_and_a_trend_is_not_periodic():
+    from campaign.diagnose.signature import harmonic_order
+
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-2.8, 2.8, 800)
+    lever = rng.normal(1.0, 0.3, (800, 1))  # an amplitude that varies with the other joints
+    for k in (1, 2, 3):
+        Y = lever * np.stack([np.sin(k * x + 0.4), 0.5 * np.cos(k * x)], axis=1) + rng.normal(0, 0.3, (800, 2))
+        assert harmonic_order(x, Y) == k
+    assert harmonic_order(x, np.stack([0.3 * x, 0.1 * x ** 2], axis=1) + rng.normal(0, 0.3, (800, 2))) is None
+    assert harmonic_order(x, rng.normal(0, 0.3, (800, 2))) is None
