@@ -33,6 +33,13 @@ def _cached(robot, q, what, compute):
     return value
 
 
+def _pin_q(robot, q):
+    """Pinocchio configurations (n, nq) of joint vectors (n, N) of any chain."""
+    if hasattr(robot, "pinocchio_q"):
+        return robot.pinocchio_q(q)
+    return np.asarray(q, dtype=float).reshape(-1, 6)
+
+
 def gravity_torques(robot, q) -> np.ndarray:
     """Joint torques τ (n, 6) N·m that hold the arm against gravity (Pinocchio, URDF inertias)."""
     import pinocchio as pin
@@ -40,7 +47,7 @@ def gravity_torques(robot, q) -> np.ndarray:
     def compute():
         model = robot.pinocchio_model
         data = model.createData()
-        qq = np.asarray(q, dtype=float).reshape(-1, 6)
+        qq = _pin_q(robot, q)
         return np.array([pin.computeGeneralizedGravity(model, data, qi) for qi in qq])
 
     return _cached(robot, q, "tau", compute)
@@ -53,7 +60,7 @@ def weight_and_com(robot, q):
     def compute():
         model = robot.pinocchio_model
         data = model.createData()
-        qq = np.asarray(q, dtype=float).reshape(-1, 6)
+        qq = _pin_q(robot, q)
         return np.array([pin.centerOfMass(model, data, qi) for qi in qq])
 
     com = _cached(robot, q, "com", compute)
@@ -66,7 +73,7 @@ def moving_mass(robot) -> float:
 
     model = robot.pinocchio_model
     data = model.createData()
-    pin.centerOfMass(model, data, np.zeros(6))
+    pin.centerOfMass(model, data, _pin_q(robot, np.zeros(robot.n_joints))[0])
     return float(data.mass[0])
 
 

@@ -56,8 +56,11 @@ class CalibrationResult:
         first = self.stages[self.order[0]]["test"]
         out["ratio_to_nominal_test"] = {
             name: {block: {k: st["test"][block][k] / max(first[block][k], 1e-300) for k in ("max", "mean", "q90")}
-                   for block in ("position_mm", "orientation_mrad")}
+                   for block in ("position_mm", "orientation_mrad") if block in first}
             for name, st in self.stages.items()}
+        for key in ("measurement_kind", "frame", "tracker"):
+            if key in self.extra:
+                out[key] = self.extra[key]
         if "ann_cv" in self.extra:
             out["ann_cross_validation"] = self.extra["ann_cv"]
         if "noise_floor" in self.extra:
@@ -104,6 +107,52 @@ def check_ann_options(options: dict) -> dict:
     return options
 
 
+def check_pose_count(run_dir, robot, n_train: int, n_test: int, position_only: bool) -> None:
+    """One line when a run has too few poses to identify the base parameters (and test them)."""
+    from campaign.model.base_params import base_parameters
+
+    rows = 3 if position_only else 6
+    n_base = base_parameters(robot, position_only=position_only).n_base
+    need_train = -(-(n_base + 1) // rows)  # more equations than unknowns
+    if n_train < need_train or n_test < 1:
+        need_total = int(np.ceil(need_train / 0.8)) + 1
+        raise DataError(f"{run_dir}: {n_train} training and {n_test} test poses; {robot.name} has {n_base} "
+                        f"identifiable base parameters and each pose gives {rows} equations "
+                        f"({'positions' if rows == 3 else 'positions and orientations'}), so at least "
+                        f"{need_train} training poses and one test pose are needed (about {need_total} poses "
+                        "with the 80/20 split)")
+
+
+def register_tracker(robot, poses, train):
+    """Measurements in the tracker's frame L into the robot's frame: the closed-form rigid
+    registration T_LI0 of the nominal model's tool points to the measured ones on the training
+    poses (Kabsch). The remaining tracker-pose error is identified by the base transform's six
+    parameters (pL_I0_*, pR_I0_*), which are the same unknowns as a tracker pose. Returns the
+    poses in F_I and a record of the registration."""
+    from campaign.measure.reflectors import invert, register_points
+    from dataclasses import replace
+
+    P_nom = forward(robot, poses.q[train])[:, :3, 3]
+    T_LI0 = register_points(P_nom, poses.xyz[train])
+    T_I = invert(T_LI0) @ poses.T_IE
+    if not poses.has_orientation:
+        T_I[:, :3, :3] = np.eye(3)
+    fitted = P_nom @ T_LI0[:3, :3].T + T_LI0[:3, 3]
+    rms = float(np.sqrt(np.mean(np.sum((fitted - poses.xyz[train]) ** 2, axis=1))))
+    return replace(poses, T_IE=T_I), {"T_L_I_registration": T_LI0.tolist(), "registration_rms_mm": rms * 1e3}
+
+
+def _identified_tracker(robot, tracker, model) -> list:
+    """The tracker's pose T_LI after identification: registration · T̂_I0 · T̄_I0⁻¹ (the base
+    transform's identified error read as the tracker's; the two cannot be told apart)."""
+    from campaign.model.export import calibrated_transforms
+
+    T0_hat = calibrated_transforms(robot, model.params_)[0]
+    T0_bar = np.eye(4)
+    T0_bar[:3, :3], T0_bar[:3, 3] = robot.R_nominal[0], robot.t_nominal[0]
+    return (np.asarray(tracker["T_L_I_registration"]) @ T0_hat @ np.linalg.inv(T0_bar)).tolist()
+
+
 def stage_name(effects) -> str:
     """``geometric+<effect>+...`` with each effect's short name (a user file's class ``name``)."""
     return "+".join(["geometric", *(effect_name(e) for e in effects)])
@@ -130,22 +179,35 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     for name in effects:  # an unknown effect is one line before any fit
         make_effect(name, robot)
     with open_run(run_dir) as store:
-        poses = store.load_measured()
-    if len(poses) < 20:
-        raise DataError(f"{run_dir}: only {len(poses)} measured poses; at least 20 are needed")
+        poses = store.load_measured(include_unusable=True)
+    if poses.q.shape[1] != robot.n_joints:
+        raise DataError(f"{run_dir}: the measurements have {poses.q.shape[1]} joint values per pose, the run's robot "
+                        f"{robot.name} has {robot.n_joints} joints")
     robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK)
+    usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
+    if not usable.all():  # raw reflectors: fewer than three seen
+        say(f"{int((~usable).sum())} of {len(poses)} poses have fewer than three reflectors seen: left out")
+        poses = poses.subset(np.flatnonzero(usable))
+    position_only = position_only or not poses.has_orientation
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
-    if tr.sum() < 10 or te.sum() < 2:
-        raise DataError(f"{run_dir}: too few poses for a train/test split ({int(tr.sum())} training, "
-                        f"{int(te.sum())} test of {len(poses)})")
+    check_pose_count(run_dir, robot, int(tr.sum()), int(te.sum()), position_only)
+    tracker = None
+    if poses.frame == "tracker":
+        poses, tracker = register_tracker(robot, poses, tr)
+        say(f"measurements in the tracker's frame: registered to the nominal model "
+            f"(rms {tracker['registration_rms_mm']:.3f} mm over {int(tr.sum())} training poses)")
     context = effect_context(poses.context, poses.time_s)
     ctx_tr = {k: v[tr] for k, v in context.items()}
 
     stages, order, residuals = {}, [], {}
 
     def add_stage(name, dz):
-        stages[name] = {"train": error_stats(dz[tr]), "test": error_stats(dz[te])}
+        o = poses.has_orientation
+        if not o:  # orientation rows only where orientation was measured
+            dz = np.array(dz, dtype=float)
+            dz[:, 3:6] = np.nan
+        stages[name] = {"train": error_stats(dz[tr], orientation=o), "test": error_stats(dz[te], orientation=o)}
         order.append(name)
         residuals[name] = dz
 
@@ -167,7 +229,11 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
             poses.q[tr], poses.T_IE[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model)
-    extra = {"identification_time_s": t_geo, "effects": list(effects)}
+    extra = {"identification_time_s": t_geo, "effects": list(effects), "measurement_kind": poses.kind,
+             "frame": poses.frame}
+    if tracker is not None:
+        tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
+        extra["tracker"] = tracker
     from campaign.diagnose.floor import noise_floor  # repeats, drift checks, stated noise: never the model
 
     extra["noise_floor"] = noise_floor(run_dir, poses, robot).as_json()
@@ -293,7 +359,11 @@ def summary_text(result: CalibrationResult) -> str:
         lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "
                      + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
     if m.correlated_pairs_:
-        lines.append("strongly correlated: " + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in m.correlated_pairs_))
+        worst = sorted(m.correlated_pairs_, key=lambda t: -abs(t[2]))[:5]
+        more = len(m.correlated_pairs_) - len(worst)
+        lines.append(f"strongly correlated (|r| > 0.95): {len(m.correlated_pairs_)} pair(s); the worst: "
+                     + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in worst)
+                     + (f"; {more} more in params.yaml" if more > 0 else ""))
     if "ann_skipped" in result.extra:
         lines.append(result.extra["ann_skipped"])
     lines.append(result.floor_line())

@@ -11,8 +11,18 @@ def register(sub):
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
     p.add_argument("--robot", default=None,
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
-    p.add_argument("--tool-frame", metavar="NAME", default=None, help="URDF link of the measured tool (with --robot)")
-    p.add_argument("--base-frame", metavar="NAME", default=None, help="URDF link of the base frame F_I (with --robot)")
+    p.add_argument("--tool-frame", default=None, metavar="LINK",
+                   help="the measured tool frame, a URDF link (default: robot.yaml's, else the chain's last link)")
+    p.add_argument("--base-frame", default=None, metavar="LINK", help="the chain's base, a URDF link (default: root)")
+    p.add_argument("--frame", choices=("robot", "tracker"), default="robot",
+                   help="measurements in the robot's base frame (default) or in the tracker's: calibrate then "
+                        "identifies the tracker's pose with the model")
+    p.add_argument("--markers", default=None, metavar="FILE",
+                   help="nominal positions of raw reflectors m1..mk in the tool frame (YAML: markers: [[x, y, z], ...], m)")
+    p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad", help="unit of q and rx,ry,rz in the CSV")
+    p.add_argument("--length-unit", choices=("m", "mm"), default="m",
+                   help="unit of positions (and prismatic joints) in the CSV")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_import)
 
     p = sub.add_parser("export", help="write a run's measured poses as a measured-pose CSV, or its calibrated "
@@ -77,7 +87,14 @@ def register(sub):
 def _import(args):
     from campaign.measure.importer import import_run
 
-    n = import_run(args.csv, args.run, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
+    from campaign.measure.csvio import ImportOptions
+    from campaign.progress import Progress
+
+    bar = Progress("import", total=1000, enabled=not args.quiet and sys.stderr.isatty(), unit="‰")
+    n = import_run(args.csv, args.run, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame,
+                   options=ImportOptions(angle_unit=args.angle_unit, length_unit=args.length_unit, frame=args.frame),
+                   markers_file=args.markers, progress=lambda f: bar.update(int(1000 * f) - bar.done))
+    bar.close()
     print(f"imported {n} poses into {args.run}/measurements.sqlite")
     return 0
 
@@ -100,7 +117,7 @@ def _export(args):
             return 0
     with RunFolder(args.run).store() as store:
         poses = store.load_measured()
-    write_measured_csv(args.csv, poses)
+    write_measured_csv(args.csv, poses, RunFolder(args.run).robot())
     print(f"wrote {len(poses)} poses to {args.csv}")
     return 0
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 
-def error_stats(dz) -> dict:
+def error_stats(dz, *, orientation: bool = True) -> dict:
     """Table 6 statistics of pose errors Δz (n, 6) (m, rad).
 
-    Returns ``{"position_mm": {"max", "mean", "q90"}, "orientation_mrad": {...}, "n_poses"}``.
+    Returns ``{"position_mm": {"max", "mean", "q90"}, "orientation_mrad": {...}, "n_poses"}``;
+    without ``orientation`` (positions only were measured) no ``orientation_mrad``.
     """
     dz = np.asarray(dz, dtype=float)
     pos = np.linalg.norm(dz[:, :3], axis=1) * 1e3
@@ -17,6 +18,8 @@ def error_stats(dz) -> dict:
     def s(v):
         return {"max": float(np.max(v)), "mean": float(np.mean(v)), "q90": float(np.quantile(v, 0.9))}
 
+    if not orientation:
+        return {"position_mm": s(pos), "n_poses": int(len(dz))}
     return {"position_mm": s(pos), "orientation_mrad": s(rot), "n_poses": int(len(dz))}
 
 
@@ -27,13 +30,16 @@ def format_table6(stages: dict, order, split: str = "test") -> str:
     head = f"{'error (' + split + ' set)':<28}" + "".join(f"{c:>{w}}" for c, w in zip(cols, widths))
     lines = [head, "-" * len(head)]
     first = stages[cols[0]][split]
-    for block, unit in (("position_mm", "‖Δt‖ mm"), ("orientation_mrad", "‖Δφ‖ mrad")):
+    blocks = [b for b in (("position_mm", "‖Δt‖ mm"), ("orientation_mrad", "‖Δφ‖ mrad")) if b[0] in first]
+    for block, unit in blocks:
         for stat, label in (("max", "max"), ("mean", "mean"), ("q90", "Q0.9")):
             row = f"{label + ' ' + unit:<28}"
             for c, w in zip(cols, widths):
                 row += f"{stages[c][split][block][stat]:>{w}.3f}"
             lines.append(row)
     for block, unit in (("position_mm", "‖Δt‖"), ("orientation_mrad", "‖Δφ‖")):
+        if block not in first:
+            continue
         lines.append(f"{'mean ' + unit + ' / ' + cols[0]:<28}" + "".join(
             f"{100 * stages[c][split][block]['mean'] / max(first[block]['mean'], 1e-300):>{w - 1}.2f}%"
             for c, w in zip(cols, widths)))

@@ -375,5 +375,6 @@ def history_table(run_dir) -> str:
                 continue
             seen.add(stage)
             st = stages[stage]
-            lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{st['orientation_mrad']['mean']:>15.4f}")
+            rot = f"{st['orientation_mrad']['mean']:>15.4f}" if "orientation_mrad" in st else f"{'-':>15}"
+            lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{rot}")
     return "\n".join(lines)

@@ -1,14 +1,19 @@
-"""The measured-pose CSV (DESIGN.md): read with validation, write.
+"""The measured-pose CSV (DESIGN.md): read with validation (streamed, bounded memory), write.
 
-Header ``pose_id,time_s,q1..q6,x,y,z,rx,ry,rz``; q in rad as commanded, ``x,y,z`` the
-origin of F_E in F_I in m, ``rx,ry,rz`` the rotation vector of R_IE in rad. Extra named
-numeric columns are kept as context. Every error names the file, the line and the column.
+Header ``pose_id[,time_s],q1..qN`` and the measurement columns, whose kind the header tells:
+``x,y,z,rx,ry,rz`` (6-D: the origin of the tool frame in m and the rotation vector of its
+orientation in rad), ``x,y,z`` (one reflector), or ``m1_x,m1_y,m1_z,...,mk_z`` (raw reflector
+centres, m; an empty cell where the tracker missed one). q as commanded (rad, m for prismatic
+joints). Frame: the robot's base (or the tracker's, ``--frame tracker``). ``--angle-unit deg`` and
+``--length-unit mm`` convert on reading. Extra named numeric columns are kept as context.
+Every error names the file, the line and the column.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,59 +24,218 @@ from campaign.measure.data import CSV_COLUMNS, MAX_STORED_POSE_ID, MeasuredPoses
 from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS, ROTVEC_NORM_SLACK
 
 
-def read_numeric_table(path, required) -> tuple:
-    """Read a CSV of numbers with a header; every cell finite.
+#: rows parsed and validated together when streaming a CSV (bounds the reader's memory)
+CHUNK_ROWS = 20000
 
-    Returns (header, {column: values (n,)}, source line numbers (n,)). ``required`` columns
-    must be present; every error names the file, and where it applies the line and column.
-    """
-    path = Path(path)
+
+def _open_text(path):
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        fh = open(path, encoding="utf-8-sig", newline="")
+        fh.read(1)
+        fh.seek(0)
+        return fh
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError:
         raise DataError(f"{path}: not a UTF-8 text file") from None
-    rows = list(csv.reader(text.splitlines()))
-    if not rows:
-        raise DataError(f"{path}: empty file (expected header {','.join(required)})")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
-    if len(set(header)) != len(header):
-        dup = sorted({h for h in header if header.count(h) > 1})
-        raise DataError(f"{path}: duplicate column(s) {', '.join(dup)}")
-    body = [(i + 2, r) for i, r in enumerate(rows[1:]) if any(cell.strip() for cell in r)]
-    if not body:
-        raise DataError(f"{path}: no data rows")
-    values = np.empty((len(body), len(header)))
-    for k, (line, r) in enumerate(body):
-        if len(r) != len(header):
-            raise DataError(f"{path}: line {line} has {len(r)} fields, the header has {len(header)}")
-        for j, cell in enumerate(r):
-            try:
-                v = float(cell)
-            except ValueError:
-                raise DataError(f"{path}: line {line}, column {header[j]}: '{cell.strip()}' is not a number") from None
-            if not math.isfinite(v):
-                raise DataError(f"{path}: line {line}, column {header[j]}: {cell.strip()} is not a finite number")
-            values[k, j] = v
-    col = {h: values[:, j] for j, h in enumerate(header)}
-    return header, col, np.array([line for line, _ in body])
 
 
-def read_measured_csv(path, robot=None) -> MeasuredPoses:
-    """Read and validate a measured-pose CSV.
+def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None):
+    """Stream a CSV of numbers with a header, ``chunk_rows`` rows at a time.
 
-    With ``robot`` (a RobotModel), joint values are also checked against its limits.
+    Yields (header, values (m, columns) float64, source line numbers (m,)). ``required``
+    columns must be present; every cell finite, except in columns for which ``may_be_empty``
+    (a callable on the column name) is true, where an empty cell is NaN. ``progress``: called
+    with the bytes read so far. Every error names the file, and where it applies the line
+    and column.
     """
     path = Path(path)
-    header, col, lines = read_numeric_table(path, CSV_COLUMNS)
+    fh = _open_text(path)
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            first = next(reader, None)
+            if first is None:
+                raise DataError(f"{path}: empty file (expected header {','.join(required)})")
+            header = [h.strip() for h in first]
+            missing = [c for c in required if c not in header]
+            if missing:
+                raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
+            if len(set(header)) != len(header):
+                dup = sorted({h for h in header if header.count(h) > 1})
+                raise DataError(f"{path}: duplicate column(s) {', '.join(dup)}")
+            empty_ok = [bool(may_be_empty and may_be_empty(h)) for h in header]
+            ncol = len(header)
+            values = np.empty((chunk_rows, ncol))
+            lines = np.empty(chunk_rows, dtype=np.int64)
+            m = 0
+            any_rows = False
+            for r in reader:
+                if not any(cell.strip() for cell in r):
+                    continue
+                line = reader.line_num
+                if len(r) != ncol:
+                    raise DataError(f"{path}: line {line} has {len(r)} fields, the header has {ncol}")
+                row = values[m]
+                for j, cell in enumerate(r):
+                    try:
+                        v = float(cell)
+                    except ValueError:
+                        if empty_ok[j] and not cell.strip():
+                            row[j] = np.nan
+                            continue
+                        raise DataError(f"{path}: line {line}, column {header[j]}: '{cell.strip()}' "
+                                        "is not a number") from None
+                    if not math.isfinite(v):
+                        raise DataError(f"{path}: line {line}, column {header[j]}: {cell.strip()} "
+                                        "is not a finite number")
+                    row[j] = v
+                lines[m] = line
+                m += 1
+                if m == chunk_rows:
+                    any_rows = True
+                    yield header, values.copy(), lines.copy()
+                    m = 0
+                    if progress is not None:
+                        progress(fh.buffer.tell() if hasattr(fh, "buffer") else 0)
+            if m or not any_rows:
+                if not m and not any_rows:
+                    raise DataError(f"{path}: no data rows")
+                yield header, values[:m].copy(), lines[:m].copy()
+        except UnicodeDecodeError:
+            raise DataError(f"{path}: not a UTF-8 text file") from None
+        except csv.Error as exc:
+            raise DataError(f"{path}: line {reader.line_num}: not valid CSV ({exc})") from None
 
-    def fail(mask, name, what):
+
+def read_numeric_table(path, required, *, may_be_empty=None) -> tuple:
+    """Read a whole CSV of numbers with a header; every cell finite.
+
+    Returns (header, {column: values (n,)}, source line numbers (n,)). ``required`` columns
+    must be present; every error names the file, and where it applies the line and column.
+    """
+    chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty))
+    header = chunks[0][0]
+    values = np.concatenate([c[1] for c in chunks])
+    lines = np.concatenate([c[2] for c in chunks])
+    return header, {h: values[:, j] for j, h in enumerate(header)}, lines
+
+
+def read_markers_file(path) -> np.ndarray:
+    """``markers: [[x, y, z], ...]`` (m, tool frame, in the order m1..mk) from a YAML file: (k, 3)."""
+    from campaign.fileio import read_yaml_mapping
+
+    doc = read_yaml_mapping(path, DataError)
+    mk = doc.get("markers")
+    try:
+        P = np.asarray(mk, dtype=float)
+    except (TypeError, ValueError):
+        P = None
+    if P is None or P.ndim != 2 or P.shape[1] != 3 or len(P) < 1 or not np.all(np.isfinite(P)):
+        raise DataError(f"{path}: field 'markers' must be a list of [x, y, z] (m, tool frame), one per reflector")
+    return P
+
+
+@dataclass(frozen=True)
+class CsvLayout:
+    """What a measured-pose CSV holds, from its header (and the robot's joint count)."""
+
+    kind: str  # "pose", "point" or "markers"
+    joints: tuple  # q1..qN
+    n_markers: int
+    context: tuple  # other columns
+    has_time: bool
+
+    @property
+    def measure_columns(self) -> tuple:
+        if self.kind == "pose":
+            return POSE_COLUMNS
+        if self.kind == "point":
+            return POSE_COLUMNS[:3]
+        return tuple(f"m{i}_{a}" for i in range(1, self.n_markers + 1) for a in "xyz")
+
+
+POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def csv_layout(path, header, n_joints: int | None) -> CsvLayout:
+    """Detect the measurement kind from the header: ``x,y,z,rx,ry,rz`` (6-D), ``m1_x,..`` (raw
+    reflectors), ``x,y,z`` (one reflector). Joints ``q1..qN``."""
+    hs = set(header)
+    qs = [h for h in header if h.startswith("q") and h[1:].isdigit()]
+    N = n_joints if n_joints is not None else len(qs)
+    joints = tuple(f"q{j}" for j in range(1, N + 1))
+    extra = sorted(set(qs) - set(joints), key=lambda h: int(h[1:]))
+    if extra:
+        raise DataError(f"{path}: column {extra[0]}: the robot has {N} joints (q1..q{N})")
+    missing = [c for c in ("pose_id", *joints) if c not in hs]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
+    if set(POSE_COLUMNS) <= hs:
+        kind, k = "pose", 0
+    elif "m1_x" in hs:
+        kind, k = "markers", 0
+        while f"m{k + 1}_x" in hs:
+            k += 1
+        for i in range(1, k + 1):
+            for a in "xyz":
+                if f"m{i}_{a}" not in hs:
+                    raise DataError(f"{path}: reflector columns: m{i}_x is there, m{i}_{a} is missing")
+    elif {"x", "y", "z"} <= hs:
+        if hs & {"rx", "ry", "rz"}:
+            missing = [c for c in ("rx", "ry", "rz") if c not in hs]
+            raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header (orientation columns "
+                            "rx,ry,rz go together)")
+        kind, k = "point", 0
+    else:
+        raise DataError(f"{path}: no measurement columns: expected x,y,z,rx,ry,rz (6-D), x,y,z (one reflector) "
+                        "or m1_x,m1_y,m1_z,... (raw reflectors)")
+    layout = CsvLayout(kind, joints, k, (), "time_s" in hs)
+    known = {"pose_id", "time_s", *joints, *layout.measure_columns}
+    return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs)
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """How to read a measured-pose CSV: units, frame, nominal reflector positions."""
+
+    angle_unit: str = "rad"
+    length_unit: str = "m"
+    frame: str = "robot"
+    markers: np.ndarray | None = None  # (k, 3) m in the tool frame, for raw reflectors
+
+    def __post_init__(self):
+        if self.angle_unit not in ("rad", "deg"):
+            raise DataError(f"--angle-unit must be rad or deg, not {self.angle_unit!r}")
+        if self.length_unit not in ("m", "mm"):
+            raise DataError(f"--length-unit must be m or mm, not {self.length_unit!r}")
+        if self.frame not in ("robot", "tracker"):
+            raise DataError(f"--frame must be robot or tracker, not {self.frame!r}")
+
+
+def _marker_positions(path, layout, robot, options):
+    if layout.kind != "markers":
+        return None
+    P = options.markers
+    src = "--markers"
+    if P is None and robot is not None and len(robot.reflectors):
+        P, src = robot.reflector_positions_in_E, f"robot.yaml of {robot.name}"
+    if P is None:
+        raise DataError(f"{path}: raw reflector columns m1..m{layout.n_markers} need their nominal positions "
+                        "in the tool frame: --markers FILE (markers: [[x, y, z], ...], m) or reflectors in robot.yaml")
+    if len(P) != layout.n_markers:
+        raise DataError(f"{path}: {layout.n_markers} reflectors in the header, {len(P)} nominal positions in {src}")
+    return np.asarray(P, dtype=float)
+
+
+def _convert(path, layout, header, values, lines, robot, options, P_nom):
+    """One chunk of rows to SI arrays, validated. Returns a dict of arrays."""
+    col = {h: values[:, j] for j, h in enumerate(header)}
+
+    def fail(mask, name, what, v=None):
         k = int(np.argmax(mask))
-        raise DataError(f"{path}: line {lines[k]}, column {name}: {col[name][k]:.6g} {what}")
+        val = col[name][k] if v is None else v[k]
+        raise DataError(f"{path}: line {lines[k]}, column {name}: {val:.6g} {what}")
 
     pid = col["pose_id"]
     if np.any(pid != np.round(pid)):
@@ -80,51 +244,193 @@ def read_measured_csv(path, robot=None) -> MeasuredPoses:
     if out_of_range.any():
         fail(out_of_range, "pose_id", f"is outside 0..{MAX_STORED_POSE_ID - 1} (pose ids are non-negative integers "
                                       "stored exactly)")
-    uniq, counts = np.unique(pid, return_counts=True)
-    if np.any(counts > 1):
-        dup = uniq[counts > 1][0]
-        where = lines[pid == dup]
-        raise DataError(f"{path}: pose_id {int(dup)} appears twice (lines {where[0]} and {where[1]})")
-    for name in ("q1", "q2", "q3", "q4", "q5", "q6"):
-        big = np.abs(col[name]) > RADIANS_MAX_ABS
+    deg = options.angle_unit == "deg"
+    mm = options.length_unit == "mm"
+    a_scale = np.pi / 180.0 if deg else 1.0
+    l_scale = 1e-3 if mm else 1.0
+    N = len(layout.joints)
+    prismatic = robot.prismatic if robot is not None else np.zeros(N, dtype=bool)
+    q = np.stack([col[c] for c in layout.joints], axis=1) * np.where(prismatic, l_scale, a_scale)
+    for j, name in enumerate(layout.joints):
+        if prismatic[j]:
+            big = np.abs(q[:, j]) > METRES_MAX_ABS
+            if big.any():
+                fail(big, name, "m: a prismatic joint's value must be in m (this looks like mm; --length-unit mm)",
+                     q[:, j])
+            continue
+        bound = RADIANS_MAX_ABS
+        if robot is not None and robot.joint_types[j] != "continuous":
+            bound = max(bound, abs(robot.q_lower[j]) + 1e-6, abs(robot.q_upper[j]) + 1e-6)
+        big = np.abs(q[:, j]) > bound
         if big.any():
-            fail(big, name, "exceeds 2*pi: joint values must be in rad (this looks like degrees)")
-    for name in ("x", "y", "z"):
-        big = np.abs(col[name]) > METRES_MAX_ABS
-        if big.any():
-            fail(big, name, f"exceeds {METRES_MAX_ABS:g} m: positions must be in m (this looks like mm)")
-    rv = np.stack([col["rx"], col["ry"], col["rz"]], axis=1)
-    big = np.linalg.norm(rv, axis=1) > math.pi + ROTVEC_NORM_SLACK
-    if big.any():
-        k = int(np.argmax(big))
-        raise DataError(f"{path}: line {lines[k]}, columns rx,ry,rz: rotation vector norm "
-                        f"{np.linalg.norm(rv[k]):.6g} exceeds pi: must be in rad (this looks like degrees)")
-    q = np.stack([col[f"q{i}"] for i in range(1, 7)], axis=1)
+            fail(big, name, "exceeds 2*pi and the joint's limits: joint values must be in rad (this looks like "
+                            "degrees; --angle-unit deg)", q[:, j] if deg else None)
     if robot is not None:
-        lo = q < robot.q_lower - JOINT_LIMIT_SLACK
-        hi = q > robot.q_upper + JOINT_LIMIT_SLACK
+        q = robot.to_model_q(q)
+        limited = np.array([t != "continuous" for t in robot.joint_types], dtype=bool)
+        lo = (q < robot.q_lower - JOINT_LIMIT_SLACK) & limited
+        hi = (q > robot.q_upper + JOINT_LIMIT_SLACK) & limited
         if (lo | hi).any():
             k, j = np.argwhere(lo | hi)[0]
             lim = robot.q_lower[j] if lo[k, j] else robot.q_upper[j]
-            raise DataError(f"{path}: line {lines[k]}, column q{j + 1}: {q[k, j]:.6g} rad is outside "
-                            f"the joint limit {lim:.6g} rad of {robot.name}")
-    context = {h: col[h] for h in header if h not in CSV_COLUMNS}
-    return MeasuredPoses.from_vectors(pid.astype(np.int64), col["time_s"], q,
-                                      np.stack([col["x"], col["y"], col["z"]], axis=1), rv, context)
+            u = robot.joint_units[j]
+            raise DataError(f"{path}: line {lines[k]}, column q{j + 1}: {q[k, j]:.6g} {u} is outside "
+                            f"the joint limit {lim:.6g} {u} of {robot.name}")
+    n = len(pid)
+    xyz = np.full((n, 3), np.nan)
+    rv = np.full((n, 3), np.nan)
+    markers = None
+    if layout.kind in ("pose", "point"):
+        xyz = np.stack([col["x"], col["y"], col["z"]], axis=1) * l_scale
+        for a, name in enumerate("xyz"):
+            big = np.abs(xyz[:, a]) > METRES_MAX_ABS
+            if big.any():
+                fail(big, name, f"exceeds {METRES_MAX_ABS:g} m: positions must be in m (this looks like mm; "
+                                "--length-unit mm)", xyz[:, a])
+    if layout.kind == "pose":
+        rv = np.stack([col["rx"], col["ry"], col["rz"]], axis=1) * a_scale
+        big = np.linalg.norm(rv, axis=1) > math.pi + ROTVEC_NORM_SLACK
+        if big.any():
+            k = int(np.argmax(big))
+            raise DataError(f"{path}: line {lines[k]}, columns rx,ry,rz: rotation vector norm "
+                            f"{np.linalg.norm(rv[k]):.6g} exceeds pi: must be in rad (this looks like degrees; "
+                            "--angle-unit deg)")
+    if layout.kind == "markers":
+        from campaign.measure.reflectors import fit_markers
+
+        k = layout.n_markers
+        markers = np.stack([np.stack([col[f"m{i}_{a}"] for a in "xyz"], axis=1) for i in range(1, k + 1)],
+                           axis=1) * l_scale
+        part = np.isnan(markers).any(axis=2) & ~np.isnan(markers).all(axis=2)
+        if part.any():
+            r, i = np.argwhere(part)[0]
+            raise DataError(f"{path}: line {lines[r]}, reflector m{i + 1}: x, y, z must be all given or all empty")
+        big = np.abs(np.nan_to_num(markers)) > METRES_MAX_ABS
+        if big.any():
+            r, i, a = np.argwhere(big)[0]
+            raise DataError(f"{path}: line {lines[r]}, column m{i + 1}_{'xyz'[a]}: {markers[r, i, a]:.6g} m exceeds "
+                            f"{METRES_MAX_ABS:g} m (this looks like mm; --length-unit mm)")
+        T, _ = fit_markers(P_nom, markers)
+        xyz = T[:, :3, 3]
+        from campaign.model.rotations import matrix_to_rotvec
+
+        ok = np.isfinite(T[:, 0, 0])
+        rv[ok] = matrix_to_rotvec(T[ok, :3, :3])
+    t = col["time_s"] if layout.has_time else np.full(n, np.nan)
+    return {"pose_id": pid.astype(np.int64), "time_s": t, "q": q, "xyz": xyz, "rotvec": rv, "markers": markers,
+            "context": {h: col[h] for h in layout.context}, "lines": lines}
 
 
-def write_measured_csv(path, poses: MeasuredPoses) -> None:
-    """Write poses as a measured-pose CSV (context columns after the standard ones)."""
+def _may_be_empty(h: str) -> bool:
+    return h.startswith("m") and "_" in h and h[1:h.index("_")].isdigit()
+
+
+def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None, *, progress=None,
+                         chunk_rows: int = CHUNK_ROWS):
+    """Validate a measured-pose CSV whole (streaming, bounded memory: a chunk of rows and the
+    pose ids), then stream it again as MeasuredPoses chunks. Returns (layout, marker nominal
+    positions or None, generator). ``progress``: called with the fraction done (0..1) over both
+    passes."""
+    path = Path(path)
+    options = options or ImportOptions()
+    size = max(path.stat().st_size, 1) if path.is_file() else 1
+
+    def report(offset, half):
+        if progress is not None:
+            progress(min(1.0, 0.5 * half + 0.5 * offset / size))
+
+    it = iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=chunk_rows,
+                             progress=lambda b: report(b, 0))
+    header, values, lines = next(it)
+    layout = csv_layout(path, header, robot.n_joints if robot is not None else None)
+    P_nom = _marker_positions(path, layout, robot, options)
+    ids, id_lines = [], []
+    for hdr, vals, lns in _chain_first((header, values, lines), it):
+        c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
+        ids.append(c["pose_id"])
+        id_lines.append(lns)
+    report(size, 0)
+    pid = np.concatenate(ids)
+    lines_all = np.concatenate(id_lines)
+    del ids, id_lines
+    order = np.argsort(pid, kind="stable")
+    dup = np.flatnonzero(pid[order][1:] == pid[order][:-1])
+    if len(dup):
+        a, b = order[dup[0]], order[dup[0] + 1]
+        raise DataError(f"{path}: pose_id {int(pid[a])} appears twice (lines {min(lines_all[a], lines_all[b])} "
+                        f"and {max(lines_all[a], lines_all[b])})")
+    del pid, lines_all, order
+
+    def chunks():
+        for hdr, vals, lns in iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=chunk_rows,
+                                                  progress=lambda b: report(b, 1)):
+            c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
+            yield MeasuredPoses.from_vectors(c["pose_id"], c["time_s"], c["q"], c["xyz"], c["rotvec"], c["context"],
+                                             kind=layout.kind, frame=options.frame, markers=c["markers"],
+                                             marker_positions=P_nom)
+        report(size, 1)
+
+    return layout, P_nom, chunks()
+
+
+def _chain_first(first, rest):
+    yield first
+    yield from rest
+
+
+def concat_poses(parts) -> MeasuredPoses:
+    """One MeasuredPoses from chunks (same kind and frame)."""
+    parts = list(parts)
+    p0 = parts[0]
+    cat = np.concatenate
+    return MeasuredPoses(cat([p.pose_id for p in parts]), cat([p.time_s for p in parts]), cat([p.q for p in parts]),
+                         cat([p.T_IE for p in parts]), {k: cat([p.context[k] for p in parts]) for k in p0.context},
+                         p0.T_LI, p0.kind, p0.frame,
+                         None if p0.markers is None else cat([p.markers for p in parts]), p0.marker_positions)
+
+
+def read_measured_csv(path, robot=None, options: ImportOptions | None = None) -> MeasuredPoses:
+    """Read and validate a measured-pose CSV whole (kind from the header; see ImportOptions).
+
+    With ``robot`` (a RobotModel), the joint count and limits are checked, and joint values
+    converted by robot.yaml's controller convention.
+    """
+    _, _, chunks = iter_measured_chunks(path, robot, options)
+    return concat_poses(chunks)
+
+
+def write_measured_csv(path, poses: MeasuredPoses, robot=None) -> None:
+    """Write poses as a measured-pose CSV: ``pose_id,time_s,q1..qN`` then the measurement columns
+    of their kind (``x,y,z,rx,ry,rz``, ``x,y,z`` or ``m1_x,..``, an empty cell where a reflector
+    was missed), then the context columns. SI units; with ``robot``, joint values in its
+    controller's convention (robot.yaml's ``controller``), as they were imported."""
     path = Path(path)
     extra = sorted(poses.context)
-    rv = poses.rotvec
+    q = poses.q if robot is None else robot.to_controller_q(poses.q)
+    N = q.shape[1]
+    has_time = bool(np.isfinite(poses.time_s).any())
+    head = ["pose_id"] + (["time_s"] if has_time else []) + [f"q{j}" for j in range(1, N + 1)]
+    if poses.kind == "markers":
+        k = poses.markers.shape[1]
+        head += [f"m{i}_{a}" for i in range(1, k + 1) for a in "xyz"]
+    else:
+        head += list(POSE_COLUMNS if poses.kind == "pose" else POSE_COLUMNS[:3])
+    rv = poses.rotvec if poses.kind == "pose" else None
+
+    def num(v):
+        return "" if not np.isfinite(v) else repr(float(v))
+
     with atomic_open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(list(CSV_COLUMNS) + extra)
+        w.writerow(head + extra)
         for i in range(len(poses)):
-            row = [int(poses.pose_id[i]), repr(float(poses.time_s[i]))]
-            row += [repr(float(v)) for v in poses.q[i]]
-            row += [repr(float(v)) for v in poses.xyz[i]]
-            row += [repr(float(v)) for v in rv[i]]
+            row = [int(poses.pose_id[i])] + ([repr(float(poses.time_s[i]))] if has_time else [])
+            row += [repr(float(v)) for v in q[i]]
+            if poses.kind == "markers":
+                row += [num(v) for v in poses.markers[i].reshape(-1)]
+            else:
+                row += [repr(float(v)) for v in poses.xyz[i]]
+                if rv is not None:
+                    row += [repr(float(v)) for v in rv[i]]
             row += [repr(float(poses.context[k][i])) for k in extra]
             w.writerow(row)

@@ -10,14 +10,19 @@ from campaign.run import RunFolder, load_robot, same_robot
 
 
 def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str | None = None,
-               base_frame: str | None = None) -> int:
+               base_frame: str | None = None, options=None, markers_file=None, progress=None) -> int:
     """Import ``csv_path`` into ``run_dir``; returns the number of poses.
 
     robot: name, URDF or robot.yaml (None: the robot the run records, else the default).
     A run that records another robot is refused; a folder without campaign.yaml gets one
-    recording the robot. The CSV is validated whole before the folder is touched.
+    recording the robot. The CSV is validated whole (streaming, bounded memory) before the
+    folder is touched, then streamed into the log. options: campaign.measure.csvio.ImportOptions
+    (units, frame); markers_file: YAML with the raw reflectors' nominal positions.
+    progress: callable receiving the fraction done (0..1).
     """
-    from campaign.measure.csvio import read_measured_csv
+    from dataclasses import replace
+
+    from campaign.measure.csvio import ImportOptions, iter_measured_chunks, read_markers_file
     from campaign.measure.store import write_imported
 
     run = RunFolder(run_dir)
@@ -38,9 +43,14 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
     model = load_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
     if run.measurements_path.exists():  # checked again under the lock by write_imported
         raise DataError(f"{run.path}: already holds {run.measurements_path.name}; import into a new run folder")
-    poses = read_measured_csv(csv_path, model)
+    options = options or ImportOptions()
+    if markers_file is not None:
+        options = replace(options, markers=read_markers_file(markers_file))
+    _, _, chunks = iter_measured_chunks(csv_path, model, options, progress=progress)
     with run.lock("import"):
-        n = write_imported(poses, run.path, source={"kind": "import", "csv": str(Path(csv_path).resolve())},
+        n = write_imported(chunks, run.path, source={"kind": "import", "csv": str(Path(csv_path).resolve()),
+                                                     "angle_unit": options.angle_unit,
+                                                     "length_unit": options.length_unit},
                            robot=model)
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)

@@ -99,3 +99,39 @@ def pose_from_reflectors(T_LI, reflectors_in_E, reflectors_in_L):
     fitted = transform_points(T_IE, np.broadcast_to(reflectors_in_E, P_I.shape))
     rms = np.sqrt(np.mean(np.sum((fitted - P_I) ** 2, axis=-1), axis=-1))
     return T_IE, rms
+
+
+def fit_markers(P_local, P_world):
+    """Rigid fits of a reflector set to measurements where some reflectors may be missing.
+
+    P_local: (k, 3) nominal centres in the body frame; P_world: (n, k, 3), NaN rows where the
+    tracker missed a reflector. Returns (T (n, 4, 4), rms (n,) m); both NaN for a pose with
+    fewer than three reflectors seen. Poses are fitted together per pattern of seen reflectors.
+    """
+    A = np.asarray(P_local, dtype=float)
+    B = np.asarray(P_world, dtype=float)
+    n = B.shape[0]
+    seen = ~np.isnan(B).any(axis=2)
+    T = np.full((n, 4, 4), np.nan)
+    rms = np.full(n, np.nan)
+    patterns, inverse = np.unique(seen, axis=0, return_inverse=True)
+    for p, mask in enumerate(patterns):
+        if mask.sum() < 3:
+            continue
+        rows = np.flatnonzero(inverse.reshape(-1) == p)
+        Ts = kabsch(A[mask], B[rows][:, mask])
+        fitted = transform_points(Ts, np.broadcast_to(A[mask], (len(rows), int(mask.sum()), 3)))
+        T[rows] = Ts
+        rms[rows] = np.sqrt(np.mean(np.sum((fitted - B[rows][:, mask]) ** 2, axis=-1), axis=-1))
+    return T, rms
+
+
+def register_points(P_model, P_measured) -> np.ndarray:
+    """Closed-form rigid registration (Kabsch/Umeyama without scale): T (4, 4) minimising
+    Σ‖T·p_model − p_measured‖² over corresponding points (n, 3), m."""
+    A = np.asarray(P_model, dtype=float)
+    B = np.asarray(P_measured, dtype=float)
+    ok = np.isfinite(A).all(axis=1) & np.isfinite(B).all(axis=1)
+    if ok.sum() < 3:
+        raise DataError(f"registration to the tracker's frame needs 3 measured points, got {int(ok.sum())}")
+    return kabsch(A[ok], B[ok][None])[0]

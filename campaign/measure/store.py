@@ -46,7 +46,8 @@ CREATE TABLE IF NOT EXISTS poses (
     x REAL, y REAL, z REAL, rx REAL, ry REAL, rz REAL,
     fit_rms_m REAL,
     retries INTEGER NOT NULL DEFAULT 0,
-    context TEXT NOT NULL DEFAULT '{}'
+    context TEXT NOT NULL DEFAULT '{}',
+    q_json TEXT
 );
 CREATE TABLE IF NOT EXISTS reflector_readings (
     pose_id INTEGER NOT NULL REFERENCES poses(pose_id),
@@ -101,6 +102,10 @@ class MeasurementStore:
         try:
             self._db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT_S)
             self._db.executescript(SCHEMA)
+            cols = [r[1] for r in self._db.execute("PRAGMA table_info(poses)")]
+            if "q_json" not in cols:  # a log written before robots with N != 6 joints
+                with self._db:
+                    self._db.execute("ALTER TABLE poses ADD COLUMN q_json TEXT")
         except sqlite3.OperationalError as exc:
             raise StorageError(f"{self.path}: cannot open the measurement log ({exc})") from None
         except sqlite3.DatabaseError as exc:
@@ -159,19 +164,24 @@ class MeasurementStore:
                 raise DataError(f"pose_id {rec.pose_id!r}: must be an integer in 0..{MAX_STORED_POSE_ID - 1}")
             if rec.status not in ("measured", "failed"):
                 raise DataError(f"pose {rec.pose_id}: status must be 'measured' or 'failed', not {rec.status!r}")
-            qe = rec.q_encoder if rec.q_encoder is not None else (None,) * 6
-            xyz = rec.xyz if rec.xyz is not None else (None,) * 3
-            rv = rec.rotvec if rec.rotvec is not None else (None,) * 3
-            rows.append((int(rec.pose_id), rec.seq, rec.status, rec.reason, rec.time_s, rec.wall_time_unix_s,
-                         *map(float, rec.q), *qe, *xyz, *rv, rec.fit_rms_m, int(rec.retries),
-                         json.dumps(rec.context, sort_keys=True)))
+            qe = rec.q_encoder if rec.q_encoder is not None and len(rec.q_encoder) == 6 else (None,) * 6
+            xyz = tuple(_num(v) for v in rec.xyz) if rec.xyz is not None else (None,) * 3
+            rv = tuple(_num(v) for v in rec.rotvec) if rec.rotvec is not None else (None,) * 3
+            q = [float(v) for v in rec.q]
+            # q1..q6 hold a 6-joint robot's values; any other joint count is kept whole in q_json
+            q6, q_json = (q, None) if len(q) == 6 else ((q + [0.0] * 6)[:6], json.dumps(q))
+            rows.append((int(rec.pose_id), rec.seq, rec.status, rec.reason, _num(rec.time_s), rec.wall_time_unix_s,
+                         *q6, *qe, *xyz, *rv, rec.fit_rms_m, int(rec.retries),
+                         json.dumps(rec.context, sort_keys=True), q_json))
             for name, (p, st) in rec.reflectors.items():
                 p = p if p is not None else (None, None, None)
                 refl.append((int(rec.pose_id), name, *p, st))
         what = f"pose {rows[0][0]}" if len(rows) == 1 else f"{len(rows)} poses"
         try:
             with self._writing(what) as db:
-                db.executemany("INSERT INTO poses VALUES (" + ",".join("?" * 27) + ")", rows)
+                db.executemany("INSERT INTO poses (pose_id, seq, status, reason, time_s, wall_time_unix_s, "
+                               "q1, q2, q3, q4, q5, q6, qe1, qe2, qe3, qe4, qe5, qe6, x, y, z, rx, ry, rz, "
+                               "fit_rms_m, retries, context, q_json) VALUES (" + ",".join("?" * 28) + ")", rows)
                 db.executemany("INSERT INTO reflector_readings VALUES (?,?,?,?,?,?)", refl)
         except sqlite3.IntegrityError as exc:
             raise DataError(f"{self.path}: a pose is already stored ({exc})") from None
@@ -219,10 +229,13 @@ class MeasurementStore:
     def failures(self) -> list:
         return self._db.execute("SELECT pose_id, reason FROM poses WHERE status='failed' ORDER BY pose_id").fetchall()
 
-    def load_measured(self) -> MeasuredPoses:
-        """All measured poses, ordered by pose_id."""
+    def load_measured(self, *, include_unusable: bool = False) -> MeasuredPoses:
+        """All measured poses, ordered by pose_id, with the measurement kind and frame of the log
+        (meta ``kind``, ``frame``, ``marker_positions``; default 6-D poses in the robot's frame).
+        Raw-reflector poses with fewer than three reflectors seen (no pose) are left out unless
+        ``include_unusable``."""
         cur = self._db.execute(
-            "SELECT pose_id, time_s, q1, q2, q3, q4, q5, q6, x, y, z, rx, ry, rz, context "
+            "SELECT pose_id, time_s, q1, q2, q3, q4, q5, q6, x, y, z, rx, ry, rz, context, q_json "
             "FROM poses WHERE status = 'measured' ORDER BY pose_id")
         rows = cur.fetchall()
         if not rows:
@@ -232,7 +245,29 @@ class MeasurementStore:
         contexts = [json.loads(r[14]) for r in rows]
         keys = sorted(set().union(*contexts))
         context = {k: np.array([c.get(k, np.nan) for c in contexts], dtype=float) for k in keys}
-        return MeasuredPoses.from_vectors(pid, num[:, 0], num[:, 1:7], num[:, 7:10], num[:, 10:13], context)
+        q = num[:, 1:7]
+        if any(r[15] is not None for r in rows):
+            q = np.array([json.loads(r[15]) if r[15] is not None else list(r[2:8]) for r in rows], dtype=float)
+        kind = self.get_meta("kind", "pose")
+        P_nom = self.get_meta("marker_positions")
+        markers = None
+        if kind == "markers":
+            P_nom = np.asarray(P_nom, dtype=float)
+            markers = np.full((len(pid), len(P_nom), 3), np.nan)
+            index = {int(p): i for i, p in enumerate(pid)}
+            for p, name, x, y, z in self._db.execute(
+                    "SELECT pose_id, name, x_L_m, y_L_m, z_L_m FROM reflector_readings WHERE name LIKE 'm%'"):
+                if p in index and name[1:].isdigit() and x is not None:
+                    markers[index[p], int(name[1:]) - 1] = (x, y, z)
+        poses = MeasuredPoses.from_vectors(pid, num[:, 0], q, num[:, 7:10], num[:, 10:13], context, kind=kind,
+                                           frame=self.get_meta("frame", "robot"), markers=markers,
+                                           marker_positions=None if P_nom is None else np.asarray(P_nom, dtype=float))
+        usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
+        if include_unusable or usable.all():
+            return poses
+        if not usable.any():
+            raise DataError(f"{self.path}: no pose has three reflectors seen")
+        return poses.subset(np.flatnonzero(usable))
 
 
 def open_run(run_dir, *, create: bool = False) -> MeasurementStore:
@@ -266,14 +301,9 @@ def write_imported(poses, run_dir, *, source: dict, robot=None) -> int:
     target = run_dir / MEASUREMENTS_FILE
     if target.exists():
         raise DataError(f"{run_dir}: already holds {MEASUREMENTS_FILE}; import into a new run folder")
-    rv = poses.rotvec
-    records = [
-        PoseRecord(pose_id=int(poses.pose_id[i]), seq=i, status="measured", q=tuple(poses.q[i]),
-                   time_s=float(poses.time_s[i]), xyz=tuple(poses.xyz[i]), rotvec=tuple(rv[i]),
-                   context={k: float(v[i]) for k, v in poses.context.items()})
-        for i in range(len(poses))
-    ]
+    chunks = [poses] if isinstance(poses, MeasuredPoses) else poses
     tmp = run_dir / (MEASUREMENTS_FILE + ".partial")
+    n = 0
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         tmp.unlink(missing_ok=True)
@@ -281,10 +311,36 @@ def write_imported(poses, run_dir, *, source: dict, robot=None) -> int:
             store.set_meta("source", source)
             if robot is not None:
                 store.set_meta("robot", robot.name)
-            store.add_poses(records)
+            for part in chunks:
+                if n == 0:
+                    store.set_meta("kind", part.kind)
+                    store.set_meta("frame", part.frame)
+                    if part.marker_positions is not None:
+                        store.set_meta("marker_positions", np.asarray(part.marker_positions).tolist())
+                store.add_poses(_records(part, n))
+                n += len(part)
         tmp.replace(target)
     except OSError as exc:
         raise StorageError(f"{target}: cannot write ({exc.strerror or exc}); nothing was imported") from None
     finally:
         tmp.unlink(missing_ok=True)
-    return len(records)
+    return n
+
+
+def _num(v):
+    """None for a missing value (NaN), else float."""
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def _records(poses: MeasuredPoses, seq0: int) -> list:
+    rv = poses.rotvec if poses.has_orientation else np.full((len(poses), 3), np.nan)
+    out = []
+    for i in range(len(poses)):
+        refl = {}
+        if poses.markers is not None:
+            for k, p in enumerate(poses.markers[i]):
+                refl[f"m{k + 1}"] = (tuple(map(float, p)), "ok") if np.isfinite(p).all() else (None, "missed")
+        out.append(PoseRecord(pose_id=int(poses.pose_id[i]), seq=seq0 + i, status="measured", q=tuple(poses.q[i]),
+                              time_s=float(poses.time_s[i]), xyz=tuple(poses.xyz[i]), rotvec=tuple(rv[i]),
+                              context={k: float(v[i]) for k, v in poses.context.items()}, reflectors=refl))
+    return out

@@ -32,8 +32,26 @@ class Primitive:
     T: np.ndarray  # pose in its frame (4, 4)
 
 
+def check_plannable(robot) -> None:
+    """One ConfigError line unless the planner can handle ``robot``: today six revolute joints
+    whose links carry the paper's names (link0..link6, E), at least three reflectors on the tool,
+    and collision geometry of boxes and cylinders only (issue 12, item 9 is not done)."""
+    from campaign.errors import ConfigError
+
+    names = tuple(robot.link_names[1:])
+    if robot.n_joints != 6 or any(t != "revolute" for t in robot.joint_types) or set(names) != set(LINK_FRAME):
+        raise ConfigError(f"plan: {robot.name} ({robot.n_joints} joints, links {', '.join(names)}): planning "
+                          "supports only 6R arms whose chain links are named link0..link6, E (as the COMAU's) for "
+                          "now; measure another robot with your own tooling and `campaign import` the CSV")
+    if len(robot.reflectors) < 3:
+        raise ConfigError(f"plan: {robot.name}: robot.yaml names {len(robot.reflectors)} reflectors; planning needs "
+                          "three on the tool")
+    robot_primitives(robot)
+
+
 def robot_primitives(robot) -> tuple:
-    """The URDF's collision primitives of links link0..link6 and E."""
+    """The URDF's collision primitives of links link0..link6 and E (boxes and cylinders; any
+    other collision geometry of those links is one ConfigError line, never dropped)."""
     root = ET.parse(robot.urdf_path).getroot()
     out = []
     for link in root.findall("link"):
@@ -53,6 +71,12 @@ def robot_primitives(robot) -> tuple:
             elif cyl is not None:
                 out.append(Primitive(LINK_FRAME[name], "cylinder",
                                      (float(cyl.get("radius")), float(cyl.get("length"))), T))
+            else:
+                from campaign.errors import ConfigError
+
+                kinds = ", ".join(f"<{g.tag}>" for g in geom) if geom is not None else "none"
+                raise ConfigError(f"{robot.urdf_path}: link '{name}': collision geometry {kinds} is not supported by "
+                                  "the planner (boxes and cylinders only)")
     return tuple(out)
 
 

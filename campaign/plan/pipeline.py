@@ -133,6 +133,9 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         cfg = run.config  # the run's own, or the embedded default for a new folder
     run = RunFolder(run_dir, config=cfg)
     robot = run.robot()
+    from campaign.plan.geometry import check_plannable
+
+    check_plannable(robot)
     scene = run.scene()
     cells = np.maximum(1, np.round(np.asarray(cfg.plan.grid_cells, dtype=float) * float(grid_scale))).astype(int)
     try:

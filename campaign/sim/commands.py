@@ -26,7 +26,16 @@ def register(sub):
     p.add_argument("--noise-um", type=float, default=10.0, help="tracker noise σ per coordinate, µm (default: %(default)s)")
     p.add_argument("--hidden", metavar="EFFECT[,EFFECT...]", default="",
                    help="physical effects to hide in the truth, at their typical magnitude")
-    p.add_argument("--robot", default="comau_racer5_080", help="robot (default: %(default)s)")
+    p.add_argument("--robot", default="comau_racer5_080", help="robot: name, URDF or robot.yaml (default: %(default)s)")
+    p.add_argument("--tool-frame", default=None, metavar="LINK", help="tool frame (default: the robot's)")
+    p.add_argument("--base-frame", default=None, metavar="LINK", help="base frame (default: the URDF's root)")
+    p.add_argument("--kind", choices=("pose", "point", "markers"), default="pose",
+                   help="measurement kind: 6-D poses (default), one reflector (x,y,z), raw reflectors (m1_x,..)")
+    p.add_argument("--frame", choices=("robot", "tracker"), default="robot",
+                   help="data in the robot's base frame (default) or in the frame of a tracker at an unknown pose "
+                        "2-3 m away")
+    p.add_argument("--miss-rate", type=float, default=0.0,
+                   help="raw reflectors: probability that the tracker misses one (empty cell)")
     p.set_defaults(func=_synth)
 
 
@@ -39,10 +48,33 @@ def _synth(args):
 
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
-    poses, truth = synthetic_campaign(load_robot(args.robot), args.poses, seed=args.seed,
-                                      noise_m=args.noise_um * 1e-6, hidden=parse_effect_list(args.hidden))
+    robot = load_robot(args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
+    if args.kind == "pose" and args.frame == "robot" and args.miss_rate == 0:
+        poses, truth = synthetic_campaign(robot, args.poses, seed=args.seed, noise_m=args.noise_um * 1e-6,
+                                          hidden=parse_effect_list(args.hidden))
+    else:
+        from dataclasses import replace
+
+        from campaign.sim.truth import random_tracker_pose, synthesize_kind
+
+        if not 0 <= args.miss_rate < 1:
+            raise ConfigError(f"--miss-rate must be in [0, 1), got {args.miss_rate}")
+        # one-reflector data identify fewer parameters: the truth's errors go where they can see them
+        _, truth = synthetic_campaign(robot, 1, seed=args.seed, noise_m=args.noise_um * 1e-6,
+                                      hidden=parse_effect_list(args.hidden), position_only=args.kind == "point")
+        if args.frame == "tracker":
+            truth = replace(truth, T_LI=random_tracker_pose(args.seed))
+        from campaign.sim.truth import random_joint_poses
+
+        q = random_joint_poses(robot, args.poses, seed=args.seed + 1)
+        context = {}
+        for e in truth.effects.effects:
+            if hasattr(e, "synthetic_context"):
+                context.update(e.synthetic_context(len(q), args.seed))
+        poses = synthesize_kind(truth, q, kind=args.kind, frame=args.frame, seed=args.seed + 2, context=context,
+                                miss_rate=args.miss_rate)
     out = Path(args.csv)
-    write_measured_csv(out, poses)
+    write_measured_csv(out, poses, robot)
     truth_path = Path(args.truth) if args.truth else out.with_suffix(".truth.yaml")
     write_truth(truth, truth_path)
     print(f"wrote {len(poses)} poses to {out}; truth to {truth_path}")

@@ -129,16 +129,18 @@ class TruthRobot:
 
 def make_truth(robot: RobotModel | None = None, *, seed: int | None = 0, scale: float = 1.0,
                noise_m: float = TRACKER_NOISE_M, resolution_m: float = TRACKER_RESOLUTION_M,
-               effects: dict | None = None, T_LI=None) -> TruthRobot:
+               effects: dict | None = None, T_LI=None, position_only: bool = False) -> TruthRobot:
     """A truth robot with geometric errors of the size of the paper's Table 4.
 
     ``seed=None`` takes Table 4 itself; a seed draws each base parameter as Table 4's
     magnitude times a random sign and a factor in [0.5, 1.5]. The errors are placed on the
     base parameters (``p_e = expand(p_b)``), so the geometric model can represent them
     exactly. ``effects``: name -> parameter vector of hidden physical effects.
+    ``position_only``: place them on the base set of position measurements (what one-reflector
+    data can identify), so that such data, too, can represent the truth exactly.
     """
     robot = robot or RobotModel.load()
-    base = base_parameters(robot)
+    base = base_parameters(robot, position_only=position_only)
     if seed is None:
         p_b = TABLE4_BASE.copy()
     else:
@@ -194,7 +196,7 @@ def write_truth(truth: TruthRobot, path) -> None:
 
 
 def synthetic_campaign(robot: RobotModel, n_poses: int, *, seed: int = 0, noise_m: float = TRACKER_NOISE_M,
-                       hidden=()) -> tuple:
+                       hidden=(), position_only: bool = False) -> tuple:
     """(MeasuredPoses, TruthRobot): ``n_poses`` random poses measured on a truth drawn from
     ``seed`` with the named physical effects hidden at their typical magnitude (`campaign synth`)."""
     from campaign.errors import ConfigError
@@ -207,13 +209,77 @@ def synthetic_campaign(robot: RobotModel, n_poses: int, *, seed: int = 0, noise_
     for name in hidden:
         e = make_effect(name, robot)
         effects[name] = e.typical_params(seed) if hasattr(e, "typical_params") else e.initial_params()
-    truth = make_truth(robot, seed=seed, noise_m=noise_m, effects=effects)
+    truth = make_truth(robot, seed=seed, noise_m=noise_m, effects=effects, position_only=position_only)
     q = random_joint_poses(robot, n_poses, seed=seed + 1)
     context = {}
     for e in truth.effects.effects:
         if hasattr(e, "synthetic_context"):
             context.update(e.synthetic_context(len(q), seed))
     return synthesize(truth, q, seed=seed + 2, context=context), truth
+
+
+def random_tracker_pose(seed: int) -> np.ndarray:
+    """T_LI (4, 4) of a tracker at an unknown pose 2-3 m from the base: its origin at a random
+    direction and distance in F_I, its axes turned at random (the pose F_I has in F_L)."""
+    from campaign.measure.reflectors import invert
+
+    rng = np.random.default_rng(seed + 7919)
+    d = rng.uniform(2.0, 3.0)
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    T_IL = np.eye(4)
+    T_IL[:3, :3] = cardan_xyz(*rng.uniform(-np.pi, np.pi, 3))
+    T_IL[:3, 3] = d * u
+    return invert(T_IL)
+
+
+def synthesize_kind(truth: TruthRobot, q, *, kind: str = "pose", frame: str = "robot", seed: int = 0,
+                    context=None, miss_rate: float = 0.0) -> MeasuredPoses:
+    """Measured data of one kind as a tracker would give it, in the robot's frame (through the
+    set-up points, as :func:`synthesize`) or in the tracker's own frame (``frame="tracker"``).
+
+    kind: "pose" (6-D from the reflector set by Kabsch), "point" (one reflector: the tool
+    frame's origin, or the robot's single reflector), "markers" (raw reflector centres; each
+    missed with probability ``miss_rate``).
+    """
+    from campaign.measure.reflectors import fit_markers, invert
+
+    rng = np.random.default_rng(seed)
+    q = np.asarray(q, dtype=float)
+    n = len(q)
+    context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
+    t = np.arange(n, dtype=float) * 20.0
+    if frame == "robot":
+        T_LI_measured = frame_from_setup_points(*truth.setup_points_in_L(rng))
+        to_data = invert(T_LI_measured)
+    else:
+        T_LI_measured, to_data = None, np.eye(4)
+    T_LE = truth.T_LI @ truth.pose(q, effect_context(context, t))
+    if kind == "point":
+        P_E = truth.robot.reflector_positions_in_E if len(truth.robot.reflectors) == 1 else np.zeros((1, 3))
+    else:
+        P_E = tool_points(truth.robot)
+    P_L = truth._measure_points(transform_points(T_LE, np.broadcast_to(P_E, (n,) + P_E.shape)), rng)
+    P = transform_points(to_data, P_L)
+    xyz, rv, markers = np.full((n, 3), np.nan), np.full((n, 3), np.nan), None
+    if kind == "point":
+        xyz = P[:, 0]
+    else:
+        if kind == "markers" and miss_rate > 0:
+            P = P.copy()
+            P[rng.uniform(size=P.shape[:2]) < miss_rate] = np.nan
+            markers = P
+        T, _ = fit_markers(P_E, P)
+        ok = np.isfinite(T[:, 0, 0])
+        xyz = T[:, :3, 3]
+        from campaign.model.rotations import matrix_to_rotvec
+
+        rv[ok] = matrix_to_rotvec(T[ok, :3, :3])
+        if kind == "markers" and markers is None:
+            markers = P
+    return MeasuredPoses.from_vectors(np.arange(1, n + 1, dtype=np.int64), t, q, xyz, rv, context, kind=kind,
+                                      frame=frame, markers=markers,
+                                      marker_positions=P_E if kind == "markers" else None)
 
 
 def read_truth(path, robot: RobotModel | None = None) -> TruthRobot:

@@ -1,0 +1,151 @@
+"""Issue 12, items 3-7 and 10: another robot's data of every kind, in the tracker's frame, through
+the command line (synth -> import -> calibrate -> diagnose -> export). The truth is read only after
+the pipeline has answered."""
+
+import json
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from campaign.cli import main
+from campaign.identify.split import train_test_split
+from campaign.measure.csvio import ImportOptions, read_measured_csv, write_measured_csv
+from campaign.measure.store import open_run
+from campaign.model.robot import RobotModel
+from campaign.errors import DataError
+
+
+def _erd(rel):
+    try:
+        dist = metadata.distribution("example-robot-data")
+    except metadata.PackageNotFoundError:
+        pytest.skip("example-robot-data (test extra) is not installed")
+    return str(Path(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")) / rel)
+
+
+ROBOTS = {
+    "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),  # 6R, z up, joint axes along y
+    "panda": ("panda_description/urdf/panda.urdf", "panda_hand"),  # 7R
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["pose", "point", "markers"])
+@pytest.mark.parametrize("which", ["ur10", "panda"])
+def test_heldout_error_reaches_the_noise_floor(which, kind, tmp_path, capsys):
+    from campaign.sim.truth import read_truth
+
+    rel, tool = ROBOTS[which]
+    urdf = _erd(rel)
+    csv_path, truth_path = tmp_path / "m.csv", tmp_path / "truth.yaml"
+    extra = ["--miss-rate", "0.03"] if kind == "markers" else []
+    assert main(["synth", "--csv", str(csv_path), "--truth", str(truth_path), "--robot", urdf, "--tool-frame", tool,
+                 "--poses", "360", "--seed", "5", "--kind", kind, "--frame", "tracker", *extra]) == 0
+    markers = []
+    if kind == "markers":
+        (tmp_path / "markers.yaml").write_text("markers: [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]]\n")
+        markers = ["--markers", str(tmp_path / "markers.yaml")]
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--robot", urdf, "--tool-frame", tool,
+                 "--frame", "tracker", "--quiet", *markers]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    test = metrics["stages"]["geometric"]["test"]
+    assert metrics["frame"] == "tracker" and metrics["measurement_kind"] == kind
+    assert ("orientation_mrad" in test) == (kind != "point")
+    # only now the truth: the noise floor is the measurement's own error at the tool origin
+    robot = RobotModel.load(urdf, tool_frame=tool)
+    truth = read_truth(truth_path, robot)
+    with open_run(run) as store:
+        poses = store.load_measured()
+    ok = np.isfinite(poses.xyz).all(axis=1)
+    te = train_test_split(poses.pose_id) & ok
+    true_xyz = (truth.T_LI @ truth.pose(poses.q[te]))[:, :3, 3]
+    floor_mm = 1e3 * np.linalg.norm(poses.xyz[te] - true_xyz, axis=1).mean()
+    assert test["n_poses"] == int(te.sum())
+    assert test["position_mm"]["mean"] <= 1.1 * floor_mm, (test["position_mm"]["mean"], floor_mm)
+    # the nominal stage is the nominal model after registration: mm, not the tracker's metres away
+    assert metrics["stages"]["nominal"]["test"]["position_mm"]["mean"] < 50
+    T_LI = np.asarray(metrics["tracker"]["tracker_pose_identified"])
+    assert 2.0 <= np.linalg.norm(np.linalg.inv(T_LI)[:3, 3]) <= 3.0 + 0.01
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert "verdict" in doc and "ranking" in doc and "noise_floor_mm" in doc
+    # the calibrated model out as a URDF, and the measured data back out as a CSV of the same kind
+    assert main(["export", str(run), "--urdf", str(tmp_path / "cal.urdf"), "--csv", str(tmp_path / "back.csv")]) == 0
+    back = read_measured_csv(tmp_path / "back.csv", robot,
+                             ImportOptions(markers=poses.marker_positions if kind == "markers" else None))
+    assert back.kind == kind and len(back) == len(poses)
+    np.testing.assert_allclose(back.q, poses.q, atol=0)
+
+
+def test_units_and_kinds_from_the_header(tmp_path):
+    robot = RobotModel.load(_erd(ROBOTS["panda"][0]))
+    rng = np.random.default_rng(3)
+    q = rng.uniform(robot.q_lower, robot.q_upper, size=(12, 7))
+    xyz = rng.uniform(-1, 1, size=(12, 3))
+    head = "pose_id," + ",".join(f"q{j}" for j in range(1, 8)) + ",x,y,z,temperature_c\n"
+    (tmp_path / "si.csv").write_text(head + "".join(
+        f"{i}," + ",".join(repr(float(v)) for v in q[i]) + "," + ",".join(repr(float(v)) for v in xyz[i]) + ",21\n" for i in range(12)))
+    (tmp_path / "degmm.csv").write_text(head + "".join(
+        f"{i}," + ",".join(repr(float(v)) for v in np.rad2deg(q[i])) + "," + ",".join(repr(float(v)) for v in 1e3 * xyz[i]) + ",21\n"
+        for i in range(12)))
+    a = read_measured_csv(tmp_path / "si.csv", robot)
+    b = read_measured_csv(tmp_path / "degmm.csv", robot, ImportOptions(angle_unit="deg", length_unit="mm"))
+    assert a.kind == b.kind == "point" and not a.has_orientation and np.isnan(a.time_s).all()
+    np.testing.assert_allclose(b.q, a.q, rtol=1e-14)
+    np.testing.assert_allclose(b.xyz, a.xyz, rtol=1e-14)
+    np.testing.assert_allclose(a.context["temperature_c"], 21)
+    # degrees without the option: one line naming line and column
+    with pytest.raises(DataError, match=r"degmm\.csv: line \d+, column q\d: .*--angle-unit deg"):
+        read_measured_csv(tmp_path / "degmm.csv", robot)
+    # a column beyond the robot's joints, and data outside its limits, name the robot
+    six = RobotModel.load(_erd(ROBOTS["ur10"][0]), tool_frame="tool0")
+    with pytest.raises(DataError, match=r"column q7: the robot has 6 joints"):
+        read_measured_csv(tmp_path / "si.csv", six)
+    (tmp_path / "lim.csv").write_text(head + "1," + ",".join(["0"] * 3 + ["0.5"] + ["0"] * 3) + ",0,0,0,21\n")
+    with pytest.raises(DataError, match=r"line 2, column q4: 0.5 rad is outside the joint limit .* of panda"):
+        read_measured_csv(tmp_path / "lim.csv", robot)
+
+
+def test_raw_markers_need_their_nominal_positions_and_missed_cells_are_empty(tmp_path, robot):
+    head = "pose_id,time_s," + ",".join(f"q{j}" for j in range(1, 7)) + "," + \
+        ",".join(f"m{i}_{a}" for i in (1, 2, 3, 4) for a in "xyz") + "\n"
+    row = "1,0," + ",".join(["0.1"] * 6) + ",0.1,0,0.5,,,,0,0.1,0.5,0,0,0.6\n"
+    (tmp_path / "m.csv").write_text(head + row)
+    with pytest.raises(DataError, match=r"4 reflectors in the header, 3 nominal positions"):
+        read_measured_csv(tmp_path / "m.csv", robot)
+    P = np.array([[0.1, 0, 0], [0.05, 0.05, 0], [0, 0.1, 0], [0, 0, 0.1]])
+    p = read_measured_csv(tmp_path / "m.csv", robot, ImportOptions(markers=P))
+    assert p.kind == "markers" and np.isnan(p.markers[0, 1]).all() and np.isfinite(p.xyz).all()
+    # the fit of the three seen reflectors: the tool origin (a pure translation here)
+    np.testing.assert_allclose(p.xyz[0], [0.0, 0.0, 0.5], atol=1e-12)
+    write_measured_csv(tmp_path / "back.csv", p)
+    assert ",,," in (tmp_path / "back.csv").read_text()
+
+
+def test_too_few_poses_is_one_line_saying_how_many(tmp_path, capsys):
+    urdf = _erd(ROBOTS["ur10"][0])
+    csv_path = tmp_path / "m.csv"
+    assert main(["synth", "--csv", str(csv_path), "--robot", urdf, "--tool-frame", "tool0", "--poses", "8",
+                 "--kind", "point"]) == 0
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--robot", urdf, "--tool-frame", "tool0",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "base parameters" in err[0] and "training poses" in err[0] and "ur10" in err[0]
+
+
+def test_plan_for_another_robot_is_one_clear_refusal(tmp_path, capsys):
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(f"robot: {_erd(ROBOTS['ur10'][0])}\ntool_frame: tool0\n")
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--run", str(run)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ur10" in err[0] and "planning supports only 6R" in err[0]
+    assert not (run / "plan").exists()
