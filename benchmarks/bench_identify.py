@@ -2,6 +2,7 @@
 
     python benchmarks/bench_identify.py [--poses 14000] [--robot NAME|URDF|robot.yaml [--tool-frame LINK]]
     python benchmarks/bench_identify.py --robot panda   # the 7R case: example-robot-data's Panda
+    (on a shared machine: OPENBLAS_NUM_THREADS=1, else BLAS threads fight over the cores)
 
 Simulates a campaign with Table-4-sized geometric errors and 10 µm tracker noise,
 identifies the 30 base parameters on the 80 % training split and reports wall time,
@@ -73,6 +74,8 @@ def main():
         "ratio_to_floor": mean(dz) / mean(floor),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "load_average": os.getloadavg(),
+        # on a shared 2-core machine a multi-threaded BLAS is many times slower (14 s vs 1 s measured)
+        "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
     }
     print(f"poses {args.poses} (train {res['train_poses']}, test {res['test_poses']})")
     print(f"identification {t_fit:.2f} s in {model.n_iter_} iterations (+ base-parameter analysis {t_base:.2f} s)")

@@ -149,3 +149,19 @@ def test_plan_for_another_robot_is_one_clear_refusal(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ur10" in err[0] and "planning supports only 6R" in err[0]
     assert not (run / "plan").exists()
+
+
+def test_data_that_do_not_fit_the_runs_robot_name_robot_and_pose(tmp_path, capsys):
+    urdf = _erd(ROBOTS["ur10"][0])
+    csv_path = tmp_path / "m.csv"
+    assert main(["synth", "--csv", str(csv_path), "--robot", urdf, "--tool-frame", "tool0", "--poses", "60"]) == 0
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--robot", urdf, "--tool-frame", "tool0",
+                 "--quiet"]) == 0
+    # the run is told another robot afterwards: calibrate names that robot and the first pose outside it
+    cfg = run / "campaign.yaml"
+    cfg.write_text(cfg.read_text().replace(urdf, "comau_racer5_080").replace("tool_frame: tool0\n", ""))
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "COMAU" in err[0] and "pose_id" in err[0] and "outside the joint limit" in err[0], err

@@ -183,7 +183,7 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     if poses.q.shape[1] != robot.n_joints:
         raise DataError(f"{run_dir}: the measurements have {poses.q.shape[1]} joint values per pose, the run's robot "
                         f"{robot.name} has {robot.n_joints} joints")
-    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK)
+    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK, pose_ids=poses.pose_id)
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     if not usable.all():  # raw reflectors: fewer than three seen
         say(f"{int((~usable).sum())} of {len(poses)} poses have fewer than three reflectors seen: left out")
@@ -361,9 +361,10 @@ def summary_text(result: CalibrationResult) -> str:
     if m.correlated_pairs_:
         worst = sorted(m.correlated_pairs_, key=lambda t: -abs(t[2]))[:5]
         more = len(m.correlated_pairs_) - len(worst)
-        lines.append(f"strongly correlated (|r| > 0.95): {len(m.correlated_pairs_)} pair(s); the worst: "
-                     + "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in worst)
-                     + (f"; {more} more in params.yaml" if more > 0 else ""))
+        pairs = "; ".join(f"{a} ~ {b} (r = {r:+.3f})" for a, b, r in worst)
+        lines.append(f"strongly correlated: {pairs}" if more <= 0 else
+                     f"strongly correlated: {len(m.correlated_pairs_)} pairs with |r| > 0.95; the worst five: {pairs}; "
+                     "all in params.yaml")
     if "ann_skipped" in result.extra:
         lines.append(result.extra["ann_skipped"])
     lines.append(result.floor_line())

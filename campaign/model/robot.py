@@ -282,7 +282,7 @@ class RobotModel:
             return q
         return np.linalg.solve(self.controller_matrix, (q - self.controller_offset).T).T
 
-    def check_joints(self, q, *, field: str = "q", slack: float = 0.0) -> np.ndarray:
+    def check_joints(self, q, *, field: str = "q", slack: float = 0.0, pose_ids=None) -> np.ndarray:
         """Validate joint vectors; return them as float64 (n, N).
 
         Raises :class:`campaign.errors.DataError` naming the robot, the row, the joint, the
@@ -307,7 +307,8 @@ class RobotModel:
             i, j = np.argwhere(lo | hi)[0]
             lim = self.q_lower[j] if lo[i, j] else self.q_upper[j]
             u = self.joint_units[j]
-            raise DataError(f"{field}: row {i}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
+            where = f"pose_id {int(pose_ids[i])}" if pose_ids is not None else f"row {i}"
+            raise DataError(f"{field}: {where}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
                             f"{lim:.6g} {u} of {self.name}")
         return q
 
