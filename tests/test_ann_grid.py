@@ -163,3 +163,37 @@ def test_an_unreachable_scheduler_and_a_bad_worker_count_are_named():
         make_executor(scheduler="tcp://127.0.0.1:9")
     with pytest.raises(ConfigError, match="--workers must be at least 1"):
         make_executor(workers=0)
+
+
+def test_a_fleet_of_runs_calibrated_on_dask_matches_the_local_calibrations(tmp_path, robot):
+    pytest.importorskip("distributed")
+    from campaign.ann.grid import DaskExecutor
+    from campaign.identify.calibrate import calibrate
+    from campaign.identify.fleet import calibrate_runs
+    from campaign.measure.csvio import write_measured_csv
+    from campaign.measure.store import import_csv
+    from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+    runs = []
+    for seed in (3, 4):  # two robots of one type, each with its own errors
+        meas = synthesize(make_truth(robot, seed=seed), random_joint_poses(robot, 200, seed=seed + 10), seed=seed + 20)
+        write_measured_csv(tmp_path / f"m{seed}.csv", meas)
+        import_csv(tmp_path / f"m{seed}.csv", tmp_path / f"run{seed}", robot)
+        runs.append(tmp_path / f"run{seed}")
+    ex = DaskExecutor(workers=2)
+    try:
+        remote = calibrate_runs(runs, executor=ex, effects=(), ann=False, write=False)
+    finally:
+        ex.close()
+    for run in runs:
+        local = calibrate(run, effects=(), ann=False, write=False).metrics
+        got = remote[str(run)]
+        assert got["order"] == local["order"] == ["nominal", "geometric"]
+        for stage in local["order"]:
+            for block in ("position_mm", "orientation_mrad"):
+                for key in ("max", "mean"):
+                    assert got["stages"][stage]["test"][block][key] == pytest.approx(
+                        local["stages"][stage]["test"][block][key], rel=1e-9)
+    # the two robots differ: the fleet did not calibrate one run twice
+    a, b = (remote[str(r)]["stages"]["nominal"]["test"]["position_mm"]["mean"] for r in runs)
+    assert abs(a - b) > 1e-3
