@@ -165,3 +165,33 @@ def test_data_that_do_not_fit_the_runs_robot_name_robot_and_pose(tmp_path, capsy
     assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "COMAU" in err[0] and "pose_id" in err[0] and "outside the joint limit" in err[0], err
+
+
+def test_one_reflector_off_the_tool_origin(tmp_path, capsys):
+    """robot.yaml names one reflector 6 cm off tool0: x,y,z data are fitted at that reflector."""
+    from campaign.sim.truth import read_truth
+
+    (tmp_path / "robot.yaml").write_text(
+        f"urdf: {_erd(ROBOTS['ur10'][0])}\nname: ur10_smr\ntool_frame: tool0\n"
+        "reflectors:\n  - {name: smr, position_m: [0.03, 0.02, 0.05]}\n")
+    spec = str(tmp_path / "robot.yaml")
+    csv_path, truth_path = tmp_path / "m.csv", tmp_path / "t.yaml"
+    assert main(["synth", "--csv", str(csv_path), "--truth", str(truth_path), "--robot", spec, "--poses", "300",
+                 "--seed", "2", "--kind", "point", "--frame", "tracker"]) == 0
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--robot", spec, "--frame", "tracker", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 0
+    test = json.loads((run / "calibration" / "metrics.json").read_text())["stages"]["geometric"]["test"]
+    robot = RobotModel.load(spec)
+    truth = read_truth(truth_path, robot)
+    with open_run(run) as store:
+        poses = store.load_measured()
+    te = train_test_split(poses.pose_id)
+    T = truth.T_LI @ truth.pose(poses.q[te])
+    true_xyz = T[:, :3, 3] + T[:, :3, :3] @ np.array([0.03, 0.02, 0.05])
+    floor_mm = 1e3 * np.linalg.norm(poses.xyz[te] - true_xyz, axis=1).mean()
+    assert test["position_mm"]["mean"] <= 1.1 * floor_mm, (test["position_mm"]["mean"], floor_mm)
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ranking"] is not None

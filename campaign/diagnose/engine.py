@@ -290,16 +290,22 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     with open_run(run_dir) as store:
         poses = store.load_measured()
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
+    # the data as calibrate's model sees them: registered from the tracker's frame, at the measured point
+    from campaign.identify.calibrate import prepare_measured
+
+    poses, robot, _ = prepare_measured(robot, poses, ~is_test)
+    position_only = not poses.has_orientation
     tr = np.flatnonzero(~is_test)
     if len(tr) < 10 * folds:
         raise DataError(f"{run_dir}: {len(tr)} training poses are too few for {folds}-fold diagnosis")
     context = effect_context(poses.context, poses.time_s)
     fold = _folds(poses.pose_id[tr], folds)
-    base = base_parameters(robot)
+    base = base_parameters(robot, position_only=position_only)
 
     ctx_tr = {key: v[tr] for key, v in context.items()}
     say("current model on the whole training set")
-    full = CalibrationModel(robot=robot, effects=list(current)).fit(poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
+    full = CalibrationModel(robot=robot, effects=list(current), position_only=position_only).fit(
+        poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
     noise = full.noise_sigma_
 
     def heldout_errors(effs, keep_fit_residuals=False):
@@ -312,7 +318,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
             fit_idx, out_idx = tr[fold != k], tr[fold == k]
             ctx_fit = {key: v[fit_idx] for key, v in context.items()}
             ctx_out = {key: v[out_idx] for key, v in context.items()}
-            m = CalibrationModel(robot=robot, effects=effs, estimate_noise=False,
+            m = CalibrationModel(robot=robot, effects=effs, estimate_noise=False, position_only=position_only,
                                  sigma_position_m=noise["position_m"],
                                  sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
             m.fit(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit, base=base, init=full.values_)

@@ -123,6 +123,28 @@ def check_pose_count(run_dir, robot, n_train: int, n_test: int, position_only: b
                         "with the 80/20 split)")
 
 
+def measured_point(robot, poses):
+    """Where one-reflector data were measured in the tool frame, (3,) m: robot.yaml's single
+    reflector, else the tool frame's origin (None for other kinds)."""
+    if poses.kind != "point":
+        return None
+    return np.asarray(robot.reflector_positions_in_E[0]) if len(robot.reflectors) == 1 else np.zeros(3)
+
+
+def prepare_measured(robot, poses, train):
+    """The data as the model sees them: (poses in F_I, the robot whose tool frame is the measured
+    point, the tracker registration or None). One-reflector data measured at robot.yaml's single
+    reflector are fitted at that reflector; data in the tracker's frame are registered
+    (:func:`register_tracker`) on the ``train`` poses. Used by calibrate and diagnose alike."""
+    point = measured_point(robot, poses)
+    if point is not None:
+        robot = robot.with_tool_point(point)
+    tracker = None
+    if poses.frame == "tracker":
+        poses, tracker = register_tracker(robot, poses, train)
+    return poses, robot, tracker
+
+
 def register_tracker(robot, poses, train):
     """Measurements in the tracker's frame L into the robot's frame: the closed-form rigid
     registration T_LI0 of the nominal model's tool points to the measured ones on the training
@@ -192,9 +214,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
     check_pose_count(run_dir, robot, int(tr.sum()), int(te.sum()), position_only)
-    tracker = None
-    if poses.frame == "tracker":
-        poses, tracker = register_tracker(robot, poses, tr)
+    poses, robot, tracker = prepare_measured(robot, poses, tr)
+    if tracker is not None:
         say(f"measurements in the tracker's frame: registered to the nominal model "
             f"(rms {tracker['registration_rms_mm']:.3f} mm over {int(tr.sum())} training poses)")
     context = effect_context(poses.context, poses.time_s)
@@ -231,12 +252,20 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         add_stage(stage_name(effects), dz_model)
     extra = {"identification_time_s": t_geo, "effects": list(effects), "measurement_kind": poses.kind,
              "frame": poses.frame}
+    point = measured_point(robot, poses)
+    if point is not None:
+        extra["measured_point_in_tool_m"] = [float(v) for v in point]
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
         extra["tracker"] = tracker
     from campaign.diagnose.floor import noise_floor  # repeats, drift checks, stated noise: never the model
 
     extra["noise_floor"] = noise_floor(run_dir, poses, robot).as_json()
+    if ann and not poses.has_orientation:
+        ann = False
+        extra["ann_skipped"] = ("no neural compensator: it is trained on 6-D residuals, and this run measured "
+                                "positions only (one reflector)")
+        say(extra["ann_skipped"])
     if ann == "auto":
         ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
         if not ann:
@@ -319,6 +348,8 @@ def _write(result: CalibrationResult, robot, geo) -> None:
     params = {"robot": robot.name, "model_stage": result.order[-1] if not result.extra.get("ann_stage")
               else result.extra.get("model_stage_before_ann", result.order[-1])}
     params.update(_param_block(model))
+    if "measured_point_in_tool_m" in result.extra:  # the model's tool frame is this point (one reflector)
+        params["measured_point_in_tool_m"] = result.extra["measured_point_in_tool_m"]
     if model is not geo:
         params["geometric_only"] = _param_block(geo)
     # networks trained by this calibrate run (stage -> file beside params.yaml)

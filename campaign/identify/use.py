@@ -96,6 +96,8 @@ class CalibratedRobot:
             raise DataError(f"{metrics_path}: malformed ({exc.__class__.__name__})") from None
         params = read_yaml_mapping(params_path, DataError)
         self.robot = robot or RunFolder(self.run_dir).robot()
+        if params.get("measured_point_in_tool_m") is not None:  # one-reflector data: the model's tool point
+            self.robot = self.robot.with_tool_point(params["measured_point_in_tool_m"])
         if params.get("robot") not in (None, self.robot.name):
             raise DataError(f"{params_path}: calibrated for robot {params.get('robot')!r}, "
                             f"the run's robot is {self.robot.name!r}")

@@ -268,6 +268,18 @@ class RobotModel:
     def q_mid(self) -> np.ndarray:
         return _read_only(0.5 * (self.q_lower + self.q_upper))
 
+    def with_tool_point(self, point_in_tool) -> "RobotModel":
+        """The same robot whose tool frame is moved (not turned) to ``point_in_tool`` (3,), m:
+        the model of one-reflector data measured at a reflector off the tool frame's origin."""
+        import dataclasses
+
+        p = np.asarray(point_in_tool, dtype=float).reshape(3)
+        if not np.any(p):
+            return self
+        t = np.array(self.t_nominal)
+        t[-1] = t[-1] + self.R_nominal[-1] @ p
+        return dataclasses.replace(self, t_nominal=_read_only(t), name=self.name)
+
     def to_model_q(self, q_controller) -> np.ndarray:
         """q_model = A q_controller + b, (n, N) (robot.yaml's ``controller`` convention)."""
         q = np.asarray(q_controller, dtype=float)
