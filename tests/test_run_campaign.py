@@ -171,3 +171,25 @@ def test_retry_failed_measures_the_failed_poses_again_and_stores_each_once(tmp_p
     assert [r[0] for r in rows] == list(range(1000, 1030)) and all(r[1] == "measured" for r in rows)
     with open_run(run) as store:
         assert store.get_meta("id_epoch") == 1 and store.events("retry_failed")[0][3]["pose_ids"] == failed
+
+
+def test_run_in_the_trackers_frame_then_calibrate_identifies_the_tracker(tmp_path, robot, runs):
+    """`run --frame tracker`: no set-up points; poses stored in F_L; calibrate registers them."""
+    import json
+
+    run = runs.make(n=60, sim={"noise_m": 1e-6, "hidden_effects": []})
+    assert main(["run", str(run), "--sim", "--quiet", "--frame", "tracker"]) == 0
+    with open_run(run) as store:
+        poses = store.load_measured()
+        assert store.get_meta("frame") == "tracker" and store.get_meta("T_LI") is None
+    assert poses.frame == "tracker"
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    truth = read_truth(run / "sim" / "truth.yaml", robot)  # only now, after the pipeline answered
+    T_true = truth.T_LI @ truth.pose(poses.q)
+    assert np.max(np.abs(T_true[:, :3, 3] - poses.xyz)) < 1e-5  # 1 µm noise per reflector
+    assert metrics["frame"] == "tracker"
+    assert metrics["stages"]["nominal"]["test"]["position_mm"]["mean"] < 50  # registered, not metres away
+    assert metrics["stages"]["geometric"]["test"]["position_mm"]["mean"] < 5e-3
+    # a run measured in one frame is not resumed in the other
+    assert main(["run", str(run), "--sim", "--quiet"]) == 1

@@ -36,6 +36,9 @@ def register(sub):
                    help="forget the poses stored as failed and measure them again")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verbose", action="store_true", help="print every retry and reconnect on stderr")
+    p.add_argument("--frame", choices=("robot", "tracker"), default="robot",
+                   help="store poses in the robot's base frame from the set-up points (default), or in the "
+                        "tracker's own frame without a set-up: calibrate then identifies the tracker's pose")
     p.set_defaults(func=_run)
 
 
@@ -53,7 +56,7 @@ def _run(args):
                                  "tracker": _hostport(args.tracker, "tracker")}
     res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
                       log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
-                      verbose=args.verbose, **peers)
+                      verbose=args.verbose, frame=args.frame, **peers)
     h = res.simulated_duration_s / 3600
     print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
           f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"

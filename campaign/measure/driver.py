@@ -207,7 +207,8 @@ class RunResult:
 
 
 def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOptions(), *, progress=False,
-                 log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False, plan=None) -> RunResult:
+                 log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False, plan=None,
+                 frame: str = "robot") -> RunResult:
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
     controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
@@ -260,7 +261,19 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             store.add_event("session_start", {"controller": f"{ctrl.host}:{ctrl.port}",
                                               "tracker": f"{trk.host}:{trk.port}", "stored_before": stored_before,
                                               "planned": len(ids)})
-            T_LI = store.get_meta("T_LI")
+            recorded = store.get_meta("frame")
+            if recorded is not None and recorded != frame:
+                from campaign.errors import ConfigError
+
+                raise ConfigError(f"{run_dir}: measured so far in the {recorded}'s frame; resume with --frame {recorded}")
+            if frame == "tracker":
+                # poses stay in the tracker's frame F_L (no base-frame set-up); calibrate identifies
+                # the tracker's pose with the model
+                if recorded is None:
+                    store.set_meta("frame", "tracker")
+                T_LI = np.eye(4).tolist()
+            else:
+                T_LI = store.get_meta("T_LI")
             if T_LI is None:
                 T_LI = _setup(store, trk, opts, base)
             T_LI = np.array(T_LI, dtype=float)

@@ -9,7 +9,7 @@ from campaign.run import RunFolder
 
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
                 log=None, max_poses=None, poses_csv=None, retry_failed: bool = False,
-                verbose: bool = False) -> RunResult:
+                verbose: bool = False, frame: str = "robot") -> RunResult:
     """Measure the planned poses of ``run_dir`` that have no stored outcome yet.
 
     sim: start the simulated cell (a child process, stopped at the end) and drive it;
@@ -37,7 +37,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
         for name in cfg.sim.hidden_effects:
             make_effect(name, robot)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
-              verbose=verbose, plan=plan)
+              verbose=verbose, plan=plan, frame=frame)
     with run.lock("run"):
         if sim:
             from campaign.sim.launcher import SimulatedCell
