@@ -195,3 +195,27 @@ def test_one_reflector_off_the_tool_origin(tmp_path, capsys):
     assert main(["diagnose", str(run), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["ranking"] is not None
+
+
+def test_correlated_pairs_are_a_count_and_the_worst_five(tmp_path):
+    from campaign.identify.calibrate import CalibrationResult, summary_text
+    from campaign.identify.metrics import error_stats
+    from campaign.identify.solver import CalibrationModel
+    from campaign.model.kinematics import forward
+
+    robot = RobotModel.load(_erd("tiago_description/robots/tiago.urdf"), base_frame="base_footprint",
+                            tool_frame="arm_tool_link")
+    rng = np.random.default_rng(0)
+    span = 0.2 * (robot.q_upper - robot.q_lower)  # a small corner of the workspace: parameters blur together
+    q = robot.q_mid + rng.uniform(-0.5, 0.5, size=(40, robot.n_joints)) * span
+    T = forward(robot, q, rng.normal(0, 1e-3, robot.n_params))
+    T[:, :3, 3] += rng.normal(0, 1e-5, (40, 3))
+    m = CalibrationModel(robot=robot, position_only=True).fit(q, T)
+    assert len(m.correlated_pairs_) > 5
+    st = {"train": error_stats(m.residuals(q, T), orientation=False)}
+    st["test"] = st["train"]
+    text = summary_text(CalibrationResult(tmp_path, {"geometric": st}, ["geometric"], m, np.zeros(40, bool)))
+    line = next(ln for ln in text.splitlines() if ln.startswith("strongly correlated"))
+    assert f"{len(m.correlated_pairs_)} pairs" in line and line.count(" ~ ") == 5
+    worst = sorted(abs(r) for _, _, r in m.correlated_pairs_)[-1]
+    assert f"{worst:.3f}" in line
