@@ -10,7 +10,7 @@ import torch
 from campaign.ann import ResidualNetwork, cross_validate
 from campaign.ann.adam import AdamOptions, train_batched
 from campaign.ann.grid import GridProgress, ProcessExecutor, run_grid
-from campaign.ann.network import MLP, joint_mapping
+from campaign.ann.mlp import MLP, joint_mapping
 from campaign.errors import ConfigError
 
 LO, HI = -np.ones(6) * 2.5, np.ones(6) * 2.5

@@ -4,7 +4,8 @@ import torch
 from scipy.optimize import minimize
 
 from campaign.ann import ResidualNetwork, br_update, compensate_pose
-from campaign.ann.network import MLP
+from campaign.ann.lm import MatrixFreeSolver, LMWorkspace, exact_trace_inverse, pcg
+from campaign.ann.mlp import MLP
 from campaign.errors import ConfigError, DataError, NotFittedError
 from campaign.identify.ann_stage import parse_sizes
 from campaign.model.kinematics import pose_error
@@ -91,8 +92,6 @@ def test_network_learns_a_smooth_residual():
 
 
 def test_matrix_free_lm_step_equals_the_direct_solve(small_net):
-    from campaign.ann.network import _pcg
-
     net, w, x, g = small_net
     _, cache = net.forward(w, x)
     alpha, beta, mu = 0.3, 2.0, 1e-2
@@ -101,19 +100,18 @@ def test_matrix_free_lm_step_equals_the_direct_solve(small_net):
     b = torch.randn(net.n_weights, generator=g, dtype=torch.float64)
     apply_A = lambda v: 2 * beta * net.vjp(w, x, cache, net.jvp(w, x, cache, v)) + (2 * alpha + mu) * v
     diag = 2 * beta * net.jtj_diagonal(w, x, cache) + 2 * alpha + mu
-    step, _ = _pcg(apply_A, b, diag, tol=1e-12, maxiter=2000)
+    step, _ = pcg(apply_A, b, diag, tol=1e-12, maxiter=2000)
     torch.testing.assert_close(step, torch.linalg.solve(A, b), atol=1e-8, rtol=1e-8)
 
 
 def test_hutchinson_trace_of_the_inverse_hessian_matches_the_exact_trace(small_net):
     net, w, x, g = small_net
-    model = ResidualNetwork(hidden=(7, 5), probes=400, cg_maxiter=200)
-    model.net_ = net
     _, cache = net.forward(w, x)
     alpha, beta = 0.5, 3.0
     J = net.jacobian(w, x)
-    exact = model._trace_inverse(w, x, cache, alpha, beta, g, JtJ=J.T @ J)
-    estimate = model._trace_inverse(w, x, cache, alpha, beta, g)
+    exact = exact_trace_inverse(J.T @ J, alpha, beta)
+    solver = MatrixFreeSolver(probes=400, cg_maxiter=200)
+    estimate = solver.trace_inverse(net, w, x, cache, alpha, beta, g, LMWorkspace())
     assert estimate == pytest.approx(exact, rel=0.05)
 
 

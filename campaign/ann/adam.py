@@ -9,9 +9,13 @@ members' own mean squared errors, so each member's trajectory is exactly the one
 alone (up to floating-point summation order). A member stops when its validation MSE has not
 improved for ``patience`` epochs; it keeps its best weights and is dropped from the batch.
 
-The network is the same as :class:`campaign.ann.network.MLP` (6 - N1 - N2 - 6, tanh, flat
+The network is the same as :class:`campaign.ann.mlp.MLP` (N - N1 - N2 - N_out, tanh, flat
 weight vector in the same order), so a member's best weights load into a
 :class:`~campaign.ann.network.ResidualNetwork` unchanged.
+
+Device: everything runs on ``device`` (a GPU when given one); inputs come from and results go
+back to numpy on the CPU, the mini-batch orders are drawn on the CPU (seeded generators), so
+the same seeds give the same batches on every device.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from campaign.ann.network import MLP
+from campaign.ann.mlp import MLP
 
 
 @dataclass(frozen=True)
@@ -91,7 +95,7 @@ def train_batched(hidden, x, targets, fit_rows, val_rows, *, seeds, options: Ada
                   device="cpu", progress=None):
     """Train B networks of one hidden size; returns (weights (B, N_w) float64 numpy, info per member).
 
-    x: (n, 6) mapped inputs (float); targets: (B, n, 6) mapped targets per member (rows a member
+    x: (n, N) mapped inputs (float); targets: (B, n, N_out) mapped targets per member (rows a member
     does not use may hold anything); fit_rows, val_rows: B integer index arrays into the n rows.
     progress: optional callable(epochs_done_now: int, active_members: int) called after every
     evaluation with the epochs run since the last call (for a whole-grid progress bar).

@@ -17,6 +17,14 @@ final network of the chosen size on the whole training set, with its evidence qu
 
 Tasks are dispatched largest first (cost ~ members × weights), so the two largest trainings of
 the default grid ((128, 64) on both priors) start at once and the small ones fill the gaps.
+
+Device: Adam trains on ``device``; ``"auto"`` is resolved where the task runs (a worker's GPU
+when torch finds one there, else its CPU). BR-LM trains on the CPU.
+
+Trust: Dask moves tasks and results with pickle over its sockets, and a scheduler runs whatever
+code its clients send. The project reads nothing pickled from a socket otherwise; Dask is
+opt-in, for a scheduler and workers you trust on a network you trust (or with Dask's TLS). The
+local cluster (``dask=True``) listens on 127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -68,21 +76,23 @@ def _worker_init(q, threads):
 def run_task(task: dict, report=None) -> dict:
     """Train one task's networks. Inputs and outputs are plain values (see :func:`make_tasks`).
 
-    Returns ``{"id", "weights" (M, N_w), "target_mean" (M, 6), "target_scale" (M, 6),
-    "heldout_pred" {"prior/fold": (n_k, 6)}, "members": [info...], "wall_s", "cpu_s"}``.
+    Returns ``{"id", "weights" (M, N_w), "target_mean" (M, N_out), "target_scale" (M, N_out),
+    "heldout_pred" {"prior/fold": (n_k, N_out)}, "members": [info...], "wall_s", "cpu_s"}``
+    (N_out = 6, or 3 for position-only residuals).
     report: optional callable(units) with the work done since the last call (members × epochs
     × weights); inside a local worker process the units go to the parent's progress queue.
     """
     import torch
 
-    from campaign.ann.network import MLP, ResidualNetwork
+    from campaign.ann.mlp import MLP
+    from campaign.ann.network import ResidualNetwork
 
     if report is None and _PROGRESS_QUEUE is not None:
         report = lambda units: _PROGRESS_QUEUE.put((task["id"], units))  # noqa: E731
     t0, c0 = time.perf_counter(), time.process_time()
-    device = task.get("device", "cpu")
+    device = resolve_device(task.get("device", "cpu"))  # "auto": this worker's GPU if it has one
     x, dz_of, hidden = task["x"], task["dz"], tuple(task["hidden"])
-    n_w = MLP(6, hidden, 6).n_weights
+    n_w = task["n_weights"]
     members = task["members"]
     out = {"id": task["id"], "members": []}
     if task["solver"] == "adam":
@@ -124,7 +134,7 @@ def run_task(task: dict, report=None) -> dict:
                                    "alpha": net.alpha_, "beta": net.beta_, "n_weights": n_w,
                                    "mse_normalised": net.mse_normalised_})
         W = np.stack(W)
-    net = MLP(6, hidden, 6)
+    net = MLP(task["n_in"], hidden, task["n_out"])
     preds = {}
     with torch.no_grad():
         for i, m in enumerate(members):
@@ -132,7 +142,8 @@ def run_task(task: dict, report=None) -> dict:
                 y, _ = net.forward(torch.as_tensor(W[i]), torch.as_tensor(x[m["heldout_rows"]]))
                 preds[f"{m['prior']}/{int(m['fold'])}"] = y.numpy() * scales[i] + means[i]
     out.update({"weights": np.asarray(W), "target_mean": np.stack(means), "target_scale": np.stack(scales),
-                "heldout_pred": preds, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
+                "heldout_pred": preds, "device": device if task["solver"] == "adam" else "cpu",
+                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0})
     return out
 
 
@@ -149,10 +160,10 @@ class SerialExecutor:
         self.threads = threads
 
     def map(self, fn, tasks, on_units, on_done):
-        from campaign.ann.network import _threads
+        from campaign.ann.mlp import torch_threads
 
         results = []
-        with _threads(self.threads):
+        with torch_threads(self.threads):
             for t in tasks:
                 r = fn(t, on_units and (lambda u, _id=t["id"]: on_units(_id, u)))
                 on_done(r)
@@ -209,10 +220,12 @@ class ProcessExecutor:
 
 class DaskExecutor:
     """Tasks on a Dask distributed cluster: an existing scheduler (``address``) or a local
-    cluster of ``workers`` processes (one thread each). Progress is reported per finished task.
+    cluster of ``workers`` processes (one thread each, scheduler and workers listening on
+    127.0.0.1 only). Progress is reported per finished task.
 
-    Dask moves tasks and results between machines with its own (pickle-based) protocol: use it
-    on a network you trust, or configure Dask's TLS security.
+    Dask moves tasks and results between machines with pickle (arbitrary code on unpickling):
+    only for a scheduler and workers you trust, on a network you trust, or with Dask's TLS
+    security configured. Never point ``address`` at a scheduler someone else controls.
     """
 
     name = "dask"
@@ -228,7 +241,8 @@ class DaskExecutor:
                 self.client = Client(address, timeout="5s")
             else:
                 self._cluster = LocalCluster(n_workers=int(workers or 2), threads_per_worker=1, processes=True,
-                                             dashboard_address=None, silence_logs=logging.ERROR)
+                                             host="127.0.0.1", dashboard_address=None,
+                                             silence_logs=logging.ERROR)
                 self.client = Client(self._cluster)
         except (OSError, TimeoutError) as exc:
             raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler ({exc})") from None
@@ -269,18 +283,23 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, dask
     return SerialExecutor()
 
 
-def check_device(device) -> None:
-    """A clear ConfigError for a device torch does not know or cannot use here."""
+def resolve_device(device="auto") -> str:
+    """The torch device to train on: ``"auto"`` (or None) is ``"cuda"`` when torch finds a GPU,
+    else ``"cpu"``; anything else is checked (a ConfigError naming ``--device`` for a device torch
+    does not know, one it cannot use here, or one other than cpu / cuda) and returned."""
     import torch
 
+    if device is None or device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
-        raise ConfigError(f"--device {device!r}: not a torch device (e.g. cpu, cuda, cuda:1)") from None
+        raise ConfigError(f"--device {device!r}: not a torch device (auto, cpu, cuda, cuda:1, ...)") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"--device {device}: torch finds no CUDA GPU on this machine")
     if dev.type not in ("cpu", "cuda"):
-        raise ConfigError(f"--device {device}: only cpu and cuda devices are supported")
+        raise ConfigError(f"--device {device}: only auto, cpu and cuda devices are supported")
+    return str(device)
 
 
 def default_workers() -> int:
@@ -371,14 +390,15 @@ def make_tasks(q, dz_by_prior: dict, *, sizes, folds, seed, solver, input_mappin
                device="cpu") -> list:
     """The CV trainings as tasks: per size, the K folds of each prior as members, in one task
     per prior, or (adam, small sizes) one task for all priors."""
-    from campaign.ann.network import MLP
+    from campaign.ann.mlp import MLP
 
     x = input_mapping.apply(q)
     fold = fold_of(len(q), folds, seed)
+    n_out = np.shape(next(iter(dz_by_prior.values())))[1]
     tasks = []
     for hidden in sizes:
         groups = [[p] for p in dz_by_prior]
-        if solver == "adam" and MLP(6, tuple(hidden), 6).n_weights < MERGE_PRIORS_BELOW_WEIGHTS:
+        if solver == "adam" and MLP(q.shape[1], tuple(hidden), n_out).n_weights < MERGE_PRIORS_BELOW_WEIGHTS:
             groups = [list(dz_by_prior)]
         for group in groups:
             members = [{"prior": p, "fold": k, "train_rows": np.flatnonzero(fold != k),
@@ -391,53 +411,57 @@ def make_tasks(q, dz_by_prior: dict, *, sizes, folds, seed, solver, input_mappin
 
 
 def _task(tid, q, x, dz, hidden, members, seed, solver, input_mapping, options, device):
-    from campaign.ann.network import MLP
+    from campaign.ann.mlp import MLP
 
+    n_in, n_out = q.shape[1], np.shape(next(iter(dz.values())))[1]
     return {"id": tid, "hidden": [int(h) for h in hidden], "solver": solver, "seed": int(seed),
             "q": q, "x": x, "dz": dz, "members": members, "options": dict(options or {}), "device": device,
             "q_lower": input_mapping.mean - np.sqrt(3.0) * input_mapping.scale,
             "q_upper": input_mapping.mean + np.sqrt(3.0) * input_mapping.scale,
-            "n_weights": MLP(6, tuple(hidden), 6).n_weights}
+            "n_in": int(n_in), "n_out": int(n_out), "n_weights": MLP(n_in, tuple(hidden), n_out).n_weights}
 
 
 def cv_stats(dz_true, dz_pred, target_scale) -> dict:
-    """Table 5 statistics of held-out predictions: RMSE of normalised Δz_tot, max ‖Δr‖ mm, max ‖Δφ‖ mrad."""
+    """Table 5 statistics of held-out predictions: RMSE of normalised Δz_tot, max ‖Δr‖ mm, max ‖Δφ‖ mrad
+    (None for position-only residuals, (n, 3))."""
     res = dz_true - dz_pred
     return {"rmse_normalised": float(np.sqrt(np.mean((res / target_scale) ** 2))),
             "max_position_mm": float(np.max(np.linalg.norm(res[:, :3], axis=1)) * 1e3),
-            "max_orientation_mrad": float(np.max(np.linalg.norm(res[:, 3:], axis=1)) * 1e3),
+            "max_orientation_mrad": float(np.max(np.linalg.norm(res[:, 3:], axis=1)) * 1e3) if res.shape[1] == 6
+            else None,
             "mean_position_mm": float(np.mean(np.linalg.norm(res[:, :3], axis=1)) * 1e3)}
 
 
 def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_lower=None, q_upper=None,
-             executor=None, progress=None, device="cpu", **options):
+             executor=None, progress=None, device="auto", **options):
     """Cross-validate every size for every prior model and build each prior's network.
 
-    q (n, 6) rad training poses; dz_by_prior: prior name -> residuals (n, 6) (m, rad) of that
-    prior model on the same poses. Returns {prior: (ResidualNetwork, cv dict)} where the cv dict
+    q (n, N) training poses (rad, m), N the robot's joints; dz_by_prior: prior name -> residuals
+    (n, 6) (m, rad) of that prior model on the same poses, or (n, 3) (m) for position-only data
+    (all priors alike). q_lower, q_upper: the robot's joint limits (N,) for the input mapping
+    (None: the embedded robot's, 6 joints). Returns {prior: (ResidualNetwork, cv dict)} where the cv dict
     is the Table 5 block: ``{"sizes": [row...], "best", "folds", "solver", "final": {...}}``.
     options: AdamOptions fields (solver "adam") or ResidualNetwork hyperparameters ("br-lm").
     progress: optional callable receiving :class:`GridProgress` reports and status lines (str).
     """
-    from campaign.ann.network import ResidualNetwork, joint_mapping
+    from campaign.ann.mlp import joint_limits, joint_mapping
+    from campaign.ann.network import ResidualNetwork
 
     if solver not in SOLVERS:
         raise ConfigError(f"--ann-solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     q = np.asarray(q, dtype=float)
-    if q.ndim != 2 or q.shape[1] != 6 or len(q) < 2 * folds:
-        raise DataError(f"ANN cross-validation: need q (n, 6) with n >= {2 * folds}, got {q.shape}")
+    if q.ndim != 2 or q.shape[1] < 1 or len(q) < 2 * folds:
+        raise DataError(f"ANN cross-validation: need q (n, N) with n >= {2 * folds}, got {q.shape}")
+    widths = {np.shape(dz)[1] if np.ndim(dz) == 2 else None for dz in dz_by_prior.values()}
     for prior, dz in dz_by_prior.items():
-        if np.shape(dz) != (len(q), 6) or not np.all(np.isfinite(dz)):
-            raise DataError(f"ANN cross-validation: residuals of {prior} must be finite (n, 6), got {np.shape(dz)}")
+        if np.ndim(dz) != 2 or np.shape(dz)[0] != len(q) or len(widths) != 1 or np.shape(dz)[1] not in (3, 6) \
+                or not np.all(np.isfinite(dz)):
+            raise DataError(f"ANN cross-validation: residuals of {prior} must be finite (n, 6), or (n, 3) for "
+                            f"position-only data, alike for every prior; got {np.shape(dz)}")
     if not (np.all(np.isfinite(q))):
         raise DataError("ANN cross-validation: q must be finite")
-    if q_lower is None or q_upper is None:
-        from campaign.model.robot import RobotModel
-
-        robot = RobotModel.load()
-        q_lower, q_upper = robot.q_lower, robot.q_upper
-    mapping = joint_mapping(q_lower, q_upper)
-    check_device(device)
+    mapping = joint_mapping(*joint_limits(q_lower, q_upper, q.shape[1]))
+    device = "auto" if device is None or device == "auto" else resolve_device(device)  # auto: per worker
     if solver == "adam":
         if "max_epochs" in options and options["max_epochs"] is None:
             options.pop("max_epochs")
@@ -483,7 +507,8 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                         f"max ‖Δr‖ {rows[-1]['max_position_mm']:.3f} mm ({r['wall_s']:.0f} s)")
             best = min(rows, key=lambda row: row["rmse_normalised"])
             out[prior] = {"sizes": rows, "best": list(best["hidden"]), "folds": folds, "solver": solver,
-                          "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall}
+                          "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall,
+                          "devices": sorted({r.get("device", "cpu") for r in results})}
             if solver == "br-lm":
                 members = [{"prior": prior, "fold": None, "train_rows": np.arange(len(q)), "heldout_rows": None,
                             "seed": seed}]

@@ -14,11 +14,18 @@ from campaign.model.rotations import rotvec_to_matrix
 
 
 def compensate_pose(T_model, dz_hat) -> np.ndarray:
-    """Remove a predicted residual from model poses: t = t_model − Δt̂, R = exp(−Δφ̂) R_model. (n, 4, 4)."""
+    """Remove a predicted residual from model poses: t = t_model − Δt̂, R = exp(−Δφ̂) R_model. (n, 4, 4).
+
+    dz_hat (n, 6) (m, rad), or (n, 3) (m) from a network trained on position-only data: then
+    only the position is corrected and R = R_model.
+    """
     T = np.array(T_model, dtype=float, copy=True)
     dz_hat = np.asarray(dz_hat, dtype=float)
+    if dz_hat.ndim != 2 or dz_hat.shape[1] not in (3, 6) or len(dz_hat) != len(T):
+        raise DataError(f"compensate_pose: residuals (n, 6) or (n, 3) for {len(T)} poses, got {dz_hat.shape}")
     T[:, :3, 3] -= dz_hat[:, :3]
-    T[:, :3, :3] = rotvec_to_matrix(-dz_hat[:, 3:6]) @ T[:, :3, :3]
+    if dz_hat.shape[1] == 6:
+        T[:, :3, :3] = rotvec_to_matrix(-dz_hat[:, 3:6]) @ T[:, :3, :3]
     return T
 
 
@@ -63,7 +70,8 @@ def _fold_of(n, folds, seed):
 def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None, progress=None, **net_options):
     """K-fold CV over hidden sizes on training data only (the paper's Table 5).
 
-    q (n, 6) rad, dz (n, 6) residuals (m, rad) after the prior model (nominal or geometric).
+    q (n, N) (rad, m), dz (n, 6) residuals (m, rad) after the prior model (nominal or geometric),
+    or (n, 3) (m) for position-only data.
     Folds are a seeded random partition; each fold's network fits its own mappings on its
     training part. Returns a JSON-ready dict ``{"sizes": [row, ...], "best": [N1, N2],
     "folds": K}`` with one row per size: ``hidden``, ``rmse_normalised`` (RMSE of the held-out
@@ -76,8 +84,9 @@ def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None,
     dz = np.asarray(dz, dtype=float)
     fold = _fold_of(len(q), folds, seed)
     scale = np.where(dz.std(axis=0) > 0, dz.std(axis=0), 1.0)
-    if len(q) < 2 * folds or dz.shape != (len(q), 6) or q.shape[1:] != (6,):
-        raise DataError(f"cross_validate: need q, dz (n, 6) with n >= {2 * folds}, got {q.shape}, {dz.shape}")
+    if len(q) < 2 * folds or q.ndim != 2 or dz.ndim != 2 or dz.shape[0] != len(q) or dz.shape[1] not in (3, 6):
+        raise DataError(f"cross_validate: need q (n, N) and dz (n, 6) or (n, 3) with n >= {2 * folds}, got "
+                        f"{q.shape}, {dz.shape}")
     rows = []
     for hidden in sizes:
         pred = np.empty_like(dz)
@@ -102,9 +111,9 @@ def fit_ann_stage(q_train, dz_train, *, sizes, folds=5, seed=0, q_lower=None, q_
                   **net_options):
     """Choose the hidden size by CV on the training set, retrain it on the whole training set.
 
-    q_train (n, 6) rad, dz_train (n, 6) (m, rad): residuals of the prior model on the training
-    set only. q_lower, q_upper: joint limits of eq. 17 (rad) for the input mapping (None: the
-    embedded robot's). net_options: further ResidualNetwork hyperparameters (max_epochs, ...).
+    q_train (n, N) (rad, m), dz_train (n, 6) (m, rad) or (n, 3) (m): residuals of the prior model
+    on the training set only. q_lower, q_upper: joint limits of eq. 17 (N,) for the input mapping
+    (None: the embedded robot's, 6 joints). net_options: further ResidualNetwork hyperparameters (max_epochs, ...).
     Returns (ResidualNetwork fitted on the whole training set, cv dict of :func:`cross_validate`
     plus ``"final"``). With a single size, CV is still run (for Table 5).
     """

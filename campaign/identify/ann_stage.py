@@ -5,6 +5,12 @@ nominal model (stage ``ann``) or of the identified model (stage ``<model>+ann``,
 ``geometric+ann``). For each, hidden sizes are chosen by K-fold cross-validation on the
 training set only, the best size is retrained on the whole training set, and the test set
 is evaluated once, at the end.
+
+Any serial robot: the network's inputs are the robot's N joint values, normalised with its
+joint limits. Its outputs are the 6-D residual (Δt, Δφ), or Δt alone (3 outputs) when the run
+measured positions only (one reflector): the network learns what was measured, and the
+compensation then corrects the position of the measured point, leaving the orientation to the
+kinematic model.
 """
 
 from __future__ import annotations
@@ -54,8 +60,10 @@ def format_table5(cv: dict) -> str:
     for variant, block in cv.items():
         for row in block["sizes"]:
             mark = " *" if tuple(row["hidden"]) == tuple(block["best"]) else ""
+            phi = row.get("max_orientation_mrad")
+            phi = f"{phi:>15.3f}" if phi is not None else f"{'—':>15}"  # position-only data: no Δφ
             lines.append(f"{str(tuple(row['hidden'])):<16}{row['rmse_normalised']:>14.3f}"
-                         f"{row['max_position_mm']:>14.3f}{row['max_orientation_mrad']:>15.3f}  {variant:<20}{mark}")
+                         f"{row['max_position_mm']:>14.3f}{phi}  {variant:<20}{mark}")
     solvers = {block.get("solver", "br-lm") for block in cv.values()}
     if solvers == {"adam"}:
         lines.append("* best by cross-validation (lowest RMSE of the normalised Δz_tot); the stage's network is the "
@@ -75,18 +83,21 @@ def format_table5(cv: dict) -> str:
 def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict, progress=None):
     """Train the residual networks; return ({stage: Δz (n, 6)}, extra).
 
-    T_prior: stage name of the prior model -> its poses (n, 4, 4) for every measured pose,
-    e.g. {"nominal": ..., "geometric": ...}. The ANN stage after "nominal" is called
-    ``ann``; after any other model ``<model>+ann``. options: ``sizes``, ``folds``, ``solver``
-    ("auto" default, "adam" or "br-lm"), ``workers`` (local processes; default: the usable cores),
-    ``scheduler`` (a Dask scheduler address), ``dask`` (a local Dask cluster of ``workers``),
-    ``device`` (torch device; default "cuda" when torch finds one, else "cpu"), and the
-    solver's own hyperparameters (e.g. ``max_epochs``). All (prior, size) trainings of the
-    grid are one map over the executor.
+    robot: the run's robot (its N joints' limits map the inputs); poses: the measured poses
+    (q (n, N)); with positions only (``poses.has_orientation`` false) the networks learn and
+    correct Δt alone. T_prior: stage name of the prior model -> its poses (n, 4, 4) for every
+    measured pose, e.g. {"nominal": ..., "geometric": ...}. The ANN stage after "nominal" is
+    called ``ann``; after any other model ``<model>+ann``. options: ``sizes``, ``folds``,
+    ``solver`` ("auto" default, "adam" or "br-lm"), ``workers`` (local processes; default: the
+    usable cores), ``scheduler`` (a Dask scheduler address: a trusted one, Dask uses pickle),
+    ``dask`` (a local Dask cluster of ``workers`` on 127.0.0.1), ``device`` ("auto" default:
+    "cuda" where torch finds a GPU, else "cpu"; or a torch device), and the solver's own
+    hyperparameters (e.g. ``max_epochs``). All (prior, size) trainings of the grid are one map
+    over the executor.
     """
     try:
         from campaign.ann import compensate_pose
-        from campaign.ann.grid import make_executor, run_grid, default_workers
+        from campaign.ann.grid import default_workers, make_executor, resolve_device, run_grid
     except ImportError as exc:
         raise ConfigError(f"the neural compensator is unavailable ({exc}); run with --no-ann") from None
 
@@ -102,16 +113,20 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     workers = options.pop("workers", None)
     scheduler = options.pop("scheduler", None)
     use_dask = bool(options.pop("dask", False))
-    device = options.pop("device", None) or default_device()
+    device = options.pop("device", None) or "auto"
+    resolve_device(device)  # an unusable device is one line before any work
     executor = make_executor(workers=default_workers() if workers is None and not scheduler else workers,
                              scheduler=scheduler, dask=use_dask)
     dz_by_prior, stage_of = {}, {}
+    outputs = slice(0, 6) if poses.has_orientation else slice(0, 3)  # what was measured
     for prior, T_model in T_prior.items():
         stage_of[prior] = "ann" if prior == "nominal" else f"{prior}+ann"
-        dz_by_prior[prior] = pose_error(T_model, poses.T_IE)
+        dz_by_prior[prior] = pose_error(T_model, poses.T_IE)[:, outputs]
     if progress:
-        progress(f"ANN: {len(sizes)} sizes × {folds} folds × {len(T_prior)} priors, solver {solver}, "
-                 f"{executor.name} ({executor.workers} worker{'s' if executor.workers != 1 else ''}), {device}")
+        where = f"auto: {resolve_device('auto')} here" if device == "auto" else device
+        progress(f"ANN: {len(sizes)} sizes × {folds} folds × {len(T_prior)} priors, {robot.n_joints} joints → "
+                 f"{outputs.stop} outputs, solver {solver}, "
+                 f"{executor.name} ({executor.workers} worker{'s' if executor.workers != 1 else ''}), {where}")
     try:
         fitted = run_grid(poses.q[tr], {p: dz[tr] for p, dz in dz_by_prior.items()}, sizes=sizes, folds=folds,
                           solver=solver, q_lower=robot.q_lower, q_upper=robot.q_upper, executor=executor,
@@ -133,10 +148,3 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
              "report_html": "<h2>Cross-validation of the residual network (Table 5)</h2>"
                             f"<pre>{html.escape(table5)}</pre>"}
     return residuals, extra
-
-
-def default_device() -> str:
-    """"cuda" when torch finds a GPU, else "cpu"."""
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"

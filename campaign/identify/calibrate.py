@@ -261,11 +261,6 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     from campaign.diagnose.floor import noise_floor  # repeats, drift checks, stated noise: never the model
 
     extra["noise_floor"] = noise_floor(run_dir, poses, robot).as_json()
-    if ann and not poses.has_orientation:
-        ann = False
-        extra["ann_skipped"] = ("no neural compensator: it is trained on 6-D residuals, and this run measured "
-                                "positions only (one reflector)")
-        say(extra["ann_skipped"])
     if ann == "auto":
         ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
         if not ann:

@@ -57,9 +57,14 @@ def register(sub):
                    help="local worker processes for the ANN grid (default: the usable cores); with --dask, "
                         "the local Dask cluster's workers")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                   help="run the ANN grid's trainings on this Dask distributed scheduler")
-    p.add_argument("--dask", action="store_true", help="run the ANN grid on a local Dask cluster of --workers")
-    p.add_argument("--device", default=None, help="torch device for adam training (default: cuda if found, else cpu)")
+                   help="run the ANN grid's trainings on this Dask distributed scheduler. Dask sends tasks and "
+                        "results as pickle: only a scheduler and workers you trust, on a network you trust (or "
+                        "with Dask's TLS); never a scheduler someone else controls")
+    p.add_argument("--dask", action="store_true",
+                   help="run the ANN grid on a local Dask cluster of --workers (listening on 127.0.0.1 only)")
+    p.add_argument("--device", default="auto",
+                   help="torch device for adam training: auto (default: cuda where torch finds a GPU, else cpu), "
+                        "cpu, cuda, cuda:N")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_calibrate)
 

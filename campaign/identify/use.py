@@ -1,9 +1,10 @@
 """Using a calibration: `campaign predict` and `campaign compensate`.
 
 A run's calibration folder holds everything needed to evaluate the calibrated robot again:
-``params.yaml`` (the 48 geometric parameters and the effects' parameters, plain YAML) and, when
-the ANN was trained, ``ann_nominal.pt`` / ``ann_geometric.pt`` (tensors only, loaded with
-``weights_only``). :class:`CalibratedRobot` reads them back and evaluates any stage of
+``params.yaml`` (the 6N + 12 geometric parameters and the effects' parameters, plain YAML) and,
+when the ANN was trained, ``ann_nominal.pt`` / ``ann_geometric.pt`` (tensors only, loaded with
+``weights_only``; N joint inputs, 6 outputs, or 3 for position-only data: then the network
+corrects the measured point's position only). :class:`CalibratedRobot` reads them back and evaluates any stage of
 ``metrics.json``'s ``order``: ``nominal``, ``geometric``, ``geometric+<effect>...``, ``ann``
 (nominal + network) or ``<model>+ann``.
 
@@ -127,6 +128,10 @@ class CalibratedRobot:
             from campaign.ann import ResidualNetwork
 
             self.network = ResidualNetwork.load(folder / net_file)
+            if self.network.n_inputs_ != self.robot.n_joints:
+                raise DataError(f"{folder / net_file}: the network takes {self.network.n_inputs_} joint values, "
+                                f"the run's robot {self.robot.name} has {self.robot.n_joints} joints; "
+                                f"re-run calibrate")
 
     @property
     def context_keys(self) -> tuple:
