@@ -93,10 +93,14 @@ def test_grid_on_worker_processes_and_on_dask_gives_the_local_selection_and_erro
     dask = DaskExecutor(workers=2)
     try:
         assert dask.workers == 2
+        # the local cluster listens on the loopback only (Dask speaks pickle)
+        info = dask.client.scheduler_info()
+        assert info["address"].startswith("tcp://127.0.0.1:")
+        assert len(info["workers"]) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in info["workers"])
         on_dask, _ = _grid(grid_data, executor=dask, **opts)
     finally:
         dask.close()
-    q_test = grid_data[2]
+    q_test, dz_test = grid_data[2], grid_data[3]
     for other in (procs, on_dask):
         for prior in ("a", "b"):
             net, cv = local[prior]
@@ -106,6 +110,11 @@ def test_grid_on_worker_processes_and_on_dask_gives_the_local_selection_and_erro
                 assert r2["rmse_normalised"] == pytest.approx(r["rmse_normalised"], rel=1e-5)
                 assert r2["epochs"] == r["epochs"]
             np.testing.assert_allclose(net2.predict(q_test), net.predict(q_test), rtol=1e-5, atol=1e-10)
+        # the same test errors (prior "a" is the held-out data's own residual)
+        err, err2 = (np.linalg.norm(dz_test[:, :3] - n.predict(q_test)[:, :3], axis=1)
+                     for n in (local["a"][0], other["a"][0]))
+        assert err2.mean() == pytest.approx(err.mean(), rel=1e-5)
+        assert err2.max() == pytest.approx(err.max(), rel=1e-5)
 
 
 def test_br_lm_through_the_grid_equals_the_sequential_cross_validation(grid_data):
@@ -140,6 +149,38 @@ def test_an_ensemble_predicts_its_members_mean_and_reloads_identically(tmp_path,
     np.testing.assert_allclose(ens.predict(q_test), np.mean(singles, axis=0), rtol=1e-12, atol=1e-15)
     ens.save(tmp_path / "ens.pt")
     np.testing.assert_array_equal(ResidualNetwork.load(tmp_path / "ens.pt").predict(q_test), ens.predict(q_test))
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_grid_on_a_device_in_float32_agrees_with_the_cpu_in_float64(grid_data, device):
+    """The batched Adam on each available device (the CPU always, a GPU where torch finds one)
+    with float32 products, through the whole grid (tasks, executor, early stopping, ensembles),
+    against the same grid in float64 on the CPU: same selection and stopping epochs, CV errors
+    and test predictions within float32 round-off (measured on the CPU: 1e-8 relative)."""
+    q, priors, q_test, _ = grid_data
+    opts = dict(sizes=[(6, 4), (8, 6)], folds=3, q_lower=LO, q_upper=HI, solver="adam", max_epochs=40, patience=15)
+    ref = run_grid(q, priors, device="cpu", dtype="float64", **opts)
+    got = run_grid(q, priors, device=device, dtype="float32", **opts)
+    for prior in priors:
+        (net, cv), (net2, cv2) = ref[prior], got[prior]
+        assert cv["devices"] == ["cpu"] and cv2["devices"] == [device]
+        assert cv2["best"] == cv["best"]
+        for r, r2 in zip(cv["sizes"], cv2["sizes"]):
+            assert r2["epochs"] == r["epochs"]
+            assert r2["rmse_normalised"] == pytest.approx(r["rmse_normalised"], rel=1e-5)
+        p, p2 = net.predict(q_test), net2.predict(q_test)
+        assert p2.dtype == np.float64
+        np.testing.assert_allclose(p2, p, rtol=0, atol=1e-5 * np.abs(p).max())
+
+
+def test_device_auto_is_the_gpu_where_torch_finds_one():
+    from campaign.ann.grid import resolve_device
+
+    assert resolve_device("auto") == resolve_device(None) == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu") == "cpu"
 
 
 def test_device_and_solver_errors_are_named(grid_data):

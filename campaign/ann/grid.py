@@ -127,7 +127,7 @@ def run_task(task: dict, report=None) -> dict:
             net = ResidualNetwork(hidden=hidden, q_lower=task["q_lower"], q_upper=task["q_upper"], seed=task["seed"],
                                   progress=tick, progress_every=5, **opts)
             net.fit(task["q"][rows], dz_of[m["prior"]][rows])
-            W.append(net.weights_.numpy())
+            W.append(net.weights_.cpu().numpy())
             means.append(net.target_mapping_.mean)
             scales.append(net.target_mapping_.scale)
             out["members"].append({"epochs": int(net.n_epochs_), "stop": net.stop_reason_, "gamma": net.gamma_,

@@ -182,7 +182,7 @@ class ResidualNetwork:
         with torch.no_grad(), torch_threads(getattr(self, "n_threads", None)):
             for w, mu, sd in zip(W, mean, scale):
                 y, _ = self.net_.forward(w, x)
-                out = out + (y.numpy().astype(float) * sd + mu)
+                out = out + (y.cpu().numpy().astype(float) * sd + mu)
         return out / len(W)
 
     @classmethod
