@@ -323,6 +323,8 @@ def measured_run(tmp_path_factory, robot):
     (["calibrate", "{run}", "--folds", "0"], r"--folds must be an integer >= 2"),
     (["calibrate", "{run}", "--folds", "1", "--no-ann"], r"--folds must be an integer >= 2"),
     (["calibrate", "{run}", "--epochs", "0"], r"--epochs must be an integer >= 1"),
+    (["calibrate", "{run}", "--device", "tpu"], r"--device 'tpu': not a torch device"),
+    (["calibrate", "{run}", "--workers", "0"], r"--workers must be at least 1"),
     (["calibrate", "{run}", "--sizes", "64by32"], r"--sizes: '64by32' is not of the form"),
     (["calibrate", "{run}", "--effects", "bogus", "--no-ann"], r"unknown effect 'bogus'"),
     (["diagnose", "{run}", "--candidates", "bogus"], r"unknown effect 'bogus'"),

@@ -96,14 +96,21 @@ def load_robot_for_run(run_dir) -> RobotModel:
 
 
 def check_ann_options(options: dict) -> dict:
-    """Validate the neural stage's options (``folds`` >= 2, ``max_epochs`` >= 1); ConfigError
-    naming the command-line option otherwise. Returns them."""
+    """Validate the neural stage's options (``folds`` >= 2, ``max_epochs`` >= 1, ``workers`` >= 1,
+    ``device`` usable here); ConfigError naming the command-line option otherwise. Returns them."""
     folds = options.get("folds", 5)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ConfigError(f"--folds must be an integer >= 2 (cross-validation needs two folds), got {folds!r}")
     epochs = options.get("max_epochs", 1)
     if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1:
         raise ConfigError(f"--epochs must be an integer >= 1, got {epochs!r}")
+    workers = options.get("workers", 1)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"--workers must be at least 1, not {workers!r}")
+    if options.get("device") is not None:
+        from campaign.ann.grid import resolve_device
+
+        resolve_device(options["device"])  # an unknown or absent device: one line, before any work
     return options
 
 
