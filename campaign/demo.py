@@ -40,7 +40,6 @@ def _step(title, *argv):
 
 def _demo(args):
     from campaign.config import check_int, check_number
-    from campaign.identify.report import history_table
     from campaign.run import RunFolder
 
     check_number(args.grid_scale, "--grid-scale", low=0.0, low_open=True)
@@ -50,6 +49,13 @@ def _demo(args):
     folder = RunFolder(run)
     folder.refuse_if_measured("the demo", f"give the demo a new folder (--run {run}-2)")
     check_int(args.select, "--select", low=0)
+    with folder.lock("demo"):  # the steps below take it again (re-entrant); another command is refused
+        return _story(args, run, folder)
+
+
+def _story(args, run: Path, folder) -> int:
+    from campaign.identify.report import history_table
+
     if args.select:
         _step(f"1. plan a short campaign (grid → suitable poses → the {args.select} most informative → "
               "collision-free tour)", "plan", "--run", run, "--grid-scale", args.grid_scale, "--select", args.select)

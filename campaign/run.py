@@ -9,7 +9,7 @@ Layout (DESIGN.md)::
     RUN/calibration/           metrics.json, params.yaml, history.json, report.html        (`calibrate`)
     RUN/diagnose/              diagnosis.json, report.html                                 (`diagnose`)
     RUN/sim/                   the simulated cell's own files (its truth: never read by plan/calibrate/diagnose)
-    RUN/.lock                  held by the one process that drives or re-plans the run
+    RUN/.lock                  held by the one command that writes into the run (RunFolder.lock)
 
 A run remembers its robot in RUN/campaign.yaml; no command falls back to the default robot
 for a run that records another.
@@ -23,6 +23,7 @@ import functools
 import json
 import os
 import sqlite3
+import threading
 import time
 from pathlib import Path
 
@@ -216,67 +217,45 @@ class RunFolder:
             raise RunHoldsMeasurements(f"{self.path} holds {n:,} measured poses; {action} would replace them, "
                                        f"so it refuses: {advice}")
 
-    # -- one driver at a time -----------------------------------------------------------------
-    @contextlib.contextmanager
+    # -- one writer at a time ----------------------------------------------------------------
     def lock(self, command: str):
-        """Hold RUN/.lock (``flock``) for the block: a second holder is refused at once with
-        RunBusy naming the process that holds it. The lock goes with the process: released
-        on any exit, even kill -9, so a stale lock never blocks a resume. When the block
-        fails, a lock file (and run folder) that this call created is removed again, so a
-        refused command leaves no trace."""
-        made_dir = not self.path.exists()
-        fd, made_file = self._acquire(command)
-        ok = False
-        try:
-            yield self
-            ok = True
-        finally:
-            if not ok and made_file:
-                with contextlib.suppress(OSError):
-                    self.lock_path.unlink()
-                if made_dir:
-                    with contextlib.suppress(OSError):
-                        self.path.rmdir()  # only when empty
-            os.close(fd)  # releases the flock
+        """A context manager holding RUN/.lock (``flock``) for the block.
 
-    def _acquire(self, command: str):
-        """(fd holding the flock on RUN/.lock, whether this call created the file)."""
+        Every command that writes into the run (plan, run, import, calibrate, diagnose, demo)
+        holds it, so two of them never interleave their writes: a second one is refused at
+        once, before it does any work, with one RunBusy line ``run RUN is busy: <command> pid
+        N since <time>; ...``. The lock goes with its process: released on any exit, even
+        kill -9, so a lock whose holder died is stale and the next command takes it over.
+        Re-entrant within one process (the demo holds it while its steps take it again).
+        When the block fails, the lock file is left as it was (removed again, with the run
+        folder if that is empty, when this call created them), so a failed command leaves
+        the folder unchanged."""
+        return _hold(self.path, self.lock_path, f"run {self.path}", command)
+
+    def sim_lock(self, command: str = "sim"):
+        """A context manager holding RUN/sim/.lock, the simulated cell's own part of the run
+        (RUN/sim/truth.yaml, estops.json), for the cell's lifetime: one cell per run, while
+        a driver (``campaign run RUN --controller ...``) holds RUN/.lock beside it. As
+        :meth:`lock` otherwise."""
+        return _hold(self.sim_dir, self.sim_dir / LOCK_FILE, f"the simulated cell of run {self.path}", command)
+
+    def lock_holder(self, *, sim: bool = False) -> dict | None:
+        """Who holds RUN/.lock (``sim``: RUN/sim/.lock) now: ``{"pid", "command",
+        "since_unix_s"}``, or None when no live process holds it (a lock file left by a dead
+        process is stale and counts as free)."""
         try:
-            self.path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StorageError(f"{self.path}: cannot create the run folder ({exc.strerror})") from None
-        for _ in range(100):
-            made = False
-            try:
-                try:
-                    fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
-                    made = True
-                except FileExistsError:
-                    fd = os.open(self.lock_path, os.O_RDWR)
-            except FileNotFoundError:
-                continue  # removed between the two opens: try again
-            except OSError as exc:
-                raise StorageError(f"{self.lock_path}: cannot open the run lock ({exc.strerror})") from None
+            fd = os.open(self.sim_dir / LOCK_FILE if sim else self.lock_path, os.O_RDWR)
+        except OSError:
+            return None
+        try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = _read_holder(fd)
-                os.close(fd)
-                raise RunBusy(f"{self.path} is in use by `campaign {holder.get('command', '?')}` "
-                              f"(process {holder.get('pid', '?')}); one process drives a run at a time: "
-                              "wait for it to finish or stop it") from None
-            try:  # the file may have been removed by a failing holder while we waited: lock the one on disk
-                same = os.stat(self.lock_path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                same = False
-            if not same:
-                os.close(fd)
-                continue
-            info = json.dumps({"pid": os.getpid(), "command": command, "since_unix_s": time.time()})
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, info.encode(), 0)
-            return fd, made
-        raise StorageError(f"{self.lock_path}: the run lock keeps disappearing")
+                return _read_holder(fd)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        finally:
+            os.close(fd)
 
     # -- writing the run's configuration --------------------------------------------------------
     def write_config(self, cfg: CampaignConfig) -> Path:
@@ -315,6 +294,98 @@ def _has_table(db, name) -> bool:
     return db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)).fetchone() is not None
 
 
+def busy_message(label: str, holder: dict) -> str:
+    """``run RUN is busy: <command> pid N since <local time>; ...`` (one line)."""
+    since = holder.get("since_unix_s")
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(since)) if isinstance(since, (int, float)) else "?"
+    return (f"{label} is busy: {holder.get('command', '?')} pid {holder.get('pid', '?')} since {when}; "
+            "one command writes a run at a time: wait for it to finish or stop it")
+
+
+#: locks this process holds: resolved lock path -> [fd, depth] (re-entrant within a process)
+_HELD: dict = {}
+_HELD_GUARD = threading.Lock()
+
+
+@contextlib.contextmanager
+def _hold(folder: Path, lock_path: Path, label: str, command: str):
+    """Hold the flock on ``lock_path`` (in ``folder``) for the block (see RunFolder.lock)."""
+    key = str(lock_path.resolve())
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is not None:
+            held[1] += 1
+    if held is not None:
+        try:
+            yield
+        finally:
+            with _HELD_GUARD:
+                held[1] -= 1
+        return
+    made_dirs = [d for d in (folder, *folder.parents) if not d.exists()]
+    fd, made_file, previous = _acquire(folder, lock_path, label, command)
+    with _HELD_GUARD:
+        _HELD[key] = [fd, 1]
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        with _HELD_GUARD:
+            del _HELD[key]
+        if not ok and made_file:
+            with contextlib.suppress(OSError):
+                lock_path.unlink()
+            for d in made_dirs:  # innermost first; only empty ones go
+                with contextlib.suppress(OSError):
+                    d.rmdir()
+        elif not ok:  # the lock file as it was (the last holder's record)
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, previous, 0)
+        os.close(fd)  # releases the flock
+
+
+def _acquire(folder: Path, lock_path: Path, label: str, command: str):
+    """(fd holding the flock on ``lock_path``, whether this call created the file, the file's
+    previous bytes); RunBusy when another process holds it."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StorageError(f"{folder}: cannot create the run folder ({exc.strerror})") from None
+    for _ in range(100):
+        made = False
+        try:
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+                made = True
+            except FileExistsError:
+                fd = os.open(lock_path, os.O_RDWR)
+        except FileNotFoundError:
+            continue  # removed between the two opens: try again
+        except OSError as exc:
+            raise StorageError(f"{lock_path}: cannot open the run lock ({exc.strerror})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            raise RunBusy(busy_message(label, holder)) from None
+        try:  # the file may have been removed by a failing holder while we waited: lock the one on disk
+            same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:
+            os.close(fd)
+            continue
+        previous = os.pread(fd, 4096, 0)
+        info = json.dumps({"pid": os.getpid(), "command": command, "since_unix_s": time.time()})
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info.encode(), 0)
+        return fd, made, previous
+    raise StorageError(f"{lock_path}: the run lock keeps disappearing")
+
+
 def _read_holder(fd) -> dict:
     try:
         return json.loads(os.pread(fd, 4096, 0).decode() or "{}")
@@ -322,4 +393,4 @@ def _read_holder(fd) -> dict:
         return {}
 
 
-__all__ = ["RunFolder", "load_robot", "same_robot", "CONFIG_FILE", "MEASUREMENTS_FILE"]
+__all__ = ["RunFolder", "busy_message", "load_robot", "same_robot", "CONFIG_FILE", "MEASUREMENTS_FILE"]

@@ -80,3 +80,32 @@ class SimRuns:
 def runs(tmp_path, robot):
     """A :class:`SimRuns` in this test's tmp_path."""
     return SimRuns(tmp_path, robot)
+
+
+class MeasuredRuns:
+    """Run folders imported (`campaign import`) from a synthetic campaign of the default robot:
+    ``make(n, seed, q, name)`` -> (run folder, truth, the measured poses)."""
+
+    def __init__(self, tmp_path, robot):
+        self.tmp_path, self.robot = tmp_path, robot
+
+    def make(self, n=60, seed=1, q=None, name="run"):
+        from campaign.cli import main
+        from campaign.measure.csvio import write_measured_csv
+        from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+        truth = make_truth(self.robot, seed=seed)
+        q = random_joint_poses(self.robot, n, seed=seed) if q is None else q
+        poses = synthesize(truth, q, seed=seed + 1)
+        self.tmp_path.mkdir(parents=True, exist_ok=True)
+        csv = self.tmp_path / f"{name}.csv"
+        write_measured_csv(csv, poses)
+        run = self.tmp_path / name
+        assert main(["import", str(csv), "--run", str(run)]) == 0
+        return run, truth, poses
+
+
+@pytest.fixture
+def measured(tmp_path, robot):
+    """A :class:`MeasuredRuns` in this test's tmp_path."""
+    return MeasuredRuns(tmp_path, robot)

@@ -1,6 +1,8 @@
 """One driver per run, a campaign clock that never runs backwards, storage errors without loss."""
 
+import json
 import os
+import re
 import resource
 import signal
 import socket
@@ -91,11 +93,16 @@ def test_a_second_driver_is_refused_before_it_contacts_the_cell_or_the_store(cap
         err = capsys.readouterr().err.strip().splitlines()
         time.sleep(0.3)
         assert rc == 1 and len(err) == 1
-        assert f"in use by `campaign run` (process {first.pid})" in err[0]
+        assert re.search(rf"^campaign run: run {re.escape(str(run))} is busy: run pid {first.pid} since "
+                         r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d;", err[0]), err[0]
         assert controller.connections == tracker.connections == 0 and controller.bytes == tracker.bytes == 0
         # a second simulated driver too: no second cell, no second session, no second set-up
         rc = main(["run", str(run), "--sim", "--quiet"])
-        assert rc == 1 and "in use by `campaign run`" in capsys.readouterr().err
+        assert rc == 1 and f"is busy: run pid {first.pid}" in capsys.readouterr().err
+        # and a calibrate while the driver stores poses
+        rc = main(["calibrate", str(run), "--no-ann", "--quiet"])
+        assert rc == 1 and f"is busy: run pid {first.pid}" in capsys.readouterr().err
+        assert not (run / "calibration").exists()
         assert rows(run, "SELECT COUNT(*) FROM events WHERE kind = 'session_start'")[0][0] == sessions_before
         controller.close()
         tracker.close()
@@ -120,7 +127,7 @@ def test_plan_is_refused_while_a_driver_holds_the_run(capsys, runs):
         rc = main(["plan", "--run", str(run), "--grid-scale", "0.2", "--quiet"])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 1 and len(err) == 1
-        assert "in use by `campaign run`" in err[0] or "measured poses" in err[0]
+        assert f"is busy: run pid {first.pid}" in err[0] or "measured poses" in err[0]
         assert (run / "plan" / "poses.csv").read_bytes() == plan_before
     finally:
         first.kill()
@@ -197,3 +204,105 @@ def test_a_locked_database_is_one_line_and_loses_nothing(capsys, monkeypatch, ru
     assert rows(run, "SELECT pose_id, time_s, x, y, z FROM poses ORDER BY pose_id") == before
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
     assert len(rows(run, "SELECT pose_id FROM poses")) == 10
+
+
+# -- every command that writes a run holds its lock ------------------------------------------------
+
+BUSY_LINE = r"^campaign {cmd}: run {run} is busy: {holder} pid {pid} since \d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d; "
+
+
+def folder_state(path) -> dict:
+    """{relative path: bytes} of every file under ``path``."""
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
+
+
+def start_calibrate(run):
+    return subprocess.Popen([sys.executable, "-m", "campaign.cli", "calibrate", str(run), "--no-ann", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+
+
+def holds_lock(run, proc, command):
+    from campaign.run import RunFolder
+
+    holder = RunFolder(run).lock_holder()
+    return holder is not None and holder.get("pid") == proc.pid and holder.get("command") == command
+
+
+def test_two_calibrates_at_once_the_second_is_refused_before_it_writes_anything(capsys, measured):
+    run, _, _ = measured.make(n=60)
+    first = start_calibrate(run)
+    try:
+        assert wait_for(lambda: holds_lock(run, first, "calibrate"), 120)
+        os.kill(first.pid, signal.SIGSTOP)  # frozen while it holds the lock: nothing of its own changes now
+        before = folder_state(run)
+        second = subprocess.run([sys.executable, "-m", "campaign.cli", "calibrate", str(run), "--no-ann", "--quiet"],
+                                capture_output=True, text=True, env=ENV, timeout=120)
+        err = second.stderr.strip().splitlines()
+        assert second.returncode == 1 and len(err) == 1, second.stderr
+        assert re.search(BUSY_LINE.format(cmd="calibrate", run=re.escape(str(run)), holder="calibrate",
+                                          pid=first.pid), err[0]), err[0]
+        # diagnose too (it writes diagnose/ and reads calibration/), the folder untouched
+        assert main(["diagnose", str(run), "--folds", "2", "--no-report"]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and re.search(BUSY_LINE.format(cmd="diagnose", run=re.escape(str(run)),
+                                                              holder="calibrate", pid=first.pid), lines[0]), lines
+        assert folder_state(run) == before
+        os.kill(first.pid, signal.SIGCONT)
+        assert first.wait(300) == 0, first.stderr.read().decode()
+    finally:
+        if first.poll() is None:
+            os.kill(first.pid, signal.SIGCONT)
+            first.kill()
+            first.wait()
+    history = json.loads((run / "calibration" / "history.json").read_text())["runs"]
+    assert len(history) == 1  # the first calibrate's entry alone
+
+
+def test_a_killed_holders_lock_is_stale_and_taken_over(measured):
+    from campaign.run import RunFolder
+
+    run, _, _ = measured.make(n=60)
+    first = start_calibrate(run)
+    try:
+        assert wait_for(lambda: holds_lock(run, first, "calibrate"), 120)
+        os.kill(first.pid, signal.SIGKILL)
+        first.wait()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert json.loads((run / ".lock").read_text())["pid"] == first.pid  # its record is still there ...
+    assert RunFolder(run).lock_holder() is None  # ... but nobody holds the lock
+    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 0
+    assert json.loads((run / ".lock").read_text())["pid"] == os.getpid()
+    assert (run / "calibration" / "metrics.json").is_file()
+
+
+def test_one_simulated_cell_per_run_and_a_driver_beside_it(tmp_path, runs):
+    run = runs.make(n=10)
+    cell = subprocess.Popen([sys.executable, "-m", "campaign.cli", "sim", "--config", str(run / "campaign.yaml"),
+                             "--run", str(run)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        line = cell.stdout.readline()
+        ports = dict(re.findall(r"(controller|tracker) 127\.0\.0\.1:(\d+)", line))
+        assert set(ports) == {"controller", "tracker"}, line + cell.stderr.read()
+        sim_line = rf"^campaign {{cmd}}: the simulated cell of run {re.escape(str(run))} is busy: sim pid {cell.pid} "
+        second = subprocess.run([sys.executable, "-m", "campaign.cli", "sim", "--run", str(run)],
+                                capture_output=True, text=True, env=ENV, timeout=60)
+        err = second.stderr.strip().splitlines()
+        assert second.returncode == 1 and len(err) == 1 and re.search(sim_line.format(cmd="sim"), err[0]), err
+        # a driver with its own simulated cell would start a second cell on the run: refused
+        proc = subprocess.run([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
+                              capture_output=True, text=True, env=ENV, timeout=60)
+        err = proc.stderr.strip().splitlines()
+        assert proc.returncode == 1 and len(err) == 1 and "the simulated cell of run" in err[0] \
+            and f"is busy: sim pid {cell.pid}" in err[0], err
+        assert not (run / "measurements.sqlite").exists()
+        # the cell holds RUN/sim only: a driver measures into the same run beside it
+        assert main(["run", str(run), "--controller", f"127.0.0.1:{ports['controller']}",
+                     "--tracker", f"127.0.0.1:{ports['tracker']}", "--quiet"]) == 0
+    finally:
+        cell.send_signal(signal.SIGINT)
+        cell.wait(timeout=30)
+    assert cell.returncode == 0
+    assert stored_count(run) == 10

@@ -26,11 +26,13 @@ def _diagnose(args):
 
     if args.folds < 2:
         raise ConfigError(f"--folds must be at least 2, got {args.folds}")
-    progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
     from campaign.diagnose.report import write_diagnosis
+    from campaign.run import RunFolder
 
-    report = write_diagnosis(d, report=not args.no_report)
+    progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    with RunFolder(args.run).lock("diagnose"):  # no calibrate rewrites what it reads, nothing else writes diagnose/
+        d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
+        report = write_diagnosis(d, report=not args.no_report)
     if args.json:
         print(json.dumps(d.as_json(), indent=2))
     else:

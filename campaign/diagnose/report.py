@@ -99,15 +99,17 @@ def plot_ranking(diagnosis, out: Path, name: str = "ranking.png") -> str:
 
 def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
     """Write RUN/diagnose/diagnosis.json (what `diagnose --json` prints) and, with ``report``,
-    RUN/diagnose/report.html and its PNGs; returns the report's path (or the JSON's)."""
+    RUN/diagnose/report.html and its PNGs, holding the run's lock; returns the report's path
+    (or the JSON's)."""
     from campaign.run import RunFolder
 
     run = RunFolder(diagnosis.run_dir)
-    if not report:
-        return atomic_write(run.diagnose_dir / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
-    with run.store() as store:
-        poses = store.load_measured()
-    return write_report(diagnosis, poses, run.robot())
+    with run.lock("diagnose"):
+        if not report:
+            return atomic_write(run.diagnose_dir / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
+        with run.store() as store:
+            poses = store.load_measured()
+        return write_report(diagnosis, poses, run.robot())
 
 
 def write_report(diagnosis, poses, robot) -> Path:

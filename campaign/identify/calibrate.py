@@ -10,6 +10,7 @@ model's held-out errors to ``RUN/calibration/history.json``.
 
 from __future__ import annotations
 
+import contextlib
 import html
 import json
 import time
@@ -190,7 +191,8 @@ def stage_name(effects) -> str:
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
               write: bool = True) -> CalibrationResult:
-    """Identify the model of a run and write its calibration folder.
+    """Identify the model of a run and write its calibration folder, holding the run's lock
+    (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
     effects: names of physical effects to identify jointly with the geometric parameters
     (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
@@ -200,13 +202,19 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
-    say = progress or (lambda msg: None)
     if ann:
         check_ann_options(ann_options or {})
     robot = robot or run.robot()
     effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
     for name in effects:  # an unknown effect is one line before any fit
         make_effect(name, robot)
+    # one writer at a time: a second calibrate (or a driver) is refused before any work
+    with run.lock("calibrate") if write else contextlib.nullcontext():
+        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write)
+
+
+def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write) -> CalibrationResult:
+    say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
     if poses.q.shape[1] != robot.n_joints:

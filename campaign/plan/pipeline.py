@@ -142,8 +142,10 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         grid = Grid.for_robot(robot, cells)
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path}: {exc} (with --grid-scale {grid_scale:g})") from None
-    run.refuse_if_measured("planning again", f"plan into a new run folder (--run {Path(run_dir).name}-2)")
+    advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
+    run.refuse_if_measured("planning again", advice)
     with run.lock("plan"):
+        run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
         return _plan(run, cfg, robot, scene, grid, progress, selection)
 
 

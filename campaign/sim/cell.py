@@ -37,7 +37,7 @@ from campaign.measure import protocol as P
 from campaign.measure.reflectors import transform_points
 from campaign.plan.scene import load_scene
 from campaign.plan.timing import rest_to_rest_time
-from campaign.run import load_robot
+from campaign.run import RunFolder, load_robot
 from campaign.sim.truth import make_truth, write_truth
 from campaign.tolerances import JOINT_COMMAND_SLACK
 
@@ -263,11 +263,17 @@ def main(argv=None):
         if not 0 <= args.start_clock_s < float("inf"):
             raise CampaignError(f"--start-clock-s must be a finite time >= 0, got {args.start_clock_s}")
         cfg = load_config(args.config)
-        world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port,
-                                      args.start_clock_s)
+        # one cell per run, for this process's lifetime (RUN/sim/.lock; the driver holds RUN/.lock)
+        with RunFolder(args.run).sim_lock("sim (a driver's simulated cell)"):
+            world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port,
+                                          args.start_clock_s)
+            return _serve(args, world, ctrl, trk)
     except CampaignError as exc:
         print(json.dumps({"error": str(exc)}), flush=True)
         return 1
+
+
+def _serve(args, world, ctrl, trk) -> int:
     print(json.dumps({"controller": ctrl.port, "tracker": trk.port, "host": args.host,
                       "truth": str(world.truth_path)}), flush=True)
     if args.watch_stdin:

@@ -10,10 +10,13 @@ def register(sub):
     s = sub.add_parser(
         "sim", help="run the simulated cell alone (controller and tracker ports), for a real driver test",
         description="Serve the simulated robot controller and laser tracker (docs/protocol.md) on two TCP ports "
-                    "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml. "
+                    "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml; "
+                    "one cell serves a run at a time (it holds RUN/sim/.lock while it serves). "
                     "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`.")
     s.add_argument("--config", metavar="FILE", default=None, help="configuration (default: the embedded one)")
-    s.add_argument("--run", metavar="DIR", default="runs/sim", help="where the simulator keeps its truth (default: %(default)s)")
+    s.add_argument("--run", metavar="DIR", default="runs/sim",
+                   help="where the simulator keeps its truth (RUN/sim/) and whose campaign clock it continues "
+                        "(default: %(default)s)")
     s.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s)")
     s.add_argument("--controller-port", type=int, default=0, help="controller port (default: any free port)")
     s.add_argument("--tracker-port", type=int, default=0, help="tracker port (default: any free port)")
@@ -89,13 +92,17 @@ def _sim(args):
     from campaign.sim.cell import start_cell
 
     cfg = load_config(args.config)
-    # a run that holds measurements continues its campaign clock (never backwards)
-    world, ctrl, trk = start_cell(cfg, args.run, args.host, args.controller_port, args.tracker_port,
-                                  RunFolder(args.run).clock_s())
-    print(f"simulated cell: controller {args.host}:{ctrl.port}, tracker {args.host}:{trk.port} "
-          f"(truth in {world.truth_path}); Ctrl-C stops", flush=True)
-    try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        return 0
+    run = RunFolder(args.run)
+    # the cell writes RUN/sim/ while it serves and holds RUN/sim/.lock all that time (a driver
+    # may hold RUN/.lock beside it: `campaign run RUN --controller ... --tracker ...`)
+    with run.sim_lock("sim"):
+        # a run that holds measurements continues its campaign clock (never backwards)
+        world, ctrl, trk = start_cell(cfg, run.path, args.host, args.controller_port, args.tracker_port,
+                                      run.clock_s())
+        print(f"simulated cell: controller {args.host}:{ctrl.port}, tracker {args.host}:{trk.port} "
+              f"(truth in {world.truth_path}); Ctrl-C stops", flush=True)
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            return 0
