@@ -172,7 +172,7 @@ def test_joint_twists_act_right_after_their_joint(robot, rng):
 
 def old_ground_compliance(robot, params, T, q):
     """The effect as it was before gravity came from the model: tilt about F_I's x and z."""
-    from campaign.effects._gravity import overturning_moment
+    from campaign.effects.gravity import overturning_moment
 
     k_x, k_z, s_x, s_z = params
     M = overturning_moment(robot, q)
@@ -210,7 +210,7 @@ def test_the_tilt_is_about_the_horizontal_axes_of_the_models_gravity(robot):
 def test_the_overturning_moment_equals_the_urdf_link_masses_by_hand(robot):
     """Σ m_i (c_i − its vertical projection) × m_i g over the URDF's links (yourdfpy transforms),
     against the Pinocchio centre of mass the effects use."""
-    from campaign.effects._gravity import gravity_vector, overturning_moment
+    from campaign.effects.gravity import gravity_vector, overturning_moment
 
     q = random_joint_poses(robot, 5, seed=7)
     g = gravity_vector(robot)

@@ -114,7 +114,7 @@ def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
 
 def write_report(diagnosis, poses, robot) -> Path:
     """Write RUN/diagnose/report.html, its PNGs and diagnosis.json; return the HTML path."""
-    from campaign.effects._gravity import gravity_torques, overturning_moment
+    from campaign.effects.gravity import gravity_torques, overturning_moment
 
     out = Path(diagnosis.run_dir) / "diagnose"
     out.mkdir(parents=True, exist_ok=True)

@@ -115,7 +115,7 @@ def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time
         if ratio >= MIN_GROWTH_RATIO or ratio <= 1.0 / MIN_GROWTH_RATIO:
             growth["time_s"] = float(ratio)
     try:
-        from campaign.effects._gravity import gravity_torques
+        from campaign.effects.gravity import gravity_torques
 
         tau = np.linalg.norm(gravity_torques(robot, q), axis=1)
         rho, p = stats.spearmanr(tau, size)

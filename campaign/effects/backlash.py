@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects._gravity import gravity_torques
+from campaign.effects.gravity import gravity_torques
 from campaign.effects.base import Effect, register
 
 #: torque (N·m) over which the backlash is taken up: a smooth sign, differentiable for the solver

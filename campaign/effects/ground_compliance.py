@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects._gravity import gravity_vector, horizontal_axes, overturning_moment
+from campaign.effects.gravity import gravity_vector, horizontal_axes, overturning_moment
 from campaign.effects._maps import rotate_about, translate
 from campaign.effects.base import Effect, register
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects._gravity import gravity_torques
+from campaign.effects.gravity import gravity_torques
 from campaign.effects.base import Effect, register
 
 #: joints whose gravity torque is large enough to identify a compliance (1-based)

@@ -1,4 +1,9 @@
-"""Gravity loads from the URDF's inertias via Pinocchio, cached per joint array.
+"""Gravity loads from the URDF's inertias via Pinocchio, for effects (built-in and users').
+
+The public interface (docs/effects.md, "Gravity loads"): :func:`gravity_torques`,
+:func:`overturning_moment`, :func:`weight_and_com`, :func:`moving_mass`,
+:func:`gravity_vector`, :func:`horizontal_axes`. Every vector is in the chain's base frame
+F_I, gravity as the robot model states it (robot.yaml ``gravity_m_s2``, default −z of F_I).
 
 The solver evaluates effect hooks many times on the same joint array (finite differences
 in the effect parameters), so the loads are cached by a digest of the array's bytes.
@@ -54,27 +59,35 @@ def gravity_torques(robot, q) -> np.ndarray:
 
 
 def weight_and_com(robot, q):
-    """Moving mass (kg) and its centre of mass in F_I, (n, 3) m."""
+    """Moving mass (kg, :func:`moving_mass`) and its centre of mass in F_I, (n, 3) m."""
     import pinocchio as pin
 
     def compute():
         model = robot.pinocchio_model
         data = model.createData()
-        qq = _pin_q(robot, q)
-        return np.array([pin.centerOfMass(model, data, qi) for qi in qq])
+        com = []
+        for qi in _pin_q(robot, q):
+            pin.centerOfMass(model, data, qi)  # data.com[1]: joint 1's subtree, in joint 1's frame
+            com.append(data.oMi[1].act(data.com[1]))  # in the URDF's root frame
+        com = np.array(com)
+        if robot.T_root_base is not None:  # the root frame -> F_I
+            T = np.asarray(robot.T_root_base, dtype=float)
+            com = (com - T[:3, 3]) @ T[:3, :3]
+        return com
 
     com = _cached(robot, q, "com", compute)
     return moving_mass(robot), com
 
 
 def moving_mass(robot) -> float:
-    """Mass of the bodies that joint 1 carries, kg."""
+    """Mass of the bodies that joint 1 carries (the chain's first moving joint; joints outside
+    the chain are locked to their bodies), kg."""
     import pinocchio as pin
 
     model = robot.pinocchio_model
     data = model.createData()
     pin.centerOfMass(model, data, _pin_q(robot, np.zeros(robot.n_joints))[0])
-    return float(data.mass[0])
+    return float(data.mass[1])
 
 
 def gravity_vector(robot) -> np.ndarray:
