@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from campaign.cli import main
-from campaign.diagnose.engine import _candidate_specs
+from campaign.diagnose.engine import candidate_specs
 from campaign.diagnose.floor import floor_from_repeats, floor_from_stated, noise_floor
 from campaign.effects import Effect, make_effect
 from campaign.effects.base import EffectSet, effect_name, model_pose
@@ -105,8 +105,8 @@ def test_an_installed_entry_point_is_a_candidate_and_can_be_named(tmp_path, robo
     importlib.invalidate_caches()
     e = make_effect("sag", robot)
     assert e.name == "sag" and type(e).__module__ == "campaign_test_sag"
-    assert "sag" in _candidate_specs(None, (), tmp_path)
-    assert "sag" not in _candidate_specs(None, ("sag",), tmp_path)
+    assert "sag" in candidate_specs(None, (), tmp_path)
+    assert "sag" not in candidate_specs(None, ("sag",), tmp_path)
 
 
 # -- the joint_twist hook --------------------------------------------------------------------------
@@ -273,12 +273,12 @@ def test_no_floor_is_said_and_a_bad_stated_noise_is_one_line(tmp_path, robot, ca
 
 
 def test_a_plans_repeat_measurements_share_the_fold_of_the_pose_they_repeat():
-    from campaign.diagnose.engine import _folds
+    from campaign.diagnose.engine import pose_folds
     from campaign.plan.selection import REPEAT_ID_STRIDE
 
     ids = np.arange(1, 201, dtype=np.int64)
     rep = np.concatenate([ids, ids[:30] + REPEAT_ID_STRIDE, ids[:30] + 2 * REPEAT_ID_STRIDE])
-    f, f_rep = _folds(ids, 4), _folds(rep, 4)
+    f, f_rep = pose_folds(ids, 4), pose_folds(rep, 4)
     np.testing.assert_array_equal(f_rep[:200], f)  # the originals keep their folds
     np.testing.assert_array_equal(f_rep[200:230], f[:30])
     np.testing.assert_array_equal(f_rep[230:], f[:30])

@@ -23,7 +23,7 @@ def info(robot, candidates):
 
 
 def test_rank_six_updates_equal_the_direct_inverse_and_log_det(info):
-    d = S._Design(info, "D")
+    d = S.Design(info, "D")
     rng = np.random.default_rng(0)
     picks = rng.choice(info.n_candidates, 40, replace=False)
     for j in picks:

@@ -230,7 +230,7 @@ def verdict_text(d: Diagnosis) -> str:
             f"  or run:   campaign calibrate {d.run_dir} --effects {','.join([*d.current_effects, c.spec or c.effect])}")
 
 
-def _folds(pose_id, k):
+def pose_folds(pose_id, k):
     """Fold index per pose, from a hash of the pose id (independent of the 80/20 split's hash);
     a plan's repeat measurements (ids p + r·10⁹) share the fold of the pose p they repeat."""
     from campaign.plan.selection import base_pose_id
@@ -268,7 +268,7 @@ def residual_in_joint1_frame(robot, q, dt):
     return np.einsum("nji,nj->ni", R1, dt)
 
 
-def _candidate_specs(candidates, current, run_dir):
+def candidate_specs(candidates, current, run_dir):
     """Candidate specs: the built-ins and installed entry points not in the model, or those given."""
     if candidates is None:
         specs = list(available()) + sorted(set(entry_point_effects()) - set(available()))
@@ -286,7 +286,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     robot = load_robot_for_run(run_dir)
     current = configured_effects(run_dir) if effects is None else tuple(resolve_effect_spec(e)
                                                                         for e in parse_effect_list(effects))
-    names = _candidate_specs(candidates, current, run_dir)
+    names = candidate_specs(candidates, current, run_dir)
     with open_run(run_dir) as store:
         poses = store.load_measured()
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
@@ -299,7 +299,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     if len(tr) < 10 * folds:
         raise DataError(f"{run_dir}: {len(tr)} training poses are too few for {folds}-fold diagnosis")
     context = effect_context(poses.context, poses.time_s)
-    fold = _folds(poses.pose_id[tr], folds)
+    fold = pose_folds(poses.pose_id[tr], folds)
     base = base_parameters(robot, position_only=position_only)
 
     ctx_tr = {key: v[tr] for key, v in context.items()}

@@ -167,7 +167,7 @@ def _logdet_spd(K):
     return 2.0 * np.sum(np.log(np.diagonal(Lc, axis1=-2, axis2=-1)), axis=-1)
 
 
-class _Design:
+class Design:
     """The growing design: M⁻¹ (with the ridge) and Gⱼ = Bⱼ M⁻¹ Bⱼᵀ for every candidate."""
 
     def __init__(self, info: Information, criterion: str, weight=None):
@@ -292,7 +292,7 @@ def select(info: Information, n: int | None = None, *, criterion: str = "D", exc
     if n is not None and not 1 <= n <= m:
         raise ConfigError(f"cannot select {n} of {m} suitable poses")
     weight = position_weight(info) if criterion == "I" else None
-    d = _Design(info, criterion, weight)
+    d = Design(info, criterion, weight)
     fixed = None if cost_s is None else np.broadcast_to(np.asarray(cost_s, dtype=float), (m,))
     nearest = None
     if travel_s is not None:
@@ -328,7 +328,7 @@ def select(info: Information, n: int | None = None, *, criterion: str = "D", exc
     return Selection(idx, criterion, log_det(info, idx), n_ex, time.perf_counter() - t0)
 
 
-def _detmax(d: _Design, chosen, free, max_exchanges=None):
+def _detmax(d: Design, chosen, free, max_exchanges=None):
     """Mitchell's DETMAX with excursions of one: add the best candidate, remove the least
     useful pose; stop when the pose removed is the one just added."""
     chosen = list(chosen)
