@@ -202,18 +202,68 @@ def robot_copy(tmp_path, edit_yaml=None, edit_urdf=None) -> Path:
 
 
 @pytest.mark.parametrize("field,value,match", [
-    ("max_velocity_rad_s", [float("nan")] * 6, "max_velocity_rad_s"),
-    ("max_velocity_rad_s", "fast", "max_velocity_rad_s"),
-    ("max_acceleration_rad_s2", [1, 2, 3], "max_acceleration_rad_s2"),
-    ("max_jerk_rad_s3", [-1.0] * 6, "max_jerk_rad_s3"),
-    ("gravity_in_I_m_s2", "down", "gravity"),
-    ("gravity_in_I_m_s2", [0.0, float("inf"), 0.0], "gravity"),
+    ("max_velocity_rad_s", [float("nan")] * 6, "'max_velocity_rad_s'"),
+    ("max_velocity_rad_s", "fast", "'max_velocity_rad_s'"),
+    ("max_acceleration_rad_s2", [1, 2, 3], "'max_acceleration_rad_s2'"),
+    ("max_jerk_rad_s3", [-1.0] * 6, "'max_jerk_rad_s3'"),
+    ("gravity_in_I_m_s2", "down", r"field 'gravity_in_I_m_s2' must be 3 finite numbers"),
+    ("gravity_in_I_m_s2", [0.0, float("inf"), 0.0], r"field 'gravity_in_I_m_s2' must be 3 finite numbers"),
+    ("gravity_in_I_m_s2", [0.0, 0.0, 0.0], r"field 'gravity_in_I_m_s2' must not be zero"),
+    ("gravity_m_s2", [0.0, 9.81, 0.1], r"fields 'gravity_m_s2' and 'gravity_in_I_m_s2' are the same field and disagree"),
+    ("locked_joints", {"joint1": float("nan")}, r"field 'locked_joints\.joint1' must be a finite number"),
+    ("base_frame", "no_such_link", r"field 'base_frame': 'no_such_link' is not a link"),
+    ("tool_frame", "no_such_link", r"field 'tool_frame': 'no_such_link' is not a link"),
+    ("controller", {"coupling": [[1, 0, 0, 0, 0, 0]] * 6}, r"field 'controller\.coupling' is a singular matrix"),
+    ("controller", {"sign": [1, 1, 1, 1, 1, 2]}, r"field 'controller\.sign' must be 6 values of 1 or -1"),
 ])
 def test_a_bad_robot_yaml_field_is_one_line_naming_the_file_and_the_field(tmp_path, capsys, field, value, match):
     folder = robot_copy(tmp_path, edit_yaml=lambda m: m.__setitem__(field, value))
     cfg = write_yaml(tmp_path / "campaign.yaml", tiny_config(tmp_path, robot=str(folder)))
     line = refused(capsys, ["plan", "--config", cfg, "--run", tmp_path / "run"], match, tmp_path)
     assert "robot.yaml" in line
+
+
+def edit_reflector(key, value):
+    def edit(meta):
+        meta["reflectors"][1][key] = value
+    return edit
+
+
+def drop_gravity(meta):
+    del meta["gravity_in_I_m_s2"]
+
+
+def spell_gravity(value):
+    def edit(meta):
+        del meta["gravity_in_I_m_s2"]
+        meta["gravity_m_s2"] = value
+    return edit
+
+
+@pytest.mark.parametrize("edit,match", [
+    # each message names the field as the file spells it
+    (spell_gravity("down"), r"field 'gravity_m_s2' must be 3 finite numbers"),
+    (spell_gravity([0, 0, 0]), r"field 'gravity_m_s2' must not be zero"),
+    (drop_gravity, r"missing field 'gravity_m_s2' \(or 'gravity_in_I_m_s2'\): a robot\.yaml with 'chain'"),
+    (edit_reflector("axis_in_E", [0, 0, 0]), r"field 'reflectors\[1\]\.axis_in_E' must be 3 finite numbers, not all zero"),
+    (edit_reflector("half_angle_deg", float("nan")), r"field 'reflectors\[1\]\.half_angle_deg' must be a number in"),
+    (edit_reflector("half_angle_deg", 120), r"field 'reflectors\[1\]\.half_angle_deg' must be a number in \(0, 90\]"),
+    (edit_reflector("link", "joint9"), r"field 'reflectors\[1\]\.link': 'joint9' is not a link hanging from"),
+])
+def test_a_bad_robot_yaml_names_the_field_as_the_file_spells_it(tmp_path, capsys, edit, match):
+    folder = robot_copy(tmp_path, edit_yaml=edit)
+    cfg = write_yaml(tmp_path / "campaign.yaml", tiny_config(tmp_path, robot=str(folder)))
+    line = refused(capsys, ["plan", "--config", cfg, "--run", tmp_path / "run"], match, tmp_path)
+    assert "robot.yaml" in line
+
+
+def test_a_reflector_position_names_its_index(tmp_path, capsys):
+    def edit(meta):
+        meta["reflectors"][2] = {"name": "brr", "position_m": [0.0, "x", 0.1]}
+    folder = robot_copy(tmp_path, edit_yaml=edit)
+    cfg = write_yaml(tmp_path / "campaign.yaml", tiny_config(tmp_path, robot=str(folder)))
+    refused(capsys, ["plan", "--config", cfg, "--run", tmp_path / "run"],
+            r"robot\.yaml: field 'reflectors\[2\]\.position_m' must be 3 finite numbers", tmp_path)
 
 
 def test_a_urdf_with_a_non_numeric_origin_is_one_line(tmp_path, capsys):

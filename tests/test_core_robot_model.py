@@ -82,5 +82,5 @@ def test_missing_robot_folder_is_one_clear_error(tmp_path):
 
 def test_robot_yaml_missing_field_is_named(tmp_path):
     (tmp_path / "robot.yaml").write_text("urdf: robot.urdf\nchain: []\n")
-    with pytest.raises(ConfigError, match="missing field 'gravity_in_I_m_s2'"):
+    with pytest.raises(ConfigError, match=r"missing field 'gravity_m_s2' \(or 'gravity_in_I_m_s2'\)"):
         RobotModel.load(tmp_path)

@@ -450,9 +450,10 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
     meta = read_yaml_mapping(meta_file) if meta_file else {}
     where = str(meta_file) if meta_file else None
     if meta_file is not None:
-        if "chain" in meta and "gravity_in_I_m_s2" not in meta:
+        if "chain" in meta and not set(GRAVITY_FIELDS) & set(meta):
             # the explicit paper-chain format states its gravity (F_I need not have z up)
-            raise ConfigError(f"{meta_file}: missing field 'gravity_in_I_m_s2'")
+            raise ConfigError(f"{meta_file}: missing field 'gravity_m_s2' (or 'gravity_in_I_m_s2'): a robot.yaml "
+                              "with 'chain' states its gravity")
         if "urdf" in meta:
             urdf_path = meta_file.parent / str(meta["urdf"])
             if not urdf_path.is_file():
@@ -496,9 +497,8 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
         return v
 
     base = text_field("base_frame", base_frame) or root
-    for label, name in (("base frame", base),):
-        if name not in links:
-            raise ConfigError(f"{src}: {label} '{name}' is not a link of {urdf_path.name}")
+    if base not in links:
+        raise ConfigError(f"{src}: {_frame_field('base', base_frame)} '{base}' is not a link of {urdf_path.name}")
     locked_in = meta.get("locked_joints") or {}
     if not isinstance(locked_in, dict):
         raise ConfigError(f"{src}: field 'locked_joints' must map joint names to values (rad or m)")
@@ -509,14 +509,16 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
         try:
             locked[jn] = float(v)
         except (TypeError, ValueError):
-            raise ConfigError(f"{src}: locked_joints '{jn}': {v!r} is not a number") from None
+            locked[jn] = float("nan")
+        if not np.isfinite(locked[jn]):
+            raise ConfigError(f"{src}: field 'locked_joints.{jn}' must be a finite number (rad or m), got {v!r}")
     tool = text_field("tool_frame", tool_frame)
     if tool is None:
         tool = base
         while len(children[tool]) == 1:
             tool = children[tool][0].child
     if tool not in links:
-        raise ConfigError(f"{src}: tool frame '{tool}' is not a link of {urdf_path.name}")
+        raise ConfigError(f"{src}: {_frame_field('tool', tool_frame)} '{tool}' is not a link of {urdf_path.name}")
 
     # the path from the tool up to the base
     path, cur = [], tool
@@ -596,10 +598,7 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
         cur = j.parent
 
     # -- robot.yaml's extras ---------------------------------------------------------------
-    g = meta.get("gravity_in_I_m_s2", meta.get("gravity_m_s2", DEFAULT_GRAVITY))
-    g = np.asarray(g, dtype=float) if _is_numeric_list(g, 3) else None
-    if g is None:
-        raise ConfigError(f"{src}: field 'gravity_m_s2' must be 3 numbers (m/s² in '{base}')")
+    g = _gravity_field(meta, src, base)
 
     def vecN(keys, default, what):
         for key in keys:
@@ -629,19 +628,19 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
         if "coupling" in ctrl:
             c = ctrl["coupling"]
             if not (isinstance(c, list) and len(c) == N and all(_is_numeric_list(r, N) for r in c)):
-                raise ConfigError(f"{src}: controller.coupling must be a {N}x{N} matrix")
+                raise ConfigError(f"{src}: field 'controller.coupling' must be a {N}x{N} matrix of numbers")
             A = np.asarray(c, dtype=float)
         if "sign" in ctrl:
             if not _is_numeric_list(ctrl["sign"], N) or not set(map(float, ctrl["sign"])) <= {1.0, -1.0}:
-                raise ConfigError(f"{src}: controller.sign must be {N} values of 1 or -1")
+                raise ConfigError(f"{src}: field 'controller.sign' must be {N} values of 1 or -1")
             A = A @ np.diag(np.asarray(ctrl["sign"], dtype=float))
         b = np.zeros(N)
         if "offset" in ctrl:
             if not _is_numeric_list(ctrl["offset"], N):
-                raise ConfigError(f"{src}: controller.offset must be {N} numbers (rad or m)")
+                raise ConfigError(f"{src}: field 'controller.offset' must be {N} numbers (rad or m)")
             b = np.asarray(ctrl["offset"], dtype=float)
         if abs(np.linalg.det(A)) < 1e-9:
-            raise ConfigError(f"{src}: controller coupling matrix is singular")
+            raise ConfigError(f"{src}: field 'controller.coupling' is a singular matrix")
         A, b = _read_only(A), _read_only(b)
 
     name = str(meta.get("name", meta_file.parent.name if meta_file else u.robot.name or urdf_path.stem))
@@ -673,6 +672,31 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
     )
 
 
+#: robot.yaml's gravity, m/s² in F_I: the documented field and its alias
+GRAVITY_FIELDS = ("gravity_m_s2", "gravity_in_I_m_s2")
+
+
+def _gravity_field(meta, src, base) -> np.ndarray:
+    """Gravity (3,) m/s² from robot.yaml (DEFAULT_GRAVITY when not stated); ConfigError naming
+    the field as the file spells it."""
+    given = [k for k in GRAVITY_FIELDS if k in meta]
+    for key in given:
+        v = meta[key]
+        if not _is_numeric_list(v, 3):
+            raise ConfigError(f"{src}: field '{key}' must be 3 finite numbers (m/s² in '{base}'), got {v!r}")
+        if np.linalg.norm(np.asarray(v, dtype=float)) < 1e-6:
+            raise ConfigError(f"{src}: field '{key}' must not be zero (m/s² in '{base}')")
+    if len(given) == 2 and not np.allclose(np.asarray(meta[given[0]], dtype=float),
+                                          np.asarray(meta[given[1]], dtype=float), rtol=0, atol=1e-12):
+        raise ConfigError(f"{src}: fields '{given[0]}' and '{given[1]}' are the same field and disagree; give one")
+    return np.asarray(meta[given[0]] if given else DEFAULT_GRAVITY, dtype=float)
+
+
+def _frame_field(which: str, given) -> str:
+    """How a message names the base or tool frame: robot.yaml's field, or the value the caller gave."""
+    return f"{which} frame" if given is not None else f"field '{which}_frame':"
+
+
 def _is_numeric_list(v, n) -> bool:
     if not isinstance(v, (list, tuple)) or len(v) != n:
         return False
@@ -698,27 +722,34 @@ def _reflectors(meta, src, tool, children, fixed_T) -> list:
                 stack.append((j.child, T @ fixed_T(j)))
     for i, r in enumerate(items):
         if not isinstance(r, dict):
-            raise ConfigError(f"{src}: reflectors[{i}] must be a mapping")
+            raise ConfigError(f"{src}: field 'reflectors[{i}]' must be a mapping (name, position_m or link, ...)")
         name = str(r.get("name", f"m{i + 1}"))
         if "position_m" in r:
             if not _is_numeric_list(r["position_m"], 3):
-                raise ConfigError(f"{src}: reflector '{name}': position_m must be 3 numbers (m, tool frame)")
+                raise ConfigError(f"{src}: field 'reflectors[{i}].position_m' must be 3 finite numbers "
+                                  f"(m, tool frame), got {r['position_m']!r}")
             pos = tuple(float(v) for v in r["position_m"])
         elif "link" in r:
             if r["link"] not in below or r["link"] == tool:
-                raise ConfigError(f"{src}: reflector '{name}' link '{r['link']}' is not a child of link {tool}")
+                raise ConfigError(f"{src}: field 'reflectors[{i}].link': '{r['link']}' is not a link hanging from "
+                                  f"the tool frame '{tool}' by fixed joints")
             pos = tuple(float(v) for v in below[r["link"]][:3, 3])
         else:
-            raise ConfigError(f"{src}: reflector '{name}' needs 'position_m' (tool frame, m) or 'link'")
-        axis = r.get("axis_in_E", r.get("axis", [0, 0, 1]))
+            raise ConfigError(f"{src}: field 'reflectors[{i}]' ({name}) needs 'position_m' (tool frame, m) or 'link'")
+        axis_key = "axis_in_E" if "axis_in_E" in r else "axis"
+        axis = r.get(axis_key, [0, 0, 1])
         if not _is_numeric_list(axis, 3) or np.linalg.norm(np.asarray(axis, dtype=float)) < 1e-9:
-            raise ConfigError(f"{src}: reflector '{name}': axis must be 3 numbers, not all zero")
+            raise ConfigError(f"{src}: field 'reflectors[{i}].{axis_key}' must be 3 finite numbers, not all zero, "
+                              f"got {axis!r}")
         axis = np.asarray(axis, dtype=float)
         axis = axis / np.linalg.norm(axis)
         half = r.get("half_angle_deg", 30.0)
         try:
             half = float(half)
         except (TypeError, ValueError):
-            raise ConfigError(f"{src}: reflector '{name}': half_angle_deg must be a number") from None
+            half = float("nan")
+        if not 0 < half <= 90:
+            raise ConfigError(f"{src}: field 'reflectors[{i}].half_angle_deg' must be a number in (0, 90], "
+                              f"got {r.get('half_angle_deg')!r}")
         out.append(Reflector(name, str(r.get("kind", "smr")), pos, tuple(axis), float(np.deg2rad(half))))
     return out
