@@ -140,9 +140,11 @@ def parse_faults(section, where="campaign.yaml"):
 
 @dataclass(frozen=True)
 class PlanConfig:
-    """``plan:``. grid_cells: joint-limit cells per axis (eq. 17); distances m; times s."""
+    """``plan:``. grid_cells: joint-limit cells per joint (eq. 17), or None (``auto``: the
+    paper's 17 x 10 x 10 x 14 x 6 x 10 for the default COMAU, about a million candidates for
+    any other robot: campaign.plan.grid.default_cells); distances m; times s."""
 
-    grid_cells: tuple = (17, 10, 10, 14, 6, 10)
+    grid_cells: tuple | None = None
     clearance_m: float = 0.035
     motion_clearance_m: float = 0.01
     motion_sample_deg: float = 1.0
@@ -152,11 +154,11 @@ class PlanConfig:
     @classmethod
     def parse(cls, doc: dict, where: _Where) -> "PlanConfig":
         kw = {}
-        if "grid_cells" in doc:
+        if "grid_cells" in doc and doc["grid_cells"] not in (None, "auto"):
             g = doc["grid_cells"]
             if not isinstance(g, (list, tuple)) or not g:
                 raise ConfigError(f"{where('grid_cells')}: must be a list of integers >= 1 "
-                                  f"(cells per joint), got {g!r}")
+                                  f"(cells per joint) or auto, got {g!r}")
             kw["grid_cells"] = tuple(check_int(v, f"{where('grid_cells')}[{i}]", low=1, high=MAX_GRID_CELLS)
                                      for i, v in enumerate(g))
             if math.prod(kw["grid_cells"]) >= MAX_GRID_SIZE:
@@ -312,7 +314,7 @@ class CampaignConfig:
         sim["faults"] = faults
         sim["hidden_effects"] = list(sim["hidden_effects"])
         plan = asdict(self.plan)
-        plan["grid_cells"] = list(plan["grid_cells"])
+        plan["grid_cells"] = "auto" if plan["grid_cells"] is None else list(plan["grid_cells"])
         out = {"robot": self.robot_spec if absolute else self.robot,
                "scene": str(self.scene_path) if absolute else self.scene}
         if self.tool_frame is not None:

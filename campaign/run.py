@@ -147,10 +147,11 @@ class RunFolder:
                               f"{recorded.config.robot!r} that {self.config_path} records")
 
     def scene(self):
-        """The run's cell (campaign.plan.scene.Scene)."""
+        """The run's cell (campaign.plan.scene.Scene) in the run's robot's base frame F_I
+        (:meth:`~campaign.plan.scene.Scene.placed`)."""
         from campaign.plan.scene import load_scene
 
-        return load_scene(self.config.scene_path)
+        return load_scene(self.config.scene_path).placed(self.robot())
 
     @property
     def effects(self) -> tuple:

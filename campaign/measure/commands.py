@@ -29,7 +29,7 @@ def register(sub):
     p.add_argument("--config", metavar="FILE", default=None,
                    help="configuration (default: RUN/campaign.yaml, else the embedded one)")
     p.add_argument("--poses", metavar="CSV", default=None,
-                   help="pose list to measure instead of RUN/plan/poses.csv (same header: pose_id,q1..q6, rad)")
+                   help="pose list to measure instead of RUN/plan/poses.csv (same header: pose_id,q1..qN, rad)")
     p.add_argument("--max-poses", type=int, default=None,
                    help="measure at most this many poses (the rest stays for a re-run)")
     p.add_argument("--retry-failed", action="store_true",

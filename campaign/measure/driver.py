@@ -1,4 +1,4 @@
-"""The campaign driver: move → reached → measure the three reflectors → store → next.
+"""The campaign driver: move → reached → measure the tool's reflectors → store → next.
 
 The same code drives a real cell and the simulated one. Unattended: every request has a
 timeout; a lost connection is re-opened with back-off and the request retried with the
@@ -32,6 +32,7 @@ from campaign.measure.store import PoseRecord, open_run
 from campaign.model.rotations import matrix_to_rotvec
 from campaign.progress import Progress
 
+#: the default COMAU's reflectors; a run measures its robot's (robot.yaml's, else the default triad)
 REFLECTORS = ("rrr1", "rrr2", "brr")
 #: request ids: pose requests are ``pose_id * 64 + slot`` (slot 0 the move, 1.. the measure
 #: attempts, 32.. the via moves); these bases lie above every pose id < 2**34
@@ -140,7 +141,8 @@ class Peer:
 
 
 def read_plan(run_dir, poses_csv=None):
-    """(pose_ids (n,), q (n, 6) rad, vias {pose_id: [q...]}) from RUN/plan/poses.csv and vias.csv.
+    """(pose_ids (n,), q (n, N) rad, vias {pose_id: [q...]}) from RUN/plan/poses.csv and vias.csv
+    (header ``pose_id,q1..qN``, N from the header: the caller checks it against the robot).
 
     ``poses_csv`` replaces RUN/plan/poses.csv (vias are then not read).
     """
@@ -151,15 +153,17 @@ def read_plan(run_dir, poses_csv=None):
             raise DataError(f"{path}: no such pose list")
         raise DataError(f"{run_dir}: no plan/poses.csv (run `campaign plan --run {run_dir}` first)")
     lines = path.read_text().splitlines()
-    if not lines or lines[0].strip() != "pose_id,q1,q2,q3,q4,q5,q6":
-        raise DataError(f"{path}: header must be pose_id,q1,q2,q3,q4,q5,q6")
+    head = lines[0].strip().split(",") if lines else []
+    N = len(head) - 1
+    if N < 1 or head != ["pose_id"] + [f"q{j}" for j in range(1, N + 1)]:
+        raise DataError(f"{path}: header must be pose_id,q1,q2,q3,q4,q5,q6 (pose_id,q1..qN for a chain of N joints)")
     ids, qs = [], []
     for k, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
         cells = line.split(",")
-        if len(cells) != 7:
-            raise DataError(f"{path}: line {k} has {len(cells)} fields, expected 7")
+        if len(cells) != N + 1:
+            raise DataError(f"{path}: line {k} has {len(cells)} fields, expected {N + 1}")
         try:
             vals = [float(c) for c in cells]
         except ValueError:
@@ -183,10 +187,24 @@ def read_plan(run_dir, poses_csv=None):
                     c = [float(x) for x in line.split(",")]
                 except ValueError:
                     c = []
-                if len(c) != 7 or not np.all(np.isfinite(c)) or c[0] != int(c[0]):
-                    raise DataError(f"{vpath}: line {k}: expected before_pose_id,q1..q6 as finite numbers")
+                if len(c) != N + 1 or not np.all(np.isfinite(c)) or c[0] != int(c[0]):
+                    raise DataError(f"{vpath}: line {k}: expected before_pose_id,q1..q{N} as finite numbers")
                 vias.setdefault(int(c[0]), []).append(c[1:])
-    return np.array(ids, dtype=np.int64), np.array(qs, dtype=float).reshape(-1, 6), vias
+    return np.array(ids, dtype=np.int64), np.array(qs, dtype=float).reshape(-1, N), vias
+
+
+def measured_robot(robot):
+    """The robot with the reflectors a run measures (robot.yaml's, else the default triad);
+    ConfigError (one line) when robot.yaml names fewer than three: a run derives each pose by
+    Kabsch from three or more."""
+    from campaign.errors import ConfigError
+
+    robot = robot.with_default_reflectors()
+    if len(robot.reflectors) < 3:
+        raise ConfigError(f"{robot.name}: robot.yaml names {len(robot.reflectors)} reflector(s); `campaign run` "
+                          "measures poses from three or more (measure with your own tooling and `campaign import` "
+                          "the one-reflector CSV)")
+    return robot
 
 
 @dataclass(frozen=True)
@@ -277,14 +295,16 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             if T_LI is None:
                 T_LI = _setup(store, trk, opts, base)
             T_LI = np.array(T_LI, dtype=float)
+            robot = measured_robot(robot)
             P_E = robot.reflector_positions_in_E
+            targets = tuple(r.name for r in robot.reflectors)
             todo = [k for k in range(len(ids)) if int(ids[k]) not in done]
             remaining_total = len(todo)
             if max_poses is not None:
                 todo = todo[:max_poses]
             clock = store.clock_s()
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
-                           stored_before, clock)
+                           stored_before, clock, targets)
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             if kind not in ("unreachable", "robot_fault"):
                 try:  # the clock after the last measurement's tracker time
@@ -326,7 +346,7 @@ def _setup(store, trk, opts, base):
 
 
 def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before,
-          clock_start=0.0):
+          clock_start=0.0, targets=REFLECTORS):
     bar = Progress("measuring", len(todo), progress, " poses")
     n_ok = n_fail = drift_warnings = in_a_row = 0
     clock = clock0 = clock_start
@@ -335,7 +355,8 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
     try:
         for n, k in enumerate(todo):
             pid = int(ids[k])
-            rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base)
+            rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base,
+                                   targets)
             store.add_pose(rec)
             clock = max(clock, c)
             if n == 0:
@@ -352,7 +373,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
             n_stored = stored_before + n + 1
             every = opts.drift_check_every
             if reference is not None and every and n_stored % every == 0 and n + 1 < len(todo):
-                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E)
+                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets)
                 clock = max(clock, c)
                 over = drift is not None and drift * 1e3 > opts.drift_threshold_mm
                 store.add_event("drift_check", {"reference_pose_id": reference["pose_id"],
@@ -396,7 +417,7 @@ def _move(ctrl, msg, opts):
     return reply, None
 
 
-def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base):
+def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=REFLECTORS):
     """One pose, start to stored record. Returns (PoseRecord, campaign clock s)."""
     retries = 0
     clock = 0.0
@@ -415,25 +436,25 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base):
         for attempt in range(opts.retries + 1):
             if attempt:
                 retries += 1
-            m = trk.request(P.Measure(rid + 1 + attempt, REFLECTORS), opts.timeout_s)
+            m = trk.request(P.Measure(rid + 1 + attempt, targets), opts.timeout_s)
             if not isinstance(m, P.Measurement):
                 last_reason = f"tracker answered '{m.type}'" + (f": {m.message}" if isinstance(m, P.ErrorReply) else "")
                 continue
             clock = m.time_s
             by = {r.target: r for r in m.readings}
-            bad = [f"{t}: {by[t].status if t in by else 'missing'}" for t in REFLECTORS
+            bad = [f"{t}: {by[t].status if t in by else 'missing'}" for t in targets
                    if t not in by or by[t].status != "ok"]
             if bad:
                 last_reason = "; ".join(bad)
                 continue
-            P_L = np.array([by[t].xyz_m for t in REFLECTORS])
+            P_L = np.array([by[t].xyz_m for t in targets])
             T_IE, rms = pose_from_reflectors(T_LI, P_E, P_L[None])
             return PoseRecord(pid, "measured", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
                               q_encoder=tuple(q_enc), xyz=tuple(map(float, T_IE[0, :3, 3])),
                               rotvec=tuple(map(float, matrix_to_rotvec(T_IE[0, :3, :3]))), fit_rms_m=float(rms[0]),
                               retries=retries,
                               context={} if m.temperature_c is None else {"temperature_c": m.temperature_c},
-                              reflectors={t: (by[t].xyz_m, by[t].status) for t in REFLECTORS}), clock
+                              reflectors={t: (by[t].xyz_m, by[t].status) for t in targets}), clock
         return PoseRecord(pid, "failed", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
                           q_encoder=tuple(q_enc), retries=retries,
                           reason=f"tracker after {opts.retries + 1} attempts: {last_reason}"), clock
@@ -444,7 +465,7 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base):
                           retries=retries, reason=str(exc)), clock
 
 
-def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E):
+def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS):
     """Re-measure the reference pose: (distance (m) of its derived position from the first
     time or None when it could not be measured, campaign clock s)."""
     clock = 0.0
@@ -453,14 +474,14 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E):
         if err:
             return None, clock
         clock = reply.time_s
-        m = trk.request(P.Measure(rid + 1, REFLECTORS), opts.timeout_s)
+        m = trk.request(P.Measure(rid + 1, targets), opts.timeout_s)
         if not isinstance(m, P.Measurement):
             return None, clock
         clock = m.time_s
         by = {r.target: r for r in m.readings}
-        if any(t not in by or by[t].status != "ok" for t in REFLECTORS):
+        if any(t not in by or by[t].status != "ok" for t in targets):
             return None, clock
-        T_IE, _ = pose_from_reflectors(T_LI, P_E, np.array([[by[t].xyz_m for t in REFLECTORS]]))
+        T_IE, _ = pose_from_reflectors(T_LI, P_E, np.array([[by[t].xyz_m for t in targets]]))
         return float(np.linalg.norm(T_IE[0, :3, 3] - np.array(reference["xyz"]))), clock
     except (RobotFault, PeerUnreachable):
         raise

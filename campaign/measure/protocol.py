@@ -25,6 +25,8 @@ _HEADER = struct.Struct(">I")
 
 #: target names the tracker knows: the tool's reflectors and the base-frame set-up points
 SETUP_TARGETS = ("setup_origin", "setup_x", "setup_y")
+#: most joints a ``move``/``reached`` carries (field ``joints``; 6 when absent)
+MAX_JOINTS = 32
 TARGET_STATUS = ("ok", "beam_lost", "out_of_range")
 
 
@@ -133,6 +135,14 @@ def _vec(obj, key, n, what):
     return tuple(out)
 
 
+def _joints(obj, what) -> int:
+    """The joint count of a ``move``/``reached``: field ``joints`` (1..MAX_JOINTS), 6 when absent."""
+    n = obj.get("joints", 6)
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_JOINTS:
+        raise ProtocolError(f"{what}: field 'joints' must be an integer in 1..{MAX_JOINTS}, got {n!r}")
+    return n
+
+
 def _str(obj, key, what, max_len=200):
     v = obj.get(key)
     if not isinstance(v, str) or len(v) > max_len:
@@ -147,9 +157,9 @@ def from_dict(obj) -> object:
     kind = obj.get("type")
     what = f"message '{kind}'"
     if kind == "move":
-        return Move(_id(obj, what), _vec(obj, "q", 6, what))
+        return Move(_id(obj, what), _vec(obj, "q", _joints(obj, what), what))
     if kind == "reached":
-        return Reached(_id(obj, what), _vec(obj, "q_encoder", 6, what), _num(obj, "time_s", what))
+        return Reached(_id(obj, what), _vec(obj, "q_encoder", _joints(obj, what), what), _num(obj, "time_s", what))
     if kind == "fault":
         return Fault(_id(obj, what), _str(obj, "code", what), _str(obj, "message", what, 2000))
     if kind == "measure":
@@ -192,6 +202,9 @@ def to_dict(msg) -> dict:
     for key in ("q", "q_encoder", "targets"):
         if key in d:
             d[key] = list(d[key])
+    for key in ("q", "q_encoder"):  # a chain of other than six joints says how many
+        if key in d and len(d[key]) != 6:
+            d["joints"] = len(d[key])
     return d
 
 

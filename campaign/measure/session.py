@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from campaign.errors import ConfigError
-from campaign.measure.driver import RunOptions, RunResult, read_plan, run_campaign
+from campaign.measure.driver import RunOptions, RunResult, measured_robot, read_plan, run_campaign
 from campaign.run import RunFolder
 
 
@@ -31,6 +31,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
         raise ConfigError("give the controller and the tracker (HOST:PORT each), or use the simulated cell")
     plan = read_plan(run.path, poses_csv)
     robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv))
+    measured_robot(robot)  # refused before the run is touched
     if sim:  # what the simulated cell would refuse, refused before it is started
         from campaign.effects.base import make_effect
 

@@ -57,6 +57,15 @@ class Reflector:
     half_angle: float
 
 
+#: Reflectors assumed on the tool of a robot whose robot.yaml names none (planning, `campaign run`, the
+#: simulated cell): a 5 cm triad in the tool frame (enough for a pose by Kabsch), every nest facing the
+#: tool frame's +z with robot.yaml's default acceptance half-angle (30°).
+DEFAULT_REFLECTOR_POSITIONS = ((0.05, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.05))
+DEFAULT_HALF_ANGLE_DEG = 30.0
+DEFAULT_REFLECTORS = tuple(Reflector(f"m{i + 1}", "smr", p, (0.0, 0.0, 1.0), float(np.deg2rad(DEFAULT_HALF_ANGLE_DEG)))
+                           for i, p in enumerate(DEFAULT_REFLECTOR_POSITIONS))
+
+
 def _read_only(a):
     a = np.array(a, dtype=float)
     a.setflags(write=False)
@@ -279,6 +288,60 @@ class RobotModel:
         t = np.array(self.t_nominal)
         t[-1] = t[-1] + self.R_nominal[-1] @ p
         return dataclasses.replace(self, t_nominal=_read_only(t), name=self.name)
+
+    def with_default_reflectors(self) -> "RobotModel":
+        """This robot, or, when robot.yaml names no reflector, the same robot carrying
+        :data:`DEFAULT_REFLECTORS` (what `plan`, `run` and the simulated cell measure). Cached:
+        the same object on every call."""
+        if self.reflectors:
+            return self
+        cached = self.__dict__.get("_with_default_reflectors")
+        if cached is None:
+            import dataclasses
+
+            cached = dataclasses.replace(self, reflectors=DEFAULT_REFLECTORS)
+            self.__dict__["_with_default_reflectors"] = cached
+        return cached
+
+    @functools.cached_property
+    def link_frames(self) -> dict:
+        """Where every link of the URDF sits on the chain: ``{link: (k, T)}`` with k the index of
+        the frame of :func:`campaign.model.kinematics.frames` it moves with (0: the base side,
+        j = 1..N: after joint j, N + 1: the tool frame and what hangs from it) and T (4, 4) its
+        pose in that frame (joints outside the chain at their locked values). A link is carried
+        by the nearest chain frame above it in the tree; links above the base frame (the base
+        is not the root) stand still with frame 0."""
+        N = self.n_joints
+        joints = {j.child: j for j in self.urdf.robot.joints}
+        chain = {}
+        for k, name in enumerate(self.link_names[1:]):  # frames 0 .. N + 1
+            if name in chain:
+                continue  # a tool frame that is the last joint's own link moves with that joint
+            T = np.eye(4)
+            if 1 <= k <= N:  # model frame k = link · S_k
+                T[:3, :3] = np.asarray(self.axis_alignment[k - 1]).T
+            chain[name] = (k, T)
+        T0 = _as_T(self.R_nominal[0], self.t_nominal[0])  # frame 0 in F_I
+        if self.base_frame not in chain:
+            chain[self.base_frame] = (0, np.linalg.inv(T0))
+
+        def locked(j):
+            return _origin(j) @ _motion(j, self.locked_joints.get(j.name, 0.0))
+
+        out = {}
+        for link in self.urdf.link_map:
+            T, cur = np.eye(4), link
+            while cur not in chain and cur in joints:  # up to the nearest chain link
+                T = locked(joints[cur]) @ T
+                cur = joints[cur].parent
+            if cur in chain:
+                k, Tc = chain[cur]
+                out[link] = (k, Tc @ T)
+            else:  # above the base: T is the link's pose in the root
+                out[link] = (0, np.linalg.inv(T0) @ np.linalg.inv(np.asarray(self.T_root_base)) @ T)
+        for k, T in out.values():
+            T.setflags(write=False)
+        return out
 
     def to_model_q(self, q_controller) -> np.ndarray:
         """q_model = A q_controller + b, (n, N) (robot.yaml's ``controller`` convention)."""

@@ -16,13 +16,16 @@ import numpy as np
 from campaign.plan.geometry import (RobotSpheres, fcl_geometry, point_primitive_distance, robot_primitives, robot_spheres,
                                     to_world)
 
-#: frames whose primitives may occlude the tracker's beams (the tool plate and flange lie
-#: behind the reflectors' cones, so frames 6 and 7 cannot block a beam that passed the cone test)
-OCCLUDING_FRAMES = (0, 1, 2, 3, 4, 5)
+
+def occludes(robot, prim) -> bool:
+    """Whether a robot primitive may occlude the tracker's beams: the links before the last
+    joint (COMAU: frames 0-5). The last link and the tool carry the reflectors and lie behind
+    their nests' cones, so they cannot block a beam that passed the cone test."""
+    return prim.frame < robot.n_joints
 
 
 def reflector_geometry(robot, R_E, t_E):
-    """Reflector centres (n, 3, 3) and nest axes (n, 3, 3) in F_I."""
+    """Reflector centres (n, k, 3) and nest axes (n, k, 3) in F_I for tool frames R_E (n, 3, 3), t_E (n, 3)."""
     P = np.einsum("nij,rj->nri", R_E, robot.reflector_positions_in_E) + t_E[:, None, :]
     axes = np.array([r.axis_in_E for r in robot.reflectors])
     A = np.einsum("nij,rj->nri", R_E, axes)
@@ -62,7 +65,14 @@ def _segment_hits_box(p0, p1, half):
 
 
 def _box_of(kind, size):
-    return np.asarray(size, dtype=float) if kind == "box" else np.array([2 * size[0], 2 * size[0], size[1]])
+    """Edges (3,) of a box about the shape's centre, in its frame, that contains it."""
+    if kind in ("box", "mesh"):
+        return np.asarray(size, dtype=float)
+    if kind == "sphere":
+        return np.full(3, 2.0 * size[0])
+    if kind == "capsule":
+        return np.array([2 * size[0], 2 * size[0], size[1] + 2 * size[0]])
+    return np.array([2 * size[0], 2 * size[0], size[1]])
 
 
 def scene_line_of_sight_ok(scene, P):
@@ -79,17 +89,18 @@ def scene_line_of_sight_ok(scene, P):
 
 
 def robot_line_of_sight_ok(robot, scene, P, R, t):
-    """No robot link (frames 0-5) within the beam radius of a beam. R, t: frames (n, 8, ...). Conservative."""
+    """No robot link (:func:`occludes`) within the beam radius of a beam. P (n, k, 3) reflector
+    centres; R, t: frames (n, N+2, ...). Conservative."""
     o = scene.tracker_position
     ok = np.ones(len(P), dtype=bool)
     for prim in robot_primitives(robot):
-        if prim.frame not in OCCLUDING_FRAMES:
+        if not occludes(robot, prim):
             continue
         half = 0.5 * _box_of(prim.kind, prim.size) + scene.beam_radius_m
         Rw = R[:, prim.frame] @ prim.T[:3, :3]  # (n, 3, 3)
         cw = np.einsum("nij,j->ni", R[:, prim.frame], prim.T[:3, 3]) + t[:, prim.frame]
         p0 = np.einsum("nri,nij->nrj", P - cw[:, None, :], Rw)
-        p1 = np.einsum("ni,nij->nj", o - cw, Rw)[:, None, :].repeat(3, axis=1)
+        p1 = np.einsum("ni,nij->nj", o - cw, Rw)[:, None, :].repeat(P.shape[1], axis=1)
         ok &= ~np.any(_segment_hits_box(p0, p1, half), axis=1)
     return ok
 
@@ -101,6 +112,10 @@ class ClearanceChecker:
     i, j with |i − j| ≥ 2 (adjacent links touch by design), less the pairs found closer than
     the clearance in every one of a random sample of configurations (as a set-up assistant
     disables "always in contact" pairs); those are listed in ``disabled_pairs``.
+
+    A mesh is its triangles to FCL, which measures between surfaces: a shape wholly inside a
+    closed (watertight) mesh would seem apart from it, so a pair that FCL finds clear is
+    taken as touching (distance 0) when a point of one shape lies inside the other's mesh.
     """
 
     def __init__(self, robot, scene, clearance_m):
@@ -109,7 +124,9 @@ class ClearanceChecker:
         self.robot, self.scene, self.clearance = robot, scene, float(clearance_m)
         self.prims = robot_primitives(robot)
         self.spheres: RobotSpheres = robot_spheres(robot)
-        self.robot_objs = [fcl.CollisionObject(fcl_geometry(p.kind, p.size), fcl.Transform()) for p in self.prims]
+        self.robot_objs = [fcl.CollisionObject(fcl_geometry(p.kind, p.size, p.mesh), fcl.Transform()) for p in self.prims]
+        self._closed = [p.mesh is not None and p.mesh.watertight for p in self.prims]
+        self._world = [None] * len(self.prims)  # (R, t) of each primitive as last placed, for the inside test
         self.scene_objs = []
         for obs in scene.obstacles:
             self.scene_objs.append(fcl.CollisionObject(fcl_geometry(obs.kind, obs.size),
@@ -128,27 +145,39 @@ class ClearanceChecker:
         self._self_pair_index = np.array(self.self_pairs, dtype=int).reshape(-1, 2).T
 
     def _prune_always_near(self, pairs, n=300, seed=0):
-        from campaign.model.kinematics import frames
+        """(pairs kept, frame pairs of those closer than the clearance at every one of ``n``
+        random configurations). A sample where the sphere bounds already clear a pair shows it
+        is not always near without FCL; FCL decides the rest, sample by sample."""
+        from campaign.plan.geometry import nominal_frames_entry_first
 
         rng = np.random.default_rng(seed)
-        q = rng.uniform(self.robot.q_lower, self.robot.q_upper, size=(n, 6))
-        R, t = frames(self.robot, q)
-        near = np.zeros(len(pairs), dtype=int)
-        for k in range(n):
-            self._place(R[k], t[k])
-            for m, (i, j) in enumerate(pairs):
-                near[m] += self._dist(self.robot_objs[i], self.robot_objs[j]) < self.clearance
-        keep = [p for p, c in zip(pairs, near) if c < n]
-        dropped = [(self.prims[i].frame, self.prims[j].frame) for (i, j), c in zip(pairs, near) if c == n]
+        q = rng.uniform(self.robot.q_lower, self.robot.q_upper, size=(n, self.robot.n_joints))
+        Re, te = nominal_frames_entry_first(self.robot, q)
+        index = np.array(pairs, dtype=int).reshape(-1, 2).T
+        need = self._self_undecided(Re, te, index, self.clearance, self._coarse_world(Re, te))
+        always = []
+        for m, (i, j) in enumerate(pairs):
+            near = bool(need[m].all())
+            for k in range(n) if near else ():
+                self._place(Re[..., k], te[..., k], (i, j))
+                if self._dist_self(i, j) >= self.clearance:
+                    near = False
+                    break
+            always.append(near)
+        keep = [p for p, a in zip(pairs, always) if not a]
+        dropped = [(self.prims[i].frame, self.prims[j].frame) for (i, j), a in zip(pairs, always) if a]
         return keep, dropped
 
     def _place(self, R, t, which=None):
-        """Put the robot's FCL objects (all, or the primitive indices ``which``) at a pose."""
+        """Put the robot's FCL objects (all, or the primitive indices ``which``) at a pose:
+        frames R (N+2, 3, 3), t (N+2, 3)."""
         import fcl
 
         for i in range(len(self.prims)) if which is None else which:
             p = self.prims[i]
-            self.robot_objs[i].setTransform(fcl.Transform(R[p.frame] @ p.T[:3, :3], R[p.frame] @ p.T[:3, 3] + t[p.frame]))
+            Rw, tw = R[p.frame] @ p.T[:3, :3], R[p.frame] @ p.T[:3, 3] + t[p.frame]
+            self.robot_objs[i].setTransform(fcl.Transform(Rw, tw))
+            self._world[i] = (Rw, tw)
 
     @staticmethod
     def _dist(a, b):
@@ -157,22 +186,78 @@ class ClearanceChecker:
         res = fcl.DistanceResult()
         return fcl.distance(a, b, fcl.DistanceRequest(), res)
 
+    def _inside(self, i, point) -> bool:
+        """Whether a point (3,) in F_I lies inside robot primitive i's closed mesh (as placed)."""
+        Rw, tw = self._world[i]
+        local = (np.asarray(point) - tw) @ Rw
+        if np.any(np.abs(local) > 0.5 * np.asarray(self.prims[i].size)):
+            return False
+        return bool(self.prims[i].mesh.contains(local[None])[0])
+
+    def _point_of(self, i):
+        """A point (3,) in F_I of robot primitive i as placed (a mesh: a vertex; else its centre)."""
+        Rw, tw = self._world[i]
+        p = self.prims[i]
+        return Rw @ p.mesh.vertices[0] + tw if p.mesh is not None else tw
+
+    def _dist_scene(self, i, j) -> float:
+        """FCL distance (m) of robot primitive i (placed) to obstacle j; 0 for an obstacle inside a closed mesh."""
+        d = self._dist(self.robot_objs[i], self.scene_objs[j])
+        if d > 0 and self._closed[i] and self._inside(i, self.scene.obstacles[j].T_I[:3, 3]):
+            return 0.0
+        return d
+
+    def _dist_self(self, i, j) -> float:
+        """FCL distance (m) of robot primitives i and j (placed); 0 for one inside the other's closed mesh."""
+        d = self._dist(self.robot_objs[i], self.robot_objs[j])
+        if d > 0 and ((self._closed[i] and self._inside(i, self._point_of(j)))
+                      or (self._closed[j] and self._inside(j, self._point_of(i)))):
+            return 0.0
+        return d
+
     def pair_distances(self, R, t) -> tuple:
-        """Exact FCL distances (m) of every checked pair for one pose (frames R (8,3,3), t (8,3)):
+        """Exact FCL distances (m) of every checked pair for one pose (frames R (N+2,3,3), t (N+2,3)):
         ``(robot-scene (len(scene_pairs),), robot-robot (len(self_pairs),))``."""
         self._place(R, t)
-        d_scene = np.array([self._dist(self.robot_objs[i], self.scene_objs[j]) for i, j in self.scene_pairs])
-        d_self = np.array([self._dist(self.robot_objs[i], self.robot_objs[j]) for i, j in self.self_pairs])
+        d_scene = np.array([self._dist_scene(i, j) for i, j in self.scene_pairs])
+        d_self = np.array([self._dist_self(i, j) for i, j in self.self_pairs])
         return d_scene, d_self
 
     def exact_min_distance(self, R, t) -> float:
-        """Exact FCL minimum distance over all checked pairs for one pose (frames R (8,3,3), t (8,3))."""
+        """Exact FCL minimum distance over all checked pairs for one pose (frames R (N+2,3,3), t (N+2,3))."""
         d_scene, d_self = self.pair_distances(R, t)
         return float(min(d_scene.min(initial=np.inf), d_self.min(initial=np.inf)))
 
+    def _coarse_world(self, R, t):
+        """Centres (3, P, n) in F_I of the one-sphere-per-primitive level, frames entry-first."""
+        S = self.spheres
+        if len(S.coarse_frame) == 0:
+            return np.zeros((3, 0, R.shape[-1]))
+        return np.stack([sum(R[f, :, j] * cc[j] for j in range(3)) + t[f]
+                         for f, cc in zip(S.coarse_frame, S.coarse_centre)], axis=1)
+
+    def _self_undecided(self, R, t, index, c, Cw):
+        """(len(pairs), n) bool for the primitive pairs ``index`` (2, m): True where the sphere
+        bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`."""
+        S = self.spheres
+        I, J = index
+        diff = Cw[:, I] - Cw[:, J]
+        d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+        need_self = d - (S.coarse_radius[I] + S.coarse_radius[J])[:, None] < c
+        for m, (i, j) in enumerate(zip(I, J)):
+            cols = np.flatnonzero(need_self[m])
+            # i's spheres against j's shape, then j's spheres against i's shape where still undecided
+            for a, b in ((i, j), (j, i)):
+                if len(cols) == 0:
+                    break
+                lb = self._spheres_to_primitive(R, t, cols, a, b)
+                need_self[m, cols[lb >= c]] = False
+                cols = cols[lb < c]
+        return need_self
+
     def undecided_pairs(self, R, t, clearance):
         """Which pairs the sphere bounds cannot clear, for poses with frames given entry-first:
-        R (8, 3, 3, n), t (8, 3, n) (see :func:`~campaign.plan.geometry.nominal_frames_entry_first`).
+        R (N+2, 3, 3, n), t (N+2, 3, n) (see :func:`~campaign.plan.geometry.nominal_frames_entry_first`).
 
         Returns ``(need_scene (len(scene_pairs), n), need_self (len(self_pairs), n))``, bool:
         True where the lower bound on that pair's distance is below ``clearance`` (m); False
@@ -185,17 +270,12 @@ class ClearanceChecker:
         n = R.shape[-1]
         S = self.spheres
         # coarse level: one sphere per primitive, for every pose; centres (3, P, n)
-        Cw = np.stack([sum(R[f, :, j] * cc[j] for j in range(3)) + t[f] for f, cc in zip(S.coarse_frame, S.coarse_centre)],
-                      axis=1)
+        Cw = self._coarse_world(R, t)
         need_scene = np.zeros((len(self.scene_pairs), n), dtype=bool)
         for j, obs in enumerate(self.scene.obstacles):
             prims = self._scene_pair_prims[j]
             d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
             need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
-        I, J = self._self_pair_index
-        diff = Cw[:, I] - Cw[:, J]
-        d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-        need_self = d - (S.coarse_radius[I] + S.coarse_radius[J])[:, None] < c
         # fine level, only for the poses (columns) that the coarse level could not decide
         for m, (i, j) in enumerate(self.scene_pairs):
             cols = np.flatnonzero(need_scene[m])
@@ -205,20 +285,12 @@ class ClearanceChecker:
             W = to_world(R[f][..., cols], t[f][:, cols], self._sphere_centre[i])
             d = point_primitive_distance(W, obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
             need_scene[m, cols] = np.min(d - self._sphere_radius[i][:, None], axis=0) < c
-        for m, (i, j) in enumerate(self.self_pairs):
-            cols = np.flatnonzero(need_self[m])
-            # i's spheres against j's shape, then j's spheres against i's shape where still undecided
-            for a, b in ((i, j), (j, i)):
-                if len(cols) == 0:
-                    break
-                lb = self._spheres_to_primitive(R, t, cols, a, b)
-                need_self[m, cols[lb >= c]] = False
-                cols = cols[lb < c]
+        need_self = self._self_undecided(R, t, self._self_pair_index, c, Cw)
         return need_scene, need_self
 
     def _spheres_to_primitive(self, R, t, cols, a, b):
         """Lower bound (len(cols),) on the distance (m) between robot primitives a and b at the
-        poses ``cols`` of entry-first frames R (8, 3, 3, n), t (8, 3, n): a's enclosing spheres
+        poses ``cols`` of entry-first frames R (N+2, 3, 3, n), t (N+2, 3, n): a's enclosing spheres
         against b's exact shape."""
         fa, pb = self.prims[a].frame, self.prims[b]
         W = to_world(R[fa][..., cols], t[fa][:, cols], self._sphere_centre[a])
@@ -230,13 +302,13 @@ class ClearanceChecker:
 
     def clear(self, R, t, clearance=None) -> np.ndarray:
         """(n,) bool: every checked pair farther apart than the clearance (m; default: the
-        checker's). Frames R (n, 8, 3, 3), t (n, 8, 3). Sphere bounds first, FCL for the rest."""
+        checker's). Frames R (n, N+2, 3, 3), t (n, N+2, 3). Sphere bounds first, FCL for the rest."""
         R, t = np.asarray(R), np.asarray(t)
         return self.clear_entry_first(np.ascontiguousarray(np.moveaxis(R, 0, -1)),
                                       np.ascontiguousarray(np.moveaxis(t, 0, -1)), clearance)
 
     def clear_entry_first(self, R, t, clearance=None) -> np.ndarray:
-        """:meth:`clear` for frames given entry-first: R (8, 3, 3, n), t (8, 3, n)."""
+        """:meth:`clear` for frames given entry-first: R (N+2, 3, 3, n), t (N+2, 3, n)."""
         c = self.clearance if clearance is None else float(clearance)
         n = R.shape[-1]
         need_scene, need_self = self.undecided_pairs(R, t, c)
@@ -250,13 +322,13 @@ class ClearanceChecker:
             which = set(scene_pairs[ms, 0]) | set(self_pairs[mo, 0]) | set(self_pairs[mo, 1])
             self._place(R[..., k], t[..., k], which)
             for i, j in scene_pairs[ms]:
-                if self._dist(self.robot_objs[i], self.scene_objs[j]) < c:
+                if self._dist_scene(i, j) < c:
                     ok[k] = False
                     break
             if not ok[k]:
                 continue
             for i, j in self_pairs[mo]:
-                if self._dist(self.robot_objs[i], self.robot_objs[j]) < c:
+                if self._dist_self(i, j) < c:
                     ok[k] = False
                     break
         return ok
@@ -273,12 +345,12 @@ class ExactChecker:
         self._fcl = fcl
 
     def line_of_sight_clear(self, R, t, P) -> bool:
-        """FCL distance from each beam (a capsule of the beam radius) to the scene and links 0-5 > 0."""
+        """FCL distance from each beam (a capsule of the beam radius) to the scene and the occluding links > 0."""
         fcl = self._fcl
         o = self.scene.tracker_position
         self.clearance._place(R, t)
         others = list(self.clearance.scene_objs) + [obj for obj, p in zip(self.clearance.robot_objs, self.clearance.prims)
-                                                   if p.frame in OCCLUDING_FRAMES]
+                                                   if occludes(self.robot, p)]
         for p in P:
             axis = o - p
             length = np.linalg.norm(axis)

@@ -1,5 +1,5 @@
-"""`campaign plan [--config FILE] [--run DIR] [--grid-scale S] [--select N | --budget HOURS | --target-mm X]
-[--for-effects a,b]`."""
+"""`campaign plan [--config FILE] [--run DIR] [--robot NAME|URDF|robot.yaml] [--tool-frame LINK] [--base-frame LINK]
+[--grid-scale S] [--select N | --budget HOURS | --target-mm X] [--for-effects a,b]`."""
 
 from __future__ import annotations
 
@@ -12,8 +12,14 @@ def register(sub):
                    help="campaign.yaml (default: the run's own when it has one, else the embedded one)")
     p.add_argument("--run", metavar="DIR", default="runs/default",
                    help="run folder (default: %(default)s); a run holding measurements is refused")
+    p.add_argument("--robot", metavar="NAME|URDF|robot.yaml", default=None,
+                   help="plan for this robot (default: the configuration's; recorded in RUN/campaign.yaml): its URDF's "
+                        "collision geometry and joint limits, robot.yaml's reflectors (docs/robot_yaml.md)")
+    p.add_argument("--tool-frame", metavar="LINK", default=None, help="the robot's tool frame (default: the robot's)")
+    p.add_argument("--base-frame", metavar="LINK", default=None, help="the robot's base frame (default: the URDF's root)")
     p.add_argument("--grid-scale", type=float, default=1.0,
-                   help="scale the cells per axis for a coarser (<1) or finer grid (default: 1 = 1,428,000 candidates)")
+                   help="scale the cells per axis for a coarser (<1) or finer grid (default: 1 = 1,428,000 candidates "
+                        "for the default robot, about a million for another: plan.grid_cells in campaign.yaml)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--select", type=int, metavar="N", default=None,
@@ -38,7 +44,7 @@ def _plan(args):
 
     selection = _selection_options(args)
     s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty(),
-                      selection=selection)
+                      selection=selection, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
     rm = s["removed_by_filter"]
     est = s["estimated_campaign"]
     print(f"candidates {s['candidates']:,} (grid {' x '.join(map(str, s['grid_cells']))})")

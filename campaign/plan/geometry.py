@@ -1,101 +1,268 @@
 """Collision geometry of the robot (from the URDF) and the scene, for FCL and for bounds.
 
-Two representations of the same primitives:
+The robot's geometry is every ``<collision>`` of every link of its URDF, carried by the chain
+frame that link moves with (:attr:`campaign.model.robot.RobotModel.link_frames`): boxes,
+cylinders, spheres, capsules (``<capsule radius length>``, axis z) and meshes (any format
+trimesh reads: STL, DAE, OBJ, ...; ``scale`` applied; ``package://`` and relative paths
+resolved as yourdfpy does). Geometry the planner cannot check (a mesh file that is missing or
+unreadable, another element) is one ConfigError line naming the link and the file, never
+dropped.
 
-* FCL objects (python-fcl) for exact distances;
-* enclosing spheres (each box or cylinder cut along its long axis into pieces, each piece
-  inside one sphere) for vectorised, conservative lower bounds: if the spheres are clear by
-  d, the real geometry is clear by at least d.
+Two representations of the same shapes:
+
+* FCL objects (python-fcl) for exact distances: the primitives themselves, a mesh as its
+  triangles (a bounding-volume hierarchy);
+* enclosing spheres for vectorised, conservative lower bounds: if the spheres are clear by
+  d, the real geometry is clear by at least d. A box or cylinder is cut along its long axis
+  into pieces, each inside one sphere; a mesh's surface is cut into cells of its oriented
+  bounding box, each cell's triangles inside one sphere. Where a bound needs a shape's exact
+  distance to a point, a mesh stands in for itself by its oriented bounding box (which
+  contains it: the bound stays a lower bound).
 """
 
 from __future__ import annotations
 
 import functools
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from campaign.errors import ConfigError
 from campaign.model.rotations import urdf_rpy
 
-#: frame index of each URDF link in campaign.model.kinematics.frames (0 = F_0, ..., 7 = F_E)
-LINK_FRAME = {"link0": 0, "link1": 1, "link2": 2, "link3": 3, "link4": 4, "link5": 5, "link6": 6, "E": 7}
+#: kinds of collision geometry the planner checks (URDF elements of the same names)
+SUPPORTED = ("box", "cylinder", "sphere", "capsule", "mesh")
+#: a mesh's surface is cut into cubes of its oriented bounding box's smallest edge times this
+#: (at least MESH_PIECE_MIN_M), one enclosing sphere per cube: smaller spheres decide more pairs
+#: without FCL but cost more per bound
+MESH_PIECE_FRACTION = 0.5
+MESH_PIECE_MIN_M = 0.02
+#: a flat mesh (an edge of its bounding box below this, m) gets this thickness for its box bound
+MESH_MIN_EXTENT_M = 1e-6
+
+
+@dataclass(frozen=True, eq=False)
+class MeshShape:
+    """A collision mesh in its primitive's frame (the mesh's oriented bounding box, centred):
+    vertices (V, 3) m, faces (F, 3), the file it came from, and whether it is closed
+    (watertight: then it has an inside, which FCL's triangle distance does not see)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    path: Path
+    watertight: bool
+
+    @functools.cached_property
+    def trimesh(self):
+        import trimesh
+
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    def contains(self, points) -> np.ndarray:
+        """(n,) bool: points (n, 3) in the primitive's frame inside the closed mesh."""
+        if not self.watertight:
+            return np.zeros(len(points), dtype=bool)
+        return np.asarray(self.trimesh.contains(np.asarray(points, dtype=float).reshape(-1, 3)), dtype=bool)
 
 
 @dataclass(frozen=True)
 class Primitive:
-    """A box (size = 3 edges) or cylinder (size = radius, height; axis z) fixed in a frame."""
+    """One collision shape fixed in a chain frame (index of ``kinematics.frames``).
+
+    kind and size: ``box`` (3 edges), ``cylinder`` (radius, length; axis z), ``sphere``
+    (radius,), ``capsule`` (radius, length between the caps' centres; axis z), ``mesh``
+    (the edges of its oriented bounding box; the triangles in ``mesh``). T (4, 4): pose of
+    the shape's frame (a mesh: of its bounding box) in the chain frame. link: the URDF link."""
 
     frame: int
     kind: str
     size: tuple
-    T: np.ndarray  # pose in its frame (4, 4)
+    T: np.ndarray
+    link: str = ""
+    mesh: MeshShape | None = field(default=None, compare=False)
 
 
 def check_plannable(robot) -> None:
-    """One ConfigError line unless the planner can handle ``robot``: today six revolute joints
-    whose links carry the paper's names (link0..link6, E), at least three reflectors on the tool,
-    and collision geometry of boxes and cylinders only (issue 12, item 9 is not done)."""
-    from campaign.errors import ConfigError
-
-    names = tuple(robot.link_names[1:])
-    if robot.n_joints != 6 or any(t != "revolute" for t in robot.joint_types) or set(names) != set(LINK_FRAME):
-        raise ConfigError(f"plan: {robot.name} ({robot.n_joints} joints, links {', '.join(names)}): planning "
-                          "supports only 6R arms whose chain links are named link0..link6, E (as the COMAU's) for "
-                          "now; measure another robot with your own tooling and `campaign import` the CSV")
-    if len(robot.reflectors) < 3:
-        raise ConfigError(f"plan: {robot.name}: robot.yaml names {len(robot.reflectors)} reflectors; planning needs "
-                          "three on the tool")
+    """One ConfigError line unless the planner can handle ``robot``: at least one reflector on
+    the tool (robot.yaml's, or the default triad: ``robot.with_default_reflectors()``) and
+    collision geometry it can check (:func:`robot_primitives`)."""
+    if len(robot.reflectors) < 1:
+        raise ConfigError(f"plan: {robot.name}: no reflector on the tool (robot.yaml 'reflectors'); planning "
+                          "needs at least one to check the tracker's line of sight and the nests' cones")
     robot_primitives(robot)
 
 
+def _numbers(el, attr, n, where):
+    text = el.get(attr)
+    try:
+        v = [float(x) for x in (text or "").split()]
+    except ValueError:
+        v = []
+    if len(v) != n or not np.all(np.isfinite(v)):
+        raise ConfigError(f"{where}: <{el.tag} {attr}=\"{text}\"> must be {n} number{'s' if n > 1 else ''}")
+    return v
+
+
+def resolve_mesh_path(filename: str, urdf_path) -> Path:
+    """The file a URDF's ``<mesh filename>`` names: ``package://``, ``file://``, absolute or
+    relative to the URDF (yourdfpy's resolution: the package's name dropped, then the URDF's
+    folder and its parents searched)."""
+    import yourdfpy
+
+    if filename.startswith("file://"):
+        filename = filename[len("file://"):]
+    return Path(yourdfpy.filename_handler_magic(filename, dir=str(Path(urdf_path).parent)))
+
+
+@functools.lru_cache(maxsize=64)
+def _load_mesh(path: str, scale: tuple, stamp: int):
+    """(vertices (V, 3) in the mesh file's frame, scaled; faces (F, 3); watertight) of a mesh file."""
+    import trimesh
+
+    mesh = trimesh.load(path, force="mesh")
+    v = np.asarray(mesh.vertices, dtype=float) * np.asarray(scale, dtype=float)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    return v, f, bool(mesh.is_watertight)
+
+
+def _mesh_primitive(el, T, frame, link, urdf_path, where):
+    """A Primitive for a ``<mesh>`` element at pose T (4, 4) of the chain frame."""
+    filename = el.get("filename")
+    if not filename:
+        raise ConfigError(f"{where}: <mesh> without a filename")
+    scale = (1.0, 1.0, 1.0)
+    if el.get("scale") is not None:
+        s = el.get("scale").split()
+        scale = tuple(_numbers(el, "scale", 1, where) * 3) if len(s) == 1 else tuple(_numbers(el, "scale", 3, where))
+    path = resolve_mesh_path(filename, urdf_path)
+    if not path.is_file():
+        raise ConfigError(f"{where}: collision mesh '{filename}' not found (looked for {path}); the planner "
+                          "cannot check geometry it cannot load")
+    try:
+        v, f, watertight = _load_mesh(str(path.resolve()), scale, path.stat().st_mtime_ns)
+    except Exception as exc:  # trimesh raises many kinds
+        raise ConfigError(f"{where}: collision mesh {path} is not a readable mesh "
+                          f"({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})") from None
+    if len(f) == 0 or not np.all(np.isfinite(v)):
+        raise ConfigError(f"{where}: collision mesh {path} holds no triangles")
+    import trimesh
+
+    to_obb, extents = trimesh.bounds.oriented_bounds(v)  # to_obb: mesh frame -> box frame (centred)
+    v_box = v @ to_obb[:3, :3].T + to_obb[:3, 3]
+    extents = np.maximum(np.asarray(extents, dtype=float), MESH_MIN_EXTENT_M)
+    shape = MeshShape(v_box, f, path, watertight)
+    for a in (v_box, f):
+        a.setflags(write=False)
+    return Primitive(frame, "mesh", tuple(float(e) for e in extents), T @ np.linalg.inv(to_obb), link, shape)
+
+
+@functools.lru_cache(maxsize=8)
 def robot_primitives(robot) -> tuple:
-    """The URDF's collision primitives of links link0..link6 and E (boxes and cylinders; any
-    other collision geometry of those links is one ConfigError line, never dropped)."""
-    root = ET.parse(robot.urdf_path).getroot()
+    """Every link's collision geometry, in URDF order: a tuple of :class:`Primitive` in the
+    chain frames (``robot.link_frames``). Geometry the planner cannot check is one
+    ConfigError line naming the URDF, the link and the element or file."""
+    urdf = robot.urdf_path
+    try:
+        root = ET.parse(urdf).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise ConfigError(f"{urdf}: cannot read the URDF ({exc})") from None
+    frames = robot.link_frames
     out = []
     for link in root.findall("link"):
         name = link.get("name")
-        if name not in LINK_FRAME:
+        if name not in frames:
             continue
+        frame, T_fl = frames[name]
+        identity = np.array_equal(T_fl, np.eye(4))
         for col in link.findall("collision"):
+            where = f"{urdf}: link '{name}'"
             T = np.eye(4)
             origin = col.find("origin")
             if origin is not None:
-                T[:3, 3] = [float(v) for v in origin.get("xyz", "0 0 0").split()]
-                T[:3, :3] = urdf_rpy(*[float(v) for v in origin.get("rpy", "0 0 0").split()])
+                T[:3, 3] = _numbers(origin, "xyz", 3, where) if origin.get("xyz") is not None else 0.0
+                T[:3, :3] = urdf_rpy(*(_numbers(origin, "rpy", 3, where) if origin.get("rpy") is not None else (0, 0, 0)))
+            if not identity:
+                T = T_fl @ T
             geom = col.find("geometry")
-            box, cyl = geom.find("box"), geom.find("cylinder")
-            if box is not None:
-                out.append(Primitive(LINK_FRAME[name], "box", tuple(float(v) for v in box.get("size").split()), T))
-            elif cyl is not None:
-                out.append(Primitive(LINK_FRAME[name], "cylinder",
-                                     (float(cyl.get("radius")), float(cyl.get("length"))), T))
+            shapes = list(geom) if geom is not None else []
+            if len(shapes) != 1 or shapes[0].tag not in SUPPORTED:
+                kinds = ", ".join(f"<{g.tag}>" for g in shapes) or "none"
+                raise ConfigError(f"{where}: collision geometry {kinds} is not supported by the planner "
+                                  f"(one of {', '.join(SUPPORTED)} per <collision>)")
+            g = shapes[0]
+            if g.tag == "box":
+                size = tuple(_numbers(g, "size", 3, where))
+            elif g.tag in ("cylinder", "capsule"):
+                size = (_numbers(g, "radius", 1, where)[0], _numbers(g, "length", 1, where)[0])
+            elif g.tag == "sphere":
+                size = (_numbers(g, "radius", 1, where)[0],)
             else:
-                from campaign.errors import ConfigError
-
-                kinds = ", ".join(f"<{g.tag}>" for g in geom) if geom is not None else "none"
-                raise ConfigError(f"{robot.urdf_path}: link '{name}': collision geometry {kinds} is not supported by "
-                                  "the planner (boxes and cylinders only)")
+                out.append(_mesh_primitive(g, T, frame, name, urdf, where))
+                continue
+            if min(size) < 0 or size[0] <= 0 or (g.tag != "capsule" and min(size) <= 0):
+                raise ConfigError(f"{where}: <{g.tag}> sizes must be positive, got {list(size)}")
+            out.append(Primitive(frame, g.tag, size, T, name))
     return tuple(out)
 
 
-def fcl_geometry(kind, size):
+def fcl_geometry(kind, size, mesh: MeshShape | None = None):
+    """The FCL shape of a primitive (a mesh: its triangles, in its bounding box's frame)."""
     import fcl
 
     if kind == "box":
         return fcl.Box(*size)
     if kind == "cylinder":
         return fcl.Cylinder(size[0], size[1])
+    if kind == "sphere":
+        return fcl.Sphere(size[0])
+    if kind == "capsule":
+        return fcl.Capsule(size[0], size[1])
+    if kind == "mesh":
+        m = fcl.BVHModel()
+        m.beginModel(len(mesh.vertices), len(mesh.faces))
+        m.addSubModel(np.ascontiguousarray(mesh.vertices), np.ascontiguousarray(mesh.faces, dtype=np.int32))
+        m.endModel()
+        return m
     raise ValueError(kind)
 
 
-def enclosing_spheres(kind, size, T, max_aspect: float = 1.0):
+def _mesh_spheres(mesh: MeshShape, size):
+    """Spheres (centres (k, 3), radii (k,), in the mesh's box frame) that together contain its
+    surface: the triangles, split until no edge is longer than half a piece, grouped by the
+    cube of side ``piece`` of the bounding box that holds their centroid; each group's sphere
+    holds every vertex of its triangles, so (being convex) the triangles themselves."""
+    import trimesh
+
+    ext = np.asarray(size, dtype=float)
+    piece = max(MESH_PIECE_FRACTION * ext.min(), MESH_PIECE_MIN_M)
+    try:
+        v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=piece / 2, max_iter=30)
+    except ValueError:  # would need more than max_iter rounds: keep the triangles as they are
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    dims = np.maximum(1, np.ceil(ext / piece - 1e-9)).astype(int)
+    cell = np.clip(np.floor((v[f].mean(axis=1) + 0.5 * ext) / piece).astype(int), 0, dims - 1)
+    key = np.ravel_multi_index(cell.T, dims)
+    order = np.argsort(key, kind="stable")
+    bounds = np.flatnonzero(np.diff(key[order])) + 1
+    centres, radii = [], []
+    for group in np.split(order, bounds):
+        pts = v[f[group]].reshape(-1, 3)
+        c = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        centres.append(c)
+        radii.append(np.sqrt(np.max(np.sum((pts - c) ** 2, axis=1))))
+    return np.array(centres), np.array(radii)
+
+
+def enclosing_spheres(kind, size, T, max_aspect: float = 1.0, mesh: MeshShape | None = None):
     """Spheres (centres in the primitive's frame (k, 3), radii (k,)) enclosing the primitive.
 
     A box is cut into near-cubes whose side is about its smallest edge (times ``max_aspect``),
     each inside the sphere through its corners; a cylinder into slices no taller than
-    ``max_aspect`` times its radius, each inside the sphere through its rim.
+    ``max_aspect`` times its radius, each inside the sphere through its rim; a capsule likewise,
+    each slice inside the sphere of its radius plus half the slice; a sphere is itself; a
+    mesh's surface as :func:`_mesh_spheres`.
     """
     if kind == "box":
         ext = np.asarray(size, dtype=float)
@@ -105,15 +272,32 @@ def enclosing_spheres(kind, size, T, max_aspect: float = 1.0):
         r = 0.5 * np.linalg.norm(piece)
         axes = [(np.arange(k[a]) + 0.5) * piece[a] - 0.5 * ext[a] for a in range(3)]
         c = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    elif kind == "sphere":
+        c, r = np.zeros((1, 3)), size[0]
+    elif kind == "mesh":
+        c, r = _mesh_spheres(mesh, size)
     else:
         radius, height = size
         k = max(1, int(np.ceil(height / (radius * max_aspect))))
         h = height / k
-        r = np.hypot(radius, h / 2)
+        r = radius + h / 2 if kind == "capsule" else np.hypot(radius, h / 2)
         c = np.zeros((k, 3))
         c[:, 2] = (np.arange(k) + 0.5) * h - 0.5 * height
     centres = c @ T[:3, :3].T + T[:3, 3]
-    return centres, np.full(len(centres), r)
+    return centres, np.broadcast_to(np.asarray(r, dtype=float), (len(centres),)).copy()
+
+
+def bounding_radius(p: Primitive) -> float:
+    """Radius of one sphere about the primitive's centre that encloses it, m (the coarse level)."""
+    if p.kind == "box":
+        return 0.5 * np.linalg.norm(p.size)
+    if p.kind == "cylinder":
+        return np.hypot(p.size[0], p.size[1] / 2)
+    if p.kind == "sphere":
+        return p.size[0]
+    if p.kind == "capsule":
+        return p.size[0] + p.size[1] / 2
+    return float(np.sqrt(np.max(np.sum(p.mesh.vertices ** 2, axis=1))))
 
 
 @dataclass(frozen=True)
@@ -128,42 +312,52 @@ class RobotSpheres:
     coarse_frame: np.ndarray = None
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=8)
 def robot_spheres(robot) -> RobotSpheres:
     frames, centres, radii, prims = [], [], [], []
     cc, cr, cf = [], [], []
     for i, p in enumerate(robot_primitives(robot)):
-        c, r = enclosing_spheres(p.kind, p.size, p.T)
+        c, r = enclosing_spheres(p.kind, p.size, p.T, mesh=p.mesh)
         frames += [p.frame] * len(r)
         centres.append(c)
         radii.append(r)
         prims += [i] * len(r)
         cc.append(p.T[:3, 3])
-        cr.append(0.5 * np.linalg.norm(p.size) if p.kind == "box" else np.hypot(p.size[0], p.size[1] / 2))
+        cr.append(bounding_radius(p))
         cf.append(p.frame)
+    if not cc:
+        z = np.zeros(0)
+        return RobotSpheres(z.astype(int), np.zeros((0, 3)), z, z.astype(int), np.zeros((0, 3)), z, z.astype(int))
     return RobotSpheres(np.array(frames), np.concatenate(centres), np.concatenate(radii), np.array(prims),
                         np.array(cc), np.array(cr), np.array(cf))
 
 
 def nominal_frames_entry_first(robot, q):
-    """Frames 0..7 of the nominal model for joint vectors q (n, 6), rad, entry-first:
-    R (8, 3, 3, n), t (8, 3, n), m, so that each matrix entry over all poses is contiguous.
+    """Frames 0..N+1 of the nominal model for joint vectors q (n, N), rad or m, entry-first:
+    R (N+2, 3, 3, n), t (N+2, 3, n), m, so that each matrix entry over all poses is contiguous.
 
     The same frames as :func:`campaign.model.kinematics.frames` with no error parameters
-    (R_k = R̄_k Rz(q_k), t_k = t̄_k), computed on one (n,) array per matrix entry instead of
-    stacks of 3×3 products; several times faster for the motion re-check's many samples.
+    (R_k = R̄_k Rz(q_k), t_k = t̄_k; a prismatic joint: R_k = R̄_k, t_k = t̄_k + R̄_k e_z q_k),
+    computed on one (n,) array per matrix entry instead of stacks of 3×3 products; several
+    times faster for the motion re-check's many samples.
     """
-    q = np.asarray(q, dtype=float).reshape(-1, 6)
+    N = robot.n_joints
+    q = np.asarray(q, dtype=float).reshape(-1, N)
     n = len(q)
-    R_out = np.empty((8, 3, 3, n))
-    t_out = np.empty((8, 3, n))
+    K = N + 2
+    R_out = np.empty((K, 3, 3, n))
+    t_out = np.empty((K, 3, n))
     R = [[1.0 if i == j else 0.0 for j in range(3)] for i in range(3)]  # entries: scalars or (n,) arrays
     t = [0.0, 0.0, 0.0]
-    for k in range(8):
+    prismatic = robot.prismatic
+    for k in range(K):
         tn, Rn = robot.t_nominal[k], robot.R_nominal[k]
         t = [t[i] + R[i][0] * tn[0] + R[i][1] * tn[1] + R[i][2] * tn[2] for i in range(3)]
         A = [[R[i][0] * Rn[0, j] + R[i][1] * Rn[1, j] + R[i][2] * Rn[2, j] for j in range(3)] for i in range(3)]
-        if 1 <= k <= 6:
+        if 1 <= k <= N and prismatic[k - 1]:
+            d = q[:, k - 1]
+            t = [t[i] + A[i][2] * d for i in range(3)]  # along the joint's axis, z of (R R̄_k)
+        elif 1 <= k <= N:
             c, s = np.cos(q[:, k - 1]), np.sin(q[:, k - 1])
             A = [[a[0] * c + a[1] * s, a[1] * c - a[0] * s, a[2]] for a in A]  # (R R̄_k) Rz(q_k)
         R = A
@@ -175,7 +369,7 @@ def nominal_frames_entry_first(robot, q):
 
 
 def nominal_frames(robot, q):
-    """:func:`nominal_frames_entry_first` in the layout of ``kinematics.frames``: R (n, 8, 3, 3), t (n, 8, 3)."""
+    """:func:`nominal_frames_entry_first` in the layout of ``kinematics.frames``: R (n, N+2, 3, 3), t (n, N+2, 3)."""
     R, t = nominal_frames_entry_first(robot, q)
     return np.moveaxis(R, -1, 0), np.moveaxis(t, -1, 0)
 
@@ -186,25 +380,30 @@ def to_world(R, t, local):
 
 
 def world_spheres(spheres: RobotSpheres, R, t):
-    """Sphere centres in F_I for poses with frame rotations R (n, 8, 3, 3), origins t (n, 8, 3): (n, S, 3)."""
+    """Sphere centres in F_I for poses with frame rotations R (n, N+2, 3, 3), origins t (n, N+2, 3): (n, S, 3)."""
     Rf = R[:, spheres.frame]  # (n, S, 3, 3)
     return np.einsum("nsij,sj->nsi", Rf, spheres.centre) + t[:, spheres.frame]
 
 
 def local_point_distance(local, kind, size):
     """Distance (…) from points given coordinate-first in a primitive's own frame (3, …) to
-    that box or cylinder (0 inside), m. ``size``: box edges, or (radius, height), axis z."""
-    if kind == "box":
+    that shape (0 inside), m. ``size`` as :class:`Primitive`'s; a mesh: to its bounding box (a
+    lower bound of the distance to the mesh)."""
+    if kind in ("box", "mesh"):
         d = [np.maximum(np.abs(local[k]) - 0.5 * size[k], 0.0) for k in range(3)]
         return np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    if kind == "sphere":
+        return np.maximum(np.sqrt(local[0] * local[0] + local[1] * local[1] + local[2] * local[2]) - size[0], 0.0)
     radius, height = size
-    dr = np.maximum(np.sqrt(local[0] * local[0] + local[1] * local[1]) - radius, 0.0)
     dz = np.maximum(np.abs(local[2]) - 0.5 * height, 0.0)
+    if kind == "capsule":
+        return np.maximum(np.sqrt(local[0] * local[0] + local[1] * local[1] + dz * dz) - radius, 0.0)
+    dr = np.maximum(np.sqrt(local[0] * local[0] + local[1] * local[1]) - radius, 0.0)
     return np.sqrt(dr * dr + dz * dz)
 
 
 def point_primitive_distance(points, kind, size, R, c):
-    """Distance (…, n) from points (3, …, n) in F_I to a box or cylinder with orientation
+    """Distance (…, n) from points (3, …, n) in F_I to a primitive's shape with orientation
     R (3, 3, n) or (3, 3) and centre c (3, n) or (3,) in F_I, entry-first, m."""
     if R.ndim == 2:  # a fixed primitive: broadcast its pose
         shape = (3,) + (1,) * (points.ndim - 1)

@@ -11,12 +11,14 @@ def _rows(rows) -> str:
 
 
 def write_tour(out, order, Q, vias, dropped) -> None:
-    """poses.csv (``pose_id,q1..q6``, rad, visiting order), vias.csv (``before_pose_id,q1..q6``:
-    postures passed before that pose) and dropped.csv (``pose_id,reason``) in the folder ``out``."""
-    poses = ["pose_id,q1,q2,q3,q4,q5,q6"]
+    """poses.csv (``pose_id,q1..qN``, rad or m, visiting order), vias.csv (``before_pose_id,q1..qN``:
+    postures passed before that pose) and dropped.csv (``pose_id,reason``) in the folder ``out``.
+    Q (n, N)."""
+    joints = ",".join(f"q{j + 1}" for j in range(Q.shape[1]))
+    poses = [f"pose_id,{joints}"]
     poses += [f"{int(p)}," + ",".join(repr(float(v)) for v in q) for p, q in zip(order, Q)]
     atomic_write(out / "poses.csv", _rows(poses))
-    vl = ["before_pose_id,q1,q2,q3,q4,q5,q6"]
+    vl = [f"before_pose_id,{joints}"]
     for pid in order:
         for v in vias.get(int(pid), []):
             vl.append(f"{int(pid)}," + ",".join(repr(float(x)) for x in v))

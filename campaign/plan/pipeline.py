@@ -1,16 +1,20 @@
 """`campaign plan`: candidates → suitable poses → an ordered, collision-free tour.
 
-Writes ``RUN/plan/poses.csv`` (``pose_id,q1..q6``, rad, visiting order; pose_id is the
+Any serial arm (``--robot``): its URDF's collision geometry, its joints' limits for the grid,
+its tool's reflectors (robot.yaml's, else the default triad) for the cone and line-of-sight
+filters, placed in the cell where the scene's ``robot_base`` says (campaign.plan.scene).
+Writes ``RUN/plan/poses.csv`` (``pose_id,q1..qN``, rad or m, visiting order; pose_id is the
 candidate's grid index), ``RUN/plan/vias.csv`` (via poses to pass before a pose),
 ``RUN/plan/dropped.csv`` (poses dropped from the tour, with the reason),
 ``RUN/plan/summary.json`` and ``RUN/plan/tour.png``, and copies the configuration to
-``RUN/campaign.yaml``. With a selection (campaign.plan.selection: ``--select``, ``--budget``,
+``RUN/campaign.yaml`` (with the robot, its tool and base frames and the grid's cells). With a selection (campaign.plan.selection: ``--select``, ``--budget``,
 ``--target-mm``) only the chosen poses, random validation poses (``RUN/plan/validation.csv``)
 and repeats (pose_id ``p + r·10⁹``, ``RUN/plan/repeats.csv``) are toured.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import time
@@ -23,7 +27,7 @@ from campaign.errors import ConfigError, PlanError
 from campaign.fileio import atomic_write
 from campaign.model.kinematics import frames
 from campaign.plan import checks
-from campaign.plan.grid import Grid, iter_tool_points
+from campaign.plan.grid import Grid, default_cells, iter_tool_points
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.outputs import write_tour
 from campaign.plan.plot import plot_tour
@@ -47,6 +51,7 @@ def _filter_grid(robot, scene, grid, clearance, progress):
                "clearance_fcl": 0}
     cand_after_visibility = []
     axes = np.array([r.axis_in_E for r in robot.reflectors])
+    E = robot.n_joints + 1  # the tool frame's index in kinematics.frames
     for s, P, A in iter_tool_points(robot, grid, robot.reflector_positions_in_E, axes):
         block = len(P)
         idx = np.arange(s, s + block)
@@ -67,7 +72,7 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     for s in range(0, len(idx), 4096):
         sub = idx[s : s + 4096]
         R, t = frames(robot, grid.q(sub))
-        P, _ = checks.reflector_geometry(robot, R[:, 7], t[:, 7])
+        P, _ = checks.reflector_geometry(robot, R[:, E], t[:, E])
         ok = checks.robot_line_of_sight_ok(robot, scene, P, R, t)
         removed["line_of_sight_robot"] += int((~ok).sum())
         sub, R, t = sub[ok], R[ok], t[ok]
@@ -101,7 +106,7 @@ def _order_group(times, grid, members, start_cells):
 def _order_tour(robot, scene, grid, times, home, members):
     """Grid indices ``members`` in visiting order: front-of-wall and behind-wall groups, each
     a short tour, the group whose first pose is nearer the grid's middle first."""
-    front = scene.side_of_wall(nominal_frames_entry_first(robot, grid.q(members))[1][7].T)
+    front = scene.side_of_wall(nominal_frames_entry_first(robot, grid.q(members))[1][robot.n_joints + 1].T)
     groups = {name: _order_group(times, grid, members[mask], home) for name, mask in (("front", front),
                                                                                      ("behind", ~front))}
     first = min(groups, key=lambda g: times.from_one(home, grid.cell_indices(groups[g][:1]))[0]
@@ -110,11 +115,14 @@ def _order_tour(robot, scene, grid, times, home, members):
 
 
 def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False,
-                  selection=None) -> dict:
+                  selection=None, robot: str | None = None, tool_frame: str | None = None,
+                  base_frame: str | None = None) -> dict:
     """Plan a campaign; write the run's plan folder; return the summary (also in summary.json).
 
     config: a campaign.yaml path or a CampaignConfig; None: the run's own campaign.yaml when
-    it has one, else the embedded default. selection: a
+    it has one, else the embedded default. robot (a name, URDF or robot.yaml), tool_frame,
+    base_frame: plan for that robot instead of the configuration's (recorded in the run's
+    campaign.yaml). selection: a
     :class:`campaign.plan.selection.SelectionOptions` to measure an optimal subset of the
     suitable poses (plus validation poses and repeats) instead of all of them. Refused (one
     line, nothing written) when the run holds measurements, when another process holds the
@@ -131,22 +139,38 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         cfg = load_config(config)
     else:
         cfg = run.config  # the run's own, or the embedded default for a new folder
+    cfg = _with_robot(cfg, robot, tool_frame, base_frame)
     run = RunFolder(run_dir, config=cfg)
-    robot = run.robot()
+    robot = run.robot().with_default_reflectors()
     from campaign.plan.geometry import check_plannable
 
     check_plannable(robot)
     scene = run.scene()
-    cells = np.maximum(1, np.round(np.asarray(cfg.plan.grid_cells, dtype=float) * float(grid_scale))).astype(int)
+    base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(robot)
+    cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
     try:
         grid = Grid.for_robot(robot, cells)
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path}: {exc} (with --grid-scale {grid_scale:g})") from None
+    # the run records the grid it was planned on (auto resolved), at scale 1
+    cfg = dataclasses.replace(cfg, plan=dataclasses.replace(cfg.plan, grid_cells=tuple(int(c) for c in base_cells)))
     advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
     run.refuse_if_measured("planning again", advice)
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
         return _plan(run, cfg, robot, scene, grid, progress, selection)
+
+
+def _with_robot(cfg: CampaignConfig, robot, tool_frame, base_frame) -> CampaignConfig:
+    """``cfg`` planning for ``robot`` (a name, or a path made absolute) and its frames, as given."""
+    if robot is None and tool_frame is None and base_frame is None:
+        return cfg
+    kw = {"tool_frame": tool_frame, "base_frame": base_frame}
+    if robot is not None:
+        kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() else str(robot)
+    else:  # new frames on the configuration's robot
+        kw = {k: v if v is not None else getattr(cfg, k) for k, v in kw.items()}
+    return dataclasses.replace(cfg, **kw)
 
 
 def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection) -> dict:
@@ -161,6 +185,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
 
     pc = cfg.plan
     cells = grid.cells
+    n_reflectors = len(robot.reflectors)
     out = run.plan_dir
     lap("setup")
 
@@ -181,7 +206,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         from campaign.plan.selection import choose_campaign
 
         choice = choose_campaign(robot, grid, suitable, selection, settle_s=pc.settle_time_s,
-                                 tracker_s=3 * pc.tracker_time_per_reflector_s,
+                                 tracker_s=n_reflectors * pc.tracker_time_per_reflector_s,
                                  **_selection_times(robot, scene, grid, times, home, suitable))
         members = choice.members
         lap("selection")
@@ -207,7 +232,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     path = tour_path(order_final, Q_final, vias)
     tour_time = path_time(robot, path) if len(path) > 1 else 0.0
     n = len(order_final)
-    per_pose = pc.settle_time_s + 3 * pc.tracker_time_per_reflector_s
+    per_pose = pc.settle_time_s + n_reflectors * pc.tracker_time_per_reflector_s
     duration = tour_time + n * per_pose
 
     lap("repair")
@@ -216,9 +241,10 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
                         f"(no collision-free motion at plan.motion_clearance_m = {mc:g} m)")
     run.write_config(cfg)
     write_tour(out, order_final, Q_final, vias, dropped)
-    front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, 7]) if n else np.zeros(0, bool)
+    front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, robot.n_joints + 1]) if n else np.zeros(0, bool)
     summary = {
-        "robot": robot.name, "scene": str(scene.path), "grid_cells": [int(c) for c in cells],
+        "robot": robot.name, "tool_frame": robot.tool_frame, "reflectors": [r.name for r in robot.reflectors],
+        "scene": str(scene.path), "grid_cells": [int(c) for c in cells],
         "candidates": counts["candidates"],
         "removed_by_filter": counts["removed_by_filter"], "filter_order": counts["filter_order"],
         "suitable": counts["suitable"], "suitable_fraction": counts["suitable"] / counts["candidates"],
@@ -228,7 +254,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
                  "motion_sample_deg": pc.motion_sample_deg},
         "estimated_campaign": {
             "motion_s": tour_time, "settle_s": n * pc.settle_time_s,
-            "tracker_s": n * 3 * pc.tracker_time_per_reflector_s, "total_s": duration,
+            "tracker_s": n * n_reflectors * pc.tracker_time_per_reflector_s, "total_s": duration,
             "total_days": duration / 86400.0,
             "paper": {"poses": PAPER_POSES, "duration_days": PAPER_DURATION_S / 86400.0,
                       "seconds_per_pose": PAPER_DURATION_S / PAPER_POSES},

@@ -1,6 +1,7 @@
 """The tour picture ``RUN/plan/tour.png``: where the tool goes, and in which order.
 
-Two views of F_I (top and side) of the tool positions of the planned poses, the path between
+Two views of the cell (top and side; the default cell's frame is the COMAU's F_I) of the tool
+positions of the planned poses, the path between
 successive poses drawn as a line whose colour runs along the visiting order (colour bar:
 visit number), the first and last poses numbered, the switch from one wall group to the
 other marked, and the cell's obstacles, the wall (red), the tracker and the robot base.
@@ -26,6 +27,22 @@ def _switch_words(switch) -> str:
     return f"wall group changes ({len(switch)}: {shown})"
 
 
+def _views(scene, tracker, frame):
+    """The two views ((a, b, label a, label b) each: cell axes drawn across and up) and the sign
+    that makes the vertical axis point up: across, the horizontal axis that points most towards
+    the tracker; up, the other horizontal axis (top view) and the vertical one (side view)."""
+    down = np.asarray(getattr(scene, "down", None) if getattr(scene, "down", None) is not None else (0, 1, 0))
+    v = int(np.argmax(np.abs(down)))
+    horizontal = [k for k in range(3) if k != v]
+    a = max(horizontal, key=lambda k: abs(tracker[k]))
+    b = [k for k in horizontal if k != a][0]
+    up_sign = -1 if down[v] > 0 else 1
+    name = "xyz"
+    towards = f"{name[a]}_{frame} [m] (towards the tracker)"
+    height = f"height {'−' if up_sign < 0 else ''}{name[v]}_{frame} [m]"
+    return ((a, b, towards, f"{name[b]}_{frame} [m]"), (a, v, towards, height)), up_sign
+
+
 def plot_tour(path, robot, scene, Q, front) -> None:
     """Write the tour picture. Q (n, N) rad in visiting order; front (n,) bool: pose in front of the wall."""
     import matplotlib
@@ -37,22 +54,24 @@ def plot_tour(path, robot, scene, Q, front) -> None:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    t = tour_positions(robot, Q)
+    T_cell_I = np.eye(4) if getattr(scene, "T_cell_I", None) is None else np.asarray(scene.T_cell_I)
+    t = tour_positions(robot, Q) @ T_cell_I[:3, :3].T + T_cell_I[:3, 3]  # in the cell's frame
     n = len(t)
+    base = T_cell_I[:3, 3]
     front = np.asarray(front, dtype=bool)
     # the visit index where the tour crosses from one wall group to the other (None: one group)
     switch = np.flatnonzero(front[1:] != front[:-1]) + 1 if n > 1 else np.zeros(0, int)
     cmap = plt.get_cmap("viridis")
     norm = Normalize(1, max(n, 2))
-    views = ((2, 0, "z_I [m] (towards the tracker)", "x_I [m]"),
-             (2, 1, "z_I [m] (towards the tracker)", "height −y_I [m]"))
+    o = T_cell_I[:3, :3] @ scene.tracker_position + T_cell_I[:3, 3]
+    views, up_sign = _views(scene, o, "I" if np.array_equal(T_cell_I, np.eye(4)) else "cell")
     # each view: the tool positions and the robot base, with a margin; the rest of the cell
     # (the tracker, far away) is pointed at from the edge. Panel widths follow the views' extents
     # (equal scales on both axes) so that no space is wasted beside them.
     limits = []
     for a, b, _, _ in views:
-        sign = -1 if b == 1 else 1
-        box = np.vstack([np.column_stack([t[:, a], sign * t[:, b]]), [[0.0, 0.0]]])
+        sign = up_sign if b == views[1][1] else 1
+        box = np.vstack([np.column_stack([t[:, a], sign * t[:, b]]), [[base[a], sign * base[b]]]])
         limits.append((box.min(axis=0) - 0.15, box.max(axis=0) + 0.15))
     panel_h = 4.0
     widths = [panel_h * (hi[0] - lo[0]) / (hi[1] - lo[1]) for lo, hi in limits]
@@ -62,16 +81,16 @@ def plot_tour(path, robot, scene, Q, front) -> None:
                           bottom=1.3 / (panel_h + 2.1), top=1 - 0.75 / (panel_h + 2.1), wspace=0.25)
     axes = [fig.add_subplot(gs[0, 0]), fig.add_subplot(gs[0, 1])]
     cax = fig.add_subplot(gs[0, 2])
-    o = scene.tracker_position
     for ax, (a, b, la, lb), (lo, hi) in zip(axes, views, limits):
-        sign = -1 if b == 1 else 1
+        sign = up_sign if b == views[1][1] else 1
         xy = np.column_stack([t[:, a], sign * t[:, b]])
         for obs in scene.obstacles:
             if obs.name == "floor":
                 continue
             ext = np.asarray(obs.size if obs.kind == "box" else (2 * obs.size[0], 2 * obs.size[0], obs.size[1]))
             corners = np.array([[sx, sy, sz] for sx in (-.5, .5) for sy in (-.5, .5) for sz in (-.5, .5)]) * ext
-            w = corners @ obs.T_I[:3, :3].T + obs.T_I[:3, 3]
+            T_obs = obs.T_I if np.array_equal(T_cell_I, np.eye(4)) else T_cell_I @ obs.T_I
+            w = corners @ T_obs[:3, :3].T + T_obs[:3, 3]
             color = "r" if obs.name == scene.wall_name else "0.6"
             ax.add_patch(plt.Rectangle((w[:, a].min(), (sign * w[:, b]).min()), np.ptp(w[:, a]), np.ptp(w[:, b]),
                                        fill=obs.name == scene.wall_name, alpha=0.35, color=color, zorder=0))
@@ -84,7 +103,7 @@ def plot_tour(path, robot, scene, Q, front) -> None:
             lc.set_array(np.arange(1, n))
             ax.add_collection(lc)
         ax.scatter(xy[:, 0], xy[:, 1], c=np.arange(1, n + 1), cmap=cmap, norm=norm, s=3, zorder=2)
-        ax.plot([0], [0], "ks", ms=6, zorder=4)
+        ax.plot([base[a]], [sign * base[b]], "ks", ms=6, zorder=4)
         trk = np.array([o[a], sign * o[b]])
         if np.all((trk >= lo) & (trk <= hi)):
             ax.plot(*trk, "k^", ms=10, zorder=4)

@@ -1,10 +1,18 @@
 """Stage 3's repair: a straight joint motion between two poses of the tour that does not keep
 the motion clearance is replaced by a path through two via postures that lift the arm; when
 that path collides too, the pose is dropped, and the motions that then start elsewhere are
-checked again."""
+checked again.
+
+The lifted arm (:func:`lift_posture`) keeps joint 1 and the wrist (the last three joints) of
+the pose it leaves or reaches and sets the arm's joints in between (joints 2..N-3; joint 2
+alone for a chain of four joints or fewer) to the posture that holds the flange highest
+against gravity, found among multiples of 45° within the joint limits (ties: the smallest
+joint values) with joint 1 and the wrist at 0 (or their nearest limit). The COMAU: joints 2
+and 3 at (0, -90°), the arm upright; a UR10: (-90°, 0); a Panda: joints 2..4 at (-45°, 0, -45°)."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,16 +21,16 @@ from campaign.model.kinematics import frames
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.tour import interior_samples
 
-#: joints 2 and 3 of the via posture that lifts the arm clear of the wall (rad)
-VIA_Q2, VIA_Q3 = 0.0, -np.pi / 2
+#: the lifted arm's joints take multiples of this (rad)
+LIFT_STEP = np.pi / 4
+#: most postures searched for the lifted arm (more arm joints: a coarser search is not needed)
+LIFT_MAX_CANDIDATES = 200_000
 #: motion samples checked together (bounds memory at about 2 kB a sample)
 MOTION_CHUNK = 32_768
-#: rounds of re-checking the motions that start elsewhere after poses were dropped
-RECHECK_ROUNDS = 5
 
 
 def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK):
-    """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, 6) clear by
+    """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, N) clear by
     ``clearance`` (m) at every sample ≤ ``max_step`` (rad) of joint motion apart.
 
     The end poses themselves are not re-checked here (they passed the pose filter at the
@@ -41,7 +49,7 @@ def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTI
 
 @dataclass(frozen=True)
 class Repair:
-    """keep: (n,) bool, which tour poses stay; vias: {pose_id: [q (6,) rad, ...]} postures passed
+    """keep: (n,) bool, which tour poses stay; vias: {pose_id: [q (N,) rad, ...]} postures passed
     before reaching that pose; dropped: [(pose_id, reason), ...] in the order they were dropped."""
 
     keep: np.ndarray
@@ -49,15 +57,54 @@ class Repair:
     dropped: list
 
 
-def _via_path(a, b):
-    """[a, lifted a, lifted b, b]: joints 1 and 4..6 kept, the arm raised by joints 2 and 3."""
-    v1 = np.array([a[0], VIA_Q2, VIA_Q3, *a[3:]])
-    v2 = np.array([b[0], VIA_Q2, VIA_Q3, *b[3:]])
+def arm_joints(n_joints: int) -> np.ndarray:
+    """Indices (0-based) of the arm's joints that the lifted posture sets: 1 .. N-4 (joints
+    2..N-3), at least joint 2; none for a single joint."""
+    return np.arange(1, max(2, n_joints - 3)) if n_joints > 1 else np.zeros(0, dtype=int)
+
+
+@functools.lru_cache(maxsize=8)
+def lift_posture(robot) -> np.ndarray:
+    """Values (len(arm_joints),) rad (m for a prismatic joint) of the arm's joints in the via
+    posture: the flange (the origin of frame N) highest against the robot's gravity."""
+    import itertools
+
+    N = robot.n_joints
+    arm = arm_joints(N)
+    if len(arm) == 0:
+        return np.zeros(0)
+    lo, hi = np.asarray(robot.q_lower), np.asarray(robot.q_upper)
+    axes = []
+    for j in arm:
+        if robot.joint_types[j] == "prismatic":
+            axes.append(np.linspace(lo[j], hi[j], 5))
+        else:
+            v = np.arange(np.ceil(lo[j] / LIFT_STEP - 1e-9), np.floor(hi[j] / LIFT_STEP + 1e-9) + 1) * LIFT_STEP
+            axes.append(v if len(v) else np.array([0.5 * (lo[j] + hi[j])]))
+    while np.prod([len(a) for a in axes], dtype=float) > LIFT_MAX_CANDIDATES:
+        axes = [a[::2] for a in axes]
+    combos = np.array(list(itertools.product(*axes)), dtype=float)
+    q = np.tile(np.clip(0.0, lo, hi), (len(combos), 1))
+    q[:, arm] = combos
+    _, t = nominal_frames_entry_first(robot, q)
+    g = np.asarray(robot.gravity_in_I, dtype=float)
+    height = -(np.asarray(g) / np.linalg.norm(g)) @ t[N] if np.linalg.norm(g) > 0 else t[N][2]
+    best = np.flatnonzero(height >= height.max() - 1e-9)
+    pick = best[np.argmin(np.sum(combos[best] ** 2, axis=1))]
+    return combos[pick] + 0.0  # no -0.0
+
+
+def _via_path(robot, a, b):
+    """[a, lifted a, lifted b, b]: joint 1 and the wrist kept, the arm raised (:func:`lift_posture`)."""
+    arm, lift = arm_joints(robot.n_joints), lift_posture(robot)
+    v1, v2 = np.array(a, dtype=float), np.array(b, dtype=float)
+    v1[arm] = lift
+    v2[arm] = lift
     return np.array([a, v1, v2, b])
 
 
 def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
-    """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, 6) rad, whose motions
+    """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, N) rad, whose motions
     ``ok`` (n - 1,) bool say which straight motions keep ``clearance`` (m) at samples
     ``max_step`` (rad) apart (:func:`check_segments`)."""
     vias, dropped = {}, []
@@ -69,7 +116,7 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
 
     for m in np.flatnonzero(~ok):
         k = m + 1  # pose that the colliding motion reaches
-        path = _via_path(Q[prev_of(m)], Q[k])
+        path = _via_path(robot, Q[prev_of(m)], Q[k])
         if checker.clear(*frames(robot, path[1:3]), clearance).all() and \
                 check_segments(robot, checker, path[:-1], path[1:], max_step, clearance).all():
             vias[int(order[k])] = [path[1], path[2]]
@@ -80,7 +127,7 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
     # motions after a dropped pose start elsewhere: re-check those (only those: every other
     # motion is unchanged and already checked) and repeat until clean
     known_ok = {(m, m + 1) for m in np.flatnonzero(ok)} | {(via_from[k], k) for k in via_from}
-    for _ in range(RECHECK_ROUNDS):
+    while True:  # each round that is not clean drops a pose: at most len(order) rounds
         kept = np.flatnonzero(keep)
         starts = [i for i in range(1, len(kept)) if (kept[i - 1], kept[i]) not in known_ok]
         if not starts:
@@ -100,7 +147,7 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
 
 
 def tour_path(order, Q, vias) -> np.ndarray:
-    """(m, 6) rad: the tour's joint vectors with each pose's via postures before it."""
+    """(m, N) rad: the tour's joint vectors with each pose's via postures before it."""
     path = [Q[0]] if len(Q) else []
     for i in range(1, len(order)):
         path.extend(vias.get(int(order[i]), []))

@@ -1,6 +1,14 @@
-"""The cell: obstacles, the wall, the tracker. Loaded from YAML, validated, immutable.
+"""The cell: obstacles, the wall, the tracker, where the robot stands. Loaded from YAML,
+validated, immutable.
 
-Every error names the file and the field. Positions in F_I, m (y vertical, up = -y).
+Every error names the file and the field. Positions are in the cell's frame, m: the frame
+the file is written in. ``down`` says which way gravity points in it (default ``[0, 1, 0]``:
+the default cell's frame is the COMAU's F_I, y vertical, up = -y). ``robot_base`` places the
+robot's base frame F_I in the cell (``position_m``, ``rotation_cardan_deg``); by default the
+base stands at the cell's origin, turned by the smallest rotation that takes the robot's
+gravity (robot.yaml's, default −z of the URDF's root) onto ``down`` — the identity for the
+COMAU in the default cell, so its cell frame is its F_I. :meth:`Scene.placed` gives the cell
+in a robot's F_I, where every check of the plan works.
 """
 
 from __future__ import annotations
@@ -14,7 +22,10 @@ import yaml
 from campaign.errors import ConfigError
 from campaign.model.rotations import cardan_xyz
 
-_TOP_KEYS = {"name", "obstacles", "tracker", "wall"}
+_TOP_KEYS = {"name", "obstacles", "tracker", "wall", "down", "robot_base"}
+_BASE_KEYS = {"position_m", "rotation_cardan_deg"}
+#: gravity in the default cell's frame (the COMAU's F_I: up is -y)
+DEFAULT_DOWN = (0.0, 1.0, 0.0)
 _TRACKER_KEYS = {"position_m", "rotation_cardan_deg", "min_range_m", "max_range_m", "beam_radius_m"}
 _WALL_KEYS = {"obstacle", "normal_in_I", "offset_m"}
 
@@ -32,6 +43,9 @@ class Obstacle:
 
 @dataclass(frozen=True)
 class Scene:
+    """A cell. As loaded, positions are in the cell's frame; :meth:`placed` expresses them in a
+    robot's base frame F_I (``T_cell_I`` then holds where that robot stands)."""
+
     path: Path
     name: str
     obstacles: tuple
@@ -43,6 +57,50 @@ class Scene:
     wall_name: str
     wall_normal: np.ndarray
     wall_offset_m: float
+    #: gravity's direction in the cell's frame (3,), unit
+    down: np.ndarray = None
+    #: the file's robot_base: position (3,) m and rotation (3, 3) or None (from gravity), or None
+    robot_base: tuple | None = None
+    #: pose of the robot's base frame F_I in the cell's frame (4, 4): identity until placed
+    T_cell_I: np.ndarray = None
+    #: the robot this scene is placed for (None: in the cell's frame)
+    placed_for: str | None = None
+
+    def base_pose(self, robot) -> np.ndarray:
+        """Pose (4, 4) of ``robot``'s base frame F_I in the cell's frame: the file's
+        ``robot_base``, its rotation by default the smallest one taking the robot's gravity onto
+        ``down``."""
+        position, rotation = self.robot_base if self.robot_base is not None else (np.zeros(3), None)
+        T = np.eye(4)
+        if rotation is None:
+            g = np.asarray(robot.gravity_in_I, dtype=float)
+            norm = np.linalg.norm(g)
+            rotation = np.eye(3) if norm == 0 else rotation_between(g / norm, self.down)
+        T[:3, :3] = rotation
+        T[:3, 3] = position
+        return T
+
+    def placed(self, robot) -> "Scene":
+        """This cell in ``robot``'s base frame F_I (positions, tracker pose, wall plane), with
+        ``T_cell_I`` = :meth:`base_pose`. The scene itself when the robot stands at the cell's
+        origin unturned (the default COMAU in the default cell)."""
+        import dataclasses
+
+        if self.placed_for is not None:
+            raise ValueError(f"{self.path}: already placed for {self.placed_for}")
+        T = self.base_pose(robot)
+        if np.array_equal(T, np.eye(4)):
+            return dataclasses.replace(self, placed_for=robot.name)
+        T_I_cell = np.eye(4)
+        T_I_cell[:3, :3] = T[:3, :3].T
+        T_I_cell[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+        obstacles = tuple(dataclasses.replace(o, T_I=_frozen(T_I_cell @ o.T_I)) for o in self.obstacles)
+        normal = T_I_cell[:3, :3] @ self.wall_normal
+        # the plane n·x_cell = offset, with x_cell = R x_I + p
+        offset = self.wall_offset_m - float(self.wall_normal @ T[:3, 3])
+        return dataclasses.replace(self, obstacles=obstacles, T_IL=_frozen(T_I_cell @ self.T_IL),
+                                   wall_normal=_frozen(normal), wall_offset_m=offset, T_cell_I=_frozen(T),
+                                   placed_for=robot.name)
 
     @property
     def T_LI(self) -> np.ndarray:
@@ -57,6 +115,29 @@ class Scene:
     def side_of_wall(self, points) -> np.ndarray:
         """True where points (n, 3) lie in front of the wall (the tracker's side)."""
         return np.asarray(points) @ self.wall_normal > self.wall_offset_m
+
+
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+def rotation_between(u, v) -> np.ndarray:
+    """The smallest rotation (3, 3) taking unit vector u onto unit vector v (identity when they
+    are equal; half a turn about an axis perpendicular to u when they are opposite)."""
+    u, v = np.asarray(u, dtype=float), np.asarray(v, dtype=float)
+    if np.allclose(u, v, atol=1e-12):
+        return np.eye(3)
+    from campaign.model.rotations import rotvec_to_matrix
+
+    axis = np.cross(u, v)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:  # opposite: any perpendicular axis, the one along the least aligned coordinate axis
+        e = np.eye(3)[int(np.argmin(np.abs(u)))]
+        axis = np.cross(u, e)
+        return rotvec_to_matrix(np.pi * axis / np.linalg.norm(axis))
+    return rotvec_to_matrix(axis / s * np.arctan2(s, float(u @ v)))
 
 
 def _vec(value, n, where):
@@ -191,7 +272,23 @@ def load_scene(path) -> Scene:
     normal = _vec(wall["normal_in_I"], 3, f"{path}: wall.normal_in_I")
     if np.linalg.norm(normal) < 1e-9:
         raise ConfigError(f"{path}: wall.normal_in_I must not be zero")
+    down = _vec(doc.get("down", DEFAULT_DOWN), 3, f"{path}: down")
+    if np.linalg.norm(down) < 1e-9:
+        raise ConfigError(f"{path}: down must not be zero (gravity's direction in the cell's frame)")
+    base = None
+    if doc.get("robot_base") is not None:
+        rb = doc["robot_base"]
+        if not isinstance(rb, dict):
+            raise ConfigError(f"{path}: robot_base: expected a mapping (position_m, rotation_cardan_deg)")
+        _unknown(rb, _BASE_KEYS, f"{path}: robot_base")
+        position = _vec(rb.get("position_m", [0, 0, 0]), 3, f"{path}: robot_base.position_m")
+        rotation = None
+        if "rotation_cardan_deg" in rb:
+            rotation = cardan_xyz(*np.deg2rad(_vec(rb["rotation_cardan_deg"], 3,
+                                                   f"{path}: robot_base.rotation_cardan_deg")))
+        base = (position, rotation)
     for a in (T_IL,):
         a.setflags(write=False)
     return Scene(path, str(doc.get("name", path.stem)), tuple(obstacles), T_IL, rmin, rmax, beam,
-                 str(wall["obstacle"]), normal / np.linalg.norm(normal), float(wall["offset_m"]))
+                 str(wall["obstacle"]), normal / np.linalg.norm(normal), float(wall["offset_m"]),
+                 _frozen(down / np.linalg.norm(down)), base, _frozen(np.eye(4)))

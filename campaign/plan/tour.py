@@ -16,13 +16,13 @@ from campaign.plan.timing import GridTimes
 
 def axis_tables(times: GridTimes, C):
     """Per joint i, the table (cells_i, n) of travel times (s) of that joint alone from each of
-    its cell values to each pose of C (n, 6): the time from cell vector c to every pose is then
-    the elementwise maximum of the six rows ``tables[i][c[i]]`` (contiguous rows, no gathers)."""
+    its cell values to each pose of C (n, N): the time from cell vector c to every pose is then
+    the elementwise maximum of the N rows ``tables[i][c[i]]`` (contiguous rows, no gathers)."""
     return [lut[np.abs(np.arange(len(lut))[:, None] - C[None, :, i])] for i, lut in enumerate(times.lut)]
 
 
 def nearest_neighbour(times: GridTimes, C, start: int = 0):
-    """Greedy tour over cell vectors C (n, 6) from pose ``start``; returns the visiting order (n,).
+    """Greedy tour over cell vectors C (n, N) from pose ``start``; returns the visiting order (n,).
 
     At each step the nearest unvisited pose in travel time (ties: the lowest index). The
     per-joint time tables are compacted to the unvisited poses whenever half of them are gone."""
@@ -46,14 +46,14 @@ def nearest_neighbour(times: GridTimes, C, start: int = 0):
             row = np.empty(len(alive))
         c = C[cur]
         np.add(tables[0][c[0]], visited, out=row)
-        for i in range(1, 6):
+        for i in range(1, len(tables)):
             np.maximum(row, tables[i][c[i]], out=row)
         cur = int(alive[int(np.argmin(row))])
     return order
 
 
 def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
-    """The k nearest poses in travel time of each pose of C (n, 6), itself excluded: (n, k) indices."""
+    """The k nearest poses in travel time of each pose of C (n, N), itself excluded: (n, k) indices."""
     n = len(C)
     k = min(k, n - 1)
     near = np.empty((n, max(k, 0)), dtype=np.int64)
@@ -63,7 +63,7 @@ def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
     for s in range(0, n, block):
         rows = np.arange(s, min(s + block, n))
         t = tables[0][C[rows, 0]]
-        for i in range(1, 6):
+        for i in range(1, len(tables)):
             np.maximum(t, tables[i][C[rows, i]], out=t)
         t[np.arange(len(rows)), rows] = np.inf
         near[rows] = np.argpartition(t, k - 1, axis=1)[:, :k]
@@ -71,17 +71,24 @@ def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
 
 
 def _pair_time_function(times: GridTimes, C):
-    """A plain-Python travel time t(a, b) (s) between poses a, b of C (n, 6): scalar lookups
+    """A plain-Python travel time t(a, b) (s) between poses a, b of C (n, N): scalar lookups
     without numpy's per-call overhead, for the local search's many single pairs."""
     cells = C.tolist()
-    l0, l1, l2, l3, l4, l5 = (lut.tolist() for lut in times.lut)
+    luts = [lut.tolist() for lut in times.lut]
+    if len(luts) != 6:
+        def pair_time(a, b):
+            ca, cb = cells[a], cells[b]
+            return max(lut[abs(x - y)] for lut, x, y in zip(luts, ca, cb))
 
-    def pair_time(a, b):
+        return pair_time
+    l0, l1, l2, l3, l4, l5 = luts
+
+    def pair_time6(a, b):  # unrolled: the local search's inner loop for a six-joint arm
         ca, cb = cells[a], cells[b]
         return max(l0[abs(ca[0] - cb[0])], l1[abs(ca[1] - cb[1])], l2[abs(ca[2] - cb[2])],
                    l3[abs(ca[3] - cb[3])], l4[abs(ca[4] - cb[4])], l5[abs(ca[5] - cb[5])])
 
-    return pair_time
+    return pair_time6
 
 
 def two_opt(times: GridTimes, C, order, neighbours: int = 8, passes: int = 3, near=None):
@@ -190,7 +197,7 @@ def or_opt(times: GridTimes, C, order, near, max_len: int = 3, passes: int = 3):
 
 
 def segment_samples(qa, qb, max_step_rad):
-    """Configurations along the straight joint-space motion qa→qb, ≤ max_step_rad apart (k, 6)."""
+    """Configurations along the straight joint-space motion qa→qb, ≤ max_step_rad apart (k, N)."""
     qa, qb = np.asarray(qa, dtype=float), np.asarray(qb, dtype=float)
     k = max(1, int(np.ceil(np.max(np.abs(qb - qa)) / max_step_rad)))
     s = np.linspace(0.0, 1.0, k + 1)[:, None]
@@ -198,7 +205,7 @@ def segment_samples(qa, qb, max_step_rad):
 
 
 def segment_sample_counts(Q_from, Q_to, max_step_rad):
-    """Number of steps k (m,) of each straight motion Q_from[i]→Q_to[i] (m, 6) in
+    """Number of steps k (m,) of each straight motion Q_from[i]→Q_to[i] (m, N) in
     :func:`segment_samples`: k = ceil(max joint motion / max_step_rad), at least 1."""
     span = np.max(np.abs(np.asarray(Q_to, dtype=float) - np.asarray(Q_from, dtype=float)), axis=1)
     return np.maximum(1, np.ceil(span / max_step_rad)).astype(np.int64)
@@ -208,7 +215,7 @@ def interior_samples(Q_from, Q_to, max_step_rad):
     """The inner samples of all segments at once (the end poses excluded): the same
     configurations as ``segment_samples(a, b, max_step_rad)[1:-1]`` for every pair, stacked.
 
-    Returns (q (N, 6) rad, segment index (N,))."""
+    Returns (q (M, N) rad, segment index (M,))."""
     Q_from, Q_to = np.asarray(Q_from, dtype=float), np.asarray(Q_to, dtype=float)
     k = segment_sample_counts(Q_from, Q_to, max_step_rad)
     inner = k - 1

@@ -57,8 +57,10 @@ class World:
 
     def __init__(self, cfg: CampaignConfig, run_dir, start_clock_s: float = 0.0):
         sc = cfg.sim
-        self.robot = load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
-        self.scene = load_scene(cfg.scene_path)
+        # the reflectors `campaign run` measures: robot.yaml's, or the default triad
+        self.robot = load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame,
+                                base_frame=cfg.base_frame).with_default_reflectors()
+        self.scene = load_scene(cfg.scene_path).placed(self.robot)
         self.seed = sc.seed
         hidden = {}
         for name in sc.hidden_effects:

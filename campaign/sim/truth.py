@@ -20,7 +20,7 @@ from campaign.effects.base import EffectSet, effect_context, make_effect, model_
 from campaign.measure.data import MeasuredPoses
 from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors, transform_points
 from campaign.model.base_params import base_parameters
-from campaign.model.robot import RobotModel
+from campaign.model.robot import DEFAULT_REFLECTOR_POSITIONS, RobotModel
 from campaign.model.rotations import cardan_xyz
 
 #: The paper's Table 4: identified base parameters of its COMAU Racer5-0.80 (m or rad),
@@ -37,8 +37,8 @@ TRACKER_RESOLUTION_M = 1e-6
 
 
 #: Reflectors assumed on the tool of a robot whose robot.yaml names fewer than three, m in the
-#: tool frame (a 10 cm triad: enough for a pose from Kabsch).
-DEFAULT_TOOL_TRIAD = np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]])
+#: tool frame (a 5 cm triad: enough for a pose from Kabsch; the model's DEFAULT_REFLECTORS).
+DEFAULT_TOOL_TRIAD = np.array(DEFAULT_REFLECTOR_POSITIONS)
 
 
 def tool_points(robot: RobotModel) -> np.ndarray:
