@@ -221,9 +221,7 @@ class RobotModel:
     @functools.cached_property
     def urdf(self):
         """The yourdfpy ``URDF`` of this robot with its scene graph (loaded on first use)."""
-        import yourdfpy
-
-        return yourdfpy.URDF.load(str(self.urdf_path), load_meshes=False, build_scene_graph=True)
+        return _load_yourdfpy(self.urdf_path, build_scene_graph=True)
 
     @functools.cached_property
     def pinocchio_model(self):
@@ -440,12 +438,41 @@ def _xml_diagnosis(urdf_path: Path) -> str:
     return ""
 
 
-def _parse_urdf(urdf_path: Path):
-    import yourdfpy
+def _without_geometry(urdf_path: Path):
+    """The URDF's XML with every <visual> and <collision> removed (a file-like object), or None
+    when it cannot be read: the chain needs no geometry, and yourdfpy refuses geometry it does
+    not know (``<capsule>``, ...) that the planner checks or names itself."""
+    import io
+    import xml.etree.ElementTree as ET
 
     try:
-        return yourdfpy.URDF.load(str(urdf_path), load_meshes=False, build_scene_graph=False,
-                                  build_collision_scene_graph=False)
+        tree = ET.parse(urdf_path)
+    except (OSError, ET.ParseError):
+        return None
+    for link in tree.getroot().iter("link"):
+        for el in list(link):
+            if el.tag in ("visual", "collision"):
+                link.remove(el)
+    return io.BytesIO(ET.tostring(tree.getroot()))
+
+
+def _load_yourdfpy(urdf_path: Path, build_scene_graph: bool = False):
+    """yourdfpy's URDF (no meshes loaded); on geometry it cannot parse, the URDF without geometry."""
+    import yourdfpy
+
+    kw = dict(load_meshes=False, build_scene_graph=build_scene_graph, build_collision_scene_graph=False)
+    try:
+        return yourdfpy.URDF.load(str(urdf_path), **kw)
+    except ValueError as exc:
+        bare = _without_geometry(urdf_path) if str(exc).startswith("Unknown tag") else None
+        if bare is None:
+            raise
+        return yourdfpy.URDF.load(bare, **kw)
+
+
+def _parse_urdf(urdf_path: Path):
+    try:
+        return _load_yourdfpy(urdf_path)
     except Exception as exc:  # yourdfpy raises plain exceptions; word them as one line
         where = _xml_diagnosis(urdf_path)
         raise ConfigError(f"{urdf_path}: cannot read the URDF: {where or str(exc).splitlines()[0]}") from None

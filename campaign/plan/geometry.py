@@ -146,7 +146,7 @@ def _mesh_primitive(el, T, frame, link, urdf_path, where):
         raise ConfigError(f"{where}: collision mesh {path} is not a readable mesh "
                           f"({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})") from None
     if len(f) == 0 or not np.all(np.isfinite(v)):
-        raise ConfigError(f"{where}: collision mesh {path} holds no triangles")
+        raise ConfigError(f"{where}: collision mesh {path} is not a readable mesh (no triangles in it)")
     import trimesh
 
     to_obb, extents = trimesh.bounds.oriented_bounds(v)  # to_obb: mesh frame -> box frame (centred)

@@ -1,7 +1,7 @@
 """Stage 3's repair: a straight joint motion between two poses of the tour that does not keep
 the motion clearance is replaced by a path through two via postures that lift the arm; when
-that path collides too, the pose is dropped, and the motions that then start elsewhere are
-checked again.
+that path collides too, the pose is dropped, and the motion to the next pose, which then starts
+elsewhere, is checked (and repaired) again (:func:`repair_tour`).
 
 The lifted arm (:func:`lift_posture`) keeps joint 1 and the wrist (the last three joints) of
 the pose it leaves or reaches and sets the arm's joints in between (joints 2..N-3; joint 2
@@ -95,8 +95,17 @@ def lift_posture(robot) -> np.ndarray:
 
 
 def _via_path(robot, a, b):
-    """[a, lifted a, lifted b, b]: joint 1 and the wrist kept, the arm raised (:func:`lift_posture`)."""
-    arm, lift = arm_joints(robot.n_joints), lift_posture(robot)
+    """[a, lifted a, lifted b, b]: joint 1 and the wrist kept, the arm raised (:func:`lift_posture`).
+    A joint whose limits span more than a turn takes the lifted angle a whole number of turns
+    away where that lies nearest to its values at a and b (no needless full turn)."""
+    arm, lift = arm_joints(robot.n_joints), lift_posture(robot).copy()
+    for i, j in enumerate(arm):
+        if robot.joint_types[j] != "prismatic":
+            turns = np.arange(np.ceil((robot.q_lower[j] - lift[i]) / (2 * np.pi) - 1e-12),
+                              np.floor((robot.q_upper[j] - lift[i]) / (2 * np.pi) + 1e-12) + 1)
+            if len(turns) > 1:
+                c = lift[i] + 2 * np.pi * turns
+                lift[i] = c[np.argmin(np.abs(a[j] - c) + np.abs(b[j] - c))]
     v1, v2 = np.array(a, dtype=float), np.array(b, dtype=float)
     v1[arm] = lift
     v2[arm] = lift
@@ -106,43 +115,32 @@ def _via_path(robot, a, b):
 def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
     """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, N) rad, whose motions
     ``ok`` (n - 1,) bool say which straight motions keep ``clearance`` (m) at samples
-    ``max_step`` (rad) apart (:func:`check_segments`)."""
+    ``max_step`` (rad) apart (:func:`check_segments`).
+
+    One pass along the tour: each pose is reached from the last pose kept before it, by the
+    straight motion when it keeps the clearance (known from ``ok`` when that previous pose is
+    the tour's own, checked afresh after a drop), else through the lifted arm (:func:`_via_path`:
+    the via postures and every motion of the path checked), else the pose is dropped. Every
+    motion of the repaired tour is thereby checked."""
     vias, dropped = {}, []
-    via_from = {}  # tour index of a pose reached through vias → tour index its via path starts from
     keep = np.ones(len(order), dtype=bool)
-
-    def prev_of(k):
-        return max(i for i in range(k + 1) if keep[i])
-
-    for m in np.flatnonzero(~ok):
-        k = m + 1  # pose that the colliding motion reaches
-        path = _via_path(robot, Q[prev_of(m)], Q[k])
+    prev = 0
+    for k in range(1, len(order)):
+        if prev == k - 1 and ok[k - 1]:
+            prev = k
+            continue
+        if prev != k - 1 and check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
+            prev = k
+            continue
+        path = _via_path(robot, Q[prev], Q[k])
         if checker.clear(*frames(robot, path[1:3]), clearance).all() and \
                 check_segments(robot, checker, path[:-1], path[1:], max_step, clearance).all():
             vias[int(order[k])] = [path[1], path[2]]
-            via_from[k] = prev_of(m)
+            prev = k
         else:
             keep[k] = False
-            dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"))
-    # motions after a dropped pose start elsewhere: re-check those (only those: every other
-    # motion is unchanged and already checked) and repeat until clean
-    known_ok = {(m, m + 1) for m in np.flatnonzero(ok)} | {(via_from[k], k) for k in via_from}
-    while True:  # each round that is not clean drops a pose: at most len(order) rounds
-        kept = np.flatnonzero(keep)
-        starts = [i for i in range(1, len(kept)) if (kept[i - 1], kept[i]) not in known_ok]
-        if not starts:
-            break
-        starts = np.array(starts)
-        # a pose reached through vias: its first via posture is the motion's target
-        targets = np.array([vias[int(order[kept[i]])][0] if int(order[kept[i]]) in vias else Q[kept[i]]
-                            for i in starts])
-        seg_ok = check_segments(robot, checker, Q[kept[starts - 1]], targets, max_step, clearance)
-        known_ok |= {(kept[i - 1], kept[i]) for i in starts[seg_ok]}
-        if seg_ok.all():
-            break
-        for i in starts[~seg_ok]:
-            keep[kept[i]] = False
-            dropped.append((int(order[kept[i]]), "no collision-free motion after re-ordering"))
+            dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"
+                            if prev == k - 1 else "no collision-free motion after re-ordering, even via a lifted arm"))
     return Repair(keep, vias, dropped)
 
 

@@ -1,0 +1,489 @@
+"""Issue 12, item 9: `campaign plan --robot` for arms that are not the COMAU: a 6R arm with z up
+(UR10, URDF alone: the default reflector triad) and a 7R arm (Panda, with a robot.yaml naming its
+reflectors and locked fingers), both from example-robot-data, whose collision geometry is STL
+meshes (and, for the Panda's fingers, boxes). The plan's verdicts are re-checked from outside:
+Pinocchio places the URDF's collision geometry (its own parser and forward kinematics), trimesh
+loads the meshes, python-fcl measures the distances, and the cell is placed by hand."""
+
+import json
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from campaign.cli import main
+from campaign.errors import ConfigError
+from campaign.model.kinematics import frames
+from campaign.model.robot import RobotModel
+from campaign.paths import DEFAULT_SCENE
+from campaign.plan.checks import ClearanceChecker
+from campaign.plan.geometry import nominal_frames_entry_first, robot_primitives
+from campaign.plan.grid import DEFAULT_GRID_SIZE, Grid, default_cells, iter_tool_points, tool_frames
+from campaign.plan.repair import arm_joints, lift_posture
+from campaign.plan.scene import load_scene
+
+CLEARANCE_M = 0.035
+
+
+def _share():
+    try:
+        dist = metadata.distribution("example-robot-data")
+    except metadata.PackageNotFoundError:
+        pytest.skip("example-robot-data (test extra) is not installed")
+    return Path(dist.locate_file("cmeel.prefix/share"))
+
+
+def _urdf(which):
+    rel = {"ur10": "ur_description/urdf/ur10_robot.urdf", "panda": "panda_description/urdf/panda.urdf"}[which]
+    return _share() / "example-robot-data" / "robots" / rel
+
+
+PANDA_YAML = {
+    "name": "panda", "tool_frame": "panda_hand",
+    "locked_joints": {"panda_finger_joint1": 0.02, "panda_finger_joint2": 0.02},
+    # three nests on a bracket beside the hand, facing the hand's +x
+    "reflectors": [{"name": "a", "position_m": [0.05, 0.04, 0.02], "axis": [1, 0, 0], "half_angle_deg": 40},
+                   {"name": "b", "position_m": [0.05, -0.04, 0.02], "axis": [1, 0, 0], "half_angle_deg": 40},
+                   {"name": "c", "position_m": [0.05, 0.0, 0.06], "axis": [1, 0, 0], "half_angle_deg": 30}],
+}
+
+
+@pytest.fixture(scope="module")
+def panda_yaml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("panda") / "robot.yaml"
+    path.write_text(yaml.safe_dump({"urdf": str(_urdf("panda")), **PANDA_YAML}))
+    return path
+
+
+def _plan(tmp, robot_args, cells, extra=()):
+    cfg = tmp / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"scene": str(DEFAULT_SCENE), "plan": {"grid_cells": cells, "motion_sample_deg": 2.0},
+                                   "sim": {"noise_m": 0.0, "seed": 3}}))
+    run = tmp / "run"
+    assert main(["plan", "--config", str(cfg), "--run", str(run), "--quiet", *robot_args, *extra]) == 0
+    return run
+
+
+@pytest.fixture(scope="module")
+def ur10_plan(tmp_path_factory):
+    return _plan(tmp_path_factory.mktemp("ur10"), ["--robot", str(_urdf("ur10")), "--tool-frame", "tool0"],
+                 [8, 6, 4, 5, 5, 4])
+
+
+@pytest.fixture(scope="module")
+def panda_plan(tmp_path_factory, panda_yaml):
+    return _plan(tmp_path_factory.mktemp("panda_plan"), ["--robot", str(panda_yaml)], [6, 4, 5, 4, 5, 4, 3])
+
+
+class Reference:
+    """The suitability criteria computed without the planner's code: Pinocchio's URDF parser and
+    forward kinematics place every <collision> of the URDF, trimesh loads the meshes, FCL measures;
+    the robot stands in the default cell where a z-up robot stands by the scene's rule, worked out
+    here by hand: its gravity (-z) turned onto the cell's down (+y), a quarter turn about x."""
+
+    def __init__(self, robot):
+        import fcl
+        import pinocchio as pin
+        import trimesh
+
+        self.robot, self.pin = robot, pin
+        self.model = pin.buildModelFromUrdf(str(robot.urdf_path))
+        self.data = self.model.createData()
+        self.gmodel = pin.buildGeomFromUrdf(self.model, str(robot.urdf_path), pin.COLLISION,
+                                            package_dirs=[str(_share())])
+        self.gdata = pin.GeometryData(self.gmodel)
+        assert np.array_equal(robot.T_root_base, np.eye(4))  # F_I is the URDF's root for both arms
+        c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
+        self.T_cell_root = np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
+        self.objs, self.links, self.joint = [], [], []
+        for g in self.gmodel.geometryObjects:
+            if g.meshPath.endswith((".stl", ".STL", ".dae", ".obj")):
+                m = trimesh.load(g.meshPath, force="mesh")
+                shape = fcl.BVHModel()
+                v = np.asarray(m.vertices) * np.asarray(g.meshScale)
+                shape.beginModel(len(v), len(m.faces))
+                shape.addSubModel(v, np.asarray(m.faces, dtype=np.int32))
+                shape.endModel()
+            else:
+                shape = fcl.Box(*(2 * np.asarray(g.geometry.halfSide)))
+            self.objs.append(fcl.CollisionObject(shape, fcl.Transform()))
+            self.links.append(self.model.frames[g.parentFrame].name)
+            self.joint.append(g.parentJoint)
+        self.scene = load_scene(DEFAULT_SCENE)  # in the cell's frame, not placed
+        self.obstacles = [fcl.CollisionObject(fcl.Box(*o.size) if o.kind == "box" else fcl.Cylinder(*o.size),
+                                              fcl.Transform(o.T_I[:3, :3], o.T_I[:3, 3])) for o in self.scene.obstacles]
+        self.fcl = fcl
+
+    def place(self, q):
+        """Put the geometry at joint vector q (N,) (other joints at robot.yaml's locked values)."""
+        qp = self.pin.neutral(self.model)
+        for jid in range(1, self.model.njoints):
+            name = self.model.names[jid]
+            v = q[self.robot.joint_names.index(name)] if name in self.robot.joint_names else \
+                self.robot.locked_joints.get(name, 0.0)
+            qp[self.model.joints[jid].idx_q] = v
+        self.pin.framesForwardKinematics(self.model, self.data, qp)
+        self.pin.updateGeometryPlacements(self.model, self.data, self.gmodel, self.gdata, qp)
+        for obj, M in zip(self.objs, self.gdata.oMg):
+            T = self.T_cell_root @ M.homogeneous
+            obj.setTransform(self.fcl.Transform(T[:3, :3], T[:3, 3]))
+        T_tool = self.T_cell_root @ self.data.oMf[self.model.getFrameId(self.robot.tool_frame)].homogeneous
+        return T_tool
+
+    def dist(self, a, b):
+        return self.fcl.distance(a, b, self.fcl.DistanceRequest(), self.fcl.DistanceResult())
+
+    def min_clearance(self, q, self_pairs):
+        """Smallest distance (m): every moving link to every obstacle, and the link pairs given."""
+        self.place(q)
+        d = [self.dist(o, s) for o, j in zip(self.objs, self.joint) if j >= 1 for s in self.obstacles]
+        d += [self.dist(self.objs[i], self.objs[k]) for i, k in self_pairs]
+        return min(d)
+
+    def visible(self, q, reflectors):
+        """Every reflector within range, inside its nest's cone, and its beam (a capsule of the beam
+        radius) clear of the cell and of the links before the last joint."""
+        T = self.place(q)
+        o = self.scene.tracker_position
+        N = self.robot.n_joints
+        for r in reflectors:
+            p = T[:3, :3] @ r.position_in_E + T[:3, 3]
+            axis = T[:3, :3] @ r.axis_in_E
+            to = o - p
+            d = np.linalg.norm(to)
+            if not self.scene.min_range_m <= d <= self.scene.max_range_m:
+                return False
+            if np.arccos(np.clip(axis @ to / d, -1, 1)) > r.half_angle:
+                return False
+            z = to / d
+            x = np.cross(z, [1.0, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1.0, 0])
+            x /= np.linalg.norm(x)
+            beam = self.fcl.CollisionObject(self.fcl.Capsule(self.scene.beam_radius_m, d),
+                                            self.fcl.Transform(np.stack([x, np.cross(z, x), z], axis=1), p + 0.5 * to))
+            others = self.obstacles + [ob for ob, j in zip(self.objs, self.joint) if j < N]
+            if any(self.dist(beam, other) <= 0.0 for other in others):
+                return False
+        return True
+
+
+def _pin_index(ref, prims):
+    """For each planner primitive, the index of the same <collision> among Pinocchio's geometry
+    objects (the n-th collision of a link in URDF order, both sides)."""
+    by_link, seen, out = {}, {}, []
+    for n, link in enumerate(ref.links):
+        by_link.setdefault(link, []).append(n)
+    for p in prims:
+        out.append(by_link[p.link][seen.get(p.link, 0)])
+        seen[p.link] = seen.get(p.link, 0) + 1
+    return out
+
+
+def _reference_pairs(ref, checker):
+    """The link pairs the planner checks (all but adjacent links and pairs always in contact), as
+    pairs of Pinocchio's geometry objects."""
+    index = _pin_index(ref, checker.prims)
+    return [(index[i], index[k]) for i, k in checker.self_pairs]
+
+
+def _read_poses(run):
+    lines = (run / "plan" / "poses.csv").read_text().splitlines()
+    data = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    return lines[0], data[:, 0].astype(np.int64), data[:, 1:]
+
+
+@pytest.mark.parametrize("which", ["ur10", "panda"])
+def test_accepted_poses_are_clear_visible_and_rejected_ones_really_fail(which, request):
+    run = request.getfixturevalue(f"{which}_plan")
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    robot = RobotModel.load(cfg["robot"], tool_frame=cfg.get("tool_frame")).with_default_reflectors()
+    s = json.loads((run / "plan" / "summary.json").read_text())
+    head, ids, Q = _read_poses(run)
+    assert head == "pose_id," + ",".join(f"q{j}" for j in range(1, robot.n_joints + 1))
+    assert s["candidates"] == int(np.prod(cfg["plan"]["grid_cells"])) == Grid.for_robot(robot, s["grid_cells"]).size
+    assert s["suitable"] > 20 and s["tour"]["poses"] + s["tour"]["dropped"] == s["suitable"] == len(ids) + s["tour"]["dropped"]
+    assert any(p.kind == "mesh" for p in robot_primitives(robot))
+    grid = Grid.for_robot(robot, s["grid_cells"])
+    np.testing.assert_allclose(Q, grid.q(ids), atol=1e-12)
+    ref = Reference(robot)
+    checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), CLEARANCE_M)
+    pairs = _reference_pairs(ref, checker)
+    rng = np.random.default_rng(7)
+    for q in Q[rng.choice(len(Q), size=min(25, len(Q)), replace=False)]:
+        assert ref.min_clearance(q, pairs) >= CLEARANCE_M
+        assert ref.visible(q, robot.reflectors)
+    # rejected poses: out of a cone, out of sight or too close; the plan's bounds are conservative
+    # (a few good poses may be rejected), never the other way round. Most candidates fail a cone:
+    # those that the reference sees, the plan rejected for their clearance (or, conservatively, a
+    # beam), so they are checked for a collision.
+    rejected = np.setdiff1d(rng.choice(grid.size, 1500, replace=False), ids)
+    seen = [i for i in rejected if ref.visible(grid.q([i])[0], robot.reflectors)]
+    dropped = {int(line.split(",")[0]) for line in (run / "plan" / "dropped.csv").read_text().splitlines()[1:]}
+    good = [i for i in seen if i not in dropped and ref.min_clearance(grid.q([i])[0], pairs) >= CLEARANCE_M]
+    assert len(seen) >= 5 and s["removed_by_filter"]["clearance_fcl"] > 0
+    assert len(good) <= 3, (good, len(seen))
+
+
+def test_the_tour_motions_keep_the_motion_clearance_in_the_reference(ur10_plan):
+    cfg = yaml.safe_load((ur10_plan / "campaign.yaml").read_text())
+    robot = RobotModel.load(cfg["robot"], tool_frame=cfg["tool_frame"]).with_default_reflectors()
+    _, ids, Q = _read_poses(ur10_plan)
+    ref = Reference(robot)
+    checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), CLEARANCE_M)
+    pairs = _reference_pairs(ref, checker)
+    vias = {}
+    for line in (ur10_plan / "plan" / "vias.csv").read_text().splitlines()[1:]:
+        c = [float(v) for v in line.split(",")]
+        vias.setdefault(int(c[0]), []).append(c[1:])
+    path = [Q[0]]
+    for pid, q in zip(ids[1:], Q[1:]):
+        path += [np.array(v) for v in vias.get(int(pid), [])] + [q]
+    # the samples the plan checks (plan.motion_sample_deg apart along each straight joint motion),
+    # a random 60 of them re-checked
+    step = np.deg2rad(cfg["plan"]["motion_sample_deg"])
+    samples = []
+    for a, b in zip(path[:-1], path[1:]):
+        k = int(np.ceil(np.max(np.abs(b - a)) / step))
+        samples += [a + (i / k) * (b - a) for i in range(1, k)]
+    rng = np.random.default_rng(4)
+    worst = min(ref.min_clearance(samples[i], pairs) for i in rng.choice(len(samples), 60, replace=False))
+    assert worst >= cfg["plan"]["motion_clearance_m"]
+
+
+def test_collision_geometry_sits_on_the_chain_where_pinocchio_puts_it(panda_yaml):
+    robot = RobotModel.load(panda_yaml)
+    ref = Reference(robot)
+    rng = np.random.default_rng(2)
+    prims = robot_primitives(robot)
+    assert {p.kind for p in prims} == {"mesh", "box"} and len(prims) == len(ref.links) == 17
+    index = _pin_index(ref, prims)
+    for q in rng.uniform(robot.q_lower, robot.q_upper, size=(4, 7)):
+        ref.place(q)
+        R, t = frames(robot, q[None])
+        for p, k in zip(prims, index):
+            T_ref = ref.gdata.oMg[k].homogeneous  # in the URDF's root, F_I of the Panda
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R[0, p.frame], t[0, p.frame]
+            T = T @ p.T
+            if p.kind == "mesh":  # the mesh's own frame: its box frame times the box's pose in it
+                import trimesh
+
+                v = trimesh.load(ref.gmodel.geometryObjects[k].meshPath, force="mesh").vertices
+                mine = p.mesh.vertices @ T[:3, :3].T + T[:3, 3]
+                theirs = v @ T_ref[:3, :3].T + T_ref[:3, 3]
+                np.testing.assert_allclose(mine, theirs, atol=1e-9)
+            else:
+                np.testing.assert_allclose(T, T_ref, atol=1e-12)
+
+
+def test_n_joint_grid_is_the_product_of_its_cells_and_follows_pinocchio(panda_yaml):
+    import pinocchio as pin
+
+    robot = RobotModel.load(panda_yaml)
+    cells = (3, 2, 3, 2, 2, 3, 2)
+    g = Grid.for_robot(robot, cells)
+    assert g.size == int(np.prod(cells)) == 432
+    idx = np.arange(g.size)
+    np.testing.assert_array_equal(np.ravel_multi_index(g.cell_indices(idx).T, g.cells), idx)
+    R, t = tool_frames(robot, g)
+    model = robot.pinocchio_model
+    data = model.createData()
+    fid = model.getFrameId(robot.tool_frame)
+    for i in (0, 1, 77, 431):
+        pin.framesForwardKinematics(model, data, robot.pinocchio_q(g.q([i]))[0])
+        np.testing.assert_allclose(R[i], data.oMf[fid].rotation, atol=1e-12)
+        np.testing.assert_allclose(t[i], data.oMf[fid].translation, atol=1e-12)
+    points = robot.reflector_positions_in_E
+    axes = np.array([r.axis_in_E for r in robot.reflectors])
+    blocks = list(iter_tool_points(robot, g, points, axes, chunk=5))
+    P = np.concatenate([b[1] for b in blocks])
+    np.testing.assert_allclose(P, np.einsum("nij,rj->nri", R, points) + t[:, None], atol=1e-12)
+    Re, te = nominal_frames_entry_first(robot, g.q(idx[:50]))
+    Rf, tf = frames(robot, g.q(idx[:50]))
+    np.testing.assert_allclose(np.moveaxis(Re, -1, 0), Rf, atol=1e-14)
+    np.testing.assert_allclose(np.moveaxis(te, -1, 0), tf, atol=1e-14)
+    # a 7R arm's default grid: about a million candidates, every joint at least two cells
+    default = default_cells(robot)
+    assert len(default) == 7 and min(default) >= 2
+    assert 0.5 * DEFAULT_GRID_SIZE <= np.prod(default) <= DEFAULT_GRID_SIZE
+
+
+def test_the_lifted_arm_is_the_highest_flange_over_the_45_degree_postures():
+    import itertools
+
+    import pinocchio as pin
+
+    robot = RobotModel.load(_urdf("panda"), tool_frame="panda_hand")
+    arm = arm_joints(7)
+    assert arm.tolist() == [1, 2, 3]
+    model = robot.pinocchio_model
+    data = model.createData()
+    flange = model.getFrameId("panda_link7")
+
+    def height(values):
+        q = np.clip(np.zeros(7), robot.q_lower, robot.q_upper)
+        q[arm] = values
+        pin.framesForwardKinematics(model, data, q)
+        return data.oMf[flange].translation[2]  # z up, gravity -z
+
+    grid = [np.arange(-8, 9) * np.pi / 4 for _ in arm]
+    allowed = [v[(v >= robot.q_lower[j]) & (v <= robot.q_upper[j])] for v, j in zip(grid, arm)]
+    best = max(height(np.array(c)) for c in itertools.product(*allowed))
+    assert height(lift_posture(robot)) == pytest.approx(best, abs=1e-12)
+    comau = RobotModel.load()
+    assert lift_posture(comau).tolist() == [0.0, -np.pi / 2]  # the arm upright, as it always was
+
+
+def test_a_z_up_robot_stands_upright_in_the_default_cell_and_robot_base_places_it(tmp_path):
+    ur10 = RobotModel.load(_urdf("ur10"), tool_frame="tool0")
+    scene = load_scene(DEFAULT_SCENE)
+    placed = scene.placed(ur10)
+    # a quarter turn about x: the UR10's z (up) along the cell's -y (up), its gravity along +y (down)
+    np.testing.assert_allclose(placed.T_cell_I, [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]], atol=1e-15)
+    # the tracker, 3 m in front (+z) and 0.55 m up (-y) in the cell, is 3 m along +y and 0.55 m up (+z) of the UR10
+    np.testing.assert_allclose(placed.tracker_position, [0.0, 3.0, 0.55], atol=1e-12)
+    assert load_scene(DEFAULT_SCENE).placed(RobotModel.load()).T_cell_I.tolist() == np.eye(4).tolist()
+    doc = yaml.safe_load(DEFAULT_SCENE.read_text())
+    doc["robot_base"] = {"position_m": [0.1, -0.2, 0.3], "rotation_cardan_deg": [90, 0, 90]}
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(doc))
+    moved = load_scene(tmp_path / "cell.yaml").placed(ur10)
+    from campaign.model.rotations import cardan_xyz
+
+    np.testing.assert_allclose(moved.T_cell_I[:3, :3], cardan_xyz(np.pi / 2, 0, np.pi / 2), atol=1e-15)
+    world = moved.T_cell_I @ np.append(moved.tracker_position, 1.0)
+    np.testing.assert_allclose(world[:3], scene.tracker_position, atol=1e-12)
+    doc["robot_base"] = {"tilt": 3}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=r"robot_base: unknown key 'tilt'"):
+        load_scene(tmp_path / "bad.yaml")
+
+
+_TINY = """<robot name="tiny">
+  <link name="base"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+  <link name="l1"><collision><geometry>{geometry}</geometry></collision></link>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="tool"/><origin xyz="0 0 0.5"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+  <link name="tool"/>
+</robot>
+"""
+
+
+@pytest.mark.parametrize("geometry, message", [
+    ('<mesh filename="package://nowhere/arm.stl"/>', r"link 'l1': collision mesh 'package://nowhere/arm\.stl' not found"),
+    ('<mesh filename="broken.stl"/>', r"link 'l1': collision mesh .*broken\.stl is not a readable mesh"),
+    ("<heightfield/>", r"link 'l1': collision geometry <heightfield> is not supported by the planner"),
+])
+def test_geometry_the_planner_cannot_check_is_one_line_and_exit_1(tmp_path, capsys, geometry, message):
+    (tmp_path / "broken.stl").write_text("solid nothing here\nthis is not an stl\n")
+    urdf = tmp_path / "tiny.urdf"
+    urdf.write_text(_TINY.format(geometry=geometry))
+    run = tmp_path / "run"
+    assert main(["plan", "--robot", str(urdf), "--run", str(run), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(urdf) in err[0], err
+    import re
+
+    assert re.search(message, err[0]), err[0]
+    assert not run.exists()
+
+
+_KINDS = """<robot name="kinds">
+  <link name="base"><collision><origin xyz="0 0 0.6"/><geometry><mesh filename="ball.dae" scale="0.5 0.5 0.5"/></geometry>
+    </collision></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+  <link name="l1"><collision><origin xyz="0.3 0 0.1" rpy="0 1.5707963267948966 0"/>
+    <geometry><capsule radius="0.03" length="0.4"/></geometry></collision></link>
+  <joint name="j2" type="prismatic"><parent link="l1"/><child link="l2"/><axis xyz="0 0 1"/>
+    <limit lower="0" upper="1" velocity="1" effort="1"/></joint>
+  <link name="l2"><collision><geometry><sphere radius="0.02"/></geometry></collision>
+    <collision><origin xyz="0.1 0 0"/><geometry><cylinder radius="0.02" length="0.1"/></geometry></collision></link>
+  <joint name="j3" type="revolute"><parent link="l2"/><child link="tool"/><origin xyz="0 0 0.05"/><axis xyz="1 0 0"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+  <link name="tool"><collision><geometry><mesh filename="block.stl"/></geometry></collision></link>
+</robot>
+"""
+
+
+@pytest.fixture(scope="module")
+def kinds_robot(tmp_path_factory):
+    """A made-up chain with every kind of collision geometry: a closed DAE mesh (scaled) on the base,
+    a capsule, a prismatic joint carrying a sphere and a cylinder, an STL mesh on the tool."""
+    import trimesh
+
+    tmp = tmp_path_factory.mktemp("kinds")
+    (tmp / "ball.dae").write_bytes(trimesh.exchange.dae.export_collada(trimesh.creation.icosphere(2, radius=0.4)))
+    trimesh.creation.box((0.08, 0.05, 0.03)).export(tmp / "block.stl")
+    (tmp / "kinds.urdf").write_text(_KINDS)
+    return RobotModel.load(tmp / "kinds.urdf", tool_frame="tool")
+
+
+@pytest.mark.parametrize("clearance", [0.01, 0.035, 0.1])
+def test_sphere_bounds_never_clear_a_pair_that_fcl_finds_closer_for_every_kind(kinds_robot, clearance):
+    robot = kinds_robot
+    prims = robot_primitives(robot)
+    assert [p.kind for p in prims] == ["mesh", "capsule", "sphere", "cylinder", "mesh"]
+    checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035)
+    q = np.random.default_rng(5).uniform(robot.q_lower, robot.q_upper, size=(150, 3))
+    R, t = frames(robot, q)
+    Re, te = nominal_frames_entry_first(robot, q)
+    np.testing.assert_allclose(np.moveaxis(te, -1, 0), t, atol=1e-14)  # the prismatic joint too
+    need_scene, need_self = checker.undecided_pairs(Re, te, clearance)
+    for k in range(len(q)):
+        d_scene, d_self = checker.pair_distances(R[k], t[k])
+        assert np.all(d_scene[~need_scene[:, k]] >= clearance)
+        assert np.all(d_self[~need_self[:, k]] >= clearance)
+    if clearance <= 0.035:  # the bounds decide most pairs (this arm is small: within 10 cm of itself often)
+        assert need_self.mean() < 0.5 and need_scene.mean() < 0.5
+
+
+def test_meshes_load_scaled_and_a_shape_inside_a_closed_mesh_touches_it(kinds_robot):
+    import trimesh
+
+    robot = kinds_robot
+    ball = robot_primitives(robot)[0]
+    v = trimesh.load(robot.urdf_path.parent / "ball.dae", force="mesh").vertices * 0.5 + [0, 0, 0.6]
+    np.testing.assert_allclose(ball.mesh.vertices @ ball.T[:3, :3].T + ball.T[:3, 3], v, atol=1e-12)
+    checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035)
+    sphere, cylinder = 2, 3
+    assert (0, sphere) in checker.self_pairs and (0, cylinder) in checker.self_pairs
+    R, t = frames(robot, np.array([[0.0, 0.6, 0.0]]))  # the sphere at the ball's centre, 2 cm in a 20 cm ball
+    checker._place(R[0], t[0])
+    surfaces = checker._dist(checker.robot_objs[0], checker.robot_objs[sphere])
+    ball_mesh = trimesh.Trimesh(v, trimesh.load(robot.urdf_path.parent / "ball.dae", force="mesh").faces)
+    _, to_surface, _ = trimesh.proximity.closest_point(ball_mesh, t[0, 2][None])
+    assert surfaces == pytest.approx(to_surface[0] - 0.02, abs=1e-6)  # FCL sees only the triangles
+    assert ball_mesh.contains(t[0, 2][None])[0]
+    d_scene, d_self = checker.pair_distances(R[0], t[0])
+    assert d_self[checker.self_pairs.index((0, sphere))] == 0.0 == d_self[checker.self_pairs.index((0, cylinder))]
+    assert not checker.clear(R, t)[0]
+    R, t = frames(robot, np.array([[0.0, 0.95, 0.0]]))  # above the ball: apart by 0.95 - 0.6 - 0.2 - 0.02 m
+    d_scene, d_self = checker.pair_distances(R[0], t[0])
+    _, gap, _ = trimesh.proximity.closest_point(ball_mesh, t[0, 2][None])
+    assert d_self[checker.self_pairs.index((0, sphere))] == pytest.approx(gap[0] - 0.02, abs=1e-6)
+    assert gap[0] == pytest.approx(0.95 - 0.6 - 0.2, abs=1e-6)  # the ball's top is a vertex
+
+
+def test_plan_then_run_in_the_simulated_cell_for_the_panda(tmp_path, panda_yaml):
+    """`campaign plan --robot panda/robot.yaml --select` then `campaign run --sim`: the simulated
+    cell measures the Panda's own three reflectors; the stored poses equal the truth's."""
+    from campaign.effects.base import effect_context
+    from campaign.measure.store import open_run
+    from campaign.sim.truth import read_truth
+
+    run = _plan(tmp_path, ["--robot", str(panda_yaml)], [6, 4, 5, 4, 5, 4, 3], ["--select", "12", "--validation", "0.5"])
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    assert Path(cfg["robot"]) == panda_yaml.resolve() and cfg["plan"]["grid_cells"] == [6, 4, 5, 4, 5, 4, 3]
+    _, ids, Q = _read_poses(run)
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    robot = RobotModel.load(panda_yaml)
+    with open_run(run) as store:
+        poses = store.load_measured()
+    assert len(poses) == len(ids) and poses.q.shape[1] == 7
+    truth = read_truth(run / "sim" / "truth.yaml", robot)  # only now, after the run
+    T_true = truth.pose(poses.q, effect_context(poses.context, poses.time_s))
+    assert np.max(np.abs(T_true[:, :3, 3] - poses.xyz)) < 1e-9
+    assert np.max(np.abs(T_true[:, :3, :3] - poses.T_IE[:, :3, :3])) < 1e-9
