@@ -441,6 +441,7 @@ def test_sphere_bounds_never_clear_a_pair_that_fcl_finds_closer_for_every_kind(k
 
 
 def test_meshes_load_scaled_and_a_shape_inside_a_closed_mesh_touches_it(kinds_robot):
+    import fcl
     import trimesh
 
     robot = kinds_robot
@@ -451,10 +452,15 @@ def test_meshes_load_scaled_and_a_shape_inside_a_closed_mesh_touches_it(kinds_ro
     sphere, cylinder = 2, 3
     assert (0, sphere) in checker.self_pairs and (0, cylinder) in checker.self_pairs
     R, t = frames(robot, np.array([[0.0, 0.6, 0.0]]))  # the sphere at the ball's centre, 2 cm in a 20 cm ball
-    checker._place(R[0], t[0])
-    surfaces = checker._dist(checker.robot_objs[0], checker.robot_objs[sphere])
     ball_mesh = trimesh.Trimesh(v, trimesh.load(robot.urdf_path.parent / "ball.dae", force="mesh").faces)
     _, to_surface, _ = trimesh.proximity.closest_point(ball_mesh, t[0, 2][None])
+    shell = fcl.BVHModel()
+    shell.beginModel(len(v), len(ball_mesh.faces))
+    shell.addSubModel(v, np.asarray(ball_mesh.faces, dtype=np.int32))
+    shell.endModel()
+    surfaces = fcl.distance(fcl.CollisionObject(shell, fcl.Transform()),
+                            fcl.CollisionObject(fcl.Sphere(0.02), fcl.Transform(np.eye(3), t[0, 2])),
+                            fcl.DistanceRequest(), fcl.DistanceResult())
     assert surfaces == pytest.approx(to_surface[0] - 0.02, abs=1e-6)  # FCL sees only the triangles
     assert ball_mesh.contains(t[0, 2][None])[0]
     d_scene, d_self = checker.pair_distances(R[0], t[0])
