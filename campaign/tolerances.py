@@ -44,3 +44,8 @@ ROTVEC_NORM_SLACK = 1e-6
 #: Smallest distance (m) between the base-frame set-up points, and of the y point from the
 #: x axis, for the frame they define to be meaningful (the tracker's resolution is ~1 µm).
 SETUP_POINT_MIN_SEPARATION_M = 1e-3
+
+#: Held-out mean position error (m) up to which a model counts as at a noise floor of exactly 0
+#: (noise-free measurements, e.g. a simulated tracker without noise): the round-off of a
+#: float64 fit of a metre-sized arm, far below any tracker's noise (µm).
+ZERO_NOISE_MODEL_ATOL_M = 1e-9

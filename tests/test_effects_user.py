@@ -11,12 +11,12 @@ import yaml
 
 from campaign.cli import main
 from campaign.diagnose.engine import candidate_specs
-from campaign.diagnose.floor import floor_from_repeats, floor_from_stated, noise_floor
 from campaign.effects import Effect, make_effect
 from campaign.effects.base import EffectSet, effect_name, model_pose
 from campaign.errors import ConfigError
 from campaign.identify.calibrate import configured_effects
 from campaign.measure.csvio import write_measured_csv
+from campaign.measure.floor import floor_from_repeats, floor_from_stated, noise_floor
 from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, frames, pose_error
 from campaign.model.rotations import rotvec_to_matrix, skew

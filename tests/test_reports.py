@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from campaign.identify.metrics import error_stats
-from campaign.diagnose.floor import floor_from_stated
 from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 from campaign.identify.report import binned_quantiles, signed_components, workspace_colour_scale, write_report
+from campaign.measure.floor import floor_from_stated
 from campaign.model.kinematics import pose_error
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ questions are answered on those held-out residuals (the test set is not touched,
 here reads a simulator's truth):
 
 1. **How far from the noise?** The held-out mean position error over the noise floor
-   (:mod:`campaign.diagnose.floor`, from repeated measurements or the stated tracker noise,
+   (:mod:`campaign.measure.floor`, from repeated measurements or the stated tracker noise,
    never from the model's fit): ``model_to_noise``.
 2. **Is there structure left?** A flexible regressor of the residual on the joint
    coordinates and the per-pose context (:mod:`campaign.diagnose.structure`), fitted on the
@@ -34,15 +34,17 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from campaign.diagnose.floor import NoiseFloor, noise_floor
-from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, parse_effect_list,
-                                   resolve_effect_spec)
+from campaign.diagnose.candidates import fit_candidate, linearise
+from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, make_effect,
+                                   parse_effect_list, resolve_effect_spec)
 from campaign.errors import DataError
 from campaign.identify.calibrate import configured_effects, load_robot_for_run
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, train_test_split
+from campaign.measure.floor import NoiseFloor, noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
+from campaign.tolerances import ZERO_NOISE_MODEL_ATOL_M
 
 #: family-wise significance level of the candidate ranking and of the structure test
 ALPHA = 0.01
@@ -118,9 +120,8 @@ class Diagnosis:
 
     @property
     def model_to_noise(self) -> float | None:
-        if not self.floor.known:
-            return None
-        return float(self.heldout_mean_position_mm / self.floor.mean_position_mm)
+        """Held-out mean over the floor; None without a floor or for a floor of exactly 0."""
+        return self.floor.ratio(self.heldout_mean_position_mm)
 
     @property
     def depends_on(self) -> list:
@@ -165,7 +166,7 @@ class Diagnosis:
         if not self.floor.known:
             return (f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in "
                     "campaign.yaml): how far the model is from the measurement noise cannot be said")
-        return f"{held} = {self.model_to_noise:.1f}× the measurement noise ({self.floor.text()})"
+        return f"{held} {times_the_noise(self.heldout_mean_position_mm, self.floor.mean_position_mm)} ({self.floor.text()})"
 
     def structure_line(self) -> str:
         s = self.structure
@@ -219,7 +220,8 @@ def verdict_text(d: Diagnosis) -> str:
                      f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
             return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
-        return (f"verdict: unexplained — the model is {d.model_to_noise:.1f}× the measurement noise, but neither a "
+        return (f"verdict: unexplained — the model's held-out mean {d.heldout_mean_position_mm:.4g} mm is "
+                f"{times_the_noise(d.heldout_mean_position_mm, d.floor.mean_position_mm).lstrip('= ')}, but neither a "
                 "candidate nor the regressor finds on which input the rest depends (a pose-to-pose error the inputs "
                 "do not carry, or a floor that is too low)")
     c = next(c for c in d.ranking if c.effect == d.verdict)
@@ -308,30 +310,30 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
         poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
     noise = full.noise_sigma_
 
-    def heldout_errors(effs, keep_fit_residuals=False):
-        """Fold fits start from the full fit and keep its noise weights: a few LM steps each."""
-        err = np.empty(len(tr))
-        dz_all = np.empty((len(tr), 3))
-        fit_res = {}
-        absorbed = set()
-        for k in range(folds):
-            fit_idx, out_idx = tr[fold != k], tr[fold == k]
-            ctx_fit = {key: v[fit_idx] for key, v in context.items()}
-            ctx_out = {key: v[out_idx] for key, v in context.items()}
-            m = CalibrationModel(robot=robot, effects=effs, estimate_noise=False, position_only=position_only,
-                                 sigma_position_m=noise["position_m"],
-                                 sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
-            m.fit(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit, base=base, init=full.values_)
-            absorbed |= {m.unknown_names_[i] for i in m.absorbed_}
-            dz = m.residuals(poses.q[out_idx], poses.T_IE[out_idx], ctx_out)
-            err[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
-            dz_all[fold == k] = dz[:, :3]
-            if keep_fit_residuals:
-                fit_res[k] = m.residuals(poses.q[fit_idx], poses.T_IE[fit_idx], ctx_fit)[:, :3]
-        return err, dz_all, tuple(sorted(absorbed)), fit_res
+    def fold_data(k):
+        """(q, T_IE, context) of fold k's fitting poses, then of its held-out poses."""
+        fit_idx, out_idx = tr[fold != k], tr[fold == k]
+        return (poses.q[fit_idx], poses.T_IE[fit_idx], {key: v[fit_idx] for key, v in context.items()},
+                poses.q[out_idx], poses.T_IE[out_idx], {key: v[out_idx] for key, v in context.items()})
+
+    fold_sets = {k: fold_data(k) for k in range(folds)}
 
     say(f"current model on {folds} folds")
-    before, dz_before, _, fit_res = heldout_errors(list(current), keep_fit_residuals=True)
+    # fold fits start from the full fit and keep its noise weights: a few LM steps each
+    before = np.empty(len(tr))
+    dz_before = np.empty((len(tr), 3))
+    fit_res, fold_models = {}, {}
+    for k in range(folds):
+        q_fit, T_fit, ctx_fit, q_out, T_out, ctx_out = fold_sets[k]
+        m = CalibrationModel(robot=robot, effects=list(current), estimate_noise=False, position_only=position_only,
+                             sigma_position_m=noise["position_m"],
+                             sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
+        m.fit(q_fit, T_fit, ctx_fit, base=base, init=full.values_)
+        dz = m.residuals(q_out, T_out, ctx_out)
+        before[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+        dz_before[fold == k] = dz[:, :3]
+        fit_res[k] = m.residuals(q_fit, T_fit, ctx_fit)[:, :3]
+        fold_models[k] = m
     ss_before = float(np.sum((dz_before - dz_before.mean(axis=0)) ** 2))
     held_mean = float(before.mean())
 
@@ -340,7 +342,10 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     detection = MIN_RELATIVE_GAIN
     if floor.known:
         threshold = 1.0 + AT_FLOOR_MARGIN + FLOOR_UNCERTAINTIES * floor.relative_uncertainty
-        at_floor = held_mean / floor.mean_position_mm <= threshold
+        if floor.mean_position_mm > 0:
+            at_floor = held_mean / floor.mean_position_mm <= threshold
+        else:  # noise-free measurements: at the floor means at the fit's round-off
+            at_floor = held_mean <= ZERO_NOISE_MODEL_ATOL_M * 1e3
         if at_floor:
             # at the floor a gain must exceed what the floor's own uncertainty allows
             detection = max(MIN_RELATIVE_GAIN, 1.0 - 1.0 / threshold)
@@ -360,13 +365,26 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
 
     scores = []
     n_cand = max(len(names), 1)
+    lins = None
     for i, spec in enumerate(names):
         cls = effect_class(spec)
         say(f"candidate {i + 1}/{len(names)}: {cls.name}")
         if any(key not in context for key in getattr(cls, "context_keys", ())):
             say(f"  {cls.name}: skipped (needs context {', '.join(cls.context_keys)})")
             continue
-        after, dz_after, absorbed, _ = heldout_errors([*current, spec])
+        if lins is None:
+            # the current model linearised at each fold's optimum, shared by every candidate
+            lins = {k: linearise(fold_models[k], *fold_sets[k][:3]) for k in range(folds)}
+        effect = make_effect(spec, robot)
+        after = np.empty(len(tr))
+        dz_after = np.empty((len(tr), 3))
+        absorbed = set()
+        for k in range(folds):
+            fit = fit_candidate(lins[k], effect, *fold_sets[k])
+            after[fold == k] = np.linalg.norm(fit.heldout_dz[:, :3], axis=1) * 1e3
+            dz_after[fold == k] = fit.heldout_dz[:, :3]
+            absorbed |= set(fit.absorbed)
+        absorbed = tuple(sorted(absorbed))
         d = before - after
         if np.all(d == 0):
             p = 1.0
@@ -374,9 +392,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
             p = float(stats.ttest_rel(before, after, alternative="greater").pvalue)
         gain = 1 - after.mean() / max(before.mean(), 1e-300)
         r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
-        from campaign.effects.base import make_effect
-
-        n_params = make_effect(spec, robot).n_params
+        n_params = effect.n_params
         fully_absorbed = len(absorbed) >= n_params and n_params > 0
         significant = (p < ALPHA / n_cand) and gain >= detection and not fully_absorbed
         scores.append(CandidateScore(cls.name, float(before.mean()), float(after.mean()), p, bool(significant),
@@ -399,7 +415,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
         from campaign.diagnose.signature import describe
 
         signature = describe(robot, poses.q[tr], X, input_names, struct, struct.depends_on(MIN_IMPORTANCE_SHARE),
-                             r_out, poses.time_s[tr])
+                             r_out, poses.time_s[tr], residual_fit=r_fit)
     residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,

@@ -6,11 +6,22 @@
   is a function of q_j times a lever that does not depend on q_j), is fitted by harmonics
   sin(k q_j), cos(k q_j), k ≤ 3, against a polynomial with as many coefficients; when the
   harmonics win by BIC and beat a constant, the order is that of the largest harmonic.
-* **grows with time**: partial dependence of the regressor — the mean size of its held-out
-  prediction ‖f̂‖ with every pose's time set to the campaign's 90 % quantile over that with
-  the 10 % quantile, reported when ≥ 1.5 (or ≤ 1/1.5).
-* **grows with the gravity load**: Spearman correlation between ‖f̂‖ and the gravity
-  torques' norm ‖τ(q)‖ (Pinocchio), ρ ≥ 0.3 at p < 0.01.
+* **grows with time**: partial dependence of the regressor on time. Every held-out pose is
+  predicted as if measured at each tenth of the campaign (time set to the 10 %, 20 %, …, 90 %
+  quantiles); the change since the first, ``D(t) = mean ‖f̂(x; t) − f̂(x; t₁₀)‖``, must reach
+  half the prediction's mean size. It *grows* when D rises steadily (no step back by more than a
+  tenth of its total), else it *varies*. The change, not the residual's size: the geometric
+  model absorbs the mean of an effect, so the residual of an effect that grows linearly with
+  time is largest at both ends of the campaign, while its change since the start grows.
+* **grows with the gravity load**: a second regressor, on the gravity load alone (the joints'
+  gravity torques and the overturning moment's size, Pinocchio on the URDF's inertias), fitted
+  on the same folds to the same residuals: when it reaches :data:`GRAVITY_SHARE` of the main
+  regressor's held-out gain the residual is a function of the load; a load-times-configuration
+  error (joint compliance: the deflection also depends on the arm's pose) reaches less, so
+  :data:`GRAVITY_SHARE_WITH_RHO` is enough when the main regressor's error size also rises
+  with ‖τ‖ (Spearman ρ ≥ :data:`MIN_RHO`, p < 0.01). A residual periodic in a joint angle
+  (a run-out) is not a function of the torques, which do not tell q from its mirror image
+  about the horizontal; one in exactly cos q_j of a horizontal joint is, and may be named both.
 """
 
 from __future__ import annotations
@@ -22,19 +33,28 @@ from scipy import stats
 
 #: largest harmonic order tried
 MAX_ORDER = 3
-#: a rank correlation this strong (and significant) is reported as growth
-MIN_RHO = 0.3
-#: the regressor's error grows (or shrinks) by this factor between the first and last tenth of time
-MIN_GROWTH_RATIO = 1.5
 #: BIC advantage (nats) the harmonic model needs over the constant and the polynomial
 MIN_BIC_GAIN = 10.0
+#: time quantiles at which every held-out pose is predicted (the tenths of the campaign)
+TIME_QUANTILES = np.linspace(0.1, 0.9, 9)
+#: the change since the first tenth must reach this share of the prediction's mean size
+MIN_TIME_CHANGE = 0.5
+#: a steady change may step back by at most this share of its total between tenths
+STEADY_SLACK = 0.1
+#: share of the main regressor's held-out gain a regressor on the gravity load alone must reach
+GRAVITY_SHARE = 0.8
+#: ... or this share when the error's size also rises with the load (rank correlation)
+GRAVITY_SHARE_WITH_RHO = 0.6
+#: the rank correlation of the regressor's error size with ‖τ‖ (significant at p < 0.01)
+MIN_RHO = 0.3
 
 
 @dataclass(frozen=True)
 class Signature:
     depends_on: tuple
     periodic: dict = field(default_factory=dict)  # "q2" -> order
-    growth: dict = field(default_factory=dict)  # "time_s" -> late/early ratio; "gravity load" -> Spearman ρ
+    #: "time_s" -> {"change_mm", "steady"}; "gravity load" -> {"share_of_gain", "spearman_rho"}
+    growth: dict = field(default_factory=dict)
     not_on: tuple = ()  # inputs tested and not depended on (time_s, context)
 
     def as_json(self) -> dict:
@@ -50,10 +70,13 @@ class Signature:
             parts.append(f"periodic in {name} with order {k}")
         for name, value in self.growth.items():
             if name == "time_s":
-                parts.append(f"{'grows' if value > 1 else 'shrinks'} with time (×{value:.2g} from the first to "
-                             "the last tenth of the campaign)")
+                parts.append(f"{'grows' if value['steady'] else 'varies'} with time (changes by "
+                             f"{1e3 * value['change_mm']:.3g} µm from the first to the last tenth of the campaign"
+                             f"{'' if value['steady'] else ', not steadily'})")
             else:
-                parts.append(f"grows with the {name} (Spearman ρ {value:+.2f})")
+                share = min(100 * value["share_of_gain"], 100)
+                parts.append(f"grows with the {name} (a regressor on the load alone finds {share:.0f} % of what one on "
+                             f"all inputs finds; Spearman ρ {value['spearman_rho']:+.2f})")
         if self.not_on:
             parts.append("not on " + ", ".join("time" if n == "time_s" else n for n in self.not_on))
         return "; ".join(parts) if parts else "no clear dependence"
@@ -86,8 +109,36 @@ def harmonic_order(x, Y) -> int | None:
     return None if best is None else best[1]
 
 
-def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time_s) -> Signature:
-    """Words for an unexplained residual; q (n, N) rad and residual (n, 3) m of the held-out poses."""
+def time_change(struct, X, j) -> tuple:
+    """The regressor's partial dependence on input j (time): (D (len(TIME_QUANTILES),) mm, the
+    mean change since the first tenth per tenth of the campaign; steady: bool)."""
+    grid = np.quantile(X[:, j], TIME_QUANTILES)
+    preds = []
+    for t in grid:
+        Xt = X.copy()
+        Xt[:, j] = t
+        preds.append(struct.predict_heldout(Xt))
+    D = np.array([np.linalg.norm(p - preds[0], axis=1).mean() * 1e3 for p in preds])
+    steady = bool(np.all(np.diff(D) >= -STEADY_SLACK * D.max()))
+    return D, steady
+
+
+def load_features(robot, q) -> tuple:
+    """The gravity load of each pose, Pinocchio on the URDF's inertias: (L (n, m) N·m: the joints'
+    gravity torques that vary and the overturning moment's size; their names; ‖τ‖ (n,) N·m)."""
+    from campaign.effects.gravity import gravity_torques, overturning_moment
+
+    tau = np.asarray(gravity_torques(robot, q), dtype=float)
+    M = np.linalg.norm(overturning_moment(robot, q), axis=1)
+    keep = np.ptp(tau, axis=0) > 1e-9 * max(float(np.ptp(tau)), 1e-300)
+    names = [f"tau{j + 1}" for j in np.flatnonzero(keep)] + ["|M|"]
+    return np.column_stack([tau[:, keep], M]), tuple(names), np.linalg.norm(tau, axis=1)
+
+
+def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time_s, residual_fit=None) -> Signature:
+    """Words for an unexplained residual; q (n, N) rad and residual (n, 3) m of the held-out poses
+    (in the frame after joint 1); residual_fit: fold -> residuals of the fold's model at its
+    fitting poses (what the structure test was fitted to), for the gravity-load regressor."""
     from campaign.model.kinematics import frames
 
     periodic = {}
@@ -105,23 +156,23 @@ def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time
     size = np.linalg.norm(struct.prediction, axis=1)
     growth = {}
     if "time_s" in depends_on:
-        # partial dependence: every held-out pose as if measured early, then late in the campaign
-        j = list(input_names).index("time_s")
-        early, late = X.copy(), X.copy()
-        early[:, j], late[:, j] = np.quantile(X[:, j], 0.1), np.quantile(X[:, j], 0.9)
-        e = np.linalg.norm(struct.predict_heldout(early), axis=1).mean()
-        l_ = np.linalg.norm(struct.predict_heldout(late), axis=1).mean()
-        ratio = l_ / max(e, 1e-300)
-        if ratio >= MIN_GROWTH_RATIO or ratio <= 1.0 / MIN_GROWTH_RATIO:
-            growth["time_s"] = float(ratio)
-    try:
-        from campaign.effects.gravity import gravity_torques
+        D, steady = time_change(struct, X, list(input_names).index("time_s"))
+        if D.max() >= MIN_TIME_CHANGE * size.mean() * 1e3:
+            growth["time_s"] = {"change_mm": float(D[-1] if steady else D.max()), "steady": steady}
+    if joints and residual_fit is not None and struct.heldout_gain > 0:
+        try:
+            L, names, tau_norm = load_features(robot, q)
+        except Exception:  # a robot without inertias: no gravity statement
+            L = None
+        if L is not None:
+            from campaign.diagnose.structure import structure_test
 
-        tau = np.linalg.norm(gravity_torques(robot, q), axis=1)
-        rho, p = stats.spearmanr(tau, size)
-        if rho >= MIN_RHO and p < 0.01:
-            growth["gravity load"] = float(rho)
-    except Exception:  # a robot without inertias: no gravity statement
-        pass
+            load = structure_test(L, names, struct.fold, residual_fit, residual_frame1,
+                                  importance=False)
+            share = load.heldout_gain / struct.heldout_gain
+            rho, p = stats.spearmanr(tau_norm, size)
+            rho = float(rho) if np.isfinite(rho) else 0.0
+            if share >= GRAVITY_SHARE or (share >= GRAVITY_SHARE_WITH_RHO and rho >= MIN_RHO and p < 0.01):
+                growth["gravity load"] = {"share_of_gain": float(share), "spearman_rho": rho}
     not_on = tuple(n for n in input_names if not n.startswith("q") and n not in depends_on)
     return Signature(tuple(depends_on), periodic, growth, not_on)

@@ -182,12 +182,14 @@ class StructureResult:
         return [k for k, v in items if v >= min_share]
 
 
-def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_state=0, n_permutations=2):
+def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_state=0, n_permutations=2,
+                   importance=True):
     """Fit the regressor on each fold's training residuals and score it on the held-out fold.
 
     X (n, d) inputs of the n training poses; fold (n,) fold index; residual_fit: fold ->
     residuals (n_fit, m) m of the fold's model at its own fitting poses (fold != k, in order);
-    residual_out (n, m) m: each pose's held-out residual. Returns a :class:`StructureResult`.
+    residual_out (n, m) m: each pose's held-out residual; importance: compute the permutation
+    importance (else every input's share is 0). Returns a :class:`StructureResult`.
     """
     import time
 
@@ -213,7 +215,7 @@ def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_s
     # permutation importance on the held-out folds
     t1 = time.perf_counter()
     lost = np.zeros(X.shape[1])
-    for j in range(X.shape[1]):
+    for j in range(X.shape[1] if importance else 0):
         if not any(models[k].active_[j] for k in models):
             continue
         errs = []

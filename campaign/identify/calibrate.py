@@ -26,6 +26,7 @@ from campaign.fileio import atomic_write
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split
+from campaign.measure.floor import noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
@@ -80,8 +81,7 @@ class CalibrationResult:
                  f"{floor['detail']})"]
         for name in self.order[1:]:
             mean = self.stages[name]["test"]["position_mm"]["mean"]
-            lines.append(f"  {name}: held-out mean {mean:.3f} mm = {mean / floor['mean_position_mm']:.1f}× "
-                         "the measurement noise")
+            lines.append(f"  {name}: held-out mean {mean:.3f} mm {times_the_noise(mean, floor['mean_position_mm'])}")
         return "\n".join(lines)
 
 
@@ -273,8 +273,6 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
         extra["tracker"] = tracker
-    from campaign.diagnose.floor import noise_floor  # repeats, drift checks, stated noise: never the model
-
     extra["noise_floor"] = noise_floor(run_dir, poses, robot).as_json()
     if ann == "auto":
         ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES

@@ -1,7 +1,7 @@
 """The tracker noise floor on the reports' history chart: the mean position error ‖Δt‖ (mm)
 that measurement noise alone leaves to a perfect model.
 
-The floor is campaign.diagnose.floor's (docs/effects.md, "The noise floor"): from repeated
+The floor is campaign.measure.floor's (docs/effects.md, "The noise floor"): from repeated
 measurements of the same joints and the drift checks' re-measurements, else from the tracker
 noise the user states (``tracker: {noise_m: σ}``), carried through the rigid fit of the tool's
 reflectors. A run measured on the simulated cell (it has RUN/sim/) that gives neither falls
@@ -15,14 +15,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from campaign.measure.floor import NoiseFloor, floor_from_stated, noise_floor
+from campaign.run import RunFolder
+
 
 def tracker_noise_floor(run_dir, poses=None, robot=None):
-    """The run's noise floor (campaign.diagnose.floor.NoiseFloor with a known
+    """The run's noise floor (campaign.measure.floor.NoiseFloor with a known
     ``mean_position_mm``) or None. poses: the run's MeasuredPoses, robot: its RobotModel
     (both loaded from the run folder when not given)."""
-    from campaign.diagnose.floor import floor_from_stated, noise_floor
-    from campaign.run import RunFolder
-
     run = RunFolder(run_dir)
     try:
         if robot is None:
@@ -35,9 +35,9 @@ def tracker_noise_floor(run_dir, poses=None, robot=None):
             return floor
         if Path(run.sim_dir).is_dir() and run.config.sim.noise_m:
             stated = floor_from_stated(float(run.config.sim.noise_m), robot.reflector_positions_in_E)
-            return type(stated)("simulated", stated.sigma_position_m, stated.mean_position_mm, 0, 0.0,
-                                f"the simulated tracker's configured noise sim.noise_m, "
-                                f"σ {run.config.sim.noise_m * 1e6:.3g} µm per reflector coordinate")
+            return NoiseFloor("simulated", stated.sigma_position_m, stated.mean_position_mm, 0, 0.0,
+                              f"the simulated tracker's configured noise sim.noise_m, "
+                              f"σ {run.config.sim.noise_m * 1e6:.3g} µm per reflector coordinate")
     except Exception:  # a chart's reference line is never worth failing a report for
         return None
     return None

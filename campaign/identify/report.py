@@ -258,7 +258,7 @@ def _wrap_stage(name: str, width: int = 22) -> str:
 
 def plot_history(history_path: Path, out: Path, name: str = "history.png", noise_floor="auto"):
     """Held-out mean position error of the current model after each calibrate run, and per stage,
-    with the tracker noise floor as a line (``noise_floor``: a campaign.diagnose.floor.NoiseFloor,
+    with the tracker noise floor as a line (``noise_floor``: a campaign.measure.floor.NoiseFloor,
     None for none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
     rows = history_rows(history_path)
     if not rows:
@@ -285,7 +285,7 @@ def plot_history(history_path: Path, out: Path, name: str = "history.png", noise
     if side:
         ax.plot(side, [values[x] for x in side], "s", color="0.6", label="ANN on the nominal model (comparison)")
     lo, hi = min(values), max(values)
-    if noise_floor is not None:
+    if noise_floor is not None and noise_floor.mean_position_mm > 0:  # a zero floor has no place on a log axis
         ax.axhline(noise_floor.mean_position_mm, color="C3", linestyle=":", linewidth=1.5,
                    label=f"tracker noise floor {floor_label(noise_floor)}")
         lo = min(lo, noise_floor.mean_position_mm)
@@ -314,7 +314,7 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
     """Write ``RUN/calibration/report.html`` and its PNGs; return the HTML path.
 
     residuals: stage name -> Δz (n, 6) for every pose; q (n, N) rad; xyz (n, 3) m measured
-    tool positions; is_test (n,) bool. noise_floor: a campaign.diagnose.floor.NoiseFloor, None,
+    tool positions; is_test (n,) bool. noise_floor: a campaign.measure.floor.NoiseFloor, None,
     or "auto" (:func:`tracker_noise_floor` of the run: repeats, drift checks, stated noise).
     """
     out = Path(run_dir) / "calibration"

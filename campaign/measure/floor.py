@@ -20,12 +20,24 @@ Sources, in order of preference:
    each reflector centre, carried through the same rigid fit of the reflectors that derives
    measured poses (Monte Carlo with a fixed seed).
 3. **none** — said explicitly; ``diagnose`` then cannot state how far the model is from the noise.
+
+A floor of exactly 0 (noise-free measurements: a simulated tracker without noise, repeats that
+agree to the last bit) is a floor like any other, but no ratio to it exists: ``model_to_noise``
+is then ``None`` (``null`` in JSON, never ``inf``, which JSON cannot hold), as without a floor.
+
+This module sits below `identify` and `diagnose` (both read the floor; it reads only the
+measurements, the run's campaign.yaml and the store's drift-check events).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
+
+from campaign.measure.reflectors import pose_from_reflectors
+from campaign.measure.store import open_run
+from campaign.run import RunFolder
 
 #: two joint vectors closer than this (rad, every joint) are the same pose
 REPEAT_JOINT_TOL_RAD = 1e-9
@@ -57,6 +69,11 @@ class NoiseFloor:
     def known(self) -> bool:
         return self.mean_position_mm is not None
 
+    def ratio(self, mean_position_mm) -> float | None:
+        """``mean_position_mm`` over the floor (``model_to_noise``): None without a floor or for a
+        floor of exactly 0 (see the module's docstring)."""
+        return ratio_to_floor(mean_position_mm, self.mean_position_mm)
+
     def as_json(self) -> dict:
         return {"source": self.source, "mean_position_mm": self.mean_position_mm,
                 "sigma_position_mm": None if self.sigma_position_m is None
@@ -69,6 +86,21 @@ class NoiseFloor:
                     "how far the model is from the measurement noise cannot be said")
         unc = f" ± {100 * self.relative_uncertainty:.0f} %" if self.relative_uncertainty else ""
         return f"noise floor: {self.mean_position_mm:.4f} mm{unc} mean position error of the noise alone ({self.detail})"
+
+
+def ratio_to_floor(mean_position_mm, floor_mm) -> float | None:
+    """mean / floor (both mm), or None when there is no floor (None) or it is exactly 0."""
+    if floor_mm is None or not floor_mm > 0:
+        return None
+    return float(mean_position_mm / floor_mm)
+
+
+def times_the_noise(mean_position_mm, floor_mm) -> str:
+    """``= 8.7× the measurement noise``, or, for a floor of exactly 0, why no ratio is given."""
+    ratio = ratio_to_floor(mean_position_mm, floor_mm)
+    if ratio is None:
+        return "(the measurement noise is 0: no ratio to it)"
+    return f"= {ratio:.1f}× the measurement noise"
 
 
 def mean_norm_mm(sigma_m) -> float:
@@ -131,8 +163,6 @@ def floor_from_repeats(xyz, q, drift_m=(), time_s=None) -> NoiseFloor | None:
 def floor_from_stated(noise_m: float, reflectors_in_E) -> NoiseFloor:
     """The floor from a stated tracker noise σ (m per coordinate of each reflector centre),
     carried through the rigid fit of the reflectors (reflectors_in_E (k, 3) m)."""
-    from campaign.measure.reflectors import pose_from_reflectors
-
     P_E = np.asarray(reflectors_in_E, dtype=float)
     n = 20_000
     rng = np.random.default_rng(_MC_SEED)
@@ -146,15 +176,11 @@ def floor_from_stated(noise_m: float, reflectors_in_E) -> NoiseFloor:
 
 def stated_tracker_noise_m(run_dir) -> float | None:
     """``tracker: {noise_m: σ}`` (m) from the run's campaign.yaml (validated by campaign.config), or None."""
-    from campaign.run import RunFolder
-
     return RunFolder(run_dir).config.tracker.noise_m
 
 
 def drift_check_distances_m(run_dir) -> list:
     """Distances (m) of the drift check's re-measurements from the reference's first measurement."""
-    from campaign.measure.store import open_run
-
     with open_run(run_dir) as store:
         return [d["drift_mm"] * 1e-3 for _, _, _, d in store.events("drift_check")
                 if isinstance(d, dict) and d.get("drift_mm") is not None]
