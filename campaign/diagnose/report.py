@@ -9,26 +9,67 @@ from pathlib import Path
 import numpy as np
 
 from campaign.fileio import atomic_write
-from campaign.identify.report import _plt, binned_quantiles, plot_against_joints, plot_history, plot_workspace
+from campaign.identify.report import (PAGE_STYLE, _plt, binned_quantiles, plot_against_joints, plot_history,
+                                     plot_workspace)
+
+#: font sizes of the diagnose figures (pt at 100 dpi), readable at the page's width
+LABEL_PT, TICK_PT, TITLE_PT = 12, 10, 12
+#: inches per input column of the signed-residual grids (the page shows about 13 in at 100 dpi)
+COLUMN_IN = 2.6
+#: narrowest figure (in): one or two inputs still leave room for the title
+MIN_WIDTH_IN = 7.5
+#: widest figure (in): many inputs share it rather than shrink the type on the page
+MAX_WIDTH_IN = 14.0
 
 
-def plot_against_context(residuals, series: dict, is_test, out: Path, name: str = "residual_context.png") -> str:
-    """‖Δt‖ (mm) of the current model against time, temperature and gravity loads."""
+def plot_signed_against(series: dict, r_um, components, title: str, out: Path, name: str,
+                        column_titles=None) -> str:
+    """A grid of the signed residual components (rows) against each input (columns): per bin of
+    the input, the mean (line) and the 90 % band (5 %–95 % quantiles).
+
+    series: column label -> x values (n,); r_um (n, 3) residual components in µm; components:
+    their labels; column_titles: optional title per column."""
+    import textwrap
+
     plt = _plt()
-    pos = np.linalg.norm(residuals[:, :3], axis=1) * 1e3
-    fig, axes = plt.subplots(1, len(series), figsize=(4.2 * len(series), 3.6), sharey=True)
-    axes = np.atleast_1d(axes)
-    for ax, (label, x) in zip(axes, series.items()):
-        ax.scatter(x[~is_test], pos[~is_test], s=2, alpha=0.3, color="0.6", label="train")
-        ax.scatter(x[is_test], pos[is_test], s=3, alpha=0.6, color="C1", label="test")
-        ax.set_xlabel(label)
-    axes[0].set_ylabel("‖Δt‖ of the current model [mm]")
-    axes[0].legend(fontsize=7, markerscale=3)
-    fig.suptitle("residual against time, temperature and gravity load")
+    labels = list(series)
+    width_in = min(max(COLUMN_IN * len(labels) + 1.1, MIN_WIDTH_IN), MAX_WIDTH_IN)
+    # the title wrapped to the figure's width (about 10 characters per inch at TITLE_PT)
+    title = "\n".join(textwrap.fill(line, int(10 * width_in)) for line in title.split("\n"))
+    n_title = title.count("\n") + 1
+    fig, axes = plt.subplots(len(components), len(labels), squeeze=False, sharey="row",
+                             figsize=(width_in, 2.1 * len(components) + 0.9 + 0.25 * n_title))
+    for c, label in enumerate(labels):
+        x = np.asarray(series[label], dtype=float)
+        for k, comp in enumerate(components):
+            ax = axes[k, c]
+            b = binned_quantiles(x, r_um[:, k])
+            ax.fill_between(b["x"], b["q05"], b["q95"], color=f"C{k}", alpha=0.25, linewidth=0)
+            ax.plot(b["x"], b["mean"], "o-", color=f"C{k}", ms=3, linewidth=1.4)
+            ax.axhline(0.0, color="0.5", linewidth=0.6)
+            ax.grid(alpha=0.3, linewidth=0.5)
+            ax.tick_params(labelsize=TICK_PT)
+            if k == len(components) - 1:
+                ax.set_xlabel(label, fontsize=LABEL_PT)
+            if c == 0:
+                ax.set_ylabel(f"{comp} [µm]", fontsize=LABEL_PT)
+            if k == 0 and column_titles:
+                ax.set_title(column_titles[c], fontsize=TICK_PT + 1)
+    fig.suptitle(title, fontsize=TITLE_PT)
     fig.tight_layout()
     fig.savefig(out / name, dpi=100)
     plt.close(fig)
     return name
+
+
+def plot_against_context(residuals, series: dict, is_test, out: Path, name: str = "residual_context.png") -> str:
+    """The signed position residual (Δx, Δy, Δz of the tool point in F_I, µm) of the current model
+    against time, temperature and the gravity load: all poses, bin means and 90 % bands."""
+    n_test = int(np.sum(is_test))
+    return plot_signed_against(series, np.asarray(residuals)[:, :3] * 1e6, ("Δx", "Δy", "Δz"),
+                               "signed position residual of the current model (in F_I) against time, context and "
+                               f"gravity load\nall {len(residuals)} poses ({n_test} of them the test set): bin mean "
+                               "(line) and 90 % band (5–95 % quantiles)", out, name)
 
 
 def _axis(name, x):
@@ -40,44 +81,25 @@ def _axis(name, x):
     return x, name
 
 
-def plot_signature(diagnosis, out: Path, name: str = "signature.png", max_inputs: int = 6) -> str | None:
+def plot_signature(diagnosis, out: Path, name: str = "signature.png", max_inputs: int = 8) -> str | None:
     """The signed held-out position residual (Δx₁, Δy₁, Δz₁ in µm, resolved in the frame after
     joint 1) against each input the model-free test found (all inputs when it found none): per
     bin, the mean (line) and the 90 % band (5 %–95 % quantiles)."""
     d = diagnosis
     if d.inputs is None or d.heldout_residual_j1 is None or d.structure is None:
         return None
-    names = list(d.depends_on) or list(d.structure.input_names)
-    names = names[:max_inputs]
-    index = [d.structure.input_names.index(n) for n in names]
-    plt = _plt()
-    r = d.heldout_residual_j1 * 1e6
-    fig, axes = plt.subplots(3, len(names), figsize=(3.0 * len(names) + 0.8, 6.4), sharey="row", squeeze=False)
-    for c, (j, label) in enumerate(zip(index, names)):
-        x, xlabel = _axis(label, d.inputs[:, j])
-        for k, comp in enumerate(("Δx₁", "Δy₁", "Δz₁")):
-            ax = axes[k, c]
-            b = binned_quantiles(x, r[:, k])
-            ax.fill_between(b["x"], b["q05"], b["q95"], color=f"C{k}", alpha=0.25, linewidth=0)
-            ax.plot(b["x"], b["mean"], "o-", color=f"C{k}", ms=3, linewidth=1.4)
-            ax.axhline(0.0, color="0.5", linewidth=0.6)
-            ax.grid(alpha=0.3, linewidth=0.5)
-            ax.tick_params(labelsize=9)
-            if k == 2:
-                ax.set_xlabel(xlabel, fontsize=11)
-            if c == 0:
-                ax.set_ylabel(f"{comp} [µm]", fontsize=11)
-            if k == 0 and d.structure_significant:
-                ax.set_title(f"{label}: {100 * d.structure.importance.get(label, 0):.0f} % of the importance",
-                             fontsize=10)
-    what = "inputs the residual depends on" if d.depends_on else "every input (no structure found)"
-    fig.suptitle(f"signed held-out residual of the current model against the {what}\n"
-                 "bin mean (line) and 90 % band (5–95 % quantiles); components in the frame after joint 1",
-                 fontsize=11)
-    fig.tight_layout()
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
-    return name
+    names = (list(d.depends_on) or list(d.structure.input_names))[:max_inputs]
+    series, titles = {}, []
+    for label in names:
+        x, xlabel = _axis(label, d.inputs[:, d.structure.input_names.index(label)])
+        series[xlabel] = x
+        titles.append(f"{label}: {100 * d.structure.importance.get(label, 0):.0f} % of the importance"
+                      if d.structure_significant else label)
+    what = "each input it depends on" if d.depends_on else "every input (no structure found)"
+    return plot_signed_against(series, d.heldout_residual_j1 * 1e6, ("Δx₁", "Δy₁", "Δz₁"),
+                               f"signed held-out residual of the current model against {what}\n"
+                               "bin mean (line) and 90 % band (5–95 % quantiles); components in the frame after joint 1",
+                               out, name, column_titles=titles)
 
 
 def plot_ranking(diagnosis, out: Path, name: str = "ranking.png") -> str:
@@ -123,20 +145,21 @@ def write_report(diagnosis, poses, robot) -> Path:
     imgs = [plot_ranking(diagnosis, out),
             plot_against_joints(poses.q, res, is_test, title, out, "residual_joints.png"),
             plot_workspace(poses.xyz, res, title, out, "residual_workspace.png")]
-    M = overturning_moment(robot, poses.q)
+    series = {"time [h]": poses.time_s / 3600.0}
+    for key in sorted(poses.context):
+        v = np.asarray(poses.context[key], dtype=float)
+        if v.shape == (len(poses.q),) and np.all(np.isfinite(v)) and np.ptp(v) > 0:
+            series["temperature [°C]" if key == "temperature_c" else key] = v
+    series["overturning moment |M| [N·m]"] = np.linalg.norm(overturning_moment(robot, poses.q), axis=1)
     tau = gravity_torques(robot, poses.q)
-    series = {"time [h]": poses.time_s / 3600.0,
-              "overturning moment |M| [N·m]": np.linalg.norm(M, axis=1),
-              "gravity torque τ2 [N·m]": tau[:, 1], "gravity torque τ3 [N·m]": tau[:, 2]}
-    if "temperature_c" in poses.context:
-        series["temperature [°C]"] = poses.context["temperature_c"]
+    for j in sorted(np.argsort(np.ptp(tau, axis=0))[::-1][:2]):  # the two joints the load varies most
+        series[f"gravity torque τ{j + 1} [N·m]"] = tau[:, j]
     imgs.append(plot_against_context(res, series, is_test, out))
     signature = plot_signature(diagnosis, out)
     hist = plot_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out)
     atomic_write(out / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
     parts = ["<!doctype html><meta charset='utf-8'><title>campaign diagnosis</title>",
-             "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}pre{background:#f6f6f6;padding:1em}"
-             "img{max-width:100%}</style>",
+             PAGE_STYLE.replace("pre{", "pre{white-space:pre-wrap;overflow-wrap:anywhere;"),
              f"<h1>Diagnosis: {html.escape(Path(diagnosis.run_dir).name)}</h1>",
              f"<pre>{html.escape(diagnosis.text())}</pre>"]
     if hist:

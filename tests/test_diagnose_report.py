@@ -1,0 +1,65 @@
+"""diagnose's HTML report: the text box wraps instead of running off the page, the context and
+signature figures plot the signed residual components (three rows) at a size the page shows
+without shrinking their type, and the page renders in headless Chromium with its pictures."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from campaign.cli import main
+from campaign.diagnose import diagnose
+from campaign.diagnose.report import MAX_WIDTH_IN, write_diagnosis
+
+SCREENSHOT = Path(__file__).resolve().parents[1] / "benchmarks" / "screenshot_reports.py"
+
+
+@pytest.fixture(scope="module")
+def diagnosed(tmp_path_factory):
+    """A run hiding the elastic ground (structure the regressor finds), diagnosed with a report."""
+    tmp = tmp_path_factory.mktemp("diag_report")
+    csv, run = tmp / "m.csv", tmp / "run"
+    assert main(["synth", "--csv", str(csv), "--poses", "300", "--seed", "4", "--hidden", "ground_compliance"]) == 0
+    assert main(["import", str(csv), "--run", str(run)]) == 0
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    (run / "campaign.yaml").write_text(yaml.safe_dump({**cfg, "tracker": {"noise_m": 1e-5}}))
+    d = diagnose(run, folds=3, candidates="drift,cyclic")
+    return d, write_diagnosis(d, report=True)
+
+
+def test_the_text_box_wraps_and_the_figures_show_signed_components_at_a_readable_size(diagnosed):
+    from PIL import Image
+
+    d, page = diagnosed
+    html = page.read_text()
+    assert "white-space:pre-wrap" in html and "overflow-wrap:anywhere" in html
+    assert d.text().splitlines()[0] in html
+    for name in ("residual_context.png", "signature.png"):
+        assert f"src='{name}'" in html
+        w, h = Image.open(page.parent / name).size
+        # at most the page's width (no shrinking of the type), three component rows of ~2 in each
+        assert w <= MAX_WIDTH_IN * 100 and h >= 650, (name, w, h)
+
+
+@pytest.mark.skipif(subprocess.run([sys.executable, str(SCREENSHOT), "/nonexistent"], capture_output=True).returncode
+                    == 2, reason="no Chromium on this machine (apt-get install chromium)")
+def test_the_diagnose_report_renders_in_headless_chromium(diagnosed, tmp_path):
+    from PIL import Image
+
+    _, page = diagnosed
+    bare = page.with_name("bare.html")
+    bare.write_text(page.read_text().replace("<img src=", "<img data-src="))
+    try:
+        proc = subprocess.run([sys.executable, str(SCREENSHOT), str(page.parent), "--out", str(tmp_path),
+                               "--width", "1400", "--height", "5000"], capture_output=True, text=True, timeout=300)
+    finally:
+        bare.unlink()
+    assert proc.returncode == 0, proc.stderr
+    ink = [np.mean(np.asarray(Image.open(tmp_path / f"{p}.png").convert("L")) < 245) for p in ("report", "bare")]
+    assert ink[0] > 3 * ink[1] and ink[1] > 0.003, ink
+    # the text box ends inside the page: no dark pixels in the right margin beside it
+    shot = np.asarray(Image.open(tmp_path / "bare.png").convert("L"))
+    assert np.mean(shot[:600, 1380:] < 200) < 0.001
