@@ -220,7 +220,7 @@ def test_the_docs_example_effect_brings_a_hidden_runout_to_the_floor(tmp_path, r
 # -- the signature's words against effects whose driver is known -----------------------------------
 
 def pinocchio_gravity_torques(robot):
-    """τ(q) (n, N) N·m from Pinocchio on the URDF itself (not campaign's _gravity module): the
+    """τ(q) (n, N) N·m from Pinocchio on the URDF itself (not campaign.effects.gravity): the
     COMAU's URDF root is F_I, whose gravity robot.yaml states (−y)."""
     import pinocchio as pin
 
@@ -340,7 +340,7 @@ CAUGHT = {  # hidden effects (generated with the other masses) -> the inputs an 
 @pytest.mark.parametrize("hidden", list(CAUGHT))
 def test_masses_unlike_the_urdfs_still_name_the_effect_and_never_say_null_above_the_floor(
         tmp_path, robot, heavier_robot, hidden):
-    from campaign.effects._gravity import gravity_torques
+    from campaign.effects.gravity import gravity_torques
 
     q = random_joint_poses(robot, 200, seed=1)
     tau_urdf, tau_true = gravity_torques(robot, q), gravity_torques(heavier_robot, q)
