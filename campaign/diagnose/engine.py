@@ -414,6 +414,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     if struct is not None and struct_sig:
         from campaign.diagnose.signature import describe
 
+        say("signature of the structure (periodicity, time, gravity load)")
         signature = describe(robot, poses.q[tr], X, input_names, struct, struct.depends_on(MIN_IMPORTANCE_SHARE),
                              r_out, poses.time_s[tr], residual_fit=r_fit)
     residuals = full.residuals(poses.q, poses.T_IE, context)

@@ -19,7 +19,8 @@
   regressor's held-out gain the residual is a function of the load; a load-times-configuration
   error (joint compliance: the deflection also depends on the arm's pose) reaches less, so
   :data:`GRAVITY_SHARE_WITH_RHO` is enough when the main regressor's error size also rises
-  with ‖τ‖ (Spearman ρ ≥ :data:`MIN_RHO`, p < 0.01). A residual periodic in a joint angle
+  with ‖τ‖ (Spearman ρ ≥ :data:`MIN_RHO`, p < 0.01); a strong rank correlation alone
+  (ρ ≥ :data:`MIN_RHO_ALONE`) also counts. A residual periodic in a joint angle
   (a run-out) is not a function of the torques, which do not tell q from its mirror image
   about the horizontal; one in exactly cos q_j of a horizontal joint is, and may be named both.
 """
@@ -47,6 +48,9 @@ GRAVITY_SHARE = 0.8
 GRAVITY_SHARE_WITH_RHO = 0.6
 #: the rank correlation of the regressor's error size with ‖τ‖ (significant at p < 0.01)
 MIN_RHO = 0.3
+#: ... that alone says the error grows with the load (the elastic ground: its tilt turns with q1,
+#: which the load's features do not carry, but its size follows the overturning moment)
+MIN_RHO_ALONE = 0.5
 
 
 @dataclass(frozen=True)
@@ -75,8 +79,10 @@ class Signature:
                              f"{'' if value['steady'] else ', not steadily'})")
             else:
                 share = min(100 * value["share_of_gain"], 100)
-                parts.append(f"grows with the {name} (a regressor on the load alone finds {share:.0f} % of what one on "
-                             f"all inputs finds; Spearman ρ {value['spearman_rho']:+.2f})")
+                load = (f"a regressor on the load alone finds {share:.0f} % of what one on all inputs finds; "
+                        if share >= 100 * GRAVITY_SHARE_WITH_RHO else "")
+                parts.append(f"grows with the {name} ({load}the error's size against ‖τ‖: Spearman ρ "
+                             f"{value['spearman_rho']:+.2f})")
         if self.not_on:
             parts.append("not on " + ", ".join("time" if n == "time_s" else n for n in self.not_on))
         return "; ".join(parts) if parts else "no clear dependence"
@@ -172,7 +178,8 @@ def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time
             share = load.heldout_gain / struct.heldout_gain
             rho, p = stats.spearmanr(tau_norm, size)
             rho = float(rho) if np.isfinite(rho) else 0.0
-            if share >= GRAVITY_SHARE or (share >= GRAVITY_SHARE_WITH_RHO and rho >= MIN_RHO and p < 0.01):
+            strong = rho >= MIN_RHO_ALONE and p < 0.01
+            if strong or share >= GRAVITY_SHARE or (share >= GRAVITY_SHARE_WITH_RHO and rho >= MIN_RHO and p < 0.01):
                 growth["gravity load"] = {"share_of_gain": float(share), "spearman_rho": rho}
     not_on = tuple(n for n in input_names if not n.startswith("q") and n not in depends_on)
     return Signature(tuple(depends_on), periodic, growth, not_on)
