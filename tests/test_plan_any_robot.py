@@ -6,6 +6,7 @@ Pinocchio places the URDF's collision geometry (its own parser and forward kinem
 loads the meshes, python-fcl measures the distances, and the cell is placed by hand."""
 
 import json
+import re
 from importlib import metadata
 from pathlib import Path
 
@@ -384,8 +385,6 @@ def test_geometry_the_planner_cannot_check_is_one_line_and_exit_1(tmp_path, caps
     assert main(["plan", "--robot", str(urdf), "--run", str(run), "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(urdf) in err[0], err
-    import re
-
     assert re.search(message, err[0]), err[0]
     assert not run.exists()
 
@@ -493,3 +492,37 @@ def test_plan_then_run_in_the_simulated_cell_for_the_panda(tmp_path, panda_yaml)
     T_true = truth.pose(poses.q, effect_context(poses.context, poses.time_s))
     assert np.max(np.abs(T_true[:, :3, 3] - poses.xyz)) < 1e-9
     assert np.max(np.abs(T_true[:, :3, :3] - poses.T_IE[:, :3, :3])) < 1e-9
+
+
+def test_the_robot_named_in_campaign_yaml_is_planned_for_and_recorded(tmp_path, panda_yaml):
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"robot": str(panda_yaml), "plan": {"grid_cells": [3, 3, 3, 2, 3, 3, 3]}}))
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--run", str(run), "--quiet"]) == 0
+    s = json.loads((run / "plan" / "summary.json").read_text())
+    assert s["robot"] == "panda" and s["tool_frame"] == "panda_hand" and s["reflectors"] == ["a", "b", "c"]
+    recorded = yaml.safe_load((run / "campaign.yaml").read_text())
+    assert Path(recorded["robot"]) == panda_yaml.resolve() and recorded["plan"]["grid_cells"] == [3, 3, 3, 2, 3, 3, 3]
+    assert s["candidates"] == 3 ** 6 * 2
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--robot", "{tmp}/nowhere.urdf"], r"robot '.*nowhere\.urdf': neither a URDF file"),
+    (["--robot", "{ur10}", "--tool-frame", "flange"], r"tool frame 'flange' is not a link of ur10_robot\.urdf"),
+    (["--robot", "{one}", "--select", "20"], r"a selection .* weighs 6-D poses from three or more reflectors, and "
+                                             r"robot\.yaml names 1; plan without one"),
+    (["--robot", "{ur10}", "--tool-frame", "tool0", "--config", "{tmp}/upside.yaml"], r"down must not be zero"),
+])
+def test_bad_robot_or_cell_for_another_robot_is_one_line_and_exit_1(tmp_path, capsys, args, message):
+    (tmp_path / "one.yaml").write_text(yaml.safe_dump({"urdf": str(_urdf("panda")), "tool_frame": "panda_hand",
+                                                       "reflectors": [{"name": "m1", "position_m": [0, 0, 0.12]}]}))
+    doc = yaml.safe_load(DEFAULT_SCENE.read_text())
+    doc["down"] = [0, 0, 0]
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(doc))
+    (tmp_path / "upside.yaml").write_text(yaml.safe_dump({"scene": "cell.yaml"}))
+    subs = {"tmp": str(tmp_path), "ur10": str(_urdf("ur10")), "one": str(tmp_path / "one.yaml")}
+    run = tmp_path / "run"
+    assert main(["plan", "--run", str(run), "--quiet", *[a.format(**subs) for a in args]]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(message, err[0]), err
+    assert not run.exists()

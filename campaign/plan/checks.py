@@ -8,7 +8,6 @@ shortcuts; the tests use it to re-check samples.
 
 from __future__ import annotations
 
-import functools
 import itertools
 
 import numpy as np

@@ -89,7 +89,7 @@ def check_plannable(robot) -> None:
     the tool (robot.yaml's, or the default triad: ``robot.with_default_reflectors()``) and
     collision geometry it can check (:func:`robot_primitives`)."""
     if len(robot.reflectors) < 1:
-        raise ConfigError(f"plan: {robot.name}: no reflector on the tool (robot.yaml 'reflectors'); planning "
+        raise ConfigError(f"{robot.name}: no reflector on the tool (robot.yaml 'reflectors'); planning "
                           "needs at least one to check the tracker's line of sight and the nests' cones")
     robot_primitives(robot)
 

@@ -145,6 +145,9 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     from campaign.plan.geometry import check_plannable
 
     check_plannable(robot)
+    if selection is not None and len(robot.reflectors) < 3:
+        raise ConfigError(f"{robot.name}: a selection (--select, --budget, --target-mm) weighs 6-D poses from "
+                          f"three or more reflectors, and robot.yaml names {len(robot.reflectors)}; plan without one")
     scene = run.scene()
     base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(robot)
     cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
