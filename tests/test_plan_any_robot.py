@@ -526,3 +526,18 @@ def test_bad_robot_or_cell_for_another_robot_is_one_line_and_exit_1(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.search(message, err[0]), err
     assert not run.exists()
+
+
+def test_a_move_of_another_joint_count_says_how_many_and_six_stay_as_they_were():
+    from campaign.errors import ProtocolError
+    from campaign.measure import protocol as P
+
+    seven = P.Move(3, tuple(0.1 * k for k in range(7)))
+    body = P.encode(seven)[4:]
+    assert json.loads(body)["joints"] == 7 and P.decode(body) == seven
+    assert P.decode(P.encode(P.Reached(3, (0.2,) * 7, 1.5))[4:]) == P.Reached(3, (0.2,) * 7, 1.5)
+    assert "joints" not in json.loads(P.encode(P.Move(3, (0.1,) * 6))[4:])
+    with pytest.raises(ProtocolError, match=r"'q' must be a list of 7 numbers"):
+        P.decode(b'{"type": "move", "id": 1, "joints": 7, "q": [0, 0, 0, 0, 0, 0]}')
+    with pytest.raises(ProtocolError, match=r"field 'joints' must be an integer in 1\.\.32"):
+        P.decode(b'{"type": "move", "id": 1, "joints": 0, "q": []}')
