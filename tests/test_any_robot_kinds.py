@@ -141,16 +141,6 @@ def test_too_few_poses_is_one_line_saying_how_many(tmp_path, capsys):
     assert len(err) == 1 and "base parameters" in err[0] and "training poses" in err[0] and "ur10" in err[0]
 
 
-def test_plan_for_another_robot_is_one_clear_refusal(tmp_path, capsys):
-    cfg = tmp_path / "campaign.yaml"
-    cfg.write_text(f"robot: {_erd(ROBOTS['ur10'][0])}\ntool_frame: tool0\n")
-    run = tmp_path / "run"
-    assert main(["plan", "--config", str(cfg), "--run", str(run)]) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "ur10" in err[0] and "planning supports only 6R" in err[0]
-    assert not (run / "plan").exists()
-
-
 def test_data_that_do_not_fit_the_runs_robot_name_robot_and_pose(tmp_path, capsys):
     urdf = _erd(ROBOTS["ur10"][0])
     csv_path = tmp_path / "m.csv"

@@ -21,7 +21,7 @@ from campaign.model.robot import RobotModel
 from campaign.paths import DEFAULT_SCENE
 from campaign.plan.checks import ClearanceChecker
 from campaign.plan.geometry import nominal_frames_entry_first, robot_primitives
-from campaign.plan.grid import DEFAULT_GRID_SIZE, Grid, default_cells, iter_tool_points, tool_frames
+from campaign.plan.grid import DEFAULT_GRID_SIZE, PAPER_CELLS, Grid, default_cells, iter_tool_points, tool_frames
 from campaign.plan.repair import arm_joints, lift_posture
 from campaign.plan.scene import load_scene
 
@@ -304,7 +304,8 @@ def test_n_joint_grid_is_the_product_of_its_cells_and_follows_pinocchio(panda_ya
     Rf, tf = frames(robot, g.q(idx[:50]))
     np.testing.assert_allclose(np.moveaxis(Re, -1, 0), Rf, atol=1e-14)
     np.testing.assert_allclose(np.moveaxis(te, -1, 0), tf, atol=1e-14)
-    # a 7R arm's default grid: about a million candidates, every joint at least two cells
+    # the COMAU's default grid is the paper's; a 7R arm's about a million candidates, every joint >= 2 cells
+    assert default_cells(RobotModel.load()) == PAPER_CELLS and Grid.for_robot(RobotModel.load()).size == 1_428_000
     default = default_cells(robot)
     assert len(default) == 7 and min(default) >= 2
     assert 0.5 * DEFAULT_GRID_SIZE <= np.prod(default) <= DEFAULT_GRID_SIZE
