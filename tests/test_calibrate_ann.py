@@ -36,7 +36,7 @@ def calibrated(tmp_path_factory, robot):
     write_measured_csv(csv_path, meas)
     run = folder / "run"
     assert run_cli("import", csv_path, "--run", run) == 0
-    assert run_cli("calibrate", run, "--ann", "--sizes", "8x8,16x16", "--folds", "3", "--epochs", "60") == 0
+    assert run_cli("calibrate", run, "--ann", "--sizes", "8x8,16x16", "--folds", "3", "--epochs", "30") == 0
     return run, csv_path, (truth, meas.T_LI)
 
 

@@ -183,7 +183,7 @@ def test_run_in_the_trackers_frame_then_calibrate_identifies_the_tracker(tmp_pat
         poses = store.load_measured()
         assert store.get_meta("frame") == "tracker" and store.get_meta("T_LI") is None
     assert poses.frame == "tracker"
-    assert main(["calibrate", str(run), "--no-ann", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0
     metrics = json.loads((run / "calibration" / "metrics.json").read_text())
     truth = read_truth(run / "sim" / "truth.yaml", robot)  # only now, after the pipeline answered
     T_true = truth.T_LI @ truth.pose(poses.q)

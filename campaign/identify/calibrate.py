@@ -190,7 +190,7 @@ def stage_name(effects) -> str:
 
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
-              write: bool = True) -> CalibrationResult:
+              write: bool = True, report: bool = True) -> CalibrationResult:
     """Identify the model of a run and write its calibration folder, holding the run's lock
     (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
@@ -198,7 +198,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
     compensator (campaign.ann); ``"auto"``: only with at least ANN_MIN_TRAIN_POSES training
     poses. progress: optional callable receiving status lines (str) and,
-    during ANN training, campaign.ann.selection.TrainingProgress reports.
+    during ANN training, campaign.ann.selection.TrainingProgress reports. report: also write
+    report.html and its plots (with ``write``).
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
@@ -210,10 +211,11 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         make_effect(name, robot)
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
-        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write)
+        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report)
 
 
-def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write) -> CalibrationResult:
+def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
+               report) -> CalibrationResult:
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
@@ -295,6 +297,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     result = CalibrationResult(run_dir, stages, order, model, is_test, extra)
     if write:
         _write(result, robot, geo)
+    if write and report:
         from campaign.identify.report import write_report
 
         say("writing the report")
@@ -407,5 +410,6 @@ def summary_text(result: CalibrationResult) -> str:
     if "ann_skipped" in result.extra:
         lines.append(result.extra["ann_skipped"])
     lines.append(result.floor_line())
-    lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml, report.html")
+    lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml"
+                 + (", report.html" if "report" in result.extra else ""))
     return "\n".join(lines)

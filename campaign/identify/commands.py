@@ -65,6 +65,9 @@ def register(sub):
     p.add_argument("--device", default="auto",
                    help="torch device for adam training: auto (default: cuda where torch finds a GPU, else cpu), "
                         "cpu, cuda, cuda:N")
+    p.add_argument("--no-report", action="store_true",
+                   help="skip the HTML report and its plots (metrics.json, params.yaml and history.json are written; "
+                        "a report of an earlier calibrate is left as it was)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_calibrate)
 
@@ -148,7 +151,7 @@ def _calibrate(args):
     progress = None if args.quiet else _CalibrateProgress()
     ann = "auto" if args.ann is None else args.ann  # auto: not for a campaign too small for a network
     result = calibrate(args.run, effects=args.effects, position_only=args.position_only, ann=ann,
-                       ann_options=ann_options, progress=progress)
+                       ann_options=ann_options, progress=progress, report=not args.no_report)
     if progress is not None:
         progress.close()
     print(summary_text(result))
