@@ -99,7 +99,7 @@ def main():
         "solver": {prior: block.get("solver") for prior, block in metrics["ann_cross_validation"].items()},
         "executor": {prior: [block.get("executor"), block.get("workers")]
                      for prior, block in metrics["ann_cross_validation"].items()},
-        "identification_time_s": result.extra.get("identification_time_s"),
+        "identification_time_s": result.identification_time_s,
         "final": {prior: block.get("final") for prior, block in metrics["ann_cross_validation"].items()},
         "best_sizes": {prior: block["best"] for prior, block in cv.items()},
         "cv_wall_s": {prior: block.get("cv_wall_s") for prior, block in cv.items()},
@@ -119,7 +119,7 @@ def main():
     solvers = sorted(set(report["solver"].values()))
     stored["runs"][f"{args.case}/{'+'.join(solvers)}/{'default' if args.sizes == 'default' else args.sizes}"] = report
     out_path.write_text(json.dumps(stored, indent=2) + "\n")
-    print(result.extra.get("table5", ""))
+    print(result.ann.table5 if result.ann is not None else "")
     for stage in metrics["order"]:
         r = ratios[stage]
         print(f"{stage:<16} position max {100 * r['position_mm']['max']:6.2f} % mean {100 * r['position_mm']['mean']:6.2f} %"

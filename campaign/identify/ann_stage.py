@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import html
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import ConfigError
+from campaign.fileio import atomic_write
 from campaign.model.kinematics import pose_error
 
 #: hidden sizes tried by default: the paper's four and one beyond
@@ -80,8 +82,24 @@ def format_table5(cv: dict) -> str:
     return "\n".join(lines)
 
 
+@dataclass(frozen=True)
+class AnnStages:
+    """What the neural stages produced: the cross-validation of every prior (metrics.json's
+    ``ann_cross_validation``, ann_cv.json), the saved networks (stage -> file beside
+    params.yaml) and the paper's Table 5 as text."""
+
+    cross_validation: dict
+    files: dict
+    table5: str
+
+    def report_html(self) -> str:
+        """The report's Table 5 section."""
+        return ("<h2>Cross-validation of the residual network (Table 5)</h2>"
+                f"<pre>{html.escape(self.table5)}</pre>")
+
+
 def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict, progress=None):
-    """Train the residual networks; return ({stage: Δz (n, 6)}, extra).
+    """Train the residual networks; return ({stage: Δz (n, 6)}, :class:`AnnStages`).
 
     robot: the run's robot (its N joints' limits map the inputs); poses: the measured poses
     (q (n, N)); with positions only (``poses.has_orientation`` false) the networks learn and
@@ -142,9 +160,5 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
         fname = "ann_nominal.pt" if prior == "nominal" else "ann_geometric.pt"
         net.save(out / fname)
         files[stage] = fname
-    (out / "ann_cv.json").write_text(json.dumps(cv_all, indent=2))
-    table5 = format_table5(cv_all)
-    extra = {"ann_cv": cv_all, "ann_files": files, "table5": table5,
-             "report_html": "<h2>Cross-validation of the residual network (Table 5)</h2>"
-                            f"<pre>{html.escape(table5)}</pre>"}
-    return residuals, extra
+    atomic_write(out / "ann_cv.json", json.dumps(cv_all, indent=2))
+    return residuals, AnnStages(cross_validation=cv_all, files=files, table5=format_table5(cv_all))

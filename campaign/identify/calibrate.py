@@ -14,7 +14,7 @@ import contextlib
 import html
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ import yaml
 from campaign.effects.base import effect_context, effect_name, make_effect, parse_effect_list, resolve_effect_spec
 from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_write
+from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split
@@ -43,14 +44,37 @@ ANN_MIN_TRAIN_POSES = 250
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """What `calibrate` produced: the stages' metrics and the fitted geometric model."""
+    """What `calibrate` produced: the stages' metrics, the fitted model and what was learned
+    about the data on the way (metrics.json, params.yaml and the report are written from it)."""
 
     run_dir: Path
+    #: stage name -> {"train": S, "test": S} (metrics.json's Table 6 statistics, DESIGN.md)
     stages: dict
+    #: stage names in the order they were added; the last is the current model
     order: list
+    #: the current physical model (geometric + effects)
     model: CalibrationModel
+    #: (n,) bool: the held-out test poses
     is_test: np.ndarray
-    extra: dict = field(default_factory=dict)
+    #: effects identified with the geometry (specs, as in params.yaml)
+    effects: tuple = ()
+    #: the data's kind ("pose", "point", "markers") and frame ("robot", "tracker")
+    measurement_kind: str = "pose"
+    frame: str = "robot"
+    #: wall time of the geometric identification, s
+    identification_time_s: float | None = None
+    #: one-reflector data: where they were measured in the tool frame, (3,) m
+    measured_point_in_tool_m: tuple | None = None
+    #: data in the tracker's frame: the registration and the identified tracker pose (metrics.json's ``tracker``)
+    tracker: dict | None = None
+    #: the measurement noise floor (campaign.diagnose.floor.NoiseFloor.as_json())
+    noise_floor: dict | None = None
+    #: the neural stages, when trained
+    ann: AnnStages | None = None
+    #: why no network was trained, when it was not asked for explicitly
+    ann_skipped: str | None = None
+    #: the written report.html, when one was written
+    report_path: Path | None = None
 
     @property
     def metrics(self) -> dict:
@@ -60,19 +84,19 @@ class CalibrationResult:
             name: {block: {k: st["test"][block][k] / max(first[block][k], 1e-300) for k in ("max", "mean", "q90")}
                    for block in ("position_mm", "orientation_mrad") if block in first}
             for name, st in self.stages.items()}
-        for key in ("measurement_kind", "frame", "tracker"):
-            if key in self.extra:
-                out[key] = self.extra[key]
-        if "ann_cv" in self.extra:
-            out["ann_cross_validation"] = self.extra["ann_cv"]
-        if "noise_floor" in self.extra:
-            out["noise_floor"] = self.extra["noise_floor"]
+        out["measurement_kind"], out["frame"] = self.measurement_kind, self.frame
+        if self.tracker is not None:
+            out["tracker"] = self.tracker
+        if self.ann is not None:
+            out["ann_cross_validation"] = self.ann.cross_validation
+        if self.noise_floor is not None:
+            out["noise_floor"] = self.noise_floor
         return out
 
     def floor_line(self) -> str:
         """``held-out mean 0.139 mm = 8.7× the measurement noise`` for every model stage
         (test set), or why there is no floor."""
-        floor = self.extra.get("noise_floor")
+        floor = self.noise_floor
         if floor is None or floor.get("mean_position_mm") is None:
             return ("no noise floor: no repeated measurements and no `tracker: {noise_m: ...}` in campaign.yaml, "
                     "so how far the model is from the measurement noise cannot be said")
@@ -160,7 +184,6 @@ def register_tracker(robot, poses, train):
     parameters (pL_I0_*, pR_I0_*), which are the same unknowns as a tracker pose. Returns the
     poses in F_I and a record of the registration."""
     from campaign.measure.reflectors import invert, register_points
-    from dataclasses import replace
 
     P_nom = forward(robot, poses.q[train])[:, :3, 3]
     T_LI0 = register_points(P_nom, poses.xyz[train])
@@ -267,45 +290,44 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
             poses.q[tr], poses.T_IE[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model)
-    extra = {"identification_time_s": t_geo, "effects": list(effects), "measurement_kind": poses.kind,
-             "frame": poses.frame}
     point = measured_point(robot, poses)
-    if point is not None:
-        extra["measured_point_in_tool_m"] = [float(v) for v in point]
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
-        extra["tracker"] = tracker
-    extra["noise_floor"] = noise_floor(run_dir, poses, robot).as_json()
+    ann_skipped = ann_stages = None
     if ann == "auto":
         ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
         if not ann:
-            extra["ann_skipped"] = (f"no neural compensator: {int(tr.sum())} training poses are below the "
-                                    f"{ANN_MIN_TRAIN_POSES} where its cross-validation beats the physical model "
-                                    "(a short campaign calibrates the physical model; --ann trains one anyway)")
-            say(extra["ann_skipped"])
+            ann_skipped = (f"no neural compensator: {int(tr.sum())} training poses are below the "
+                           f"{ANN_MIN_TRAIN_POSES} where its cross-validation beats the physical model "
+                           "(a short campaign calibrates the physical model; --ann trains one anyway)")
+            say(ann_skipped)
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
 
         T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, context)}
-        ann_residuals, ann_extra = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
-                                                  options=ann_options or {}, progress=progress)
+        ann_residuals, ann_stages = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
+                                                   options=ann_options or {}, progress=progress)
         for name, dz in ann_residuals.items():
             add_stage(name, dz)
-        extra.update(ann_extra)
 
-    result = CalibrationResult(run_dir, stages, order, model, is_test, extra)
+    result = CalibrationResult(
+        run_dir, stages, order, model, is_test, effects=tuple(effects), measurement_kind=poses.kind,
+        frame=poses.frame, identification_time_s=t_geo,
+        measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
+        noise_floor=noise_floor(run_dir, poses, robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped)
     if write:
         _write(result, robot, geo)
     if write and report:
         from campaign.identify.report import write_report
 
         say("writing the report")
-        result.extra["report"] = str(write_report(run_dir, stages, order, residuals, poses.q, poses.xyz, is_test,
-                                                  param_text=parameter_text(model),
-                                                  extra_html=f"<h2>Against the measurement noise</h2>"
-                                                  f"<pre>{html.escape(result.floor_line())}</pre>"
-                                                  + result.extra.get("report_html", "")))
+        page = write_report(run_dir, stages, order, residuals, poses.q, poses.xyz, is_test,
+                            param_text=parameter_text(model),
+                            extra_html=f"<h2>Against the measurement noise</h2>"
+                            f"<pre>{html.escape(result.floor_line())}</pre>"
+                            + (result.ann.report_html() if result.ann is not None else ""))
+        result = replace(result, report_path=Path(page))
     return result
 
 
@@ -356,15 +378,14 @@ def _write(result: CalibrationResult, robot, geo) -> None:
     out = result.run_dir / CALIBRATION_DIR
     out.mkdir(parents=True, exist_ok=True)
     model = result.model
-    params = {"robot": robot.name, "model_stage": result.order[-1] if not result.extra.get("ann_stage")
-              else result.extra.get("model_stage_before_ann", result.order[-1])}
+    params = {"robot": robot.name, "model_stage": result.order[-1]}
     params.update(_param_block(model))
-    if "measured_point_in_tool_m" in result.extra:  # the model's tool frame is this point (one reflector)
-        params["measured_point_in_tool_m"] = result.extra["measured_point_in_tool_m"]
+    if result.measured_point_in_tool_m is not None:  # the model's tool frame is this point (one reflector)
+        params["measured_point_in_tool_m"] = list(result.measured_point_in_tool_m)
     if model is not geo:
         params["geometric_only"] = _param_block(geo)
     # networks trained by this calibrate run (stage -> file beside params.yaml)
-    params["ann_stages"] = dict(result.extra.get("ann_files", {}))
+    params["ann_stages"] = dict(result.ann.files) if result.ann is not None else {}
     atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
     atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
     # history: one entry per calibrate run, so a report can show the error falling
@@ -377,7 +398,7 @@ def _write(result: CalibrationResult, robot, geo) -> None:
             history = []
     history.append({
         "time_unix_s": time.time(),
-        "effects": result.extra.get("effects", []),
+        "effects": list(result.effects),
         "stages": {name: result.stages[name]["test"] for name in result.order},
         "order": result.order,
     })
@@ -388,8 +409,8 @@ def summary_text(result: CalibrationResult) -> str:
     """The printed outcome: Table 6 for the test set, then the training set, then parameters."""
     m = result.model
     lines = []
-    if "table5" in result.extra:
-        lines += ["cross-validation on the training set (Table 5)", result.extra["table5"], ""]
+    if result.ann is not None:
+        lines += ["cross-validation on the training set (Table 5)", result.ann.table5, ""]
     lines += [format_table6(result.stages, result.order, "test"), "",
               format_table6(result.stages, result.order, "train"), ""]
     lines.append(f"identified {m.base_.n_base} base parameters"
@@ -407,9 +428,9 @@ def summary_text(result: CalibrationResult) -> str:
         lines.append(f"strongly correlated: {pairs}" if more <= 0 else
                      f"strongly correlated: {len(m.correlated_pairs_)} pairs with |r| > 0.95; the worst five: {pairs}; "
                      "all in params.yaml")
-    if "ann_skipped" in result.extra:
-        lines.append(result.extra["ann_skipped"])
+    if result.ann_skipped:
+        lines.append(result.ann_skipped)
     lines.append(result.floor_line())
     lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml"
-                 + (", report.html" if "report" in result.extra else ""))
+                 + (", report.html" if result.report_path is not None else ""))
     return "\n".join(lines)
