@@ -109,3 +109,18 @@ class MeasuredRuns:
 def measured(tmp_path, robot):
     """A :class:`MeasuredRuns` in this test's tmp_path."""
     return MeasuredRuns(tmp_path, robot)
+
+
+@pytest.fixture(scope="session")
+def erd():
+    """Path to a file of the test extra example-robot-data (skips when it is not installed)."""
+    from importlib import metadata
+
+    def path(rel):
+        try:
+            dist = metadata.distribution("example-robot-data")
+        except metadata.PackageNotFoundError:
+            pytest.skip("example-robot-data (test extra) is not installed")
+        return str(Path(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")) / rel)
+
+    return path

@@ -450,8 +450,8 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
     if solver not in SOLVERS:
         raise ConfigError(f"--ann-solver must be one of {', '.join(SOLVERS)}, not {solver!r}")
     q = np.asarray(q, dtype=float)
-    if q.ndim != 2 or q.shape[1] < 1 or len(q) < 2 * folds:
-        raise DataError(f"ANN cross-validation: need q (n, N) with n >= {2 * folds}, got {q.shape}")
+    if q.ndim != 2 or q.shape[1] < 1 or len(q) < max(folds, 2):  # folds == n: leave-one-out
+        raise DataError(f"ANN cross-validation: need q (n, N) with n >= {max(folds, 2)}, got {q.shape}")
     widths = {np.shape(dz)[1] if np.ndim(dz) == 2 else None for dz in dz_by_prior.values()}
     for prior, dz in dz_by_prior.items():
         if np.ndim(dz) != 2 or np.shape(dz)[0] != len(q) or len(widths) != 1 or np.shape(dz)[1] not in (3, 6) \

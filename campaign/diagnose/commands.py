@@ -15,7 +15,9 @@ def register(sub):
                         "current directory) or installed entry points (default: those in DIR/campaign.yaml)")
     p.add_argument("--candidates", metavar="NAME,...", default=None,
                    help="candidate effects, named the same ways (default: every built-in and installed effect)")
-    p.add_argument("--folds", type=int, default=5, help="held-out folds on the training set (default: %(default)s)")
+    p.add_argument("--folds", type=int, default=None,
+                   help="held-out folds on the training set (default: from the data, leave-one-out below 60 "
+                        "training poses, else 5)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report and plots")
     p.set_defaults(func=_diagnose)
 
@@ -24,7 +26,7 @@ def _diagnose(args):
     from campaign.diagnose.engine import diagnose
     from campaign.errors import ConfigError
 
-    if args.folds < 2:
+    if args.folds is not None and args.folds < 2:
         raise ConfigError(f"--folds must be at least 2, got {args.folds}")
     from campaign.diagnose.report import write_diagnosis
     from campaign.run import RunFolder

@@ -28,7 +28,7 @@ regressor finds nothing either (or, with no floor, when nothing at all is found)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,10 +37,10 @@ from scipy import stats
 from campaign.diagnose.candidates import fit_candidate, linearise
 from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, make_effect,
                                    parse_effect_list, resolve_effect_spec)
-from campaign.errors import DataError
-from campaign.identify.calibrate import configured_effects, load_robot_for_run
+from campaign.identify.calibrate import (check_pose_count, configured_effects, distinct_poses, equations_per_pose,
+                                         load_robot_for_run, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
-from campaign.identify.split import run_split, train_test_split
+from campaign.identify.split import FoldRule, choose_folds, run_split, train_test_split, validation_file
 from campaign.measure.floor import NoiseFloor, noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
@@ -117,6 +117,12 @@ class Diagnosis:
     inputs: np.ndarray = field(repr=False, default=None)  # (n_train, d) regressor inputs
     #: held-out position residual (n_train, 3) m of the current model, in the frame after joint 1
     heldout_residual_j1: np.ndarray = field(repr=False, default=None)
+    #: how the training poses were folded (campaign.identify.split.choose_folds)
+    fold_rule: FoldRule | None = None
+    #: candidates not scored: (effect, reason)
+    skipped: tuple = ()
+    #: held-out error a correct model reaches with these folds, over the pure noise (≥ 1)
+    expected_model_to_noise: float = 1.0
 
     @property
     def model_to_noise(self) -> float | None:
@@ -138,6 +144,7 @@ class Diagnosis:
             "model_to_noise": self.model_to_noise,
             "heldout_mean_position_mm": self.heldout_mean_position_mm,
             "at_noise_floor": self.at_floor,
+            "expected_model_to_noise": self.expected_model_to_noise,
             "noise_floor": self.floor.as_json(),
             "unexplained": {
                 "significant": bool(self.structure_significant),
@@ -152,6 +159,8 @@ class Diagnosis:
             "current_effects": list(self.current_effects),
             "config_line": config_line(self.current_effects, self._verdict_spec()),
             "folds": self.folds,
+            "fold_rule": None if self.fold_rule is None else self.fold_rule.as_json(),
+            "skipped_candidates": [{"effect": e, "reason": r} for e, r in self.skipped],
             "n_train_poses": self.n_train,
         }
 
@@ -166,7 +175,11 @@ class Diagnosis:
         if not self.floor.known:
             return (f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in "
                     "campaign.yaml): how far the model is from the measurement noise cannot be said")
-        return f"{held} {times_the_noise(self.heldout_mean_position_mm, self.floor.mean_position_mm)} ({self.floor.text()})"
+        out = f"{held} {times_the_noise(self.heldout_mean_position_mm, self.floor.mean_position_mm)} ({self.floor.text()})"
+        if self.expected_model_to_noise > 1.0 + AT_FLOOR_MARGIN:  # a small campaign: what a correct model reaches
+            out += (f"\n  a correct model reaches about {self.expected_model_to_noise:.2f}× with these folds (its own "
+                    f"parameters' estimation error on {self.fold_rule.fit_poses if self.fold_rule else '?'} poses)")
+        return out
 
     def structure_line(self) -> str:
         s = self.structure
@@ -183,17 +196,30 @@ class Diagnosis:
     def text(self) -> str:
         lines = [f"current model: geometric" + "".join(f" + {e}" for e in self.current_effects),
                  f"candidates scored on {self.folds} held-out folds of {self.n_train} training poses "
-                 f"(test set untouched):", "",
+                 f"({'' if self.fold_rule is None else self.fold_rule.reason() + '; '}test set untouched):", "",
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
         for c in self.ranking:
             note = " (absorbed: " + ", ".join(c.absorbed) + ")" if c.absorbed else ""
             lines.append(f"{c.effect:<20}{c.heldout_mean_position_mm_before:>11.4f}{c.heldout_mean_position_mm_after:>11.4f}"
                          f"{100 * c.gain:>7.1f}%{c.r2:>7.2f}{c.p_value:>10.2g}  {'yes' if c.significant else 'no'}{note}")
+        for effect, reason in self.skipped:
+            lines.append(f"{effect:<20}skipped: {reason}")
         lines += ["", self.floor_line(), self.structure_line()]
         if self.signature is not None and self.structure_significant:
             lines.append("  signature: " + self.signature.text())
         lines += ["", verdict_text(self)]
         return "\n".join(lines)
+
+
+def expected_heldout_ratio(model_var, sigma_position_m: float) -> float:
+    """The held-out mean position error a correct model reaches, over the pure noise's:
+    sqrt(1 + mean model variance / noise variance), from each fold model's own position variance
+    at its held-out poses (``model_var`` (n,) m², from the covariance of its weights) and the noise
+    σ per coordinate the fits weighted by (m). About sqrt(1 + p / (N − p)) for p unknowns and N
+    equations: 1.01 on hundreds of 6-D poses, 1.25 for 25 parameters on two dozen positions."""
+    if not len(model_var) or not sigma_position_m > 0:
+        return 1.0
+    return float(np.sqrt(1.0 + np.mean(model_var) / (3.0 * sigma_position_m ** 2)))
 
 
 def config_line(current, verdict_spec) -> str | None:
@@ -280,9 +306,14 @@ def candidate_specs(candidates, current, run_dir):
     return [s for s in specs if s not in current and effect_class(s).name not in current_names]
 
 
-def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress=None,
+def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
              structure: bool = True) -> Diagnosis:
-    """Diagnose a run's current model: noise floor, model-free structure test, candidate ranking."""
+    """Diagnose a run's current model: noise floor, model-free structure test, candidate ranking.
+
+    folds: held-out folds of the training poses; None: from the data
+    (:func:`campaign.identify.split.choose_folds`: leave-one-out below 60 training poses, else 5).
+    Too few poses for every fold fit to identify the current model is one line saying how many
+    are needed; a candidate whose parameters the fold fits cannot identify is skipped (and said)."""
     run_dir = Path(run_dir)
     say = progress or (lambda msg: None)
     robot = load_robot_for_run(run_dir)
@@ -298,11 +329,21 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     poses, robot, _ = prepare_measured(robot, poses, ~is_test)
     position_only = not poses.has_orientation
     tr = np.flatnonzero(~is_test)
-    if len(tr) < 10 * folds:
-        raise DataError(f"{run_dir}: {len(tr)} training poses are too few for {folds}-fold diagnosis")
+    from campaign.plan.selection import base_pose_id
+
+    rule = choose_folds(len(np.unique(base_pose_id(poses.pose_id[tr]))), folds)
+    folds = rule.k
+    n_current = sum(make_effect(e, robot).n_params for e in current)
+    # every fold fit must identify the model: distinct poses, the smallest fold fit (the same rule)
+    n_distinct = distinct_poses(poses.q[tr])
+    fit_rule = replace(rule, n_poses=n_distinct, k=n_distinct if rule.leave_one_out else rule.k)
+    check_pose_count(run_dir, robot, n_distinct, int(is_test.sum()), position_only, n_effect_params=n_current,
+                     fold_rule=fit_rule, validation=validation_file(run_dir).is_file())
+    say(f"folds: {rule.text()}")
     context = effect_context(poses.context, poses.time_s)
     fold = pose_folds(poses.pose_id[tr], folds)
     base = base_parameters(robot, position_only=position_only)
+    rows = equations_per_pose(position_only)
 
     ctx_tr = {key: v[tr] for key, v in context.items()}
     say("current model on the whole training set")
@@ -323,6 +364,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     before = np.empty(len(tr))
     dz_before = np.empty((len(tr), 3))
     fit_res, fold_models = {}, {}
+    model_var = np.zeros(len(tr))  # each fold model's own position variance at its held-out poses, m²
     for k in range(folds):
         q_fit, T_fit, ctx_fit, q_out, T_out, ctx_out = fold_sets[k]
         m = CalibrationModel(robot=robot, effects=list(current), estimate_noise=False, position_only=position_only,
@@ -334,14 +376,22 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
         dz_before[fold == k] = dz[:, :3]
         fit_res[k] = m.residuals(q_fit, T_fit, ctx_fit)[:, :3]
         fold_models[k] = m
+        J = m.jacobian(q_out, T_out, ctx_out)[:, :3, :]
+        C = m.covariance_ / max(m.variance_factor_, 1e-300)  # the covariance of the fit's own weights
+        model_var[fold == k] = np.einsum("nap,pq,naq->n", J, C, J)
     ss_before = float(np.sum((dz_before - dz_before.mean(axis=0)) ** 2))
     held_mean = float(before.mean())
+    expected = expected_heldout_ratio(model_var, noise["position_m"])
 
     floor = noise_floor(run_dir, poses, robot)
     at_floor = None
     detection = MIN_RELATIVE_GAIN
     if floor.known:
-        threshold = 1.0 + AT_FLOOR_MARGIN + FLOOR_UNCERTAINTIES * floor.relative_uncertainty
+        # a correct model's own estimation error (few poses), then the floor's uncertainty and the
+        # sampling error of the held-out mean, combined
+        held_unc = float(before.std() / max(held_mean, 1e-300) / np.sqrt(len(before)))
+        threshold = max(1.0 + AT_FLOOR_MARGIN, expected) + FLOOR_UNCERTAINTIES * float(
+            np.hypot(floor.relative_uncertainty, held_unc))
         if floor.mean_position_mm > 0:
             at_floor = held_mean / floor.mean_position_mm <= threshold
         else:  # noise-free measurements: at the floor means at the fit's round-off
@@ -363,14 +413,22 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
         struct = structure_test(X, input_names, fold, r_fit, r_out)
         struct_sig = bool(struct.p_value < ALPHA and struct.heldout_gain >= detection)
 
-    scores = []
+    scores, skipped = [], []
     n_cand = max(len(names), 1)
     lins = None
     for i, spec in enumerate(names):
         cls = effect_class(spec)
         say(f"candidate {i + 1}/{len(names)}: {cls.name}")
         if any(key not in context for key in getattr(cls, "context_keys", ())):
-            say(f"  {cls.name}: skipped (needs context {', '.join(cls.context_keys)})")
+            skipped.append((cls.name, f"needs context {', '.join(cls.context_keys)}"))
+            say(f"  {cls.name}: skipped ({skipped[-1][1]})")
+            continue
+        n_params = make_effect(spec, robot).n_params
+        need = training_poses_needed(base.n_base + n_current + n_params, position_only)
+        if fit_rule.fit_poses < need:
+            skipped.append((cls.name, f"its {n_params} parameters need {need} poses in every fold fit "
+                                      f"({rows} equations each), the folds have {fit_rule.fit_poses}"))
+            say(f"  {cls.name}: skipped ({skipped[-1][1]})")
             continue
         if lins is None:
             # the current model linearised at each fold's optimum, shared by every candidate
@@ -420,4 +478,4 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int = 5, progress
     residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
-                     residual_in_joint1_frame(robot, poses.q[tr], dz_before))
+                     residual_in_joint1_frame(robot, poses.q[tr], dz_before), rule, tuple(skipped), expected)

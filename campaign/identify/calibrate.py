@@ -26,7 +26,7 @@ from campaign.fileio import atomic_write
 from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6
 from campaign.identify.solver import CalibrationModel
-from campaign.identify.split import run_split
+from campaign.identify.split import run_split, validation_file
 from campaign.measure.floor import noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
@@ -73,6 +73,8 @@ class CalibrationResult:
     ann: AnnStages | None = None
     #: why no network was trained, when it was not asked for explicitly
     ann_skipped: str | None = None
+    #: how the network's cross-validation was folded (campaign.identify.split.FoldRule.as_json()), when trained
+    folds: dict | None = None
     #: the written report.html, when one was written
     report_path: Path | None = None
 
@@ -91,6 +93,8 @@ class CalibrationResult:
             out["ann_cross_validation"] = self.ann.cross_validation
         if self.noise_floor is not None:
             out["noise_floor"] = self.noise_floor
+        if self.folds is not None:
+            out["folds"] = self.folds
         return out
 
     def floor_line(self) -> str:
@@ -121,10 +125,11 @@ def load_robot_for_run(run_dir) -> RobotModel:
 
 
 def check_ann_options(options: dict) -> dict:
-    """Validate the neural stage's options (``folds`` >= 2, ``max_epochs`` >= 1, ``workers`` >= 1,
-    ``device`` usable here); ConfigError naming the command-line option otherwise. Returns them."""
-    folds = options.get("folds", 5)
-    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+    """Validate the neural stage's options (``folds`` >= 2 when given, ``max_epochs`` >= 1,
+    ``workers`` >= 1, ``device`` usable here); ConfigError naming the command-line option otherwise.
+    Returns them."""
+    folds = options.get("folds")
+    if folds is not None and (isinstance(folds, bool) or not isinstance(folds, int) or folds < 2):
         raise ConfigError(f"--folds must be an integer >= 2 (cross-validation needs two folds), got {folds!r}")
     epochs = options.get("max_epochs", 1)
     if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1:
@@ -139,20 +144,60 @@ def check_ann_options(options: dict) -> dict:
     return options
 
 
-def check_pose_count(run_dir, robot, n_train: int, n_test: int, position_only: bool) -> None:
-    """One line when a run has too few poses to identify the base parameters (and test them)."""
+def equations_per_pose(position_only: bool) -> int:
+    """Equations a pose gives the identification: 3 (positions only) or 6 (with orientation)."""
+    return 3 if position_only else 6
+
+
+def training_poses_needed(n_unknowns: int, position_only: bool) -> int:
+    """The fewest distinct poses whose equations outnumber ``n_unknowns`` (identifiable, and one
+    degree of freedom left for the noise estimate)."""
+    return n_unknowns // equations_per_pose(position_only) + 1
+
+
+def check_pose_count(run_dir, robot, n_train: int, n_test: int, position_only: bool, *, n_effect_params: int = 0,
+                     fold_rule=None, validation: bool = False) -> None:
+    """One line (DataError) when a run has too few distinct poses to identify the base
+    parameters (plus ``n_effect_params``) and test them: how many are needed and why.
+
+    n_train: distinct training poses; fold_rule: a :class:`campaign.identify.split.FoldRule`
+    when every fold is fitted too (`diagnose`): its smallest fold fit must identify them;
+    validation: the test set is a plan's validation poses (not the 80/20 split)."""
+    from campaign.identify.split import EXACT_SPLIT_BELOW, poses_for_training
     from campaign.model.base_params import base_parameters
 
-    rows = 3 if position_only else 6
+    rows = equations_per_pose(position_only)
     n_base = base_parameters(robot, position_only=position_only).n_base
-    need_train = -(-(n_base + 1) // rows)  # more equations than unknowns
-    if n_train < need_train or n_test < 1:
-        need_total = int(np.ceil(need_train / 0.8)) + 1
-        raise DataError(f"{run_dir}: {n_train} training and {n_test} test poses; {robot.name} has {n_base} "
-                        f"identifiable base parameters and each pose gives {rows} equations "
-                        f"({'positions' if rows == 3 else 'positions and orientations'}), so at least "
-                        f"{need_train} training poses and one test pose are needed (about {need_total} poses "
-                        "with the 80/20 split)")
+    need = training_poses_needed(n_base + n_effect_params, position_only)
+    fits = n_train if fold_rule is None else fold_rule.fit_poses
+    if fits >= need and n_test >= 1:
+        return
+    unknowns = f"{n_base} identifiable base parameters" + (f" and {n_effect_params} effect parameters"
+                                                          if n_effect_params else "")
+    what = "positions only" if rows == 3 else "position and orientation"
+    if fold_rule is None:
+        need_train, who = need, "calibrate needs"
+    else:  # the fewest training poses whose every fold fit has `need` poses (the same fold rule)
+        from campaign.identify.split import FoldRule, choose_folds
+
+        need_train = need + 1
+        while FoldRule(fold_rule.k if fold_rule.asked else choose_folds(need_train).k, need_train).fit_poses < need:
+            need_train += 1
+        folds = "each held-out pose (leave-one-out)" if fold_rule.leave_one_out else f"each of {fold_rule.k} folds"
+        who = f"diagnose, which fits the model again without {folds}, needs"
+    if validation:
+        total = f"besides the plan's validation poses"
+    else:
+        n_total = poses_for_training(need_train)
+        total = f"{'about ' if n_total >= EXACT_SPLIT_BELOW else ''}{n_total} poses with the 80/20 split"
+    raise DataError(f"{run_dir}: {n_train} training poses (and {n_test} test) are too few: {robot.name} has {unknowns} "
+                    f"and a pose gives {rows} equations ({what}), so {who} at least {need_train} distinct training "
+                    f"poses and one test pose ({total})")
+
+
+def distinct_poses(q) -> int:
+    """Distinct joint vectors among ``q`` (n, N): a pose measured again adds no equation of its own."""
+    return int(len(np.unique(np.asarray(q), axis=0))) if len(q) else 0
 
 
 def measured_point(robot, poses):
@@ -253,7 +298,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     position_only = position_only or not poses.has_orientation
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
-    check_pose_count(run_dir, robot, int(tr.sum()), int(te.sum()), position_only)
+    n_effect = sum(make_effect(e, robot).n_params for e in effects)
+    check_pose_count(run_dir, robot, distinct_poses(poses.q[tr]), int(te.sum()), position_only,
+                     n_effect_params=n_effect, validation=validation_file(run_dir).is_file())
     poses, robot, tracker = prepare_measured(robot, poses, tr)
     if tracker is not None:
         say(f"measurements in the tracker's frame: registered to the nominal model "
@@ -293,7 +340,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     point = measured_point(robot, poses)
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
-    ann_skipped = ann_stages = None
+    ann_skipped = ann_stages = rule = None
     if ann == "auto":
         ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
         if not ann:
@@ -304,10 +351,15 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
+        from campaign.identify.split import choose_folds
 
+        ann_options = dict(ann_options or {})
+        rule = choose_folds(int(tr.sum()), ann_options.get("folds"))
+        ann_options["folds"] = rule.k
+        say(f"cross-validation of the network: {rule.text()}")
         T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, context)}
         ann_residuals, ann_stages = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
-                                                   options=ann_options or {}, progress=progress)
+                                                   options=ann_options, progress=progress)
         for name, dz in ann_residuals.items():
             add_stage(name, dz)
 
@@ -315,7 +367,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         run_dir, stages, order, model, is_test, effects=tuple(effects), measurement_kind=poses.kind,
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
-        noise_floor=noise_floor(run_dir, poses, robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped)
+        noise_floor=noise_floor(run_dir, poses, robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
+        folds=None if rule is None else rule.as_json())
     if write:
         _write(result, robot, geo)
     if write and report:

@@ -46,7 +46,9 @@ def register(sub):
     ann.add_argument("--no-ann", dest="ann", action="store_false", help="geometric (and effects) only")
     p.add_argument("--sizes", default=None, metavar="N1xN2,...",
                    help="hidden sizes for the ANN's cross-validation, e.g. 16x16,32x16,32x32,64x32")
-    p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default: %(default)s)")
+    p.add_argument("--folds", type=int, default=None,
+                   help="the network's cross-validation folds (default: from the data, leave-one-out below 60 "
+                        "training poses, else 5)")
     p.add_argument("--epochs", type=int, default=None,
                    help="ANN training epochs at most (default: 2000 for adam, 2048 for br-lm)")
     p.add_argument("--ann-solver", choices=("auto", "adam", "br-lm"), default=None,
@@ -133,7 +135,7 @@ def _export(args):
 def _calibrate(args):
     from campaign.identify.calibrate import calibrate, check_ann_options, summary_text
 
-    ann_options = {"folds": args.folds}
+    ann_options = {} if args.folds is None else {"folds": args.folds}
     if args.sizes:
         from campaign.identify.ann_stage import parse_sizes
 

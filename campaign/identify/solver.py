@@ -238,6 +238,9 @@ class CalibrationModel:
         self.params_min_norm_ = self.base_.min_norm(self.base_params_)
         self.effect_params_ = x[r:].copy()
         self.covariance_ = cov
+        #: the a posteriori variance factor in covariance_ (cost / degrees of freedom; ≈ 1 when
+        #: the row weights are the noise): covariance_ / variance_factor_ is the weights' own
+        self.variance_factor_ = float(s2)
         self.sigma_ = sd
         self.base_sigma_ = sd[:r]
         self.effect_sigma_ = sd[r:]

@@ -192,6 +192,15 @@ def noise_floor(run_dir, poses, robot) -> NoiseFloor:
     if floor is not None:
         return floor
     stated = stated_tracker_noise_m(run_dir)
-    if stated is not None:
-        return floor_from_stated(stated, robot.reflector_positions_in_E)
-    return NoiseFloor("none")
+    if stated is None:
+        return NoiseFloor("none")
+    kind = getattr(poses, "kind", "pose")
+    P_E = poses.marker_positions if kind == "markers" else robot.reflector_positions_in_E
+    if kind == "point" or P_E is None or len(P_E) < 3:
+        # one reflector (or 6-D poses from a reflector layout robot.yaml does not give): the stated
+        # σ is the noise of the measured position itself
+        why = "one reflector" if kind == "point" else "no reflector layout in robot.yaml: taken at the tool origin"
+        sigma = np.full(3, float(stated))
+        return NoiseFloor("stated", sigma, mean_norm_mm(sigma), 0, 0.0,
+                          f"stated tracker noise σ {stated * 1e6:.3g} µm per coordinate, {why}")
+    return floor_from_stated(stated, P_E)
