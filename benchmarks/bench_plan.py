@@ -1,4 +1,4 @@
-"""Benchmark of `campaign plan` (issue 3) at full size on the default cell.
+"""Benchmark of `campaign plan --all` (issue 3: every suitable pose, the full tour) at full size on the default cell.
 
     python benchmarks/bench_plan.py [--grid-scale 1.0] [--robot NAME|URDF|robot.yaml [--tool-frame LINK]]
 
@@ -7,7 +7,7 @@ about a million candidates); ``--robot panda`` and ``--robot ur10`` name example
 URDFs (Panda with tool frame panda_hand, UR10 with tool0). Results go to
 benchmarks/results/plan.json (the default robot) or plan_<name>.json.
 
-Runs `campaign plan` in a separate process and reports its wall time and peak memory
+Runs `campaign plan --all` in a separate process and reports its wall time and peak memory
 (max RSS of the child), the seconds per stage (``stages_s``: setup, filters, ordering,
 motion_check, repair, outputs, plot, and the process start + CLI around them), the counts
 per filter, the tour and the estimated duration, and the load average before and after (the
@@ -52,7 +52,7 @@ def main():
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "campaign.cli", "plan", "--run", tmp, "--quiet",
+        subprocess.run([sys.executable, "-m", "campaign.cli", "plan", "--run", tmp, "--quiet", "--all",
                         "--grid-scale", str(args.grid_scale), *robot_args], check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - t0
         peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024

@@ -356,7 +356,7 @@ def cli_check(cfg, robot, grid, suitable, folder):
     out["random30"] = rnd
     # the full campaign: every suitable pose, the 80/20 split
     run = folder / "full"
-    _cli("plan", "--run", run, "--quiet", env=env)
+    _cli("plan", "--run", run, "--all", "--quiet", env=env)
     _cli("run", run, "--sim", "--quiet", env=env)
     out["full"] = score(run)
     out["checks"] = {

@@ -236,7 +236,8 @@ class SimConfig:
 @dataclass(frozen=True)
 class TrackerConfig:
     """``tracker:``: what the user states about the instrument. ``noise_m``: σ per coordinate
-    of a reflector centre (m), the noise floor of `diagnose` when no pose is measured twice."""
+    of a reflector centre (m): the noise floor of `diagnose` when no pose is measured twice, and
+    the noise under which `plan` predicts a short campaign's accuracy (10 µm when not given)."""
 
     noise_m: float | None = None
 

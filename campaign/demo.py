@@ -60,8 +60,8 @@ def _story(args, run: Path, folder) -> int:
         _step(f"1. plan a short campaign (grid → suitable poses → the {args.select} most informative → "
               "collision-free tour)", "plan", "--run", run, "--grid-scale", args.grid_scale, "--select", args.select)
     else:
-        _step("1. plan the campaign (grid → suitable poses → collision-free tour)", "plan", "--run", run,
-              "--grid-scale", args.grid_scale)
+        _step("1. plan the long campaign (grid → every suitable pose → collision-free tour)", "plan", "--run", run,
+              "--grid-scale", args.grid_scale, "--all")
     _step("2. measure it on the simulated cell (hidden: geometric errors + the elastic ground)", "run", run, "--sim")
     _step("3. calibrate the geometric model", "calibrate", run, "--no-ann")
     print(f"\n=== 4. where does the model fail, and which effect is missing?\n$ campaign diagnose {run}", flush=True)

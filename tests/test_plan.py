@@ -22,7 +22,7 @@ SCENE = DEFAULT_SCENE
 @pytest.fixture(scope="module")
 def planned(tmp_path_factory):
     run = tmp_path_factory.mktemp("plan") / "run"
-    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--quiet"]) == 0
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--all", "--quiet"]) == 0  # every suitable pose
     return run
 
 

@@ -58,7 +58,7 @@ def panda_yaml(tmp_path_factory):
     return path
 
 
-def _plan(tmp, robot_args, cells, extra=()):
+def _plan(tmp, robot_args, cells, extra=("--all",)):  # default: every suitable pose, the whole tour
     cfg = tmp / "campaign.yaml"
     cfg.write_text(yaml.safe_dump({"scene": str(DEFAULT_SCENE), "plan": {"grid_cells": cells, "motion_sample_deg": 2.0},
                                    "sim": {"noise_m": 0.0, "seed": 3}}))
@@ -511,7 +511,7 @@ def test_the_robot_named_in_campaign_yaml_is_planned_for_and_recorded(tmp_path, 
     (["--robot", "{tmp}/nowhere.urdf"], r"robot '.*nowhere\.urdf': neither a URDF file"),
     (["--robot", "{ur10}", "--tool-frame", "flange"], r"tool frame 'flange' is not a link of ur10_robot\.urdf"),
     (["--robot", "{one}", "--select", "20"], r"a selection .* weighs 6-D poses from three or more reflectors, and "
-                                             r"robot\.yaml names 1; plan without one"),
+                                             r"robot\.yaml names 1; plan every suitable pose \(--all\)"),
     (["--robot", "{ur10}", "--tool-frame", "tool0", "--config", "{tmp}/upside.yaml"], r"down must not be zero"),
 ])
 def test_bad_robot_or_cell_for_another_robot_is_one_line_and_exit_1(tmp_path, capsys, args, message):

@@ -31,7 +31,7 @@ def repaired(tmp_path_factory):
     (tmp / "campaign.yaml").write_text(yaml.safe_dump({
         "scene": "cell.yaml", "plan": {"grid_cells": [6, 5, 5, 4, 3, 3], "motion_clearance_m": MOTION_CLEARANCE_M}}))
     run = tmp / "run"
-    assert main(["plan", "--config", str(tmp / "campaign.yaml"), "--run", str(run), "--quiet"]) == 0
+    assert main(["plan", "--config", str(tmp / "campaign.yaml"), "--run", str(run), "--all", "--quiet"]) == 0
     return run, load_scene(tmp / "cell.yaml")
 
 

@@ -155,6 +155,46 @@ def test_plan_select_writes_the_design_validation_and_repeats(selected_run):
     assert s["estimated_campaign"]["total_s"] < 3600
 
 
+def test_the_default_plan_is_the_short_campaign_and_all_plans_every_suitable_pose(tmp_path):
+    short, full = tmp_path / "short", tmp_path / "full"
+    assert main(["plan", "--run", str(short), "--grid-scale", "0.6", "--quiet"]) == 0
+    assert main(["plan", "--run", str(full), "--grid-scale", "0.6", "--all", "--quiet"]) == 0
+    s = json.loads((short / "plan" / "summary.json").read_text())
+    f = json.loads((full / "plan" / "summary.json").read_text())
+    assert s["campaign"]["mode"] == "default" and s["selection"]["select"] == S.DEFAULT_SELECT == 120
+    assert (s["selection"]["selected"], s["selection"]["validation"], s["selection"]["repeated_poses"]) == (120, 30, 3)
+    _, rows = _read_csv(short / "plan" / "poses.csv")
+    assert len(rows) == 120 + 30 + 3 * 2 - s["tour"]["dropped"]
+    assert (short / "plan" / "validation.csv").is_file()
+    assert f["campaign"]["kind"] == "all" and "selection" not in f and not (full / "plan" / "validation.csv").exists()
+    _, rows = _read_csv(full / "plan" / "poses.csv")
+    assert len(rows) + f["tour"]["dropped"] == f["suitable"] == s["suitable"] > 150
+    assert s["estimated_campaign"]["total_s"] < 0.5 * f["estimated_campaign"]["total_s"]
+
+
+def test_a_cell_with_fewer_suitable_poses_than_the_short_campaign_plans_them_all(tmp_path):
+    run = tmp_path / "run"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.4", "--quiet"]) == 0
+    s = json.loads((run / "plan" / "summary.json").read_text())
+    assert s["suitable"] < 150 and s["campaign"]["mode"] == "all_few" and "selection" not in s
+    assert s["tour"]["poses"] + s["tour"]["dropped"] == s["suitable"]
+
+
+def test_the_predicted_accuracy_takes_the_tracker_noise_from_campaign_yaml(tmp_path, selected_run):
+    """The same design (D-optimality does not depend on σ), twice the stated noise: every predicted
+    error doubles (the estimator's covariance scales with σ²)."""
+    (tmp_path / "campaign.yaml").write_text("tracker: {noise_m: 2.0e-05}\n")
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(tmp_path / "campaign.yaml"), "--run", str(run), "--grid-scale", "0.6",
+                 "--select", "12", "--quiet"]) == 0
+    a = json.loads((selected_run / "plan" / "summary.json").read_text())["selection"]
+    b = json.loads((run / "plan" / "summary.json").read_text())["selection"]
+    assert (a["tracker_noise_m"], b["tracker_noise_m"]) == (S.TRACKER_NOISE_M, 2e-5)
+    assert (run / "plan" / "poses.csv").read_text() == (selected_run / "plan" / "poses.csv").read_text()
+    for key in ("model_position_mm", "heldout_position_mm", "noise_position_mm", "model_orientation_mrad"):
+        assert b["predicted"][key] == pytest.approx(2 * a["predicted"][key], rel=1e-6), key
+
+
 def test_calibrate_tests_on_the_plans_validation_poses(selected_run):
     from campaign.identify.split import run_split
 
@@ -165,12 +205,12 @@ def test_calibrate_tests_on_the_plans_validation_poses(selected_run):
     assert set(ids[is_test].tolist()) == set(int(v[0]) for v in val)
 
 
-def test_a_plan_without_selection_removes_a_previous_validation_list(tmp_path, selected_run):
+def test_a_plan_of_every_pose_removes_a_previous_validation_list(tmp_path, selected_run):
     import shutil
 
     run = tmp_path / "run"
     shutil.copytree(selected_run, run)
-    assert main(["plan", "--run", str(run), "--grid-scale", "0.4", "--quiet"]) == 0
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.4", "--all", "--quiet"]) == 0
     assert not (run / "plan" / "validation.csv").exists()
 
 
@@ -179,7 +219,8 @@ def test_a_plan_without_selection_removes_a_previous_validation_list(tmp_path, s
     (["--select", "12", "--for-effects", "thermal"], "known only when measuring"),
     (["--select", "12", "--for-effects", "nonsense"], "unknown effect 'nonsense'"),
     (["--budget", "0.001"], "too short"),
-    (["--for-effects", "ground_compliance"], "needs --select"),
+    (["--all", "--for-effects", "ground_compliance"], "--all measures every suitable pose"),
+    (["--all", "--repeats", "2"], "--all measures every suitable pose"),
 ])
 def test_bad_selection_requests_get_one_line(tmp_path, capsys, argv, message):
     assert main(["plan", "--run", str(tmp_path / "r"), "--grid-scale", "0.4", "--quiet", *argv]) == 1

@@ -1,5 +1,7 @@
 """`campaign plan [--config FILE] [--run DIR] [--robot NAME|URDF|robot.yaml] [--tool-frame LINK] [--base-frame LINK]
-[--grid-scale S] [--select N | --budget HOURS | --target-mm X] [--for-effects a,b]`."""
+[--grid-scale S] [--select N | --budget HOURS | --target-mm X | --all] [--for-effects a,b]`: by default the
+short campaign for the physical model (the 120 most informative suitable poses, validation poses and
+repeats); ``--all`` every suitable pose (the long campaign)."""
 
 from __future__ import annotations
 
@@ -7,7 +9,11 @@ import sys
 
 
 def register(sub):
-    p = sub.add_parser("plan", help="plan a collision-free list of measurement poses (embedded defaults without a config)")
+    from campaign.plan.selection import DEFAULT_SELECT
+
+    p = sub.add_parser("plan", help="plan a collision-free list of measurement poses (embedded defaults without a "
+                                    "config): by default a short campaign for the physical model, --all every "
+                                    "suitable pose")
     p.add_argument("--config", metavar="FILE", default=None,
                    help="campaign.yaml (default: the run's own when it has one, else the embedded one)")
     p.add_argument("--run", metavar="DIR", default="runs/default",
@@ -23,14 +29,17 @@ def register(sub):
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--select", type=int, metavar="N", default=None,
-                     help="measure the N suitable poses most informative about the model (D-optimal), not all")
+                     help="measure the N suitable poses most informative about the model (D-optimal; default: "
+                          f"{DEFAULT_SELECT}, a short campaign for the physical model)")
     how.add_argument("--budget", type=float, metavar="HOURS", default=None,
                      help="the most informative campaign that fits in HOURS (motion, settle, tracker)")
     how.add_argument("--target-mm", type=float, metavar="X", default=None,
                      help="the smallest campaign predicted to bring the model's mean position error to X mm")
+    how.add_argument("--all", dest="all_poses", action="store_true",
+                     help="measure every suitable pose: the long campaign a neural compensator needs (days)")
     p.add_argument("--for-effects", metavar="A,B", default=None,
                    help="effects whose parameters the selection must teach too (default: those in campaign.yaml)")
-    p.add_argument("--criterion", choices=("D", "A", "I"), default="D",
+    p.add_argument("--criterion", choices=("D", "A", "I"), default=None,
                    help="optimality: D (log det, default), A (trace of the covariance), I (mean position variance)")
     p.add_argument("--validation", type=float, metavar="FRACTION", default=None,
                    help="random validation poses added, as a share of the selected ones (default: 0.2, at least 30)")
@@ -44,7 +53,8 @@ def _plan(args):
 
     selection = _selection_options(args)
     s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty(),
-                      selection=selection, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
+                      selection=selection, all_poses=args.all_poses, robot=args.robot, tool_frame=args.tool_frame,
+                      base_frame=args.base_frame)
     rm = s["removed_by_filter"]
     est = s["estimated_campaign"]
     print(f"candidates {s['candidates']:,} (grid {' x '.join(map(str, s['grid_cells']))})")
@@ -53,6 +63,8 @@ def _plan(args):
     t = s["tour"]
     if "selection" in s:  # the wall groups are the tour's, not the suitable poses'
         print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %)")
+        if s["campaign"]["mode"] == "default":
+            print(f"campaign: {s['campaign']['text']}")
         print(selection_text(s["selection"]))
         print(f"tour: {t['poses']:,} poses ({s['groups']['front_of_wall']:,} in front of the wall, "
               f"{s['groups']['behind_wall']:,} behind), {t['via_poses']} via poses, {t['dropped']} dropped; "
@@ -60,6 +72,7 @@ def _plan(args):
     else:
         print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %): "
               f"{s['groups']['front_of_wall']:,} in front of the wall, {s['groups']['behind_wall']:,} behind")
+        print(f"campaign: {s['campaign']['text']}")
         print(f"tour: {t['poses']:,} poses, {t['via_poses']} via poses, {t['dropped']} dropped; "
               f"motion {t['motion_time_s'] / 3600:.2f} h")
     if "selection" in s:
@@ -78,17 +91,20 @@ def _selection_options(args):
     from campaign.effects.base import parse_effect_list
     from campaign.plan.selection import REPEAT_POSES, SelectionOptions
 
-    if args.select is None and args.budget is None and args.target_mm is None:
-        for flag, value in (("--for-effects", args.for_effects), ("--validation", args.validation)):
+    if args.all_poses:
+        from campaign.errors import ConfigError
+
+        for flag, value in (("--for-effects", args.for_effects), ("--validation", args.validation),
+                            ("--repeats", args.repeats), ("--criterion", args.criterion)):
             if value is not None:
-                from campaign.errors import ConfigError
-
-                raise ConfigError(f"{flag} needs --select, --budget or --target-mm")
-        if args.repeats:
-            from campaign.errors import ConfigError
-
-            raise ConfigError("--repeats needs --select, --budget or --target-mm")
+                raise ConfigError(f"{flag} chooses poses: --all measures every suitable pose, give one without the other")
         return None
+    if args.select is None and args.budget is None and args.target_mm is None:
+        if all(v is None for v in (args.for_effects, args.validation, args.repeats, args.criterion)):
+            return None  # the default short campaign (plan_campaign)
+        from campaign.plan.selection import DEFAULT_SELECT
+
+        args.select = DEFAULT_SELECT  # the default short campaign, with these options
     if args.for_effects is not None:
         effects = parse_effect_list(args.for_effects)
     else:
@@ -99,8 +115,8 @@ def _selection_options(args):
     if args.validation is not None:
         kw["validation_fraction"] = args.validation
     return SelectionOptions(n=args.select, budget_h=args.budget, target_mm=args.target_mm, effects=effects,
-                            criterion=args.criterion, repeat_poses=REPEAT_POSES if args.repeats is None else args.repeats,
-                            **kw).check()
+                            criterion=args.criterion or "D",
+                            repeat_poses=REPEAT_POSES if args.repeats is None else args.repeats, **kw).check()
 
 
 def selection_text(sel) -> str:

@@ -7,9 +7,11 @@ Writes ``RUN/plan/poses.csv`` (``pose_id,q1..qN``, rad or m, visiting order; pos
 candidate's grid index), ``RUN/plan/vias.csv`` (via poses to pass before a pose),
 ``RUN/plan/dropped.csv`` (poses dropped from the tour, with the reason),
 ``RUN/plan/summary.json`` and ``RUN/plan/tour.png``, and copies the configuration to
-``RUN/campaign.yaml`` (with the robot, its tool and base frames and the grid's cells). With a selection (campaign.plan.selection: ``--select``, ``--budget``,
-``--target-mm``) only the chosen poses, random validation poses (``RUN/plan/validation.csv``)
-and repeats (pose_id ``p + r·10⁹``, ``RUN/plan/repeats.csv``) are toured.
+``RUN/campaign.yaml`` (with the robot, its tool and base frames and the grid's cells). A short
+campaign by default and with a selection (campaign.plan.selection: ``--select``, ``--budget``,
+``--target-mm``): only the chosen poses, random validation poses (``RUN/plan/validation.csv``)
+and repeats (pose_id ``p + r·10⁹``, ``RUN/plan/repeats.csv``) are toured. ``--all``: every
+suitable pose, the long campaign.
 """
 
 from __future__ import annotations
@@ -115,23 +117,28 @@ def _order_tour(robot, scene, grid, times, home, members):
 
 
 def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False,
-                  selection=None, robot: str | None = None, tool_frame: str | None = None,
+                  selection=None, all_poses: bool = False, robot: str | None = None, tool_frame: str | None = None,
                   base_frame: str | None = None) -> dict:
     """Plan a campaign; write the run's plan folder; return the summary (also in summary.json).
 
     config: a campaign.yaml path or a CampaignConfig; None: the run's own campaign.yaml when
     it has one, else the embedded default. robot (a name, URDF or robot.yaml), tool_frame,
     base_frame: plan for that robot instead of the configuration's (recorded in the run's
-    campaign.yaml). selection: a
-    :class:`campaign.plan.selection.SelectionOptions` to measure an optimal subset of the
-    suitable poses (plus validation poses and repeats) instead of all of them. Refused (one
-    line, nothing written) when the run holds measurements, when another process holds the
-    run's lock, or when no pose is suitable. The run's campaign.yaml and plan/ are written
-    only once the plan is made.
+    campaign.yaml). selection: a :class:`campaign.plan.selection.SelectionOptions` (the most
+    informative subset of the suitable poses, plus validation poses and repeats); None: the
+    default short campaign for the physical model, ``SelectionOptions(n=DEFAULT_SELECT)`` for the
+    geometry and the effects enabled in campaign.yaml (every suitable pose when there are fewer
+    than it would take). all_poses: every suitable pose instead, the long campaign a neural
+    compensator needs. The selection's accuracy prediction uses campaign.yaml's
+    ``tracker: {noise_m}`` when given. Refused (one line, nothing written) when the run holds
+    measurements, when another process holds the run's lock, or when no pose is suitable. The
+    run's campaign.yaml and plan/ are written only once the plan is made.
     """
     if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or \
             not 0 < grid_scale < float("inf"):
         raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
+    if all_poses and selection is not None:
+        raise ConfigError("--all plans every suitable pose: give it without --select, --budget or --target-mm")
     run = RunFolder(run_dir)
     if isinstance(config, CampaignConfig):
         cfg = config
@@ -147,7 +154,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     check_plannable(robot)
     if selection is not None and len(robot.reflectors) < 3:
         raise ConfigError(f"{robot.name}: a selection (--select, --budget, --target-mm) weighs 6-D poses from "
-                          f"three or more reflectors, and robot.yaml names {len(robot.reflectors)}; plan without one")
+                          f"three or more reflectors, and robot.yaml names {len(robot.reflectors)}; plan every suitable pose (--all)")
     scene = run.scene()
     base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(robot)
     cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
@@ -159,9 +166,24 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     cfg = dataclasses.replace(cfg, plan=dataclasses.replace(cfg.plan, grid_cells=tuple(int(c) for c in base_cells)))
     advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
     run.refuse_if_measured("planning again", advice)
+    from campaign.plan.selection import DEFAULT_SELECT, SelectionOptions
+
+    mode = "all" if all_poses else "default" if selection is None else "selection"
+    if mode == "default" and len(robot.reflectors) < 3:
+        mode = "all_reflectors"  # the selection weighs 6-D poses from three reflectors or more: plan them all
+    if mode == "default":
+        from campaign.effects.base import make_effect
+
+        # the effects a plan can teach: not those whose context is known only when measuring
+        effects = tuple(e for e in run.effects if not set(make_effect(e, robot).context_keys) - {"time_s"})
+        selection = SelectionOptions(n=DEFAULT_SELECT, effects=effects)
+    if selection is not None and selection.noise_m is None and cfg.tracker.noise_m is not None:
+        selection = dataclasses.replace(selection, noise_m=cfg.tracker.noise_m)  # the user's tracker, for the prediction
+    if selection is not None:
+        selection.check()
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
-        return _plan(run, cfg, robot, scene, grid, progress, selection)
+        return _plan(run, cfg, robot, scene, grid, progress, selection, mode)
 
 
 def _with_robot(cfg: CampaignConfig, robot, tool_frame, base_frame) -> CampaignConfig:
@@ -176,7 +198,7 @@ def _with_robot(cfg: CampaignConfig, robot, tool_frame, base_frame) -> CampaignC
     return dataclasses.replace(cfg, **kw)
 
 
-def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection) -> dict:
+def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection, mode) -> dict:
     t_start = time.perf_counter()
     timing = {}  # seconds per stage, wall
     clock = [t_start]
@@ -205,6 +227,8 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     times = GridTimes(robot, grid)
     home = np.array(grid.cells) // 2
     members, choice = suitable, None
+    if mode == "default" and len(suitable) < _default_size(selection):
+        selection, mode = None, "all_few"  # fewer suitable poses than the short campaign takes: all of them
     if selection is not None:
         from campaign.plan.selection import choose_campaign
 
@@ -268,6 +292,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     from campaign.plan.selection import write_choice
 
     write_choice(out, choice, order_final)  # without a choice: no validation.csv, repeats.csv
+    summary["campaign"] = _campaign_kind(mode, len(suitable), selection)
     if choice is not None:
         summary["selection"] = choice.summary
         summary["tour"]["repeats"] = int(np.sum(_grid_index(order_final) != order_final))
@@ -281,6 +306,26 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     atomic_write(out / "summary.json", json.dumps(summary, indent=2))
     return summary
+
+
+def _default_size(selection) -> int:
+    """Suitable poses the default short campaign takes: the selection and its validation poses."""
+    n = selection.n
+    return n + max(selection.min_validation, int(round(selection.validation_fraction * n)))
+
+
+def _campaign_kind(mode, n_suitable, selection) -> dict:
+    """summary.json's ``campaign``: which campaign was planned (``short`` or ``all``) and why."""
+    text = {
+        "default": (f"the default short campaign: the {selection.n if selection else 0} most informative poses for "
+                    "the physical model, validation poses and repeats (--all plans every suitable pose)"),
+        "selection": "a short campaign of the most informative poses (--select, --budget or --target-mm)",
+        "all": "every suitable pose (--all): the long campaign a neural compensator needs",
+        "all_few": f"every suitable pose: only {n_suitable:,}, fewer than the default short campaign takes",
+        "all_reflectors": ("every suitable pose: the short campaign's selection weighs 6-D poses from three "
+                           "reflectors or more, and robot.yaml names fewer"),
+    }[mode]
+    return {"kind": "all" if mode.startswith("all") else "short", "mode": mode, "text": text}
 
 
 def _grid_index(pose_ids):
