@@ -48,7 +48,8 @@ class FoldLinearisation:
     sigma: (len(rows),) row weights (m, rad); J: (n·rows, u) weighted Jacobian of the u current
     unknowns; residual: (n·rows,) weighted residual at the optimum; Q: (n·rows, u) orthonormal
     basis of J's normalised columns (the QR behind ``absorbed``); ref_diag: the largest QR
-    diagonal of the base columns; H: JᵀJ over the current model's free unknowns.
+    diagonal of the base columns; free: indices of the current unknowns that are fitted (not
+    absorbed); H: JᵀJ over those.
     """
 
     model: object
