@@ -27,23 +27,36 @@ LIFT_STEP = np.pi / 4
 LIFT_MAX_CANDIDATES = 200_000
 #: motion samples checked together (bounds memory at about 2 kB a sample)
 MOTION_CHUNK = 32_768
+#: every this-many-th sample of a motion is checked first (a collision usually shows there)
+COARSE_STRIDE = 8
 
 
-def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK):
+def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK, *, stop_at_first=False):
     """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, N) clear by
     ``clearance`` (m) at every sample ≤ ``max_step`` (rad) of joint motion apart.
 
     The end poses themselves are not re-checked here (they passed the pose filter at the
     stricter pose clearance); all inner samples of all segments are generated at once and
-    checked ``chunk`` at a time (FK, sphere bounds, FCL for what the bounds leave)."""
+    checked ``chunk`` at a time (FK, sphere bounds, FCL for what the bounds leave): every
+    :data:`COARSE_STRIDE`-th sample of each segment first, then the others of the segments
+    still clear (a colliding motion is usually found among the first, and costs no more).
+    ``stop_at_first``: return as soon as one segment collides (its path is lost; the others
+    are then left True, unchecked)."""
     ok = np.ones(len(Q_from), dtype=bool)
     if len(Q_from) == 0:
         return ok
     q, seg = interior_samples(Q_from, Q_to, max_step)
-    for s in range(0, len(q), chunk):
-        R, t = nominal_frames_entry_first(robot, q[s : s + chunk])
-        good = checker.clear_entry_first(R, t, clearance)
-        ok[seg[s : s + chunk][~good]] = False
+    within = np.arange(len(seg)) - np.searchsorted(seg, seg)  # sample number in its segment (seg ascends)
+    coarse = within % COARSE_STRIDE == 0
+    for first in (True, False):
+        todo = np.flatnonzero(coarse if first else ~coarse & ok[seg])
+        for s in range(0, len(todo), chunk):
+            idx = todo[s : s + chunk]
+            R, t = nominal_frames_entry_first(robot, q[idx])
+            good = checker.clear_entry_first(R, t, clearance)
+            ok[seg[idx][~good]] = False
+            if stop_at_first and not good.all():
+                return ok
     return ok
 
 
@@ -134,7 +147,7 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
             continue
         path = _via_path(robot, Q[prev], Q[k])
         if checker.clear(*frames(robot, path[1:3]), clearance).all() and \
-                check_segments(robot, checker, path[:-1], path[1:], max_step, clearance).all():
+                check_segments(robot, checker, path[:-1], path[1:], max_step, clearance, stop_at_first=True).all():
             vias[int(order[k])] = [path[1], path[2]]
             prev = k
         else:
