@@ -238,3 +238,25 @@ def test_a_fleet_of_runs_calibrated_on_dask_matches_the_local_calibrations(tmp_p
     # the two robots differ: the fleet did not calibrate one run twice
     a, b = (remote[str(r)]["stages"]["nominal"]["test"]["position_mm"]["mean"] for r in runs)
     assert abs(a - b) > 1e-3
+
+
+def test_a_late_progress_report_from_an_earlier_grid_or_a_finished_task_is_ignored():
+    """A worker's progress queue is flushed by a feeder thread: its last report of a CV task can
+    arrive after the task's result, while the same pool trains the final networks under a new
+    meter (seen once as KeyError 'nominal/8x8/cv'). Such reports change nothing."""
+    from campaign.ann.grid import GridMeter
+
+    seen = []
+    tasks = [{"id": "a/final", "members": [0, 1], "n_weights": 10}, {"id": "b/final", "members": [0], "n_weights": 20}]
+    meter = GridMeter(tasks, "adam", seen.append)
+    meter.units("a/final", 30.0)
+    assert seen[-1].done == 30.0 and seen[-1].tasks_done == 0
+    meter.units("nominal/8x8/cv", 500.0)  # from the grid before, on the same worker pool
+    assert len(seen) == 1
+    meter.done({"id": "a/final", "members": [{"epochs": 4}, {"epochs": 6}], "wall_s": 1.0})
+    done = seen[-1].done
+    assert done == (4 + 6) * 10 and seen[-1].tasks_done == 1
+    meter.units("a/final", 7.0)  # the finished task's last report, after its result
+    assert seen[-1].done == done and len(seen) == 2
+    meter.units("b/final", 5.0)
+    assert seen[-1].done == done + 5.0

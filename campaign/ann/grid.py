@@ -333,7 +333,7 @@ class GridProgress:
                 f"ETA {self.eta_s:.0f} s {self.last}")
 
 
-class _GridMeter:
+class GridMeter:
     """Turns the tasks' unit reports into GridProgress: the expected total is the finished tasks'
     actual work plus, for the others, members × weights × the mean epochs of finished members
     (a measured guess per solver before any has finished)."""
@@ -350,9 +350,14 @@ class _GridMeter:
         self.n = len(tasks)
 
     def units(self, tid, units):
+        # a worker's progress queue is flushed by a feeder thread, so its last report of a task
+        # may arrive after the task's result, even during the next grid on the same pool
+        # (the final trainings): reports of finished or unknown tasks are late, not news
         if units is None:
             return
         with self.lock:
+            if tid not in self.done_units or tid in self.finished:
+                return
             self.done_units[tid] += units
         self._emit()
 
@@ -476,7 +481,7 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
     own = executor is None
     executor = executor or SerialExecutor()
     say = progress if progress is not None else None
-    meter = _GridMeter(tasks, solver, say)
+    meter = GridMeter(tasks, solver, say)
     try:
         t0 = time.perf_counter()
         results = executor.map(run_task, tasks, meter.units, meter.done)
@@ -516,7 +521,7 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                                     {prior: dz}, best["hidden"], members, seed, solver, mapping, options, device))
         nets = {}
         if finals:
-            fmeter = _GridMeter(finals, solver, say)
+            fmeter = GridMeter(finals, solver, say)
             for r in executor.map(run_task, finals, fmeter.units, fmeter.done):
                 prior = r["id"].split("/")[0]
                 m = r["members"][0]
