@@ -542,3 +542,38 @@ def test_a_move_of_another_joint_count_says_how_many_and_six_stay_as_they_were()
         P.decode(b'{"type": "move", "id": 1, "joints": 7, "q": [0, 0, 0, 0, 0, 0]}')
     with pytest.raises(ProtocolError, match=r"field 'joints' must be an integer in 1\.\.32"):
         P.decode(b'{"type": "move", "id": 1, "joints": 0, "q": []}')
+
+
+def test_campaign_sim_serves_the_robot_the_run_records_and_refuses_another(tmp_path, capsys, panda_yaml):
+    """`campaign sim --run RUN` for a run planned for the Panda serves the Panda (not the default
+    robot): a driver measures 7-joint poses through its ports; `--robot` naming another robot
+    than the run records is one line, exit 1, and the run folder is left as it was."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from campaign.measure.store import open_run
+
+    run = _plan(tmp_path, ["--robot", str(panda_yaml)], [3, 3, 3, 2, 3, 3, 3], ["--select", "12", "--validation", "0.5"])
+    before = sorted(p.name for p in run.iterdir())
+    assert main(["sim", "--run", str(run), "--robot", str(_urdf("ur10")), "--tool-frame", "tool0"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(r"records robot .*panda.*simulate that one", err[0]), err
+    assert sorted(p.name for p in run.iterdir()) == before
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    cell = subprocess.Popen([sys.executable, "-m", "campaign.cli", "sim", "--run", str(run)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = cell.stdout.readline()
+        assert "panda" in line, line + cell.stderr.read()
+        ports = dict(re.findall(r"(controller|tracker) 127\.0\.0\.1:(\d+)", line))
+        assert main(["run", str(run), "--controller", f"127.0.0.1:{ports['controller']}",
+                     "--tracker", f"127.0.0.1:{ports['tracker']}", "--quiet"]) == 0
+    finally:
+        cell.send_signal(signal.SIGINT)
+        cell.wait(timeout=30)
+    with open_run(run) as store:
+        poses = store.load_measured()
+    _, ids, _ = _read_poses(run)
+    assert len(poses) == len(ids) and poses.q.shape[1] == 7

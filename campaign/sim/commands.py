@@ -13,7 +13,13 @@ def register(sub):
                     "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml; "
                     "one cell serves a run at a time (it holds RUN/sim/.lock while it serves). "
                     "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`.")
-    s.add_argument("--config", metavar="FILE", default=None, help="configuration (default: the embedded one)")
+    s.add_argument("--config", metavar="FILE", default=None,
+                   help="configuration (default: RUN/campaign.yaml, or the embedded one for a run without it)")
+    s.add_argument("--robot", metavar="NAME|URDF|robot.yaml", default=None,
+                   help="the cell's robot (default: the one RUN/campaign.yaml records, or the configuration's); "
+                        "a run that records another robot is refused")
+    s.add_argument("--tool-frame", metavar="LINK", default=None, help="the robot's tool frame (default: the robot's)")
+    s.add_argument("--base-frame", metavar="LINK", default=None, help="the robot's base frame (default: the URDF's root)")
     s.add_argument("--run", metavar="DIR", default="runs/sim",
                    help="where the simulator keeps its truth (RUN/sim/) and whose campaign clock it continues "
                         "(default: %(default)s)")
@@ -87,22 +93,49 @@ def _synth(args):
 def _sim(args):
     import time
 
-    from campaign.config import load_config
     from campaign.run import RunFolder
     from campaign.sim.cell import start_cell
 
-    cfg = load_config(args.config)
-    run = RunFolder(args.run)
+    run = RunFolder(args.run, config=args.config)
+    cfg = sim_config(run, args.robot, args.tool_frame, args.base_frame)
     # the cell writes RUN/sim/ while it serves and holds RUN/sim/.lock all that time (a driver
     # may hold RUN/.lock beside it: `campaign run RUN --controller ... --tracker ...`)
     with run.sim_lock("sim"):
         # a run that holds measurements continues its campaign clock (never backwards)
         world, ctrl, trk = start_cell(cfg, run.path, args.host, args.controller_port, args.tracker_port,
                                       run.clock_s())
-        print(f"simulated cell: controller {args.host}:{ctrl.port}, tracker {args.host}:{trk.port} "
-              f"(truth in {world.truth_path}); Ctrl-C stops", flush=True)
+        print(f"simulated cell: {world.robot.name}, controller {args.host}:{ctrl.port}, "
+              f"tracker {args.host}:{trk.port} (truth in {world.truth_path}); Ctrl-C stops", flush=True)
         try:
             while True:
                 time.sleep(3600)
         except KeyboardInterrupt:
             return 0
+
+
+def sim_config(run, robot=None, tool_frame=None, base_frame=None):
+    """The configuration a simulated cell for ``run`` serves: the run's (RUN/campaign.yaml, or
+    the one given), with ``robot`` and its frames in place of its robot where given. A run that
+    records another robot is a ConfigError: the cell never simulates a robot the run is not."""
+    import dataclasses
+
+    from campaign.errors import ConfigError
+    from campaign.run import RunFolder, load_robot, same_robot
+
+    run.check_recorded_robot()
+    cfg = run.config
+    if robot is None and tool_frame is None and base_frame is None:
+        return cfg
+    kw = {"robot": str(Path(robot).resolve()) if robot is not None and Path(robot).exists() else robot,
+          "tool_frame": tool_frame, "base_frame": base_frame}
+    if robot is None:  # new frames on the configuration's robot
+        kw = {"robot": cfg.robot_spec, "tool_frame": tool_frame or cfg.tool_frame,
+              "base_frame": base_frame or cfg.base_frame}
+    asked = dataclasses.replace(cfg, **kw)
+    wanted = load_robot(asked.robot_spec, tool_frame=asked.tool_frame, base_frame=asked.base_frame)
+    recorded = RunFolder(run.path)
+    if recorded.has_config and not same_robot(wanted, recorded.robot()):
+        raise ConfigError(f"--robot {robot or cfg.robot}: {recorded.config_path} records robot "
+                          f"{recorded.config.robot!r} (tool frame {recorded.robot().tool_frame}); "
+                          f"simulate that one, or use another --run")
+    return asked
