@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from campaign.cli import main
 from campaign.identify.split import train_test_split
@@ -44,9 +45,10 @@ def test_heldout_error_reaches_the_noise_floor(which, kind, tmp_path, capsys):
     assert main(["synth", "--csv", str(csv_path), "--truth", str(truth_path), "--robot", urdf, "--tool-frame", tool,
                  "--poses", "360", "--seed", "5", "--kind", kind, "--frame", "tracker", *extra]) == 0
     markers = []
-    if kind == "markers":
-        (tmp_path / "markers.yaml").write_text("markers: [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]]\n")
-        markers = ["--markers", str(tmp_path / "markers.yaml")]
+    if kind == "markers":  # synth writes the nominal positions beside the CSV: the default triad here
+        assert yaml.safe_load((tmp_path / "m.markers.yaml").read_text()) == \
+            {"markers": [[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]]}
+        markers = ["--markers", str(tmp_path / "m.markers.yaml")]
     run = tmp_path / "run"
     assert main(["import", str(csv_path), "--run", str(run), "--robot", urdf, "--tool-frame", tool,
                  "--frame", "tracker", "--quiet", *markers]) == 0

@@ -87,7 +87,21 @@ def _synth(args):
     truth_path = Path(args.truth) if args.truth else out.with_suffix(".truth.yaml")
     write_truth(truth, truth_path)
     print(f"wrote {len(poses)} poses to {out}; truth to {truth_path}")
+    if args.kind == "markers":  # the reflectors' nominal positions: what the user knows of the tool, not truth
+        from campaign.fileio import atomic_write
+
+        markers_path = out.with_suffix(".markers.yaml")
+        atomic_write(markers_path, yaml_markers(poses.marker_positions))
+        print(f"nominal reflector positions (tool frame, m) in {markers_path}: "
+              f"`campaign import {out} --markers {markers_path} ...`")
     return 0
+
+
+def yaml_markers(P) -> str:
+    """``markers: [[x, y, z], ...]`` (m, tool frame), the file `campaign import --markers` reads."""
+    import yaml
+
+    return yaml.safe_dump({"markers": [[float(v) for v in p] for p in P]}, default_flow_style=None)
 
 
 def _sim(args):
