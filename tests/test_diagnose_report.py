@@ -63,3 +63,12 @@ def test_the_diagnose_report_renders_in_headless_chromium(diagnosed, tmp_path):
     # the text box ends inside the page: no dark pixels in the right margin beside it
     shot = np.asarray(Image.open(tmp_path / "bare.png").convert("L"))
     assert np.mean(shot[:600, 1380:] < 200) < 0.001
+
+
+@pytest.mark.parametrize("key, label", [("temperature_c", "temperature [°C]"), ("humidity_pct", "humidity [%]"),
+                                        ("payload_kg", "payload [kg]"), ("tool_temp_mm", "tool_temp [mm]"),
+                                        ("shift", "shift"), ("_c", "_c")])
+def test_context_columns_are_labelled_with_the_unit_their_name_carries(key, label):
+    from campaign.diagnose.report import context_label
+
+    assert context_label(key) == label

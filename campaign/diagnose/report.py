@@ -72,13 +72,28 @@ def plot_against_context(residuals, series: dict, is_test, out: Path, name: str 
                                "(line) and 90 % band (5–95 % quantiles)", out, name)
 
 
+#: a context column's unit from its name's suffix (``temperature_c``, ``humidity_pct``, ...)
+UNIT_SUFFIXES = {"_c": "°C", "_k": "K", "_s": "s", "_h": "h", "_m": "m", "_mm": "mm", "_um": "µm", "_deg": "deg",
+                 "_rad": "rad", "_pct": "%", "_pa": "Pa", "_hpa": "hPa", "_kg": "kg", "_nm": "N·m"}
+
+
+def context_label(key: str) -> str:
+    """A context column's axis label with its unit: ``temperature_c`` -> ``temperature [°C]``;
+    a name without a known unit suffix as it is."""
+    for suffix in sorted(UNIT_SUFFIXES, key=len, reverse=True):
+        if key.lower().endswith(suffix) and len(key) > len(suffix):
+            return f"{key[:-len(suffix)]} [{UNIT_SUFFIXES[suffix]}]"
+    return key
+
+
 def _axis(name, x):
-    """An input's values for a plot axis and its label: joints in deg, time in h, context as is."""
+    """An input's values for a plot axis and its label: joints in deg, time in h, context with
+    the unit its name carries."""
     if name.startswith("q") and name[1:].isdigit():
         return np.rad2deg(x), f"{name} [deg]"
     if name == "time_s":
         return x / 3600.0, "time [h]"
-    return x, name
+    return x, context_label(name)
 
 
 def plot_signature(diagnosis, out: Path, name: str = "signature.png", max_inputs: int = 8) -> str | None:
@@ -149,7 +164,7 @@ def write_report(diagnosis, poses, robot) -> Path:
     for key in sorted(poses.context):
         v = np.asarray(poses.context[key], dtype=float)
         if v.shape == (len(poses.q),) and np.all(np.isfinite(v)) and np.ptp(v) > 0:
-            series["temperature [°C]" if key == "temperature_c" else key] = v
+            series[context_label(key)] = v
     series["overturning moment |M| [N·m]"] = np.linalg.norm(overturning_moment(robot, poses.q), axis=1)
     tau = gravity_torques(robot, poses.q)
     for j in sorted(np.argsort(np.ptp(tau, axis=0))[::-1][:2]):  # the two joints the load varies most
