@@ -7,7 +7,8 @@ import sys
 
 def register(sub):
     p = sub.add_parser("import", help="turn a measured-pose CSV into a run folder")
-    p.add_argument("csv", metavar="CSV", help="measured-pose CSV (pose_id,time_s,q1..q6,x,y,z,rx,ry,rz[,extra...])")
+    p.add_argument("csv", metavar="CSV",
+                   help="measured-pose CSV (pose_id[,time_s],q1..qN, then x,y,z[,rx,ry,rz] or m1_x..mk_z[,extra...])")
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
     p.add_argument("--robot", default=None,
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
@@ -76,9 +77,9 @@ def register(sub):
     p = sub.add_parser("predict", help="calibrated pose of E in F_I for given joint coordinates")
     p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
     p.add_argument("--csv", required=True, metavar="IN",
-                   help="CSV with q1..q6 (rad), optional pose_id and context columns (time_s, temperature_c, ...)")
+                   help="CSV with q1..qN (rad, N the robot's joints), optional pose_id and context columns (time_s, temperature_c, ...)")
     p.add_argument("--out", metavar="OUT", default=None,
-                   help="CSV to write: pose_id,q1..q6,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
+                   help="CSV to write: pose_id,q1..qN,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.set_defaults(func=_predict)
 
@@ -86,9 +87,9 @@ def register(sub):
                        help="corrected joint commands that bring the real tool to the nominal poses of given commands")
     p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
     p.add_argument("--csv", required=True, metavar="IN",
-                   help="CSV with nominal joint commands q1..q6 (rad), optional pose_id and context columns")
+                   help="CSV with nominal joint commands q1..qN (rad), optional pose_id and context columns")
     p.add_argument("--out", metavar="OUT", default=None,
-                   help="CSV to write: pose_id,q1..q6 (corrected, rad),dq1..dq6,residual_position_mm,"
+                   help="CSV to write: pose_id,q1..qN (corrected, rad),dq1..dqN,residual_position_mm,"
                         "residual_orientation_mrad,converged,within_limits (default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.set_defaults(func=_compensate)

@@ -257,7 +257,7 @@ def write_table(path, header, rows) -> None:
 
 
 def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):
-    """Rows ``pose_id,q1..q6,x,y,z,rx,ry,rz`` (m, rad) of the calibrated poses."""
+    """Rows ``pose_id,q1..qN,x,y,z,rx,ry,rz`` (m, rad) of the calibrated poses."""
     T = calibrated.predict(q, context)
     rv = matrix_to_rotvec(T[:, :3, :3])
     header = ["pose_id", *joint_columns(calibrated.robot.n_joints), *POSE_COLUMNS]
@@ -270,7 +270,7 @@ def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):
 def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context):
     """Rows of corrected joint commands for the poses the nominal model gives at q_nominal.
 
-    Columns: ``pose_id, q1..q6`` (corrected, rad), ``dq1..dq6`` (correction, rad),
+    Columns: ``pose_id, q1..qN`` (corrected, rad), ``dq1..dqN`` (correction, rad),
     ``residual_position_mm, residual_orientation_mrad`` (model at the corrected q vs target),
     ``converged``, ``within_limits`` (0/1). Returns (header, rows, converged, within_limits).
     """
