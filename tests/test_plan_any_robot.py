@@ -510,8 +510,7 @@ def test_the_robot_named_in_campaign_yaml_is_planned_for_and_recorded(tmp_path, 
 @pytest.mark.parametrize("args, message", [
     (["--robot", "{tmp}/nowhere.urdf"], r"robot '.*nowhere\.urdf': neither a URDF file"),
     (["--robot", "{ur10}", "--tool-frame", "flange"], r"tool frame 'flange' is not a link of ur10_robot\.urdf"),
-    (["--robot", "{one}", "--select", "20"], r"a selection .* weighs 6-D poses from three or more reflectors, and "
-                                             r"robot\.yaml names 1; plan every suitable pose \(--all\)"),
+    (["--robot", "{one}", "--select", "9"], r"--select 9: 29 unknowns need at least 10 poses \(3 equations each\)"),
     (["--robot", "{ur10}", "--tool-frame", "tool0", "--config", "{tmp}/upside.yaml"], r"down must not be zero"),
 ])
 def test_bad_robot_or_cell_for_another_robot_is_one_line_and_exit_1(tmp_path, capsys, args, message):
@@ -527,6 +526,30 @@ def test_bad_robot_or_cell_for_another_robot_is_one_line_and_exit_1(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.search(message, err[0]), err
     assert not run.exists()
+
+
+def test_a_one_reflector_robot_gets_the_short_campaign_by_default_and_a_selection_on_request(tmp_path):
+    """One reflector: each pose measures its position (3 equations), and the selection weighs
+    exactly that; the default plan is the short campaign (120 poses, validation, repeats), not
+    every suitable pose; `--select` chooses the number asked."""
+    (tmp_path / "one.yaml").write_text(yaml.safe_dump({"urdf": str(_urdf("panda")), "tool_frame": "panda_hand",
+                                                       "reflectors": [{"name": "m1", "position_m": [0, 0, 0.12]}]}))
+    cells = [6, 4, 5, 4, 5, 4, 3]
+    (tmp_path / "default").mkdir()
+    (tmp_path / "chosen").mkdir()
+    default = _plan(tmp_path / "default", ["--robot", str(tmp_path / "one.yaml")], cells, ())
+    s = json.loads((default / "plan" / "summary.json").read_text())
+    assert s["campaign"]["kind"] == "short" and s["campaign"]["mode"] == "default" and s["suitable"] > 150
+    sel = s["selection"]
+    assert (sel["selected"], sel["validation"], sel["repeated_poses"]) == (120, 30, 3)
+    assert sel["measured"]["kind"] == "points" and sel["measured"]["equations_per_pose"] == 3
+    assert sel["predicted"]["model_orientation_mrad"] is None
+    assert 0 < sel["predicted"]["model_position_mm"] < sel["predicted"]["heldout_position_mm"]
+    _, ids, _ = _read_poses(default)
+    assert len(ids) == 120 + 30 + 3 * 2 - s["tour"]["dropped"]
+    chosen = _plan(tmp_path / "chosen", ["--robot", str(tmp_path / "one.yaml")], cells, ("--select", "15"))
+    s = json.loads((chosen / "plan" / "summary.json").read_text())
+    assert s["selection"]["selected"] == 15 and s["selection"]["n_unknowns"] == 29
 
 
 def test_a_move_of_another_joint_count_says_how_many_and_six_stay_as_they_were():

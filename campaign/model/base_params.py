@@ -17,7 +17,7 @@ import numpy as np
 import scipy.linalg
 
 from campaign.errors import IdentificationError
-from campaign.model.kinematics import PARAM_NAMES, PARAM_UNITS, error_jacobian
+from campaign.model.kinematics import PARAM_NAMES, PARAM_UNITS, error_jacobian, forward
 from campaign.model.robot import RobotModel
 from campaign.tolerances import BASE_PARAM_COEFF_ATOL, BASE_PARAM_RANK_RTOL
 
@@ -108,20 +108,35 @@ class BaseParameters:
         return "\n".join(lines)
 
 
-def regressor(robot: RobotModel, n_poses: int = 200, seed: int = 0, position_only: bool = False):
-    """The stacked nominal regressor of random poses, (6 n or 3 n, 6N + 12)."""
+def point_rows(J, d) -> np.ndarray:
+    """Position rows of points off the tool point: ``J`` (n, 6, p) the pose error's derivative
+    (δt at the tool point, δφ in F_I), ``d`` (n, k, 3) m from the tool point to each point in F_I.
+    A point moves by ``δt + δφ × d``: (n, k, 3, p)."""
+    return J[:, None, :3, :] - np.cross(d[:, :, :, None], J[:, None, 3:, :], axis=2)
+
+
+def regressor(robot: RobotModel, n_poses: int = 200, seed: int = 0, position_only: bool = False, points=None):
+    """The stacked nominal regressor of random poses, (6 n or 3 n, 6N + 12); with ``points``
+    (k, 3) m in the tool frame (position_only): the positions of those points, (3 k n, 6N + 12)."""
     rng = np.random.default_rng(seed)
     q = rng.uniform(robot.q_lower, robot.q_upper, size=(n_poses, robot.n_joints))
     J = error_jacobian(robot, q)
-    if position_only:
+    if points is not None:
+        d = np.asarray(points, dtype=float).reshape(-1, 3) @ np.swapaxes(forward(robot, q)[:, :3, :3], 1, 2)
+        J = point_rows(J, d)
+    elif position_only:
         J = J[:, :3, :]
     return J.reshape(-1, robot.n_params)
 
 
 def base_parameters(robot: RobotModel, *, position_only: bool = False, n_poses: int = 200,
-                    seed: int = 0, priority=None) -> BaseParameters:
-    """Compute the base parameter set of ``robot`` from a random-pose regressor."""
-    W = regressor(robot, n_poses, seed, position_only)
+                    seed: int = 0, priority=None, points=None) -> BaseParameters:
+    """Compute the base parameter set of ``robot`` from a random-pose regressor. points: (k, 3) m
+    in the tool frame, measured by position only (position_only): the set of their positions
+    (default: the tool point's)."""
+    if points is not None and not position_only:
+        raise IdentificationError("base_parameters: points are measured by position only (position_only=True)")
+    W = regressor(robot, n_poses, seed, position_only, points)
     # columns in m and rad: scale to unit norm so the rank test compares like with like
     norms = np.linalg.norm(W, axis=0)
     zero_cols = norms < 1e-12 * max(norms.max(), 1.0)

@@ -129,6 +129,8 @@ def selection_text(sel) -> str:
         f"selection ({sel['criterion']}-optimal for {what}; {sel['n_unknowns']} unknowns: geometry{eff}): "
         f"{sel['selected']} poses chosen, {sel['validation']} random validation poses added, "
         f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times",
-        f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position, "
-        f"{p['model_orientation_mrad']:.3f} mrad; held-out {1e3 * p['heldout_position_mm']:.1f} µm "
-        f"(tracker noise alone {1e3 * p['noise_position_mm']:.1f} µm)"])
+        f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position"
+        + (f", {p['model_orientation_mrad']:.3f} mrad" if p.get("model_orientation_mrad") is not None
+           else f" of the measured reflector{'s' if len(sel['measured']['reflectors']) > 1 else ''} (position only)")
+        + f"; held-out {1e3 * p['heldout_position_mm']:.1f} µm "
+          f"(tracker noise alone {1e3 * p['noise_position_mm']:.1f} µm)"])

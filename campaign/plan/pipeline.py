@@ -152,9 +152,6 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     from campaign.plan.geometry import check_plannable
 
     check_plannable(robot)
-    if selection is not None and len(robot.reflectors) < 3:
-        raise ConfigError(f"{robot.name}: a selection (--select, --budget, --target-mm) weighs 6-D poses from "
-                          f"three or more reflectors, and robot.yaml names {len(robot.reflectors)}; plan every suitable pose (--all)")
     scene = run.scene()
     base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(robot)
     cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
@@ -169,8 +166,6 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     from campaign.plan.selection import DEFAULT_SELECT, SelectionOptions
 
     mode = "all" if all_poses else "default" if selection is None else "selection"
-    if mode == "default" and len(robot.reflectors) < 3:
-        mode = "all_reflectors"  # the selection weighs 6-D poses from three reflectors or more: plan them all
     if mode == "default":
         from campaign.effects.base import make_effect
 
@@ -322,8 +317,6 @@ def _campaign_kind(mode, n_suitable, selection) -> dict:
         "selection": "a short campaign of the most informative poses (--select, --budget or --target-mm)",
         "all": "every suitable pose (--all): the long campaign a neural compensator needs",
         "all_few": f"every suitable pose: only {n_suitable:,}, fewer than the default short campaign takes",
-        "all_reflectors": ("every suitable pose: the short campaign's selection weighs 6-D poses from three "
-                           "reflectors or more, and robot.yaml names fewer"),
     }[mode]
     return {"kind": "all" if mode.startswith("all") else "short", "mode": mode, "text": text}
 

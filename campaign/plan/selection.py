@@ -5,25 +5,34 @@ The unknowns are those `calibrate` identifies: the geometric base parameters
 Their Jacobian is the identification's own (``CalibrationModel``'s rows ``∂Δz/∂x`` at the start
 point ``x = 0``: analytic for the geometry, numerical for the effects, as the solver does).
 
-What the tracker measures is the three reflectors, each coordinate with noise σ (m). The pose
-derived from them by Kabsch carries, to first order, the information of the nine coordinates:
-``Λ_i = Aᵢᵀ Aᵢ / σ²`` (6×6) with ``Aᵢ`` (9×6) the map of a twist of F_E (δt at E's origin, δφ in
-F_I) to the reflectors' displacements. So every candidate contributes a 6-row block
-``Bᵢ = Lᵢᵀ Jᵢ`` (``Λᵢ = Lᵢ Lᵢᵀ``) to the information matrix ``M = Σ Bᵢᵀ Bᵢ``. Columns are scaled
-to unit mean information over the candidates (D-optimality does not depend on that scale).
+What the tracker measures is the tool's reflectors, each coordinate with noise σ (m).
+
+* Three reflectors or more: the pose derived from them by Kabsch carries, to first order, the
+  information of their coordinates: ``Λ_i = Aᵢᵀ Aᵢ / σ²`` (6×6) with ``Aᵢ`` (3k×6) the map of a
+  twist of F_E (δt at E's origin, δφ in F_I) to the reflectors' displacements. Every candidate
+  contributes a 6-row block ``Bᵢ = Lᵢᵀ Jᵢ`` (``Λᵢ = Lᵢ Lᵢᵀ``).
+* One or two reflectors (position-only data): no pose is derived; the k reflector positions are
+  the measurement, 3k rows ``Bᵢ = (∂ reflector positions/∂ unknowns) / σ``. The unknowns are
+  then the position-only base parameters, as `calibrate` identifies them from one-reflector
+  data: those of the robot whose tool point is the (first) reflector
+  (``RobotModel.with_tool_point``), of the positions of all k reflectors.
+
+The information matrix is ``M = Σ Bᵢᵀ Bᵢ``. Columns are scaled to unit mean information over the
+candidates (D-optimality does not depend on that scale).
 
 Criteria: ``D`` maximises log det M; ``A`` minimises tr M⁻¹ (scaled parameters); ``I``
 minimises the mean variance of the predicted tool position over the candidates
 (tr W M⁻¹, ``W = mean Jₜᵀ Jₜ``). Greedy selection keeps, for every candidate, ``Gⱼ = Bⱼ M⁻¹ Bⱼᵀ``
-(6×6) up to date with rank-6 (Woodbury) updates, so adding ``Bⱼ`` gains
-``log det(I + Gⱼ)`` (matrix determinant lemma). DETMAX exchange passes (Mitchell 1974: add the
-best candidate, remove the least useful pose, stop when that is the one just added) then improve
-the greedy set. With a time cost per pose, the greedy step maximises gain per second.
+(b×b, b the rows of a block: 6, or 3 for one reflector) up to date with rank-b (Woodbury)
+updates, so adding ``Bⱼ`` gains ``log det(I + Gⱼ)`` (matrix determinant lemma). DETMAX exchange
+passes (Mitchell 1974: add the best candidate, remove the least useful pose, stop when that is
+the one just added) then improve the greedy set. With a time cost per pose, the greedy step maximises gain per second.
 
 The predicted accuracy (:func:`predict_accuracy`) is the covariance of the estimator that
 `calibrate` runs (row weights by block, from the noise: a sandwich ``H⁻¹ S H⁻¹``), carried to
-the tool pose at every candidate: the expected error of the model against the truth, and the
-expected held-out error (model error plus the measurement's own noise).
+the tool pose at every candidate (for position-only data: to the measured reflector positions;
+no orientation): the expected error of the model against the truth, and the expected held-out
+error (model error plus the measurement's own noise).
 """
 
 from __future__ import annotations
@@ -34,7 +43,7 @@ import numpy as np
 
 from campaign.effects.base import EffectSet, effect_context, make_effect, model_pose
 from campaign.errors import ConfigError
-from campaign.model.base_params import base_parameters
+from campaign.model.base_params import base_parameters, point_rows
 from campaign.model.kinematics import forward
 
 #: Leica LTD800: σ per coordinate of a reflector centre (m), the simulated tracker's default too;
@@ -49,10 +58,12 @@ DEFAULT_SELECT = 120
 #: ridge of the information matrix before any pose is chosen, relative to the mean
 #: information of one pose per (scaled) parameter: it only orders the first few picks
 RIDGE = 1e-6
-#: G is recomputed from M⁻¹ every this many rank-6 updates (bounds round-off drift)
+#: G is recomputed from M⁻¹ every this many rank-b updates (bounds round-off drift)
 REFRESH_EVERY = 64
 #: normal samples per pose for the expected norm of a 3-D Gaussian error
 NORM_SAMPLES = 256
+#: poses per chunk of those samples (4096 × 256 × 3 doubles: 25 MB)
+NORM_CHUNK = 4096
 CRITERIA = ("D", "A", "I")
 
 
@@ -61,10 +72,14 @@ class Information:
     """Per-candidate information about the unknowns.
 
     names, units: (p,) of the unknowns (base parameters, then effect parameters);
-    J: (m, 6, p) ``∂Δz/∂x`` (rows: position m, orientation rad, per unit of each unknown);
-    noise_cov: (m, 6, 6) covariance of the measured Δz (m², m·rad, rad²);
-    blocks: (m, 6, p) whitened, column-scaled rows (``blocksᵀ blocks`` = information);
-    scale: (p,) the column scale (``blocks = Lᵀ J / scale``).
+    J: (m, r, p) the derivative of what is measured per unit of each unknown: with
+    ``measured`` "pose", ``∂Δz/∂x`` (r = 6 rows: position m, orientation rad); with "points",
+    the positions (m) of the k measured reflectors, (r = 3k rows: x, y, z of each in turn);
+    noise_cov: (m, r, r) covariance of the measurement (m², m·rad, rad²);
+    blocks: (m, r, p) whitened, column-scaled rows (``blocksᵀ blocks`` = information);
+    scale: (p,) the column scale (``blocks = Lᵀ J / scale``);
+    measured: "pose" (a 6-D pose from three reflectors or more) or "points" (the positions of
+    one or two reflectors).
     """
 
     names: tuple
@@ -73,6 +88,7 @@ class Information:
     noise_cov: np.ndarray
     blocks: np.ndarray
     scale: np.ndarray
+    measured: str = "pose"
 
     @property
     def n_candidates(self) -> int:
@@ -82,11 +98,29 @@ class Information:
     def n_unknowns(self) -> int:
         return self.J.shape[2]
 
+    @property
+    def block_size(self) -> int:
+        """Rows (equations) a candidate contributes: 6 for a pose, 3 per measured point."""
+        return self.J.shape[1]
+
+    @property
+    def n_points(self) -> int:
+        """Points whose position the prediction is about: the tool point of a pose, or the k
+        measured reflectors."""
+        return 1 if self.measured == "pose" else self.block_size // 3
+
+    def position_rows(self, index=None) -> np.ndarray:
+        """The position rows of J, (m, n_points, 3, p) m per unit of each unknown."""
+        J = self.J if index is None else self.J[np.asarray(index, dtype=np.int64)]
+        if self.measured == "pose":
+            return J[:, None, :3, :]
+        return J.reshape(len(J), self.n_points, 3, self.n_unknowns)
+
     def subset(self, index) -> "Information":
         """The candidates ``index`` alone (same column scale)."""
         index = np.asarray(index, dtype=np.int64)
         return Information(self.names, self.units, self.J[index], self.noise_cov[index], self.blocks[index],
-                           self.scale)
+                           self.scale, self.measured)
 
     def information(self, index) -> np.ndarray:
         """Scaled information matrix (p, p) of the poses ``index`` (repeats count twice)."""
@@ -114,9 +148,10 @@ def reflector_pose_noise(robot, q, noise_m: float = TRACKER_NOISE_M) -> np.ndarr
     return np.linalg.inv(info)
 
 
-def unknowns_jacobian(robot, q, effects=(), context=None):
+def unknowns_jacobian(robot, q, effects=(), context=None, base=None):
     """``∂Δz/∂x`` (n, 6, p) at the identification's start point (x = 0), with the unknowns'
-    names and units: exactly the rows `calibrate`'s solver builds (CalibrationModel)."""
+    names and units: exactly the rows `calibrate`'s solver builds (CalibrationModel). base:
+    the geometric base parameters (default: those of 6-D poses)."""
     from campaign.identify.solver import CalibrationModel
 
     q = np.asarray(q, dtype=float)
@@ -130,7 +165,7 @@ def unknowns_jacobian(robot, q, effects=(), context=None):
     # the solver's own Jacobian, evaluated without fitting (its _jacobian reads these two)
     probe = CalibrationModel(robot=robot, effects=es.effects)
     probe.effect_set_ = es
-    probe.base_ = base_parameters(robot)
+    probe.base_ = base_parameters(robot) if base is None else base
     theta = es.initial_params()
     T0 = model_pose(robot, q, None, es, theta, ctx)
     J = probe._jacobian(q, probe.base_.expand(np.zeros(probe.base_.n_base)), theta, ctx, T0)
@@ -139,16 +174,53 @@ def unknowns_jacobian(robot, q, effects=(), context=None):
     return J, names, units
 
 
+def measures_points(robot) -> bool:
+    """Whether a campaign of ``robot`` measures reflector positions only (robot.yaml names one
+    or two reflectors) rather than 6-D poses (three or more, by Kabsch)."""
+    return 1 <= len(robot.reflectors) <= 2
+
+
+def position_only_jacobian(robot, q, effects=(), context=None):
+    """The positions of the robot's k (1 or 2) reflectors against the unknowns of position-only
+    data: (n, 3k, p) m per unit of each unknown (rows x, y, z of each reflector in F_I), with the
+    unknowns' names and units.
+
+    The model is `calibrate`'s for one-reflector data: the robot whose tool point is the first
+    reflector (:meth:`RobotModel.with_tool_point`), its position-only base parameters (of all k
+    reflectors' positions) and the effects' parameters. A reflector at ``d`` (F_I) from the tool
+    point moves by ``δt + δφ × d`` under the model's pose error (δt, δφ)."""
+    P = np.asarray(robot.reflector_positions_in_E, dtype=float)
+    tool = robot.with_tool_point(P[0])
+    offsets = P - P[0]  # from the tool point, in the (unturned) tool frame
+    base = base_parameters(tool, position_only=True) if len(P) == 1 else \
+        base_parameters(tool, position_only=True, points=offsets)
+    J6, names, units = unknowns_jacobian(tool, q, effects, context, base=base)
+    if len(P) == 1:
+        return np.ascontiguousarray(J6[:, :3, :]), names, units
+    d = offsets @ np.swapaxes(forward(tool, q)[:, :3, :3], 1, 2)  # (n, k, 3) in F_I
+    J = point_rows(J6, d)
+    return J.reshape(len(q), 3 * len(P), -1), names, units
+
+
 def information_model(robot, q, *, effects=(), noise_m: float = TRACKER_NOISE_M, context=None,
                       noise_cov=None) -> Information:
-    """The :class:`Information` of candidate joint vectors q (m, 6) rad.
+    """The :class:`Information` of candidate joint vectors q (m, N) rad.
 
-    noise_cov: (m, 6, 6) covariance of each measured Δz; default: the three reflectors, each
-    coordinate with σ = ``noise_m`` (m), fitted by Kabsch (:func:`reflector_pose_noise`).
+    A robot with three reflectors or more: 6-D poses, noise_cov (m, 6, 6) the covariance of each
+    measured Δz, default: the reflectors, each coordinate with σ = ``noise_m`` (m), fitted by
+    Kabsch (:func:`reflector_pose_noise`). One or two reflectors: their positions
+    (:func:`position_only_jacobian`), each coordinate with σ = ``noise_m`` (noise_cov (m, 3k, 3k)).
     """
     q = np.asarray(q, dtype=float)
-    J, names, units = unknowns_jacobian(robot, q, effects, context)
-    cov = reflector_pose_noise(robot, q, noise_m) if noise_cov is None else np.asarray(noise_cov, dtype=float)
+    if measures_points(robot):
+        J, names, units = position_only_jacobian(robot, q, effects, context)
+        measured = "points"
+        cov = np.broadcast_to(noise_m**2 * np.eye(J.shape[1]), (len(q),) + (J.shape[1],) * 2).copy() \
+            if noise_cov is None else np.asarray(noise_cov, dtype=float)
+    else:
+        J, names, units = unknowns_jacobian(robot, q, effects, context)
+        measured = "pose"
+        cov = reflector_pose_noise(robot, q, noise_m) if noise_cov is None else np.asarray(noise_cov, dtype=float)
     L = np.linalg.cholesky(np.linalg.inv(cov))  # Λ = L Lᵀ
     B = np.swapaxes(L, 1, 2) @ J
     scale = np.sqrt(np.mean(np.sum(B**2, axis=1), axis=0))
@@ -159,7 +231,7 @@ def information_model(robot, q, *, effects=(), noise_m: float = TRACKER_NOISE_M,
     B = B / scale
     for a in (J, cov, B, scale):
         a.setflags(write=False)
-    return Information(tuple(names), tuple(units), J, cov, B, scale)
+    return Information(tuple(names), tuple(units), J, cov, B, scale, measured)
 
 
 def log_det(info: Information, index) -> float:
@@ -175,16 +247,18 @@ def _logdet_spd(K):
 
 
 class Design:
-    """The growing design: M⁻¹ (with the ridge) and Gⱼ = Bⱼ M⁻¹ Bⱼᵀ for every candidate."""
+    """The growing design: M⁻¹ (with the ridge) and Gⱼ = Bⱼ M⁻¹ Bⱼᵀ (b×b) for every candidate,
+    b the rows of a candidate's block (6 for a pose, 3 per measured point)."""
 
     def __init__(self, info: Information, criterion: str, weight=None):
         self.B = info.blocks
+        self.b = info.blocks.shape[1]
         p = info.n_unknowns
         self.M = RIDGE * np.eye(p)
         self.Minv = np.eye(p) / RIDGE
         # refreshes as M reaches full rank and becomes well conditioned: the updates from the
         # ridge's 1/RIDGE scale down to O(1) lose digits, which a fresh M⁻¹ restores
-        self.full_rank_at = int(np.ceil(p / 6))
+        self.full_rank_at = int(np.ceil(p / self.b))
         self.count = np.zeros(info.n_candidates, dtype=np.int64)
         self.criterion = criterion
         # A: W = I; I: W = mean over candidates of the position rows' JᵀJ, in scaled parameters
@@ -195,20 +269,20 @@ class Design:
     def refresh(self):
         self.Minv = np.linalg.inv(self.M)
         self.Minv = 0.5 * (self.Minv + self.Minv.T)
-        BM = self.B @ self.Minv  # (m, 6, p)
+        BM = self.B @ self.Minv  # (m, b, p)
         self.G = BM @ np.swapaxes(self.B, 1, 2)
         self.updates = 0
 
-    def _rank6(self, j, sign):
-        """M += sign · Bⱼᵀ Bⱼ (sign ±1), updating M⁻¹ and every G."""
+    def _update(self, j, sign):
+        """M += sign · Bⱼᵀ Bⱼ (sign ±1), updating M⁻¹ and every G (rank b, Woodbury)."""
         Bj = self.B[j]
         self.M = self.M + sign * (Bj.T @ Bj)
-        u = self.Minv @ Bj.T  # (p, 6)
-        K = np.eye(6) + sign * (Bj @ u)
+        u = self.Minv @ Bj.T  # (p, b)
+        K = np.eye(self.b) + sign * (Bj @ u)
         Kinv = np.linalg.inv(K)
         self.Minv = self.Minv - sign * (u @ Kinv @ u.T)
         self.Minv = 0.5 * (self.Minv + self.Minv.T)
-        C = self.B @ u  # (m, 6, 6) = Bᵢ M⁻¹ Bⱼᵀ
+        C = self.B @ u  # (m, b, b) = Bᵢ M⁻¹ Bⱼᵀ
         self.G = self.G - sign * (C @ Kinv @ np.swapaxes(C, 1, 2))
         self.updates += 1
         n = int(self.count.sum()) + int(sign)
@@ -216,27 +290,26 @@ class Design:
             self.refresh()
 
     def add(self, j):
-        self._rank6(j, +1.0)
+        self._update(j, +1.0)
         self.count[j] += 1
 
     def remove(self, j):
-        self._rank6(j, -1.0)
+        self._update(j, -1.0)
         self.count[j] -= 1
 
     def gains(self, index=None):
         """Improvement of the criterion from adding each candidate (larger is better)."""
         G = self.G if index is None else self.G[index]
-        I6 = np.eye(6)
+        Ib = np.eye(self.b)
         if self.criterion == "D":
-            return _logdet_spd(I6 + G)
+            return _logdet_spd(Ib + G)
         H = self._H(index)
-        return np.trace(np.linalg.solve(I6 + G, H), axis1=1, axis2=2)
+        return np.trace(np.linalg.solve(Ib + G, H), axis1=1, axis2=2)
 
     def losses(self, index):
         """Worsening of the criterion from removing each pose of ``index`` (smaller is better)."""
         G = self.G[index]
-        I6 = np.eye(6)
-        K = I6 - G
+        K = np.eye(self.b) - G
         if self.criterion == "D":
             ev = np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, 1, 2)))
             return -np.sum(np.log(np.clip(ev, 1e-300, None)), axis=1)
@@ -244,7 +317,7 @@ class Design:
         return np.trace(np.linalg.solve(K, H), axis1=1, axis2=2)
 
     def _H(self, index):
-        """Bⱼ M⁻¹ W M⁻¹ Bⱼᵀ (…, 6, 6)."""
+        """Bⱼ M⁻¹ W M⁻¹ Bⱼᵀ (…, b, b)."""
         P = self.Minv if self.W_half is None else self.Minv @ self.W_half
         B = self.B if index is None else self.B[index]
         BP = B @ P
@@ -259,10 +332,11 @@ class Design:
 
 
 def position_weight(info: Information) -> np.ndarray:
-    """Mean over the candidates of the position rows' JᵀJ in scaled parameters (p, p): the
-    I-criterion's weight, tr(W M⁻¹) = mean variance of the predicted tool position."""
-    Jt = info.J[:, :3, :] * info.scale
-    return np.einsum("mri,mrj->ij", Jt, Jt) / info.n_candidates
+    """Mean over the candidates (and their measured points) of the position rows' JᵀJ in scaled
+    parameters (p, p): the I-criterion's weight, tr(W M⁻¹) = mean variance of the predicted
+    position of the tool point (or of the measured reflectors)."""
+    Jt = info.position_rows().reshape(-1, 3, info.n_unknowns) * info.scale
+    return np.einsum("mri,mrj->ij", Jt, Jt) / len(Jt)
 
 
 @dataclass(frozen=True)
@@ -368,13 +442,17 @@ def _detmax(d: Design, chosen, free, max_exchanges=None):
 def estimator_covariance(info: Information, index) -> np.ndarray:
     """Covariance (p, p) of the unknowns (in their own units) estimated from the poses
     ``index`` by `calibrate`'s solver: rows weighted by one σ per block (position,
-    orientation) from the noise, so the covariance is the sandwich H⁻¹ S H⁻¹."""
+    orientation; position-only data: one σ for all) from the noise, so the covariance is the
+    sandwich H⁻¹ S H⁻¹."""
     index = np.asarray(index, dtype=np.int64)
     J = info.J[index]
     S6 = info.noise_cov[index]
-    var_p = np.mean(np.trace(S6[:, :3, :3], axis1=1, axis2=2)) / 3.0
-    var_o = np.mean(np.trace(S6[:, 3:, 3:], axis1=1, axis2=2)) / 3.0
-    w = np.array([1 / var_p] * 3 + [1 / var_o] * 3)
+    if info.measured == "pose":
+        var_p = np.mean(np.trace(S6[:, :3, :3], axis1=1, axis2=2)) / 3.0
+        var_o = np.mean(np.trace(S6[:, 3:, 3:], axis1=1, axis2=2)) / 3.0
+        w = np.array([1 / var_p] * 3 + [1 / var_o] * 3)
+    else:
+        w = np.full(info.block_size, info.block_size / np.mean(np.trace(S6, axis1=1, axis2=2)))
     WJ = J * w[None, :, None]
     H = np.einsum("nri,nrj->ij", J, WJ)
     S = np.einsum("nri,nrs,nsj->ij", WJ, S6, WJ)
@@ -388,23 +466,29 @@ def expected_norm(C, n_samples: int = NORM_SAMPLES, seed: int = 0) -> np.ndarray
     lam, V = np.linalg.eigh(0.5 * (C + np.swapaxes(C, -1, -2)))
     root = V * np.sqrt(np.clip(lam, 0, None))[:, None, :]
     z = np.random.default_rng(seed).standard_normal((n_samples, C.shape[-1]))
-    return np.mean(np.linalg.norm(np.einsum("kij,sj->ksi", root, z), axis=-1), axis=1)
+    out = np.empty(len(root))
+    for s in range(0, len(root), NORM_CHUNK):  # bounds the (chunk, samples, 3) draws' memory
+        out[s:s + NORM_CHUNK] = np.mean(np.linalg.norm(np.einsum("kij,sj->ksi", root[s:s + NORM_CHUNK], z),
+                                                       axis=-1), axis=1)
+    return out
 
 
 @dataclass(frozen=True)
 class Prediction:
     """Predicted accuracy of a design over the evaluation poses (mm, mrad): the model against
-    the truth, and held-out (the model's error plus the measurement's noise), mean and RMS."""
+    the truth, and held-out (the model's error plus the measurement's noise), mean and RMS. For
+    position-only data the positions are those of the measured reflector(s) and the orientation
+    fields are None (nothing measures an orientation)."""
 
     model_position_mm: float
     model_position_rms_mm: float
-    model_orientation_mrad: float
+    model_orientation_mrad: float | None
     heldout_position_mm: float
-    heldout_orientation_mrad: float
+    heldout_orientation_mrad: float | None
     noise_position_mm: float
 
     def as_dict(self) -> dict:
-        return {k: float(v) for k, v in self.__dict__.items()}
+        return {k: None if v is None else float(v) for k, v in self.__dict__.items()}
 
 
 def predicted_model_position_mm(info: Information, index, evaluate=None, *, max_poses: int = 2000,
@@ -415,7 +499,7 @@ def predicted_model_position_mm(info: Information, index, evaluate=None, *, max_
     if len(ev) > max_poses:
         ev = ev[np.linspace(0, len(ev) - 1, max_poses).round().astype(np.int64)]
     cov = estimator_covariance(info, index)
-    Jt = info.J[ev, :3, :]
+    Jt = info.position_rows(ev).reshape(-1, 3, info.n_unknowns)
     return 1e3 * float(np.mean(expected_norm(Jt @ cov @ np.swapaxes(Jt, 1, 2), n_samples)))
 
 
@@ -425,8 +509,21 @@ def predict_accuracy(info: Information, index, evaluate=None) -> Prediction:
     cov = estimator_covariance(info, index)
     ev = np.arange(info.n_candidates) if evaluate is None else np.asarray(evaluate, dtype=np.int64)
     J = info.J[ev]
-    C = J @ cov @ np.swapaxes(J, 1, 2)  # (k, 6, 6) model error at each evaluation pose
+    C = J @ cov @ np.swapaxes(J, 1, 2)  # (k, r, r) model error at each evaluation pose
     N = info.noise_cov[ev]
+    if info.measured == "points":  # each measured point's 3×3 diagonal block
+        k = info.n_points
+        blocks = [np.s_[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(k)]
+        Cp = np.concatenate([C[b] for b in blocks])
+        Np = np.concatenate([N[b] for b in blocks])
+        return Prediction(
+            model_position_mm=1e3 * float(np.mean(expected_norm(Cp))),
+            model_position_rms_mm=1e3 * float(np.sqrt(np.mean(np.trace(Cp, axis1=1, axis2=2)))),
+            model_orientation_mrad=None,
+            heldout_position_mm=1e3 * float(np.mean(expected_norm(Cp + Np))),
+            heldout_orientation_mrad=None,
+            noise_position_mm=1e3 * float(np.mean(expected_norm(Np))),
+        )
     Cp, Co = C[:, :3, :3], C[:, 3:, 3:]
     return Prediction(
         model_position_mm=1e3 * float(np.mean(expected_norm(Cp))),
@@ -447,7 +544,7 @@ def smallest_reaching(info: Information, target_mm: float, *, criterion: str = "
     chosen size is then improved by exchanges."""
     m = info.n_candidates
     max_n = min(max_n or m, m)
-    p_min = max(1, int(np.ceil(info.n_unknowns / 6)) + 1)
+    p_min = max(1, int(np.ceil(info.n_unknowns / info.block_size)) + 1)
     best = predict_accuracy(info, np.arange(m) if max_n == m else select(info, max_n, exchange=False).index,
                             evaluate)
     if best.model_position_mm > target_mm:
@@ -604,7 +701,7 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     """Choose the campaign among the ``suitable`` grid indices (what `plan --select`,
     ``--budget`` and ``--target-mm`` do).
 
-    settle_s, tracker_s: seconds per pose (tracker time for the three reflectors);
+    settle_s, tracker_s: seconds per pose (tracker time for the robot's reflectors);
     travel_from(k) -> (m,) s from suitable pose k to every suitable pose; start_s (m,) s from
     the robot's start; tour_time(grid indices) -> s of the ordered tour (for ``--budget``).
     """
@@ -622,12 +719,12 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     t_info = time.perf_counter() - t0
     say(f"information of {m:,} suitable poses about {info.n_unknowns} unknowns ({t_info:.1f} s)")
     per_pose_s = settle_s + tracker_s
-    p_min = int(np.ceil(info.n_unknowns / 6))
+    p_min = int(np.ceil(info.n_unknowns / info.block_size))
     n_val = lambda n: 0 if n == 0 else max(opts.min_validation, int(round(opts.validation_fraction * n)))  # noqa: E731
     if opts.n is not None:
         if opts.n < p_min:
             raise ConfigError(f"--select {opts.n}: {info.n_unknowns} unknowns need at least {p_min} poses "
-                              "(6 equations each)")
+                              f"({info.block_size} equations each)")
         sel = select(info, opts.n, criterion=opts.criterion)
         mode = {"select": opts.n}
     elif opts.target_mm is not None:
@@ -670,15 +767,28 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     summary = {
         **mode, "criterion": opts.criterion, "unknowns": list(info.names), "n_unknowns": info.n_unknowns,
         "effects": list(opts.effects), "tracker_noise_m": noise_m,
+        "measured": _measured_summary(robot, info),
         "selected": int(len(chosen)), "validation": int(len(val)), "repeated_poses": int(n_rep),
         "repeat_times": int(opts.repeat_times) if n_rep else 1,
         "log_det_information": sel.log_det, "exchanges": sel.exchanges,
-        "predicted": {**pred.as_dict(), "evaluated_over": "all suitable poses",
+        "predicted": {**pred.as_dict(),
+                      "evaluated_over": "all suitable poses" if info.measured == "pose" else
+                      "the measured reflector positions at all suitable poses (no orientation is measured)",
                       "note": "expected mean errors of the model calibrated on the selected poses: "
                               "model_* against the truth, heldout_* against measurements (model + tracker noise)"},
         "time_s": {"information": t_info, "selection": sel.time_s, "prediction": t_pred},
     }
     return CampaignChoice(suitable[chosen], suitable[val], suitable[rep], int(opts.repeat_times), pred, summary)
+
+
+def _measured_summary(robot, info: Information) -> dict:
+    """summary.json's ``selection.measured``: what each pose measures, the equations it gives."""
+    names = [r.name for r in robot.reflectors]
+    if info.measured == "pose":
+        text = f"a 6-D pose from {len(names)} reflectors (Kabsch)"
+    else:
+        text = f"the position of {' and '.join(names)}: position only"
+    return {"kind": info.measured, "reflectors": names, "equations_per_pose": info.block_size, "text": text}
 
 
 def write_choice(out, choice: CampaignChoice | None, visited_ids) -> None:
