@@ -1,6 +1,6 @@
 """Optimal pose selection for one or two reflectors (position-only data): the information of the
-measured positions, the design's algebra for blocks of 3 and 6 rows, and the prediction, on one-
-and two-reflector Pandas (example-robot-data)."""
+measured positions, the design's algebra for blocks of 3 and 6 rows, the prediction, and
+`plan --select` → `run --sim` → `calibrate` on a one-reflector Panda (example-robot-data)."""
 
 import json
 from importlib import metadata
@@ -162,3 +162,89 @@ def test_position_only_prediction_is_the_covariance_carried_to_the_measured_poin
     # E‖N(0, σ² I₃)‖ = 2σ √(2/π), from 256 fixed normal samples
     assert pred.noise_position_mm == pytest.approx(1e3 * 2 * SIGMA_M * np.sqrt(2 / np.pi), rel=0.05)
     assert pred.model_position_mm < pred.model_position_rms_mm < pred.heldout_position_mm
+
+
+def _truth_points(truth, robot, q, T_LI):
+    """The true reflector position (m) in the frame the set-up points measured, (n, 3)."""
+    T = truth.pose_in_measured_frame(q, T_LI)
+    return T[:, :3, :3] @ robot.reflector_positions_in_E[0] + T[:, :3, 3]
+
+
+def test_one_reflector_plan_select_run_calibrate_beats_random_poses_as_predicted(tmp_path, panda_yamls, robots):
+    """`plan --select 20` for a one-reflector Panda, `run --sim` (geometric errors only, 10 µm),
+    `calibrate --no-ann`: positions only throughout. Then, with the truth: over the suitable
+    poses, the model error at the reflector of a Monte Carlo of the measured design (8 noise
+    draws, fitted as calibrate fits) is within 20 % of the plan's prediction and below the mean of
+    8 random designs of the same poses and repeats; the CLI's own calibration is one draw of it."""
+    from campaign.identify.solver import CalibrationModel
+    from campaign.identify.split import run_split
+    from campaign.identify.use import CalibratedRobot
+    from campaign.measure.store import open_run
+    from campaign.plan.grid import Grid
+    from campaign.plan.pipeline import _filter_grid
+    from campaign.run import RunFolder
+    from campaign.sim.truth import read_truth
+
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": GRID, "motion_sample_deg": 2.0},
+                                   "sim": {"seed": 1, "hidden_effects": [], "noise_m": SIGMA_M}}))
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--robot", str(panda_yamls["one"]), "--run", str(run),
+                 "--select", "20", "--quiet"]) == 0
+    sel = json.loads((run / "plan" / "summary.json").read_text())["selection"]
+    assert sel["measured"] == {"kind": "points", "reflectors": ["m1"], "equations_per_pose": 3,
+                               "text": "the position of m1: position only"}
+    assert sel["selected"] == 20 and sel["n_unknowns"] == 29
+    assert sel["predicted"]["model_orientation_mrad"] is None and sel["predicted"]["heldout_orientation_mrad"] is None
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["measurement_kind"] == "point" and "orientation_mrad" not in metrics["stages"]["geometric"]["test"]
+
+    # only now the truth
+    robot = robots["one"]
+    folder = RunFolder(run)
+    grid = Grid.for_robot(robot, GRID)
+    suitable, _, _ = _filter_grid(robot, folder.scene(), grid, folder.config.plan.clearance_m, False)
+    Q = grid.q(suitable)
+    truth = read_truth(run / "sim" / "truth.yaml", robot)
+    with open_run(run) as store:
+        poses, T_LI = store.load_measured(), np.array(store.get_meta("T_LI"))
+    q_train = poses.q[~run_split(run, poses.pose_id)]
+    assert 20 <= len(q_train) <= 26  # 20 poses + 3 × 2 repeats, less any the tour dropped
+    true_Q = _truth_points(truth, robot, Q, T_LI)
+    tool = robot.with_tool_point(robot.reflector_positions_in_E[0])
+    rng = np.random.default_rng(5)
+
+    def model_error_um(q):
+        """Fit the design q on the truth plus fresh noise (as calibrate fits one reflector)."""
+        T = np.tile(np.eye(4), (len(q), 1, 1))
+        T[:, :3, 3] = _truth_points(truth, robot, q, T_LI) + rng.normal(0, SIGMA_M, (len(q), 3))
+        model = CalibrationModel(robot=tool, position_only=True).fit(q, T)
+        return 1e6 * np.mean(np.linalg.norm(model.predict(Q)[:, :3, 3] - true_Q, axis=1))
+
+    selected = [model_error_um(q_train) for _ in range(8)]
+    distinct, inverse = np.unique(q_train, axis=0, return_inverse=True)
+    random = [model_error_um(Q[rng.choice(len(Q), len(distinct), replace=False)][inverse.ravel()]) for _ in range(8)]
+    predicted_um = 1e3 * sel["predicted"]["model_position_mm"]
+    assert np.mean(selected) == pytest.approx(predicted_um, rel=0.2), (selected, predicted_um)
+    assert np.mean(selected) < 0.9 * np.mean(random), (selected, random)
+    cli_um = 1e6 * np.mean(np.linalg.norm(CalibratedRobot(run).predict(Q)[:, :3, 3] - true_Q, axis=1))
+    assert cli_um < 1.6 * predicted_um, (cli_um, predicted_um)
+
+
+def test_run_refuses_a_two_reflector_robot_in_one_line_before_touching_the_run(tmp_path, panda_yamls, capsys):
+    """Two reflectors are planned for (both positions), but `campaign run` measures one (its
+    position) or three or more (a pose): two are one line, exit 1, nothing stored."""
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": GRID, "motion_sample_deg": 2.0}}))
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--robot", str(panda_yamls["two"]), "--run", str(run),
+                 "--select", "12", "--quiet"]) == 0
+    sel = json.loads((run / "plan" / "summary.json").read_text())["selection"]
+    assert sel["measured"]["kind"] == "points" and sel["measured"]["equations_per_pose"] == 6
+    capsys.readouterr()
+    assert main(["run", str(run), "--sim", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "names 2 reflectors; `campaign run` measures one" in err[0], err
+    assert not (run / "measurements.sqlite").exists()

@@ -27,7 +27,7 @@ from campaign.config import MAX_GRID_SIZE as MAX_POSE_ID  # pose ids are the pla
 from campaign.config import RunConfig
 from campaign.errors import DataError, PeerError, ProtocolError, RobotFault
 from campaign.measure import protocol as P
-from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors
+from campaign.measure.reflectors import frame_from_setup_points, invert, pose_from_reflectors, transform_points
 from campaign.measure.store import PoseRecord, open_run
 from campaign.model.rotations import matrix_to_rotvec
 from campaign.progress import Progress
@@ -194,17 +194,27 @@ def read_plan(run_dir, poses_csv=None):
 
 
 def measured_robot(robot):
-    """The robot with the reflectors a run measures (robot.yaml's, else the default triad);
-    ConfigError (one line) when robot.yaml names fewer than three: a run derives each pose by
-    Kabsch from three or more."""
+    """The robot with the reflectors a run measures (robot.yaml's, else the default triad): three
+    or more give each pose by Kabsch, one its position (one-reflector data, kind "point").
+    ConfigError (one line) for two: `calibrate` has no model of two positions without a pose."""
     from campaign.errors import ConfigError
 
     robot = robot.with_default_reflectors()
-    if len(robot.reflectors) < 3:
-        raise ConfigError(f"{robot.name}: robot.yaml names {len(robot.reflectors)} reflector(s); `campaign run` "
-                          "measures poses from three or more (measure with your own tooling and `campaign import` "
-                          "the one-reflector CSV)")
+    if len(robot.reflectors) == 2:
+        raise ConfigError(f"{robot.name}: robot.yaml names 2 reflectors; `campaign run` measures one (its position) "
+                          "or three or more (a pose by Kabsch): name one, or a third")
     return robot
+
+
+def _derive(T_LI, P_E, P_L):
+    """What the reflectors measured in F_L (k, 3) give in F_I: (xyz (3,) m, rotvec (3,) rad or None,
+    fit rms m or None). Three or more: the pose of F_E by Kabsch; one: its position alone."""
+    if len(P_E) == 1:
+        xyz = transform_points(invert(T_LI), np.asarray(P_L, dtype=float)[None])[0, 0]
+        return tuple(map(float, xyz)), None, None
+    T_IE, rms = pose_from_reflectors(T_LI, P_E, np.asarray(P_L, dtype=float)[None])
+    return (tuple(map(float, T_IE[0, :3, 3])), tuple(map(float, matrix_to_rotvec(T_IE[0, :3, :3]))),
+            float(rms[0]))
 
 
 @dataclass(frozen=True)
@@ -298,6 +308,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             robot = measured_robot(robot)
             P_E = robot.reflector_positions_in_E
             targets = tuple(r.name for r in robot.reflectors)
+            if len(P_E) == 1 and store.get_meta("kind") is None:
+                store.set_meta("kind", "point")  # one reflector: positions only (calibrate fits them there)
             todo = [k for k in range(len(ids)) if int(ids[k]) not in done]
             remaining_total = len(todo)
             if max_poses is not None:
@@ -447,12 +459,9 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
             if bad:
                 last_reason = "; ".join(bad)
                 continue
-            P_L = np.array([by[t].xyz_m for t in targets])
-            T_IE, rms = pose_from_reflectors(T_LI, P_E, P_L[None])
+            xyz, rotvec, rms = _derive(T_LI, P_E, np.array([by[t].xyz_m for t in targets]))
             return PoseRecord(pid, "measured", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
-                              q_encoder=tuple(q_enc), xyz=tuple(map(float, T_IE[0, :3, 3])),
-                              rotvec=tuple(map(float, matrix_to_rotvec(T_IE[0, :3, :3]))), fit_rms_m=float(rms[0]),
-                              retries=retries,
+                              q_encoder=tuple(q_enc), xyz=xyz, rotvec=rotvec, fit_rms_m=rms, retries=retries,
                               context={} if m.temperature_c is None else {"temperature_c": m.temperature_c},
                               reflectors={t: (by[t].xyz_m, by[t].status) for t in targets}), clock
         return PoseRecord(pid, "failed", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
@@ -481,8 +490,8 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS)
         by = {r.target: r for r in m.readings}
         if any(t not in by or by[t].status != "ok" for t in targets):
             return None, clock
-        T_IE, _ = pose_from_reflectors(T_LI, P_E, np.array([[by[t].xyz_m for t in targets]]))
-        return float(np.linalg.norm(T_IE[0, :3, 3] - np.array(reference["xyz"]))), clock
+        xyz, _, _ = _derive(T_LI, P_E, np.array([by[t].xyz_m for t in targets]))
+        return float(np.linalg.norm(np.array(xyz) - np.array(reference["xyz"]))), clock
     except (RobotFault, PeerUnreachable):
         raise
     except PeerError:

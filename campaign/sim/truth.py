@@ -278,7 +278,7 @@ def synthesize_kind(truth: TruthRobot, q, *, kind: str = "pose", frame: str = "r
         if kind == "markers" and markers is None:
             markers = P
     return MeasuredPoses.from_vectors(np.arange(1, n + 1, dtype=np.int64), t, q, xyz, rv, context, kind=kind,
-                                      frame=frame, markers=markers,
+                                      frame=frame, markers=markers, T_LI=T_LI_measured,
                                       marker_positions=P_E if kind == "markers" else None)
 
 
