@@ -26,7 +26,8 @@ minimises the mean variance of the predicted tool position over the candidates
 (b×b, b the rows of a block: 6, or 3 for one reflector) up to date with rank-b (Woodbury)
 updates, so adding ``Bⱼ`` gains ``log det(I + Gⱼ)`` (matrix determinant lemma). DETMAX exchange
 passes (Mitchell 1974: add the best candidate, remove the least useful pose, stop when that is
-the one just added) then improve the greedy set. With a time cost per pose, the greedy step maximises gain per second.
+the one just added) then improve the greedy set. With a time cost per pose, the greedy step
+maximises gain per second.
 
 The predicted accuracy (:func:`predict_accuracy`) is the covariance of the estimator that
 `calibrate` runs (row weights by block, from the noise: a sandwich ``H⁻¹ S H⁻¹``), carried to
