@@ -45,7 +45,7 @@ from campaign.identify.solver import CalibrationModel
 from campaign.model.kinematics import pose_error
 from campaign.plan import selection as S
 from campaign.plan.grid import Grid
-from campaign.plan.pipeline import _filter_grid, _order_tour
+from campaign.plan.pipeline import _order_tour, suitable_poses
 from campaign.plan.scene import load_scene
 from campaign.plan.timing import GridTimes, path_time
 from campaign.sim.truth import synthesize
@@ -61,7 +61,7 @@ def setup():
     robot = load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
     scene = load_scene(cfg.scene_path)
     grid = Grid.for_robot(robot, cfg.plan.grid_cells)
-    suitable, _, _ = _filter_grid(robot, scene, grid, cfg.plan.clearance_m, False)
+    suitable = suitable_poses(robot, scene, grid, cfg.plan.clearance_m)
     return cfg, robot, scene, grid, suitable
 
 

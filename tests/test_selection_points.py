@@ -187,7 +187,7 @@ def test_one_reflector_plan_select_run_calibrate_beats_random_poses_as_predicted
     from campaign.identify.use import CalibratedRobot
     from campaign.measure.store import open_run
     from campaign.plan.grid import Grid
-    from campaign.plan.pipeline import _filter_grid
+    from campaign.plan.pipeline import suitable_poses
     from campaign.run import RunFolder
     from campaign.sim.truth import read_truth
 
@@ -211,7 +211,7 @@ def test_one_reflector_plan_select_run_calibrate_beats_random_poses_as_predicted
     robot = robots["one"]
     folder = RunFolder(run)
     grid = Grid.for_robot(robot, GRID)
-    suitable, _, _ = _filter_grid(robot, folder.scene(), grid, folder.config.plan.clearance_m, False)
+    suitable = suitable_poses(robot, folder.scene(), grid, folder.config.plan.clearance_m)
     Q = grid.q(suitable)
     truth = read_truth(run / "sim" / "truth.yaml", robot)
     with open_run(run) as store:

@@ -332,3 +332,11 @@ def _selection_times(robot, scene, grid, times, home, suitable):
     cells = grid.cell_indices(suitable)
     return {"travel_from": lambda k: times.from_one(cells[k], cells), "start_s": times.from_one(home, cells),
             "tour_time": lambda ids: path_time(robot, grid.q(_order_tour(robot, scene, grid, times, home, ids)))}
+
+
+def suitable_poses(robot, scene, grid: Grid, clearance_m: float, progress: bool = False) -> np.ndarray:
+    """Indices into ``grid`` of the suitable poses: stage 2's filters (tracker range, reflector
+    cones, line of sight, clearance ≥ ``clearance_m`` by FCL), as `campaign plan` finds them
+    before it selects and tours (for studies of the suitable set: benchmarks, tests);
+    ``progress``: progress bars on stderr."""
+    return _filter_grid(robot, scene, grid, clearance_m, progress)[0]
