@@ -134,6 +134,21 @@ def test_raw_markers_need_their_nominal_positions_and_missed_cells_are_empty(tmp
     assert ",,," in (tmp_path / "back.csv").read_text()
 
 
+def test_two_raw_reflectors_are_one_line_at_import_and_no_run_is_made(tmp_path, capsys):
+    """Two reflectors give no pose (and calibrate has no model of two points): refused on import,
+    not accepted and then left out row by row by calibrate."""
+    head = "pose_id,time_s," + ",".join(f"q{j}" for j in range(1, 7)) + "," + \
+        ",".join(f"m{i}_{a}" for i in (1, 2) for a in "xyz") + "\n"
+    (tmp_path / "m.csv").write_text(head + "1,0," + ",".join(["0.1"] * 6) + ",0.1,0,0.5,0,0.1,0.5\n")
+    (tmp_path / "markers.yaml").write_text("markers: [[0.05, 0, 0], [0, 0.05, 0]]\n")
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "m.csv"), "--run", str(run), "--markers", str(tmp_path / "markers.yaml"),
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "m1..m2: a pose needs three or more reflectors" in err[0] and "m.csv" in err[0], err
+    assert not run.exists()
+
+
 def test_too_few_poses_is_one_line_saying_how_many(tmp_path, capsys):
     urdf = _erd(ROBOTS["ur10"][0])
     csv_path = tmp_path / "m.csv"
