@@ -3,6 +3,8 @@ torch.optim.Adam, the executors (this process, worker processes, a two-worker Da
 LocalCluster) against each other, BR-LM through the grid against the sequential
 cross-validation, ensembles saved and reloaded, device and scheduler errors named."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -260,3 +262,36 @@ def test_a_late_progress_report_from_an_earlier_grid_or_a_finished_task_is_ignor
     assert seen[-1].done == done and len(seen) == 2
     meter.units("b/final", 5.0)
     assert seen[-1].done == done + 5.0
+
+
+def test_campaign_calibrate_of_several_runs_calibrates_each_as_alone_and_names_the_one_that_fails(tmp_path, robot,
+                                                                                                capsys):
+    """`campaign calibrate RUN_A RUN_B MISSING --workers 2`: each run's metrics.json equals its
+    calibration alone; the folder that is no run is one line naming it, the others still finish,
+    exit 1."""
+    from campaign.cli import main
+    from campaign.identify.calibrate import calibrate
+    from campaign.measure.csvio import write_measured_csv
+    from campaign.measure.store import import_csv
+    from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+    runs = []
+    for seed in (5, 6):
+        meas = synthesize(make_truth(robot, seed=seed), random_joint_poses(robot, 150, seed=seed + 10), seed=seed + 20)
+        write_measured_csv(tmp_path / f"m{seed}.csv", meas)
+        import_csv(tmp_path / f"m{seed}.csv", tmp_path / f"run{seed}", robot)
+        runs.append(tmp_path / f"run{seed}")
+    missing = tmp_path / "nothing_here"
+    code = main(["calibrate", *map(str, runs), str(missing), "--no-ann", "--no-report", "--workers", "2", "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 1
+    err_lines = err.strip().splitlines()
+    assert len(err_lines) == 1 and str(missing) in err_lines[0], err
+    assert "calibrated 2 of 3 runs on processes" in out
+    for run in runs:
+        written = json.loads((run / "calibration" / "metrics.json").read_text())
+        alone = calibrate(run, effects=(), ann=False, write=False).metrics
+        assert written["order"] == alone["order"] == ["nominal", "geometric"]
+        got, want = written["stages"]["geometric"]["test"], alone["stages"]["geometric"]["test"]
+        assert got["position_mm"]["mean"] == pytest.approx(want["position_mm"]["mean"], rel=1e-9)
+        assert f"{run}: geometric: held-out mean position {want['position_mm']['mean']:.4g} mm" in out

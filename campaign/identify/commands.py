@@ -35,7 +35,9 @@ def register(sub):
     p.set_defaults(func=_export)
 
     p = sub.add_parser("calibrate", help="identify the model of a run; write calibration/metrics.json and params.yaml")
-    p.add_argument("run", metavar="DIR", help="run folder with measurements.sqlite")
+    p.add_argument("run", metavar="DIR", nargs="+",
+                   help="run folder with measurements.sqlite; several (a fleet of robots): each calibrated as "
+                        "alone, the runs spread over --workers processes or the Dask cluster, one line each")
     p.add_argument("--effects", metavar="NAME,...", default=None,
                    help="physical effects to identify with the geometry: built-in names, path/file.py:ClassName "
                         "(relative to the current directory) or installed entry points of group campaign.effects "
@@ -151,14 +153,55 @@ def _calibrate(args):
     if args.dask:
         ann_options["dask"] = True
     check_ann_options(ann_options)
-    progress = None if args.quiet else _CalibrateProgress()
     ann = "auto" if args.ann is None else args.ann  # auto: not for a campaign too small for a network
-    result = calibrate(args.run, effects=args.effects, position_only=args.position_only, ann=ann,
+    if len(args.run) > 1:
+        return _calibrate_fleet(args, ann, ann_options)
+    progress = None if args.quiet else _CalibrateProgress()
+    result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
                        ann_options=ann_options, progress=progress, report=not args.no_report)
     if progress is not None:
         progress.close()
     print(summary_text(result))
     return 0
+
+
+def _calibrate_fleet(args, ann, ann_options) -> int:
+    """Several runs: each calibrated as `campaign calibrate DIR` would (its outputs in its own
+    folder), the runs spread over the executor; one line per run (the current model's held-out
+    mean position error, or why it failed); exit 1 when any failed, after the others finished."""
+    from pathlib import Path
+
+    from campaign.ann.grid import make_executor
+    from campaign.errors import ConfigError
+    from campaign.identify.fleet import calibrate_runs
+
+    runs = [str(Path(r)) for r in args.run]
+    if len(set(runs)) < len(runs):
+        dup = next(r for r in runs if runs.count(r) > 1)
+        raise ConfigError(f"calibrate: run {dup} is named twice")
+    fleet_options = {k: v for k, v in ann_options.items() if k not in ("workers", "scheduler", "dask")}
+    executor = make_executor(workers=ann_options.get("workers"), scheduler=ann_options.get("scheduler"),
+                             dask=ann_options.get("dask", False))
+    say = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    try:
+        results = calibrate_runs(runs, executor=executor, progress=say, errors="collect", effects=args.effects,
+                                 position_only=args.position_only, ann=ann, ann_options=fleet_options,
+                                 report=not args.no_report)
+    finally:
+        executor.close()
+    failed = 0
+    for run in runs:
+        m = results[run]
+        if "error" in m:
+            failed += 1
+            print(f"campaign calibrate: {m['error']}", file=sys.stderr)
+            continue
+        stage = m["order"][-1]
+        test = m["stages"][stage]["test"]
+        print(f"{run}: {stage}: held-out mean position {test['position_mm']['mean']:.4g} mm "
+              f"({test['n_poses']} test poses); outputs in {Path(run) / 'calibration'}")
+    print(f"calibrated {len(runs) - failed} of {len(runs)} runs on {executor.name}")
+    return 1 if failed else 0
 
 
 class _CalibrateProgress:
