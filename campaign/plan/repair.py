@@ -63,11 +63,14 @@ def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTI
 @dataclass(frozen=True)
 class Repair:
     """keep: (n,) bool, which tour poses stay; vias: {pose_id: [q (N,) rad, ...]} postures passed
-    before reaching that pose; dropped: [(pose_id, reason), ...] in the order they were dropped."""
+    before reaching that pose; dropped: [(pose_id, reason), ...] in the order they were dropped;
+    searched: motions that needed the path search, search_checks: the steps it checked."""
 
     keep: np.ndarray
     vias: dict
     dropped: list
+    searched: int = 0
+    search_checks: int = 0
 
 
 def arm_joints(n_joints: int) -> np.ndarray:
@@ -107,36 +110,185 @@ def lift_posture(robot) -> np.ndarray:
     return combos[pick] + 0.0  # no -0.0
 
 
+def wrist_joints(n_joints: int) -> np.ndarray:
+    """Indices (0-based) of the joints after the arm's (:func:`arm_joints`): the wrist, the last
+    three joints of a chain of six or more."""
+    arm = arm_joints(n_joints)
+    return np.arange(arm[-1] + 1 if len(arm) else 1, n_joints)
+
+
+def _nearest_turn(robot, joints, values, a, b):
+    """``values`` (len(joints),) for the joints ``joints``, each a whole number of turns away where
+    it lies nearest to the joint's values at a and b, within its limits (a prismatic joint, or
+    one whose limits span less than a turn, as given)."""
+    values = np.array(values, dtype=float)
+    for i, j in enumerate(joints):
+        if robot.joint_types[j] != "prismatic":
+            turns = np.arange(np.ceil((robot.q_lower[j] - values[i]) / (2 * np.pi) - 1e-12),
+                              np.floor((robot.q_upper[j] - values[i]) / (2 * np.pi) + 1e-12) + 1)
+            if len(turns) > 1:
+                c = values[i] + 2 * np.pi * turns
+                values[i] = c[np.argmin(np.abs(a[j] - c) + np.abs(b[j] - c))]
+    return values
+
+
 def _via_path(robot, a, b):
     """[a, lifted a, lifted b, b]: joint 1 and the wrist kept, the arm raised (:func:`lift_posture`).
     A joint whose limits span more than a turn takes the lifted angle a whole number of turns
     away where that lies nearest to its values at a and b (no needless full turn)."""
-    arm, lift = arm_joints(robot.n_joints), lift_posture(robot).copy()
-    for i, j in enumerate(arm):
-        if robot.joint_types[j] != "prismatic":
-            turns = np.arange(np.ceil((robot.q_lower[j] - lift[i]) / (2 * np.pi) - 1e-12),
-                              np.floor((robot.q_upper[j] - lift[i]) / (2 * np.pi) + 1e-12) + 1)
-            if len(turns) > 1:
-                c = lift[i] + 2 * np.pi * turns
-                lift[i] = c[np.argmin(np.abs(a[j] - c) + np.abs(b[j] - c))]
+    arm = arm_joints(robot.n_joints)
+    lift = _nearest_turn(robot, arm, lift_posture(robot), a, b)
     v1, v2 = np.array(a, dtype=float), np.array(b, dtype=float)
     v1[arm] = lift
     v2[arm] = lift
     return np.array([a, v1, v2, b])
 
 
-def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
+#: the wrist's values in :func:`neutral_wrist` are multiples of this (rad)
+WRIST_STEP = np.pi / 2
+#: clearances (m) the neutral wrist is sought at, the largest first
+WRIST_CLEARANCES_M = (0.2, 0.1, 0.05, 0.0)
+
+
+def neutral_wrist(robot, checker) -> np.ndarray:
+    """Values (len(wrist_joints),) rad (m for a prismatic joint) of the wrist's joints, with the arm
+    lifted (:func:`lift_posture`) and joint 1 at 0 (or its nearest limit): among multiples of 90°
+    within the limits and half a turn of 0 (a prismatic joint: its middle), the one nearest 0 (sum
+    of squares; ties: the first in joint order) that keeps the largest of
+    :data:`WRIST_CLEARANCES_M` from the cell and the rest of the robot."""
+    import itertools
+
+    N = robot.n_joints
+    arm, wrist = arm_joints(N), wrist_joints(N)
+    if len(wrist) == 0:
+        return np.zeros(0)
+    lo, hi = np.asarray(robot.q_lower), np.asarray(robot.q_upper)
+    axes = []
+    for j in wrist:
+        v = np.arange(np.ceil(max(lo[j], -np.pi) / WRIST_STEP - 1e-9),
+                      np.floor(min(hi[j], np.pi) / WRIST_STEP + 1e-9) + 1) * WRIST_STEP
+        axes.append(v if robot.joint_types[j] != "prismatic" and len(v) else np.array([0.5 * (lo[j] + hi[j])]))
+    combos = np.array(list(itertools.product(*axes)), dtype=float)
+    combos = combos[np.argsort(np.sum(combos ** 2, axis=1), kind="stable")]
+    q = np.tile(np.clip(0.0, lo, hi), (len(combos), 1))
+    q[:, arm] = lift_posture(robot)
+    q[:, wrist] = combos
+    R, t = nominal_frames_entry_first(robot, q)
+    for c in WRIST_CLEARANCES_M:
+        ok = checker.clear_entry_first(R, t, c)
+        if ok.any():
+            return combos[int(np.argmax(ok))] + 0.0
+    return combos[0] + 0.0
+
+
+def _structured_paths(robot, a, b, wrist_values):
+    """Via paths a → b tried after the lifted arm (:func:`_via_path`), each (k, N) from a to b
+    (repeated postures left out): the wrist to its neutral values (:func:`neutral_wrist`) first,
+    then the arm lifted, joint 1 turned, and back in the reverse order; the elbow (the arm's last
+    joint) lifted before the shoulder; both."""
+    arm, wrist = arm_joints(robot.n_joints), wrist_joints(robot.n_joints)
+    lift = _nearest_turn(robot, arm, lift_posture(robot), a, b)
+    W = _nearest_turn(robot, wrist, wrist_values, a, b)
+
+    def at(q, joints, values):
+        q = np.array(q, dtype=float)
+        q[joints] = values
+        return q
+
+    aW, bW = at(a, wrist, W), at(b, wrist, W)
+    elbow, e = arm[-1:], lift[-1:]
+    paths = [[a, aW, at(aW, arm, lift), at(bW, arm, lift), bW, b],
+             [a, at(a, elbow, e), at(a, arm, lift), at(b, arm, lift), at(b, elbow, e), b],
+             [a, aW, at(aW, elbow, e), at(aW, arm, lift), at(bW, arm, lift), at(bW, elbow, e), bW, b]]
+    out = []
+    for p in paths:
+        p = np.array(p)
+        keep = np.ones(len(p), dtype=bool)
+        keep[1:] = np.any(p[1:] != p[:-1], axis=1)
+        out.append(p[keep])
+    return out
+
+
+class PathFinder:
+    """Collision-free motions a → b for one robot in one cell: the straight motion, the lifted
+    arm (:func:`_via_path`), the structured via paths (:func:`_structured_paths`), then a seeded
+    RRT-Connect search (campaign.plan.pathsearch) shortened by shortcuts. Every posture passed
+    keeps ``clearance`` (m) and every straight motion between them does at samples ``max_step``
+    (rad) apart (:func:`check_segments`). Scratch state (the neutral wrist, counters) lives here,
+    not on the robot or the checker."""
+
+    def __init__(self, robot, checker, max_step, clearance, *, budget=None):
+        from campaign.plan import pathsearch
+
+        self.robot, self.checker, self.max_step, self.clearance = robot, checker, max_step, clearance
+        self.budget = pathsearch.BUDGET if budget is None else int(budget)
+        self._wrist = None
+        self.searched = 0  # motions that needed the search
+        self.search_checks = 0  # steps and shortcuts it checked
+
+    def postures_clear(self, Q) -> np.ndarray:
+        """(k,) bool: each posture Q (k, N) keeps the clearance."""
+        return self.checker.clear_entry_first(*nominal_frames_entry_first(self.robot, Q), self.clearance)
+
+    def path_clear(self, path) -> bool:
+        """Whether a path (k, N) is clear: its inner postures and every straight motion along it."""
+        return bool(self.postures_clear(path[1:-1]).all()) and bool(
+            check_segments(self.robot, self.checker, path[:-1], path[1:], self.max_step, self.clearance,
+                           stop_at_first=True).all())
+
+    def vias(self, a, b, seed, *, search=True):
+        """The via postures (list of (N,)) of a clear path a → b other than the straight motion
+        (not checked here), or None. ``seed``: the search's random seed (a sequence of ints);
+        ``search``: False to try the structured paths only."""
+        path = _via_path(self.robot, a, b)
+        if self.path_clear(path):
+            return [path[1], path[2]]
+        if self._wrist is None:
+            self._wrist = neutral_wrist(self.robot, self.checker)
+        for path in _structured_paths(self.robot, a, b, self._wrist):
+            if self.path_clear(path):
+                return list(path[1:-1])
+        return self.search(a, b, seed) if search else None
+
+    def search(self, a, b, seed):
+        """RRT-Connect (campaign.plan.pathsearch) from a to b, shortened; its via postures or None."""
+        from campaign.plan import pathsearch
+
+        robot, checker = self.robot, self.checker
+
+        def step_clear(q_from, q_to):
+            return bool(self.postures_clear(q_to[None])[0]) and bool(
+                check_segments(robot, checker, q_from[None], q_to[None], self.max_step, self.clearance)[0])
+
+        def segments_clear(Q_from, Q_to):
+            return check_segments(robot, checker, Q_from, Q_to, self.max_step, self.clearance)
+
+        self.searched += 1
+        found = pathsearch.rrt_connect(a, b, step_clear, np.random.default_rng(seed),
+                                       *pathsearch.sampling_box(robot, a, b), budget=self.budget)
+        self.search_checks += found.checks
+        if found.path is None:
+            return None
+        path, calls = pathsearch.shortcut(found.path, segments_clear)
+        self.search_checks += calls
+        return list(path[1:-1])
+
+
+def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=None) -> Repair:
     """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, N) rad, whose motions
     ``ok`` (n - 1,) bool say which straight motions keep ``clearance`` (m) at samples
     ``max_step`` (rad) apart (:func:`check_segments`).
 
     One pass along the tour: each pose is reached from the last pose kept before it, by the
     straight motion when it keeps the clearance (known from ``ok`` when that previous pose is
-    the tour's own, checked afresh after a drop), else through the lifted arm (:func:`_via_path`:
-    the via postures and every motion of the path checked), else the pose is dropped. Every
-    motion of the repaired tour is thereby checked."""
+    the tour's own, checked afresh after a drop), else through via postures (:class:`PathFinder`:
+    the lifted arm, structured vias, a path search of at most ``budget`` checked steps, default
+    campaign.plan.pathsearch.BUDGET, seeded by the two pose ids), else the pose is dropped.
+    Every motion of the repaired tour is thereby checked."""
+    finder = PathFinder(robot, checker, max_step, clearance, budget=budget)
     vias, dropped = {}, []
     keep = np.ones(len(order), dtype=bool)
+    unreached = np.zeros(len(order), dtype=bool)  # dropped: not reached from the tour (search or join)
     prev = 0
     for k in range(1, len(order)):
         if prev == k - 1 and ok[k - 1]:
@@ -145,16 +297,23 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance) -> Repair:
         if prev != k - 1 and check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
             prev = k
             continue
-        path = _via_path(robot, Q[prev], Q[k])
-        if checker.clear(*frames(robot, path[1:3]), clearance).all() and \
-                check_segments(robot, checker, path[:-1], path[1:], max_step, clearance, stop_at_first=True).all():
-            vias[int(order[k])] = [path[1], path[2]]
+        # a clear straight motion to a pose that no search reached: a path here would reach it too
+        joined = bool(unreached[k - 1] and ok[k - 1])
+        found = finder.vias(Q[prev], Q[k], seed=(int(order[prev]), int(order[k])), search=not joined)
+        if found is not None:
+            vias[int(order[k])] = found
             prev = k
+            continue
+        keep[k], unreached[k] = False, True
+        if joined:
+            reason = (f"no collision-free motion from the tour: a straight motion joins it to pose {int(order[k - 1])}, "
+                      "which it did not reach either")
         else:
-            keep[k] = False
-            dropped.append((int(order[k]), "no collision-free motion from the previous pose, even via a lifted arm"
-                            if prev == k - 1 else "no collision-free motion after re-ordering, even via a lifted arm"))
-    return Repair(keep, vias, dropped)
+            reason = (("no collision-free motion from the previous pose" if prev == k - 1 else
+                       "no collision-free motion after re-ordering")
+                      + f", even via a lifted arm or after a path search of {finder.budget} checked steps")
+        dropped.append((int(order[k]), reason))
+    return Repair(keep, vias, dropped, finder.searched, finder.search_checks)
 
 
 def tour_path(order, Q, vias) -> np.ndarray:
