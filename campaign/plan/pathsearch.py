@@ -21,8 +21,10 @@ import numpy as np
 #: largest joint motion of one tree step (rad): a check costs about as much for 115 samples (at
 #: the default 1° spacing) as for 30, and long steps reach across a UR10's ±360° joints in fewer
 STEP = 2.0
-#: checked steps per motion before the search gives up (the pose is then dropped): about 0.3 s
-BUDGET = 100
+#: checked steps per motion before the search gives up (the pose is then dropped): about 1 s.
+#: The COMAU under a ceiling that the upright arm hits (tests/test_plan_search.py) needed up to
+#: about 200; 100 left a third of its poses unreached
+BUDGET = 400
 #: the random postures are drawn within this much (rad) beyond the two poses' values of a
 #: revolute joint, within its limits: every posture of a joint lies within half a turn either
 #: side of any value, so only needless extra turns are left out

@@ -33,7 +33,7 @@ from campaign.plan.grid import Grid, default_cells, iter_tool_points
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.outputs import write_tour
 from campaign.plan.plot import plot_tour
-from campaign.plan.repair import check_segments, repair_tour, tour_path
+from campaign.plan.repair import check_segments, repair_largest, tour_path
 from campaign.plan.timing import GridTimes, path_time
 from campaign.plan.tour import nearest_neighbour, neighbour_lists, or_opt, two_opt
 from campaign.progress import Progress
@@ -247,7 +247,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     bar.update(len(order))
     bar.close()
     lap("motion_check")
-    repair = repair_tour(robot, checker, order, Q, ok, max_step, mc)
+    repair = repair_largest(robot, checker, order, Q, ok, max_step, mc)
     vias, dropped = repair.vias, repair.dropped
     order_final = order[repair.keep]
     Q_final = grid.q(_grid_index(order_final))
@@ -272,6 +272,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         "suitable": counts["suitable"], "suitable_fraction": counts["suitable"] / counts["candidates"],
         "groups": {"front_of_wall": int(front_final.sum()), "behind_wall": int((~front_final).sum())},
         "tour": {"poses": n, "via_poses": int(sum(len(v) for v in vias.values())), "dropped": len(dropped),
+                 "path_search": {"motions": repair.searched, "checks": repair.search_checks},
                  "motion_time_s": tour_time, "clearance_m": pc.clearance_m, "motion_clearance_m": mc,
                  "motion_sample_deg": pc.motion_sample_deg},
         "estimated_campaign": {

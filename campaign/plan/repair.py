@@ -1,7 +1,13 @@
 """Stage 3's repair: a straight joint motion between two poses of the tour that does not keep
-the motion clearance is replaced by a path through two via postures that lift the arm; when
-that path collides too, the pose is dropped, and the motion to the next pose, which then starts
-elsewhere, is checked (and repaired) again (:func:`repair_tour`).
+the motion clearance is replaced by a path through via postures: two that lift the arm, else
+one of a few structured paths (the wrist to a neutral posture first, the elbow before the
+shoulder), else a path found by a seeded RRT-Connect search with a bounded budget and shortened
+(campaign.plan.pathsearch; :class:`PathFinder`). When no path is found, the pose is dropped, and
+the motion to the next pose, which then starts elsewhere, is checked (and repaired) again
+(:func:`repair_tour`). Poses that no search reaches from the tour may be joined among
+themselves (a UR10 on a pedestal: the ranges of joint 2 on either side of the posture that
+points the upper arm into the pedestal): :func:`repair_largest` tours each such set in turn
+and keeps the largest.
 
 The lifted arm (:func:`lift_posture`) keeps joint 1 and the wrist (the last three joints) of
 the pose it leaves or reaches and sets the arm's joints in between (joints 2..N-3; joint 2
@@ -314,6 +320,45 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
                       + f", even via a lifted arm or after a path search of {finder.budget} checked steps")
         dropped.append((int(order[k]), reason))
     return Repair(keep, vias, dropped, finder.searched, finder.search_checks)
+
+
+#: passes of :func:`repair_largest`: sets of poses joined among themselves that are each toured
+#: in turn (a UR10 on a pedestal: three, one for each range of joint 2 between the postures that
+#: point the upper arm into the pedestal)
+MAX_PASSES = 3
+
+
+def repair_largest(robot, checker, order, Q, ok, max_step, clearance, *, budget=None) -> Repair:
+    """:func:`repair_tour`, then again over the poses it dropped (in tour order, from the first of
+    them), up to :data:`MAX_PASSES` passes while the poses left could outnumber the most kept:
+    the pass that keeps the most poses is the tour (ties: the earlier pass). No motion joins a
+    pose that another pass kept to this tour's poses (the search from the tour did not reach it),
+    so it is dropped with that reason. Arguments as :func:`repair_tour`; the Repair is over
+    ``order``."""
+    rest, passes = np.arange(len(order)), []
+    for _ in range(MAX_PASSES):
+        sub_ok = ok if len(passes) == 0 else check_segments(robot, checker, Q[rest[:-1]], Q[rest[1:]], max_step,
+                                                            clearance)
+        passes.append((rest, repair_tour(robot, checker, order[rest], Q[rest], sub_ok, max_step, clearance,
+                                         budget=budget)))
+        most = max(int(r.keep.sum()) for _, r in passes)
+        rest = rest[~passes[-1][1].keep]
+        if len(rest) <= most:
+            break
+    best = max(range(len(passes)), key=lambda i: (int(passes[i][1].keep.sum()), -i))
+    rows, repair = passes[best]
+    keep = np.zeros(len(order), dtype=bool)
+    keep[rows[repair.keep]] = True
+    reason = {p: r for p, r in repair.dropped}
+    for i, (rows_i, r) in enumerate(passes):
+        if i != best:
+            n_i = int(r.keep.sum())
+            for p in order[rows_i[r.keep]]:
+                reason[int(p)] = (f"no collision-free motion to the tour: it lies among {n_i} poses joined among "
+                                  f"themselves that no path search reached from the tour's {int(keep.sum())}")
+    dropped = [(int(p), reason[int(p)]) for p in order[~keep]]
+    return Repair(keep, repair.vias, dropped, sum(r.searched for _, r in passes),
+                  sum(r.search_checks for _, r in passes))
 
 
 def tour_path(order, Q, vias) -> np.ndarray:
