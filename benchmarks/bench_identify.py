@@ -2,6 +2,7 @@
 
     python benchmarks/bench_identify.py [--poses 14000] [--robot NAME|URDF|robot.yaml [--tool-frame LINK]]
     python benchmarks/bench_identify.py --robot panda   # the 7R case: example-robot-data's Panda
+    python benchmarks/bench_identify.py --markers [--miss-rate 0.05]  # raw three-reflector rows
     (on a shared machine: OPENBLAS_NUM_THREADS=1, else BLAS threads fight over the cores)
 
 Simulates a campaign with Table-4-sized geometric errors and 10 µm tracker noise,
@@ -9,7 +10,9 @@ identifies the 30 base parameters on the 80 % training split and reports wall ti
 iterations, the worst |error| / σ of the recovered base parameters and the held-out
 mean position error against the noise-only floor. Writes benchmarks/results/identify.json (the
 default COMAU) or identify_<robot>.json. ``--robot panda`` loads the Panda (7 revolute joints,
-tool panda_hand) of the test-only package example-robot-data.
+tool panda_hand) of the test-only package example-robot-data. ``--markers``: the same poses as
+raw reflector rows (the default triad, each reflector missed with ``--miss-rate``), identified
+from the reflectors' positions as `calibrate` does for raw data; writes identify_markers.json.
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--robot", default=None, help="robot (default: the COMAU); 'panda': the 7R case")
     ap.add_argument("--tool-frame", default=None)
+    ap.add_argument("--markers", action="store_true", help="raw three-reflector rows, fitted at the reflectors")
+    ap.add_argument("--miss-rate", type=float, default=0.0, help="with --markers: probability of a missed reflector")
     args = ap.parse_args()
     spec = args.robot
     if spec == "panda":
@@ -52,9 +57,24 @@ def main():
     is_test = train_test_split(meas.pose_id)
     tr, te = ~is_test, is_test
 
-    t0 = time.perf_counter()
-    model = CalibrationModel(robot=robot).fit(meas.q[tr], meas.T_IE[tr], base=base)
-    t_fit = time.perf_counter() - t0
+    if args.markers:  # the same poses as raw reflector rows in the set-up frame (the tracker's noise)
+        from campaign.measure.reflectors import transform_points
+        from campaign.sim.truth import tool_points
+
+        P_E = tool_points(robot)
+        rng = np.random.default_rng(args.seed + 3)
+        T_true = truth.pose_in_measured_frame(meas.q, meas.T_LI)
+        markers = transform_points(T_true, np.broadcast_to(P_E, (len(q),) + P_E.shape))
+        markers = markers + rng.normal(0.0, 10e-6, size=markers.shape)
+        markers[rng.uniform(size=markers.shape[:2]) < args.miss_rate] = np.nan
+        base = base_parameters(robot, position_only=True, points=P_E)
+        t0 = time.perf_counter()
+        model = CalibrationModel(robot=robot, points=P_E).fit(meas.q[tr], markers[tr], base=base)
+        t_fit = time.perf_counter() - t0
+    else:
+        t0 = time.perf_counter()
+        model = CalibrationModel(robot=robot).fit(meas.q[tr], meas.T_IE[tr], base=base)
+        t_fit = time.perf_counter() - t0
     t0 = time.perf_counter()
     base_parameters(robot)
     t_base = time.perf_counter() - t0
@@ -67,7 +87,8 @@ def main():
     mean = lambda d: float(np.linalg.norm(d[:, :3], axis=1).mean() * 1e3)
     res = {
         "robot": robot.name, "n_joints": robot.n_joints, "n_params": robot.n_params, "n_base": base.n_base,
-        "poses": args.poses, "train_poses": int(tr.sum()), "test_poses": int(te.sum()),
+        "poses": args.poses, "data": "raw reflectors" if args.markers else "6-D poses",
+        "miss_rate": args.miss_rate if args.markers else None, "train_poses": int(tr.sum()), "test_poses": int(te.sum()),
         "identification_time_s": t_fit, "base_parameter_analysis_time_s": t_base,
         "iterations": model.n_iter_, "max_abs_error_over_sigma": float(z.max()),
         "heldout_mean_position_mm": {"nominal": mean(nominal), "geometric": mean(dz), "noise_floor": mean(floor)},
@@ -85,8 +106,8 @@ def main():
     print(f"held-out mean position error: nominal {h['nominal']:.3f} mm -> geometric {h['geometric']:.4f} mm "
           f"(noise floor {h['noise_floor']:.4f} mm, ratio {res['ratio_to_floor']:.3f})")
     print(f"peak RSS {res['peak_rss_mb']:.0f} MB; load average {res['load_average'][0]:.2f}")
-    out = Path(__file__).parent / "results" / ("identify.json" if args.robot is None else
-                                                 f"identify_{Path(str(args.robot)).stem}.json")
+    name = "identify" if args.robot is None else f"identify_{Path(str(args.robot)).stem}"
+    out = Path(__file__).parent / "results" / (name + ("_markers" if args.markers else "") + ".json")
     out.write_text(json.dumps(res, indent=2))
 
 

@@ -64,6 +64,7 @@ def test_heldout_error_reaches_the_noise_floor(which, kind, tmp_path, capsys):
     truth = read_truth(truth_path, robot)
     with open_run(run) as store:
         poses = store.load_measured()
+        every = store.load_measured(include_unusable=True)  # raw reflectors: also rows of fewer than three
     ok = np.isfinite(poses.xyz).all(axis=1)
     te = train_test_split(poses.pose_id) & ok
     true_xyz = (truth.T_LI @ truth.pose(poses.q[te]))[:, :3, 3]
@@ -85,8 +86,11 @@ def test_heldout_error_reaches_the_noise_floor(which, kind, tmp_path, capsys):
     assert main(["export", str(run), "--urdf", str(tmp_path / "cal.urdf"), "--csv", str(tmp_path / "back.csv")]) == 0
     back = read_measured_csv(tmp_path / "back.csv", robot,
                              ImportOptions(markers=poses.marker_positions if kind == "markers" else None))
-    assert back.kind == kind and len(back) == len(poses)
-    np.testing.assert_allclose(back.q, poses.q, atol=0)
+    # every imported row back out, those of fewer than three reflectors seen included
+    assert back.kind == kind and len(back) == len(every) == 360
+    np.testing.assert_allclose(back.q, every.q, atol=0)
+    if kind == "markers":
+        np.testing.assert_array_equal(np.isnan(back.markers), np.isnan(every.markers))
 
 
 def test_units_and_kinds_from_the_header(tmp_path):
@@ -134,19 +138,23 @@ def test_raw_markers_need_their_nominal_positions_and_missed_cells_are_empty(tmp
     assert ",,," in (tmp_path / "back.csv").read_text()
 
 
-def test_two_raw_reflectors_are_one_line_at_import_and_no_run_is_made(tmp_path, capsys):
-    """Two reflectors give no pose (and calibrate has no model of two points): refused on import,
-    not accepted and then left out row by row by calibrate."""
+def test_two_raw_reflectors_are_imported_as_their_positions(tmp_path, capsys):
+    """Two reflectors give no pose: imported as raw reflector data (their positions), which
+    calibrate identifies from the positions (tests/test_reflector_points.py); no pose is made up."""
     head = "pose_id,time_s," + ",".join(f"q{j}" for j in range(1, 7)) + "," + \
         ",".join(f"m{i}_{a}" for i in (1, 2) for a in "xyz") + "\n"
-    (tmp_path / "m.csv").write_text(head + "1,0," + ",".join(["0.1"] * 6) + ",0.1,0,0.5,0,0.1,0.5\n")
+    (tmp_path / "m.csv").write_text(head + "1,0," + ",".join(["0.1"] * 6) + ",0.1,0,0.5,0,0.1,0.5\n"
+                                    + "2,1," + ",".join(["0.2"] * 6) + ",,,,0,0.1,0.6\n")
     (tmp_path / "markers.yaml").write_text("markers: [[0.05, 0, 0], [0, 0.05, 0]]\n")
     run = tmp_path / "run"
     assert main(["import", str(tmp_path / "m.csv"), "--run", str(run), "--markers", str(tmp_path / "markers.yaml"),
-                 "--quiet"]) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "m1..m2: a pose needs three or more reflectors" in err[0] and "m.csv" in err[0], err
-    assert not run.exists()
+                 "--quiet"]) == 0
+    with open_run(run) as store:
+        p = store.load_measured(include_unusable=True)
+    assert p.kind == "markers" and p.markers.shape == (2, 2, 3) and np.isnan(p.xyz).all()
+    np.testing.assert_allclose(p.markers[0], [[0.1, 0, 0.5], [0, 0.1, 0.5]], atol=0)
+    assert np.isnan(p.markers[1, 0]).all() and np.allclose(p.markers[1, 1], [0, 0.1, 0.6])
+    np.testing.assert_allclose(p.marker_positions, [[0.05, 0, 0], [0, 0.05, 0]])
 
 
 def test_too_few_poses_is_one_line_saying_how_many(tmp_path, capsys):

@@ -37,6 +37,7 @@ from scipy import stats
 from campaign.diagnose.candidates import fit_candidate, linearise
 from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, make_effect,
                                    parse_effect_list, resolve_effect_spec)
+from campaign.errors import DataError
 from campaign.identify.calibrate import (check_pose_count, configured_effects, distinct_poses, equations_per_pose,
                                          load_robot_for_run, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
@@ -321,7 +322,15 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                                                                         for e in parse_effect_list(effects))
     names = candidate_specs(candidates, current, run_dir)
     with open_run(run_dir) as store:
-        poses = store.load_measured()
+        poses = store.load_measured(include_unusable=True)
+    usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
+    if not usable.any():
+        raise DataError(f"{run_dir}: diagnose compares fits of poses, and no pose has three reflectors seen "
+                        "(raw reflectors); `campaign calibrate` identifies these data from the reflectors' positions")
+    if not usable.all():  # raw reflectors: the candidates are compared on poses
+        say(f"{int((~usable).sum())} of {len(poses)} poses have fewer than three reflectors seen: left out "
+            "(diagnose compares fits of poses)")
+        poses = poses.subset(np.flatnonzero(usable))
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
     # the data as calibrate's model sees them: registered from the tracker's frame, at the measured point
     from campaign.identify.calibrate import prepare_measured

@@ -24,11 +24,12 @@ from campaign.effects.base import effect_context, effect_name, make_effect, pars
 from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_write
 from campaign.identify.ann_stage import AnnStages
-from campaign.identify.metrics import error_stats, format_table6
+from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, validation_file
 from campaign.measure.floor import noise_floor, times_the_noise
 from campaign.measure.store import open_run
+from campaign.measure.reflectors import transform_points
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
@@ -155,26 +156,44 @@ def training_poses_needed(n_unknowns: int, position_only: bool) -> int:
     return n_unknowns // equations_per_pose(position_only) + 1
 
 
+def informative_equations(n_seen) -> int:
+    """Equations a pose of raw reflectors gives the parameters, on average over poses with
+    ``n_seen`` (n,) reflectors seen: 3 for one, 5 for two (not the rotation about their line), 6
+    for three or more (the rest of their 3 per reflector only see the noise); at least 3."""
+    n_seen = np.asarray(n_seen)
+    if not len(n_seen):
+        return 3
+    per = np.select([n_seen >= 3, n_seen == 2], [6, 5], 3)
+    return max(3, int(per.sum()) // len(per))
+
+
 def check_pose_count(run_dir, robot, n_train: int, n_test: int, position_only: bool, *, n_effect_params: int = 0,
-                     fold_rule=None, validation: bool = False) -> None:
+                     fold_rule=None, validation: bool = False, points=None, rows_per_pose: int | None = None) -> None:
     """One line (DataError) when a run has too few distinct poses to identify the base
     parameters (plus ``n_effect_params``) and test them: how many are needed and why.
 
     n_train: distinct training poses; fold_rule: a :class:`campaign.identify.split.FoldRule`
     when every fold is fitted too (`diagnose`): its smallest fold fit must identify them;
-    validation: the test set is a plan's validation poses (not the 80/20 split)."""
+    validation: the test set is a plan's validation poses (not the 80/20 split); points: raw
+    reflectors' nominal positions (k, 3) m in the tool frame, identified from their positions,
+    ``rows_per_pose`` equations per pose (:func:`informative_equations`)."""
     from campaign.identify.split import EXACT_SPLIT_BELOW, poses_for_training
     from campaign.model.base_params import base_parameters
 
-    rows = equations_per_pose(position_only)
-    n_base = base_parameters(robot, position_only=position_only).n_base
-    need = training_poses_needed(n_base + n_effect_params, position_only)
+    rows = equations_per_pose(position_only) if points is None else max(int(rows_per_pose or 3), 1)
+    if points is None:
+        n_base = base_parameters(robot, position_only=position_only).n_base
+        need = training_poses_needed(n_base + n_effect_params, position_only)
+    else:
+        n_base = base_parameters(robot, position_only=True, points=points).n_base
+        need = (n_base + n_effect_params) // rows + 1
     fits = n_train if fold_rule is None else fold_rule.fit_poses
     if fits >= need and n_test >= 1:
         return
     unknowns = f"{n_base} identifiable base parameters" + (f" and {n_effect_params} effect parameters"
                                                           if n_effect_params else "")
-    what = "positions only" if rows == 3 else "position and orientation"
+    what = ("positions only" if rows == 3 else "position and orientation") if points is None else \
+        "raw reflectors, on average: 3 for one seen, 5 for two, 6 for three or more"
     if fold_rule is None:
         need_train, who = need, "calibrate needs"
     else:  # the fewest training poses whose every fold fit has `need` poses (the same fold rule)
@@ -225,18 +244,28 @@ def prepare_measured(robot, poses, train):
 def register_tracker(robot, poses, train):
     """Measurements in the tracker's frame L into the robot's frame: the closed-form rigid
     registration T_LI0 of the nominal model's tool points to the measured ones on the training
-    poses (Kabsch). The remaining tracker-pose error is identified by the base transform's six
+    poses (Kabsch; raw reflectors: of every seen reflector's nominal position to its measured one). The remaining tracker-pose error is identified by the base transform's six
     parameters (pL_I0_*, pR_I0_*), which are the same unknowns as a tracker pose. Returns the
     poses in F_I and a record of the registration."""
-    from campaign.measure.reflectors import invert, register_points
+    from campaign.measure.reflectors import invert, register_points, transform_points
 
-    P_nom = forward(robot, poses.q[train])[:, :3, 3]
-    T_LI0 = register_points(P_nom, poses.xyz[train])
+    if poses.kind == "markers" and poses.markers is not None:
+        # raw reflectors: every seen reflector of the training poses, also of poses with fewer than three
+        T_nom = forward(robot, poses.q[train])
+        P_nom = transform_points(T_nom, np.broadcast_to(poses.marker_positions, poses.markers[train].shape))
+        P_nom, P_meas = P_nom.reshape(-1, 3), poses.markers[train].reshape(-1, 3)
+        seen = np.isfinite(P_meas).all(axis=1)
+        P_nom, P_meas = P_nom[seen], P_meas[seen]
+    else:
+        P_nom, P_meas = forward(robot, poses.q[train])[:, :3, 3], poses.xyz[train]
+    T_LI0 = register_points(P_nom, P_meas)
     T_I = invert(T_LI0) @ poses.T_IE
     if not poses.has_orientation:
         T_I[:, :3, :3] = np.eye(3)
     fitted = P_nom @ T_LI0[:3, :3].T + T_LI0[:3, 3]
-    rms = float(np.sqrt(np.mean(np.sum((fitted - poses.xyz[train]) ** 2, axis=1))))
+    rms = float(np.sqrt(np.nanmean(np.sum((fitted - P_meas) ** 2, axis=1))))
+    if poses.markers is not None:
+        poses = replace(poses, markers=transform_points(invert(T_LI0), poses.markers))
     return replace(poses, T_IE=T_I), {"T_L_I_registration": T_LI0.tolist(), "registration_rms_mm": rms * 1e3}
 
 
@@ -292,82 +321,132 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                         f"{robot.name} has {robot.n_joints} joints")
     robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK, pose_ids=poses.pose_id)
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
-    if not usable.all():  # raw reflectors: fewer than three seen
+    raw = poses.kind == "markers" and poses.markers is not None
+    if raw:  # identified from the seen reflectors' positions: every pose with one seen contributes
+        n_seen = np.isfinite(poses.markers).all(axis=2).sum(axis=1)
+        if not (n_seen > 0).any():
+            raise DataError(f"{run_dir}: no pose has a reflector seen")
+        if (n_seen == 0).any():
+            say(f"{int((n_seen == 0).sum())} of {len(poses)} poses have no reflector seen: left out")
+            keep = np.flatnonzero(n_seen > 0)
+            poses, usable, n_seen = poses.subset(keep), usable[keep], n_seen[keep]
+        if not usable.all():
+            say(f"{int((~usable).sum())} of {len(poses)} poses have fewer than three reflectors seen: identified "
+                "from their reflectors' positions, left out of the errors at the tool origin (no pose there)")
+    elif not usable.all():  # raw reflectors without their positions: fewer than three seen
         say(f"{int((~usable).sum())} of {len(poses)} poses have fewer than three reflectors seen: left out")
         poses = poses.subset(np.flatnonzero(usable))
+        usable = usable[usable]
     position_only = position_only or not poses.has_orientation
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
     tr, te = ~is_test, is_test
     n_effect = sum(make_effect(e, robot).n_params for e in effects)
+    points = poses.marker_positions if raw else None
     check_pose_count(run_dir, robot, distinct_poses(poses.q[tr]), int(te.sum()), position_only,
-                     n_effect_params=n_effect, validation=validation_file(run_dir).is_file())
+                     n_effect_params=n_effect, validation=validation_file(run_dir).is_file(), points=points,
+                     rows_per_pose=informative_equations(n_seen[tr]) if raw else None)
     poses, robot, tracker = prepare_measured(robot, poses, tr)
     if tracker is not None:
+        what = "reflectors" if raw else "poses"
         say(f"measurements in the tracker's frame: registered to the nominal model "
-            f"(rms {tracker['registration_rms_mm']:.3f} mm over {int(tr.sum())} training poses)")
+            f"(rms {tracker['registration_rms_mm']:.3f} mm over the {what} of {int(tr.sum())} training poses)")
     context = effect_context(poses.context, poses.time_s)
     ctx_tr = {k: v[tr] for k, v in context.items()}
+    # the errors at the tool origin: where a pose was measured (raw reflectors: three or more seen);
+    # two-reflector data have none, and their position errors are the reflectors' (reflector_position_mm)
+    at_origin = bool(usable[tr].any() and usable[te].any())
+    if raw and not at_origin:
+        say("no pose of three or more reflectors in the training and the test set: the position errors are "
+            "the reflectors' (no orientation)")
 
     stages, order, residuals = {}, [], {}
 
-    def add_stage(name, dz):
-        o = poses.has_orientation
+    def add_stage(name, dz, dp=None):
+        o = poses.has_orientation and at_origin
+        dz = np.array(dz, dtype=float)
         if not o:  # orientation rows only where orientation was measured
-            dz = np.array(dz, dtype=float)
             dz[:, 3:6] = np.nan
-        stages[name] = {"train": error_stats(dz[tr], orientation=o), "test": error_stats(dz[te], orientation=o)}
+        dz[~usable] = np.nan
+        st = {}
+        for split, m in (("train", tr), ("test", te)):
+            if at_origin:
+                st[split] = error_stats(dz[m & usable], orientation=o)
+            else:
+                st[split] = reflector_stats(dp[m], key="position_mm")
+                st[split]["n_poses"] = int(m.sum())  # poses whose reflectors were scored
+            if dp is not None:
+                st[split]["reflector_position_mm"] = reflector_stats(dp[m])["reflector_position_mm"]
+        stages[name] = st
         order.append(name)
+        if not at_origin:  # the report's per-pose error: the mean of the seen reflectors' errors
+            dz = np.concatenate([np.nanmean(dp, axis=1), np.full((len(dp), 3), np.nan)], axis=1)
         residuals[name] = dz
 
     T_nom = forward(robot, poses.q)
     dz_nom = pose_error(T_nom, poses.T_IE)
-    add_stage("nominal", dz_nom)
+    dp_nom = None
+    if raw:
+        P_E = poses.marker_positions
+        dp_nom = transform_points(T_nom, np.broadcast_to(P_E, poses.markers.shape)) - poses.markers
+    add_stage("nominal", dz_nom, dp_nom)
 
-    say(f"geometric identification on {int(tr.sum())} training poses")
+    Y = poses.markers if raw else poses.T_IE
+    say(f"geometric identification on {int(tr.sum())} training poses"
+        + (f" ({int(n_seen[tr].sum())} seen reflectors)" if raw else ""))
     t0 = time.perf_counter()
-    geo = CalibrationModel(robot=robot, position_only=position_only).fit(poses.q[tr], poses.T_IE[tr])
+    geo = CalibrationModel(robot=robot, position_only=position_only, points=points).fit(poses.q[tr], Y[tr])
     t_geo = time.perf_counter() - t0
     dz_geo = geo.residuals(poses.q, poses.T_IE)
-    add_stage("geometric", dz_geo)
+    add_stage("geometric", dz_geo, geo.point_residuals(poses.q, poses.markers) if raw else None)
     model = geo
     dz_model = dz_geo
     if effects:
         say(f"identifying geometric + {', '.join(effects)}")
-        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only).fit(
-            poses.q[tr], poses.T_IE[tr], ctx_tr)
+        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only, points=points).fit(
+            poses.q[tr], Y[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
-        add_stage(stage_name(effects), dz_model)
+        add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
     point = measured_point(robot, poses)
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
     ann_skipped = ann_stages = rule = None
+    n_ann = int((tr & usable).sum())  # the network learns pose residuals: poses with a pose
     if ann == "auto":
-        ann = int(tr.sum()) >= ANN_MIN_TRAIN_POSES
+        ann = n_ann >= ANN_MIN_TRAIN_POSES
         if not ann:
-            ann_skipped = (f"no neural compensator: {int(tr.sum())} training poses are below the "
+            ann_skipped = (f"no neural compensator: {n_ann} training poses are below the "
                            f"{ANN_MIN_TRAIN_POSES} where its cross-validation beats the physical model "
                            "(a short campaign calibrates the physical model; --ann trains one anyway)")
             say(ann_skipped)
+    if ann and not at_origin:
+        raise DataError(f"{run_dir}: the neural compensator learns pose errors, and no pose was measured (raw "
+                        "reflectors, fewer than three seen in the training or the test set): run with --no-ann")
 
     if ann:
         from campaign.identify.ann_stage import run_ann_stages
         from campaign.identify.split import choose_folds
 
         ann_options = dict(ann_options or {})
-        rule = choose_folds(int(tr.sum()), ann_options.get("folds"))
+        rule = choose_folds(n_ann, ann_options.get("folds"))
         ann_options["folds"] = rule.k
         say(f"cross-validation of the network: {rule.text()}")
-        T_prior = {"nominal": T_nom, stage_name(effects): model.predict(poses.q, context)}
-        ann_residuals, ann_stages = run_ann_stages(run_dir, robot, poses, is_test, T_prior,
-                                                   options=ann_options, progress=progress)
+        if not usable.all():
+            say(f"the network on the {int(usable.sum())} poses with three or more reflectors seen "
+                f"({int((~usable).sum())} without a pose skipped)")
+        T_prior = {"nominal": T_nom[usable], stage_name(effects): model.predict(poses.q, context)[usable]}
+        ann_residuals, ann_stages = run_ann_stages(run_dir, robot, poses.subset(np.flatnonzero(usable)),
+                                                   is_test[usable], T_prior, options=ann_options, progress=progress)
         for name, dz in ann_residuals.items():
-            add_stage(name, dz)
+            full = np.full((len(poses), 6), np.nan)
+            full[usable] = dz
+            add_stage(name, full)
 
     result = CalibrationResult(
         run_dir, stages, order, model, is_test, effects=tuple(effects), measurement_kind=poses.kind,
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
-        noise_floor=noise_floor(run_dir, poses, robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
+        noise_floor=noise_floor(run_dir, poses.subset(np.flatnonzero(usable)) if at_origin else poses,
+                                robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json())
     if write:
         _write(result, robot, geo)
@@ -375,7 +454,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         from campaign.identify.report import write_report
 
         say("writing the report")
-        page = write_report(run_dir, stages, order, residuals, poses.q, poses.xyz, is_test,
+        shown = np.flatnonzero(usable) if at_origin else np.arange(len(poses))  # rows with an error at the origin
+        xyz = poses.xyz if at_origin else np.nanmean(poses.markers, axis=1)
+        page = write_report(run_dir, stages, order, {k: v[shown] for k, v in residuals.items()}, poses.q[shown], xyz[shown], is_test[shown],
                             param_text=parameter_text(model),
                             extra_html=f"<h2>Against the measurement noise</h2>"
                             f"<pre>{html.escape(result.floor_line())}</pre>"

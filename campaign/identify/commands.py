@@ -129,7 +129,7 @@ def _export(args):
         if not args.csv:
             return 0
     with RunFolder(args.run).store() as store:
-        poses = store.load_measured()
+        poses = store.load_measured(include_unusable=True)  # raw reflectors: every row, as imported
     write_measured_csv(args.csv, poses, RunFolder(args.run).robot())
     print(f"wrote {len(poses)} poses to {args.csv}")
     return 0

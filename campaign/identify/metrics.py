@@ -23,6 +23,17 @@ def error_stats(dz, *, orientation: bool = True) -> dict:
     return {"position_mm": s(pos), "orientation_mrad": s(rot), "n_poses": int(len(dz))}
 
 
+def reflector_stats(dp, *, key: str = "reflector_position_mm") -> dict:
+    """Statistics of reflector position errors dp (n, k, 3) m over every seen reflector (NaN rows:
+    missed): ``{key: {"max", "mean", "q90"} mm, "n_reflectors"}`` (raw reflector data)."""
+    e = np.linalg.norm(np.asarray(dp, dtype=float), axis=-1).reshape(-1) * 1e3
+    e = e[np.isfinite(e)]
+    if not len(e):
+        return {key: {"max": None, "mean": None, "q90": None, "n_reflectors": 0}}
+    return {key: {"max": float(np.max(e)), "mean": float(np.mean(e)), "q90": float(np.quantile(e, 0.9)),
+                  "n_reflectors": int(len(e))}}
+
+
 def format_table6(stages: dict, order, split: str = "test") -> str:
     """Stages side by side, like the paper's Table 6, with the ratio to the first stage."""
     cols = [name for name in order if name in stages]

@@ -13,6 +13,12 @@ held at zero rather than silently fitted.
 Rows are weighted by the noise of their block (position in m, orientation in rad),
 estimated from the residuals (variance components), so σ of every parameter is in its
 own unit. Levenberg-Marquardt steps from zero (eq. 19 with damping).
+
+With ``points`` (k, 3) m in the tool frame (raw reflector data), the rows are the positions of
+the seen reflectors, ``T_model(q)·p_m − measured_m`` (3 per seen reflector; a missed one gives
+zero rows), and the base parameters are those of the reflectors' positions
+(:func:`campaign.model.base_params.base_parameters` with ``points``): no pose is fitted first,
+so a pose with one or two reflectors seen still contributes.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import numpy as np
 
 from campaign.effects.base import EffectSet, chain_pose, make_effect, model_pose
 from campaign.errors import DataError, IdentificationError, NotFittedError
-from campaign.model.base_params import BaseParameters, base_parameters
+from campaign.model.base_params import BaseParameters, base_parameters, point_rows
 from campaign.model.kinematics import error_jacobian, pose_error
 from campaign.model.rotations import rotvec_to_matrix
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
@@ -41,10 +47,12 @@ class CalibrationModel:
     max_iter : Levenberg-Marquardt iterations at most
     sigma_position_m, sigma_orientation_rad : initial noise guesses for row weights
     estimate_noise : re-estimate the block noise from the residuals (variance components)
+    points : (k, 3) m in the tool frame, or None: fit measured positions of these points
+        (raw reflectors; ``fit(q, P_meas)`` with P_meas (n, k, 3), NaN where missed) instead of poses
     """
 
     def __init__(self, *, robot, effects=(), position_only=False, max_iter=50,
-                 sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True):
+                 sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True, points=None):
         self.robot = robot
         self.effects = effects
         self.position_only = position_only
@@ -52,6 +60,7 @@ class CalibrationModel:
         self.sigma_position_m = sigma_position_m
         self.sigma_orientation_rad = sigma_orientation_rad
         self.estimate_noise = estimate_noise
+        self.points = points
 
     # -- helpers ----------------------------------------------------------------------
     def _effect_set(self) -> EffectSet:
@@ -114,29 +123,63 @@ class CalibrationModel:
             cols.append(J_th)
         return np.concatenate(cols, axis=2)
 
+    def _points(self):
+        return None if self.points is None else np.asarray(self.points, dtype=float).reshape(-1, 3)
+
+    def _model_points(self, q, p_e, theta, context):
+        """The points' positions (n, k, 3) m in F_I under the model."""
+        T = self._model_T(q, p_e, theta, context)
+        return self._points() @ np.swapaxes(T[:, :3, :3], 1, 2) + T[:, None, :3, 3]
+
+    def _point_jacobian(self, q, p_e, theta, context):
+        """Derivative of the points' model positions: (n, k, 3, r + k_effects). The pose's own
+        derivative (δt at the tool origin, δφ in F_I) carried to each point, δt + δφ × R·p_m."""
+        T = self._model_T(q, p_e, theta, context)
+        J = self._jacobian(q, p_e, theta, context, T if self.effect_set_.effects else None)
+        d = self._points() @ np.swapaxes(T[:, :3, :3], 1, 2)
+        return point_rows(J, d)
+
     # -- estimator API ----------------------------------------------------------------
     def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None, init: dict | None = None):
         """Identify the base parameters (and effect parameters) from measured poses.
 
-        q: (n, N) rad (m for prismatic joints); T_meas: (n, 4, 4) measured T_IE (m); context:
-        per-pose values.
+        q: (n, N) rad (m for prismatic joints); T_meas: (n, 4, 4) measured T_IE (m), or with
+        ``points`` the measured positions of those points (n, k, 3) m, NaN where one was missed
+        (a pose with none seen adds no row); context: per-pose values.
         init: optional start values by unknown name (e.g. another fit's ``values_``);
         unknowns not named start at 0 (the paper's start point).
         """
         q = np.asarray(q, dtype=float)
         T_meas = np.asarray(T_meas, dtype=float)
         N = self.robot.n_joints
-        if q.ndim != 2 or q.shape[1] != N or T_meas.shape != (len(q), 4, 4):
+        P = self._points()
+        if P is None and (q.ndim != 2 or q.shape[1] != N or T_meas.shape != (len(q), 4, 4)):
             raise DataError(f"fit: expected q (n, {N}) and T_meas (n, 4, 4), got {q.shape} and {T_meas.shape}")
+        if P is not None and (q.ndim != 2 or q.shape[1] != N or T_meas.shape != (len(q), len(P), 3)):
+            raise DataError(f"fit: expected q (n, {N}) and measured points (n, {len(P)}, 3), got {q.shape} and "
+                            f"{T_meas.shape}")
         context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
         self.effect_set_ = self._effect_set()
         self.effect_set_.check_context(context, len(q))
-        self.base_ = base or base_parameters(self.robot, position_only=self.position_only)
+        if P is None:
+            self.base_ = base or base_parameters(self.robot, position_only=self.position_only)
+        else:
+            self.base_ = base or base_parameters(self.robot, position_only=True, points=P)
         r = self.base_.n_base
         k = self.effect_set_.n_params
         n_unknown = r + k
-        rows = self._rows()
-        n_rows = len(q) * (3 if self.position_only else 6)
+        if P is None:
+            rows = self._rows()
+            mask = np.ones((len(q), rows.stop))
+            sig = np.array([self.sigma_position_m] * 3 + [self.sigma_orientation_rad] * 3)[rows]
+            blocks = [np.arange(3)] + ([] if self.position_only else [np.arange(3, 6)])
+        else:
+            # a missed reflector: zero rows (weight 0), never NaN in the solver
+            mask = np.repeat(np.isfinite(T_meas).all(axis=2).astype(float), 3, axis=1)
+            Y = np.nan_to_num(T_meas).reshape(len(q), -1)
+            sig = np.full(3 * len(P), self.sigma_position_m)
+            blocks = [np.arange(3 * len(P))]
+        n_rows = int(mask.sum())
         if n_rows < n_unknown:
             raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_unknown} unknowns")
 
@@ -146,17 +189,24 @@ class CalibrationModel:
             for i, name in enumerate(self.base_.names + self.effect_set_.param_names):
                 if name in init:
                     x[i] = init[name]
-        sig = np.array([self.sigma_position_m] * 3 + [self.sigma_orientation_rad] * 3)[rows]
 
         def unpack(x):
             return self.base_.expand(x[:r]), x[r:]
 
         def residual(x):
             p_e, th = unpack(x)
+            if P is not None:
+                return (self._model_points(q, p_e, th, context).reshape(len(q), -1) - Y) * mask
             return pose_error(self._model_T(q, p_e, th, context), T_meas)[:, rows]
 
+        def jacobian(x):
+            if P is not None:
+                J = self._point_jacobian(q, *unpack(x), context)
+                return J.reshape(len(q), -1, J.shape[-1]) * mask[:, :, None]
+            return self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :]
+
         # identifiability of the combined regressor at the start point
-        J0 = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :] / sig[None, :, None]
+        J0 = jacobian(x) / sig[None, :, None]
         self.absorbed_ = self._absorbed(J0.reshape(-1, n_unknown), r)
         free = np.array([i for i in range(n_unknown) if i not in self.absorbed_], dtype=int)
 
@@ -168,7 +218,7 @@ class CalibrationModel:
         for outer in range(3 if self.estimate_noise else 1):
             for n_iter_inner in range(self.max_iter):
                 n_iter += 1
-                J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :][:, :, free] / sig[None, :, None]
+                J = jacobian(x)[:, :, free] / sig[None, :, None]
                 J2 = J.reshape(-1, len(free))
                 g = J2.T @ (res / sig).reshape(-1)
                 H = J2.T @ J2
@@ -203,9 +253,8 @@ class CalibrationModel:
             dof = max(n_rows - len(free), 1)
             new_sig = sig.copy()
             share = dof / n_rows
-            new_sig[:3] = np.sqrt(np.sum(res[:, :3] ** 2) / (res[:, :3].size * share))
-            if not self.position_only:
-                new_sig[3:] = np.sqrt(np.sum(res[:, 3:] ** 2) / (res[:, 3:].size * share))
+            for cols in blocks:
+                new_sig[cols] = np.sqrt(np.sum(res[:, cols] ** 2) / (mask[:, cols].sum() * share))
             new_sig = np.maximum(new_sig, 1e-12)
             if np.allclose(new_sig, sig, rtol=0.05):
                 sig = new_sig
@@ -215,7 +264,7 @@ class CalibrationModel:
             history.append(cost)
             lam = 1e-6
 
-        J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :][:, :, free] / sig[None, :, None]
+        J = jacobian(x)[:, :, free] / sig[None, :, None]
         J2 = J.reshape(-1, len(free))
         H = J2.T @ J2
         dof = max(n_rows - len(free), 1)
@@ -247,7 +296,9 @@ class CalibrationModel:
         self.correlation_ = corr
         self.condition_number_ = float(svals[0] / svals[-1]) if svals[-1] > 0 else float("inf")
         self.noise_sigma_ = {"position_m": float(sig[0]),
-                             "orientation_rad": float(sig[3]) if not self.position_only else None}
+                             "orientation_rad": float(sig[3]) if P is None and not self.position_only else None}
+        #: equations used (rows with a measured value; with points: 3 per seen reflector)
+        self.n_equations_ = n_rows
         self.n_iter_ = n_iter
         self.cost_history_ = history
         self.unknown_names_ = self.base_.names + self.effect_set_.param_names
@@ -286,6 +337,28 @@ class CalibrationModel:
     def residuals(self, q, T_meas, context=None) -> np.ndarray:
         """Δz (n, 6) of the fitted model against measured poses."""
         return pose_error(self.predict(q, context), T_meas)
+
+    def predict_points(self, q, context=None) -> np.ndarray:
+        """Model positions (n, k, 3) m in F_I of the fitted ``points`` for joint coordinates q (n, N)."""
+        self._check()
+        if self.points is None:
+            raise DataError("predict_points: the model was fitted without points")
+        return self._model_points(np.asarray(q, dtype=float), self.params_, self.effect_params_, context or {})
+
+    def point_residuals(self, q, P_meas, context=None) -> np.ndarray:
+        """(n, k, 3) m: model minus measured positions of the fitted ``points`` (NaN where missed)."""
+        return self.predict_points(q, context) - np.asarray(P_meas, dtype=float)
+
+    def point_jacobian(self, q, context=None, *, base_params=None, effect_params=None) -> np.ndarray:
+        """(n, k, 3, r + k_effects): the derivative of the ``points``' model positions with respect
+        to the r base parameters and the effect parameters, at the given values (default: the
+        fitted ones); base_params (r,) m / rad, effect_params in their units."""
+        self._check()
+        if self.points is None:
+            raise DataError("point_jacobian: the model was fitted without points")
+        x_b = self.base_params_ if base_params is None else np.asarray(base_params, dtype=float)
+        theta = self.effect_params_ if effect_params is None else np.asarray(effect_params, dtype=float)
+        return self._point_jacobian(np.asarray(q, dtype=float), self.base_.expand(x_b), theta, context or {})
 
     def jacobian(self, q, T_meas, context=None, *, base_params=None, effect_params=None) -> np.ndarray:
         """(n, 6, r + k): the derivative of Δz against the measured poses T_meas (n, 4, 4) with

@@ -216,12 +216,8 @@ class ImportOptions:
 def _marker_positions(path, layout, robot, options):
     if layout.kind != "markers":
         return None
-    if layout.n_markers < 3:
-        # a pose needs three reflectors (the rigid fit); fewer give no pose, and calibrate has
-        # no model of several points without one
-        raise DataError(f"{path}: raw reflector columns m1..m{layout.n_markers}: a pose needs three or more "
-                        "reflectors; for one reflector write its position as x,y,z (the reflector in robot.yaml), "
-                        "two reflectors are not supported")
+    # any number of reflectors: calibrate identifies raw reflectors from their positions (fewer
+    # than three give no pose, and need none)
     P = options.markers
     src = "--markers"
     if P is None and robot is not None and len(robot.reflectors):

@@ -195,21 +195,17 @@ def read_plan(run_dir, poses_csv=None):
 
 def measured_robot(robot):
     """The robot with the reflectors a run measures (robot.yaml's, else the default triad): three
-    or more give each pose by Kabsch, one its position (one-reflector data, kind "point").
-    ConfigError (one line) for two: `calibrate` has no model of two positions without a pose."""
-    from campaign.errors import ConfigError
-
-    robot = robot.with_default_reflectors()
-    if len(robot.reflectors) == 2:
-        raise ConfigError(f"{robot.name}: robot.yaml names 2 reflectors; `campaign run` measures one (its position) "
-                          "or three or more (a pose by Kabsch): name one, or a third")
-    return robot
+    or more give each pose by Kabsch, one its position (one-reflector data, kind "point"), two
+    are stored as raw reflector data (kind "markers": their positions, no pose), which
+    `calibrate` identifies from the reflectors' positions."""
+    return robot.with_default_reflectors()
 
 
 def _derive(T_LI, P_E, P_L):
     """What the reflectors measured in F_L (k, 3) give in F_I: (xyz (3,) m, rotvec (3,) rad or None,
-    fit rms m or None). Three or more: the pose of F_E by Kabsch; one: its position alone."""
-    if len(P_E) == 1:
+    fit rms m or None). Three or more: the pose of F_E by Kabsch; one: its position alone; two: no
+    pose, xyz the first reflector's position (the drift check's; the data are the raw positions)."""
+    if len(P_E) < 3:
         xyz = transform_points(invert(T_LI), np.asarray(P_L, dtype=float)[None])[0, 0]
         return tuple(map(float, xyz)), None, None
     T_IE, rms = pose_from_reflectors(T_LI, P_E, np.asarray(P_L, dtype=float)[None])
@@ -310,6 +306,11 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             targets = tuple(r.name for r in robot.reflectors)
             if len(P_E) == 1 and store.get_meta("kind") is None:
                 store.set_meta("kind", "point")  # one reflector: positions only (calibrate fits them there)
+            if len(P_E) == 2 and store.get_meta("kind") is None:
+                # two reflectors: no pose; their raw positions (the readings of these targets, in F_L)
+                store.set_meta("kind", "markers")
+                store.set_meta("marker_positions", np.asarray(P_E, dtype=float).tolist())
+                store.set_meta("marker_names", list(targets))
             todo = [k for k in range(len(ids)) if int(ids[k]) not in done]
             remaining_total = len(todo)
             if max_poses is not None:

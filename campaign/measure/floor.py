@@ -187,19 +187,29 @@ def drift_check_distances_m(run_dir) -> list:
 
 
 def noise_floor(run_dir, poses, robot) -> NoiseFloor:
-    """The run's floor: repeats (and drift checks) first, then the stated tracker noise, else none."""
-    floor = floor_from_repeats(poses.xyz, poses.q, drift_check_distances_m(run_dir), poses.time_s)
+    """The run's floor: repeats (and drift checks) first, then the stated tracker noise, else none.
+    Raw reflectors with no pose (fewer than three seen anywhere): the floor of one reflector's
+    position (the first's repeats), which their errors are."""
+    kind = getattr(poses, "kind", "pose")
+    no_pose = kind == "markers" and poses.markers is not None and not np.isfinite(poses.xyz).all(axis=1).any()
+    if no_pose:
+        seen = np.isfinite(poses.markers[:, 0]).all(axis=1)
+        floor = floor_from_repeats(poses.markers[seen, 0], poses.q[seen], drift_check_distances_m(run_dir),
+                                   poses.time_s[seen])
+    else:
+        floor = floor_from_repeats(poses.xyz, poses.q, drift_check_distances_m(run_dir), poses.time_s)
     if floor is not None:
         return floor
     stated = stated_tracker_noise_m(run_dir)
     if stated is None:
         return NoiseFloor("none")
-    kind = getattr(poses, "kind", "pose")
     P_E = poses.marker_positions if kind == "markers" else robot.reflector_positions_in_E
     if kind == "point" or P_E is None or len(P_E) < 3:
         # one reflector (or 6-D poses from a reflector layout robot.yaml does not give): the stated
         # σ is the noise of the measured position itself
-        why = "one reflector" if kind == "point" else "no reflector layout in robot.yaml: taken at the tool origin"
+        why = ("one reflector" if kind == "point" else
+               f"{len(P_E)} raw reflector{'s' if len(P_E) > 1 else ''}, no pose: each reflector's position"
+               if kind == "markers" else "no reflector layout in robot.yaml: taken at the tool origin")
         sigma = np.full(3, float(stated))
         return NoiseFloor("stated", sigma, mean_norm_mm(sigma), 0, 0.0,
                           f"stated tracker noise σ {stated * 1e6:.3g} µm per coordinate, {why}")

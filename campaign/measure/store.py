@@ -233,7 +233,7 @@ class MeasurementStore:
         """All measured poses, ordered by pose_id, with the measurement kind and frame of the log
         (meta ``kind``, ``frame``, ``marker_positions``; default 6-D poses in the robot's frame).
         Raw-reflector poses with fewer than three reflectors seen (no pose) are left out unless
-        ``include_unusable``."""
+        ``include_unusable`` (`calibrate` identifies them from the reflectors' positions)."""
         cur = self._db.execute(
             "SELECT pose_id, time_s, q1, q2, q3, q4, q5, q6, x, y, z, rx, ry, rz, context, q_json "
             "FROM poses WHERE status = 'measured' ORDER BY pose_id")
@@ -255,10 +255,22 @@ class MeasurementStore:
             P_nom = np.asarray(P_nom, dtype=float)
             markers = np.full((len(pid), len(P_nom), 3), np.nan)
             index = {int(p): i for i, p in enumerate(pid)}
+            # imported: readings m1..mk in the data's frame; measured by `campaign run` (two
+            # reflectors): the tracker's targets by name, in F_L
+            names = self.get_meta("marker_names")
+            slot = {n: i for i, n in enumerate(names)} if names else \
+                {f"m{i + 1}": i for i in range(len(P_nom))}
             for p, name, x, y, z in self._db.execute(
-                    "SELECT pose_id, name, x_L_m, y_L_m, z_L_m FROM reflector_readings WHERE name LIKE 'm%'"):
-                if p in index and name[1:].isdigit() and x is not None:
-                    markers[index[p], int(name[1:]) - 1] = (x, y, z)
+                    "SELECT pose_id, name, x_L_m, y_L_m, z_L_m FROM reflector_readings"):
+                if p in index and name in slot and x is not None:
+                    markers[index[p], slot[name]] = (x, y, z)
+            T_LI = self.get_meta("T_LI")
+            if names and T_LI is not None and self.get_meta("frame", "robot") == "robot":
+                from campaign.measure.reflectors import invert, transform_points
+
+                markers = transform_points(invert(np.asarray(T_LI, dtype=float)), markers)
+            # a pose only where its rigid fit was (three or more seen): no rotation, no pose
+            num[np.isnan(num[:, 10:13]).any(axis=1), 7:10] = np.nan
         poses = MeasuredPoses.from_vectors(pid, num[:, 0], q, num[:, 7:10], num[:, 10:13], context, kind=kind,
                                            frame=self.get_meta("frame", "robot"), markers=markers,
                                            marker_positions=None if P_nom is None else np.asarray(P_nom, dtype=float))

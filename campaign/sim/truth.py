@@ -257,6 +257,8 @@ def synthesize_kind(truth: TruthRobot, q, *, kind: str = "pose", frame: str = "r
     T_LE = truth.T_LI @ truth.pose(q, effect_context(context, t))
     if kind == "point":
         P_E = truth.robot.reflector_positions_in_E if len(truth.robot.reflectors) == 1 else np.zeros((1, 3))
+    elif kind == "markers" and len(truth.robot.reflectors) == 2:  # a two-reflector tool: its two
+        P_E = truth.robot.reflector_positions_in_E
     else:
         P_E = tool_points(truth.robot)
     P_L = truth._measure_points(transform_points(T_LE, np.broadcast_to(P_E, (n,) + P_E.shape)), rng)
