@@ -225,3 +225,22 @@ def test_bad_raw_reflector_input_is_one_line(tmp_path, capsys):
     (tmp_path / "none.csv").write_text(head + good + "2," + ",".join(["0.1"] * 6) + "," + "," * 8 + "\n")
     raw = read_measured_csv(tmp_path / "none.csv", None, ImportOptions(markers=TRIAD))
     assert np.isnan(raw.markers[1]).all() and np.isnan(raw.xyz[1]).all() and np.isfinite(raw.xyz[0]).all()
+
+
+def test_one_raw_reflector_column_set_is_one_reflector_data(tmp_path, capsys):
+    """Raw columns m1 alone: imported and identified from that reflector's positions (no pose)."""
+    csv_path = tmp_path / "m.csv"
+    assert main(["synth", "--csv", str(csv_path), "--poses", "120", "--seed", "4", "--kind", "markers"]) == 0
+    lines = csv_path.read_text().splitlines()
+    head = lines[0].split(",")
+    keep = [i for i, c in enumerate(head) if not c.startswith(("m2_", "m3_"))]
+    csv_path.write_text("\n".join(",".join(r.split(",")[i] for i in keep) for r in lines) + "\n")
+    (tmp_path / "m1.yaml").write_text("markers: [[0.05, 0, 0]]\n")
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--markers", str(tmp_path / "m1.yaml"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    test = json.loads((run / "calibration" / "metrics.json").read_text())["stages"]["geometric"]["test"]
+    is_test = train_test_split(np.arange(1, 121))
+    assert "orientation_mrad" not in test and test["reflector_position_mm"]["n_reflectors"] == int(is_test.sum())
+    assert test["position_mm"]["mean"] < 0.05  # the nominal model is millimetres off
