@@ -244,3 +244,42 @@ def test_one_raw_reflector_column_set_is_one_reflector_data(tmp_path, capsys):
     is_test = train_test_split(np.arange(1, 121))
     assert "orientation_mrad" not in test and test["reflector_position_mm"]["n_reflectors"] == int(is_test.sum())
     assert test["position_mm"]["mean"] < 0.05  # the nominal model is millimetres off
+
+
+@pytest.mark.slow
+def test_raw_reflectors_with_misses_through_the_network_report_predict_and_compensate(tmp_path, capsys):
+    """Three raw reflectors, 20 % missed: the neural stage trains on the rows with a pose (saying
+    how many it skips), the noise floor and the report are there, `predict` and `compensate` use
+    the calibrated model."""
+    csv_path = tmp_path / "m.csv"
+    assert main(["synth", "--csv", str(csv_path), "--poses", "200", "--seed", "6", "--kind", "markers",
+                 "--miss-rate", "0.2"]) == 0
+    run = tmp_path / "run"
+    assert main(["import", str(csv_path), "--run", str(run), "--markers", str(tmp_path / "m.markers.yaml"),
+                 "--quiet"]) == 0
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text()) or {}
+    cfg["tracker"] = {"noise_m": 10e-6}
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--ann", "--sizes", "4x4", "--folds", "2", "--epochs", "30",
+                 "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    raw = read_measured_csv(csv_path, None, ImportOptions(markers=TRIAD))
+    has_pose = np.isfinite(raw.xyz).all(axis=1)
+    seen = np.isfinite(raw.markers).all(axis=2).any(axis=1)  # rows with none seen are left out first
+    assert (~seen).any() and f"{int((~seen).sum())} of 200 poses have no reflector seen: left out" in err
+    assert f"the network on the {int(has_pose.sum())} poses with three or more reflectors seen " \
+           f"({int((seen & ~has_pose).sum())} without a pose skipped)" in err, err
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["order"] == ["nominal", "geometric", "ann", "geometric+ann"]
+    n_test = int((train_test_split(raw.pose_id) & has_pose).sum())
+    assert all(metrics["stages"][s]["test"]["n_poses"] == n_test for s in metrics["order"])
+    assert metrics["noise_floor"]["mean_position_mm"] > 0 and (run / "calibration" / "report.html").is_file()
+    # predict and compensate with the current model (geometric+ann), as for any run
+    q = raw.q[:5]
+    (tmp_path / "q.csv").write_text("pose_id," + ",".join(f"q{j}" for j in range(1, 7)) + "\n" + "".join(
+        f"{i}," + ",".join(repr(float(v)) for v in row) + "\n" for i, row in enumerate(q)))
+    assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    assert main(["compensate", str(run), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "c.csv")]) == 0
+    assert len((tmp_path / "p.csv").read_text().splitlines()) == 6
+    assert len((tmp_path / "c.csv").read_text().splitlines()) == 6
