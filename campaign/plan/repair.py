@@ -280,6 +280,24 @@ class PathFinder:
         return list(path[1:-1])
 
 
+#: unreached poses nearest in joint space (largest joint difference) that a pose is tried against
+#: before the path search (:func:`_joined`)
+JOIN_TRIES = 3
+
+
+def _joined(finder, Q, unreached, k):
+    """The first of the :data:`JOIN_TRIES` poses ``unreached`` (indices into Q) nearest to pose k
+    that the straight motion, the lifted arm or a structured path joins to it, or None."""
+    if len(unreached) == 0:
+        return None
+    near = unreached[np.argsort(np.max(np.abs(Q[unreached] - Q[k]), axis=1), kind="stable")[:JOIN_TRIES]]
+    for x in near:
+        if check_segments(finder.robot, finder.checker, Q[x][None], Q[k][None], finder.max_step, finder.clearance)[0] \
+                or finder.vias(Q[x], Q[k], None, search=False) is not None:
+            return int(x)
+    return None
+
+
 def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=None) -> Repair:
     """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, N) rad, whose motions
     ``ok`` (n - 1,) bool say which straight motions keep ``clearance`` (m) at samples
@@ -289,8 +307,10 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
     straight motion when it keeps the clearance (known from ``ok`` when that previous pose is
     the tour's own, checked afresh after a drop), else through via postures (:class:`PathFinder`:
     the lifted arm, structured vias, a path search of at most ``budget`` checked steps, default
-    campaign.plan.pathsearch.BUDGET, seeded by the two pose ids), else the pose is dropped.
-    Every motion of the repaired tour is thereby checked."""
+    campaign.plan.pathsearch.BUDGET, seeded by the two pose ids), else the pose is dropped. A
+    pose that a clear path without search joins to a pose dropped before (:func:`_joined`) is
+    dropped without a search: a path to it would reach that pose too. Every motion of the
+    repaired tour is thereby checked."""
     finder = PathFinder(robot, checker, max_step, clearance, budget=budget)
     vias, dropped = {}, []
     keep = np.ones(len(order), dtype=bool)
@@ -303,16 +323,21 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
         if prev != k - 1 and check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
             prev = k
             continue
-        # a clear straight motion to a pose that no search reached: a path here would reach it too
-        joined = bool(unreached[k - 1] and ok[k - 1])
-        found = finder.vias(Q[prev], Q[k], seed=(int(order[prev]), int(order[k])), search=not joined)
+        seed = (int(order[prev]), int(order[k]))
+        found = finder.vias(Q[prev], Q[k], seed, search=False)
+        joined = None
+        if found is None:
+            # a clear path from a pose that no search reached: a path here would reach it too
+            joined = k - 1 if unreached[k - 1] and ok[k - 1] else _joined(finder, Q, np.flatnonzero(unreached[:k]), k)
+            if joined is None:
+                found = finder.search(Q[prev], Q[k], seed)
         if found is not None:
             vias[int(order[k])] = found
             prev = k
             continue
         keep[k], unreached[k] = False, True
-        if joined:
-            reason = (f"no collision-free motion from the tour: a straight motion joins it to pose {int(order[k - 1])}, "
+        if joined is not None:
+            reason = (f"no collision-free motion from the tour: a clear path joins it to pose {int(order[joined])}, "
                       "which it did not reach either")
         else:
             reason = (("no collision-free motion from the previous pose" if prev == k - 1 else
