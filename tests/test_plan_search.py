@@ -303,3 +303,60 @@ def test_ur10_tour_keeps_the_motion_clearance_in_the_reference(ur10_run):
     picked = [repaired[i] for i in rng.choice(len(repaired), min(150, len(repaired)), replace=False)]
     picked += [straight[i] for i in rng.choice(len(straight), 60, replace=False)]
     assert min(ref.min_clearance(q) for q in picked) >= MOTION_CLEARANCE_M
+
+
+# --- a chosen campaign is toured as chosen: the poses a tour drops are replaced ------------------
+
+def _plan_ur10_select(tmp, *extra):
+    (tmp / "campaign.yaml").write_text(yaml.safe_dump({
+        "scene": str(DEFAULT_SCENE), "plan": {"grid_cells": [7, 9, 5, 4, 4, 4], "motion_sample_deg": 2.0}}))
+    run = tmp / "run"
+    assert main(["plan", "--config", str(tmp / "campaign.yaml"), "--run", str(run), "--quiet",
+                 "--robot", str(_urdf("ur10")), "--tool-frame", "tool0", *extra]) == 0
+    return run
+
+
+def _toured_counts(run):
+    poses, _, dropped, s = _read(run)
+    base = {p % 1_000_000_000 for p, _ in poses}
+    validation = {int(v) for v in (run / "plan" / "validation.csv").read_text().split()[1:]}
+    return poses, dropped, s, base - validation, validation
+
+
+def test_select_replaces_the_poses_its_first_tour_dropped(tmp_path, capsys):
+    run = _plan_ur10_select(tmp_path, "--select", "12", "--validation", "0.5")
+    poses, dropped, s, selected, validation = _toured_counts(run)
+    rep = s["selection"]["replacement"]
+    assert rep["dropped_per_round"][0] > 0 and rep["dropped_per_round"][-1] == 0 == len(dropped) == s["tour"]["dropped"]
+    assert rep["rounds"] == len(rep["dropped_per_round"]) >= 2 and rep["why_short"] is None
+    assert len(selected) == s["selection"]["selected"] == s["selection"]["chosen"] == 12
+    assert len(validation) == s["selection"]["validation"] == 30
+    assert len(poses) == 12 + 30 + 2 * s["selection"]["repeated_poses"] == s["tour"]["poses"]
+    side = {int(np.digitize(q[1], [-1.5 * np.pi, 0.5 * np.pi])) for _, q in poses}
+    assert len(side) == 1  # one side of the pedestal (test_ur10_drops_only_the_poses_beyond...)
+    out = capsys.readouterr().out
+    assert f"replaced {rep['replaced']} chosen poses that no collision-free motion reached, choosing {rep['rounds']} times\n" in out
+
+
+def test_select_more_than_the_tour_can_reach_says_why_and_predicts_for_the_toured(tmp_path, capsys):
+    from campaign.plan.grid import Grid
+    from campaign.plan.selection import information_model, predict_accuracy
+
+    run = _plan_ur10_select(tmp_path, "--select", "110", "--validation", "0.1", "--repeats", "0")
+    poses, dropped, s, selected, validation = _toured_counts(run)
+    sel = s["selection"]
+    assert "cannot select 110 of" in sel["replacement"]["why_short"] and len(dropped) > 0
+    assert sel["chosen"] == 110 > sel["selected"] == len(selected) and sel["validation"] == len(validation)
+    assert f"{110 - len(selected)} chosen poses not toured: choosing again without the" in capsys.readouterr().out
+    # the prediction is for the selected poses toured, over every suitable pose
+    from campaign.plan.pipeline import suitable_poses
+
+    robot = RobotModel.load(_urdf("ur10"), tool_frame="tool0").with_default_reflectors()
+    grid = Grid.for_robot(robot, s["grid_cells"])
+    suitable = suitable_poses(robot, load_scene(DEFAULT_SCENE).placed(robot), grid, 0.035)
+    assert len(suitable) == s["suitable"]
+    info = information_model(robot, grid.q(suitable), noise_m=sel["tracker_noise_m"])
+    expected = predict_accuracy(info, np.flatnonzero(np.isin(suitable, sorted(selected))))
+    assert sel["predicted"]["for"] == "the chosen poses the tour keeps"
+    assert sel["predicted"]["model_position_mm"] == pytest.approx(expected.model_position_mm, rel=1e-9)
+    assert sel["predicted"]["heldout_position_mm"] == pytest.approx(expected.heldout_position_mm, rel=1e-9)

@@ -66,6 +66,11 @@ def _plan(args):
         if s["campaign"]["mode"] == "default":
             print(f"campaign: {s['campaign']['text']}")
         print(selection_text(s["selection"]))
+        rep = s["selection"]["replacement"]
+        if rep["rounds"] > 1 or rep["why_short"]:
+            print(f"replaced {rep['replaced']} chosen poses that no collision-free motion reached, choosing "
+                  f"{rep['rounds']} times" + (f"; {s['selection']['chosen'] - s['selection']['selected']} chosen "
+                                              f"poses not toured: {rep['why_short']}" if rep["why_short"] else ""))
         print(f"tour: {t['poses']:,} poses ({s['groups']['front_of_wall']:,} in front of the wall, "
               f"{s['groups']['behind_wall']:,} behind), {t['via_poses']} via poses, {t['dropped']} dropped; "
               f"motion {t['motion_time_s'] / 3600:.2f} h")

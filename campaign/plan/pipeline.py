@@ -198,9 +198,9 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     timing = {}  # seconds per stage, wall
     clock = [t_start]
 
-    def lap(stage):
+    def lap(stage):  # a stage run again (the rounds of a chosen campaign) adds up
         now = time.perf_counter()
-        timing[stage] = now - clock[0]
+        timing[stage] = timing.get(stage, 0.0) + now - clock[0]
         clock[0] = now
 
     pc = cfg.plan
@@ -221,33 +221,58 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     # stage 3: groups, order, check
     times = GridTimes(robot, grid)
     home = np.array(grid.cells) // 2
-    members, choice = suitable, None
+    members, choice, chosen = suitable, None, None
     if mode == "default" and len(suitable) < _default_size(selection):
         selection, mode = None, "all_few"  # fewer suitable poses than the short campaign takes: all of them
-    if selection is not None:
-        from campaign.plan.selection import choose_campaign
-
-        choice = choose_campaign(robot, grid, suitable, selection, settle_s=pc.settle_time_s,
-                                 tracker_s=n_reflectors * pc.tracker_time_per_reflector_s,
-                                 **_selection_times(robot, scene, grid, times, home, suitable))
-        members = choice.members
-        lap("selection")
-    bar = Progress("stage 3: ordering", 1, progress, " tours")
-    order = _order_tour(robot, scene, grid, times, home, members)
-    bar.update(1)
-    bar.close()
-    if choice is not None:
-        order = choice.with_repeats(order)  # pose ids; repeats map back to their grid index
-    Q = grid.q(_grid_index(order))
-    lap("ordering")
     max_step = np.deg2rad(pc.motion_sample_deg)
     mc = pc.motion_clearance_m
-    bar = Progress("stage 3: motion check", len(order), progress, " segments")
-    ok = check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(order) > 1 else np.ones(0, bool)
-    bar.update(len(order))
-    bar.close()
-    lap("motion_check")
-    repair = repair_largest(robot, checker, order, Q, ok, max_step, mc)
+    candidates, rounds, replaced, why_short = suitable, 0, 0, None
+    unreached = np.zeros(0, dtype=np.int64)  # grid indices the tours dropped
+    dropped_per_round = []
+    while True:  # a chosen campaign: poses the tour drops are replaced by choosing again without them
+        rounds += 1
+        if selection is not None:
+            from campaign.plan.selection import choose_campaign
+
+            try:
+                chosen = choose_campaign(robot, grid, candidates, selection, settle_s=pc.settle_time_s,
+                                         tracker_s=n_reflectors * pc.tracker_time_per_reflector_s,
+                                         **_selection_times(robot, scene, grid, times, home, candidates))
+            except ConfigError as exc:
+                if choice is None:
+                    raise
+                why_short = f"choosing again without the {replaced} dropped poses failed: {exc}"
+                break  # the previous round's tour stands
+            members = chosen.members
+            lap("selection")
+        bar = Progress("stage 3: ordering", 1, progress, " tours")
+        new_order = _order_tour(robot, scene, grid, times, home, members)
+        bar.update(1)
+        bar.close()
+        if selection is not None:
+            new_order = chosen.with_repeats(new_order)  # pose ids; repeats map back to their grid index
+        Q = grid.q(_grid_index(new_order))
+        lap("ordering")
+        bar = Progress("stage 3: motion check", len(new_order), progress, " segments")
+        ok = check_segments(robot, checker, Q[:-1], Q[1:], max_step, mc) if len(new_order) > 1 else np.ones(0, bool)
+        bar.update(len(new_order))
+        bar.close()
+        lap("motion_check")
+        order, repair = new_order, repair_largest(robot, checker, new_order, Q, ok, max_step, mc)
+        lap("repair")
+        if selection is None:
+            break
+        choice = chosen
+        dropped_per_round.append(len(repair.dropped))
+        if not repair.dropped:
+            break
+        if rounds >= REPLACE_ROUNDS:
+            why_short = f"{REPLACE_ROUNDS} rounds of choosing again did not reach every chosen pose"
+            break
+        gone = np.unique(_grid_index([p for p, _ in repair.dropped]))
+        replaced += len(gone)
+        unreached = np.union1d(unreached, gone)
+        candidates = _nearer_toured(grid, suitable, np.unique(_grid_index(order[repair.keep])), unreached)
     vias, dropped = repair.vias, repair.dropped
     order_final = order[repair.keep]
     Q_final = grid.q(_grid_index(order_final))
@@ -256,8 +281,6 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     n = len(order_final)
     per_pose = pc.settle_time_s + n_reflectors * pc.tracker_time_per_reflector_s
     duration = tour_time + n * per_pose
-
-    lap("repair")
     if n == 0:
         raise PlanError(f"{cfg.path}: every one of the {len(order):,} suitable poses was dropped from the tour "
                         f"(no collision-free motion at plan.motion_clearance_m = {mc:g} m)")
@@ -290,7 +313,9 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     write_choice(out, choice, order_final)  # without a choice: no validation.csv, repeats.csv
     summary["campaign"] = _campaign_kind(mode, len(suitable), selection)
     if choice is not None:
-        summary["selection"] = choice.summary
+        summary["selection"] = _as_toured(robot, grid, suitable, choice, selection, order_final)
+        summary["selection"]["replacement"] = {"rounds": rounds, "replaced": replaced,
+                                                  "dropped_per_round": dropped_per_round, "why_short": why_short}
         summary["tour"]["repeats"] = int(np.sum(_grid_index(order_final) != order_final))
     lap("outputs")
     try:
@@ -302,6 +327,51 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     atomic_write(out / "summary.json", json.dumps(summary, indent=2))
     return summary
+
+
+#: rounds of choosing again (:func:`_plan`) while the tour drops chosen poses
+REPLACE_ROUNDS = 6
+
+
+def _nearer_toured(grid, suitable, toured, unreached, block=4096):
+    """The suitable grid indices that the next round may choose: those nearer (largest joint
+    difference) to a pose of the tour ``toured`` than to any pose a tour dropped (``unreached``),
+    which are left out themselves. Poses the tour could not reach come in regions (a UR10: the
+    ranges of joint 2 beyond the upper arm pointing into the pedestal); this keeps the next
+    choice out of them."""
+    keep = ~np.isin(suitable, unreached)
+    rest = suitable[keep]
+    known_q = grid.q(np.concatenate([toured, unreached]))
+    is_toured = np.arange(len(known_q)) < len(toured)
+    near_toured = np.empty(len(rest), dtype=bool)
+    for s in range(0, len(rest), block):
+        q = grid.q(rest[s : s + block])
+        d = np.max(np.abs(q[:, None, :] - known_q[None, :, :]), axis=2)
+        near_toured[s : s + block] = is_toured[np.argmin(d, axis=1)]
+    return rest[near_toured]
+
+
+def _as_toured(robot, grid, suitable, choice, selection, order_final) -> dict:
+    """summary.json's ``selection`` for the poses the tour keeps: the counts of the chosen poses,
+    validation poses and repeated poses toured and, when the tour dropped any, the prediction
+    for the toured ones over all ``suitable`` poses (the selection's own otherwise)."""
+    base = _grid_index(order_final)
+    toured = set(int(b) for b in base)
+    selected = [int(p) for p in choice.selected if int(p) in toured]
+    out = {**choice.summary, "chosen": int(len(choice.selected)), "selected": len(selected),
+           "validation": int(sum(int(p) in toured for p in choice.validation)),
+           "repeated_poses": int(len(set(int(b) for b, p in zip(base, order_final) if b != p)))}
+    if len(selected) < len(choice.selected) or out["repeated_poses"] < choice.summary["repeated_poses"]:
+        from campaign.plan.selection import information_model, predict_accuracy
+
+        info = information_model(robot, grid.q(suitable), effects=selection.effects,
+                                 noise_m=choice.summary["tracker_noise_m"])
+        where = {int(g): i for i, g in enumerate(suitable)}
+        chosen = set(int(p) for p in choice.selected)
+        train = np.array([where[int(b)] for b in base if int(b) in chosen], dtype=np.int64)  # repeats too
+        out["predicted"] = {**choice.summary["predicted"], **predict_accuracy(info, train).as_dict(),
+                            "for": "the chosen poses the tour keeps"}
+    return out
 
 
 def _default_size(selection) -> int:
