@@ -291,9 +291,12 @@ def _joined(finder, Q, unreached, k):
     if len(unreached) == 0:
         return None
     near = unreached[np.argsort(np.max(np.abs(Q[unreached] - Q[k]), axis=1), kind="stable")[:JOIN_TRIES]]
+    straight = check_segments(finder.robot, finder.checker, Q[near], np.repeat(Q[k][None], len(near), axis=0),
+                              finder.max_step, finder.clearance)
+    if straight.any():
+        return int(near[np.argmax(straight)])
     for x in near:
-        if check_segments(finder.robot, finder.checker, Q[x][None], Q[k][None], finder.max_step, finder.clearance)[0] \
-                or finder.vias(Q[x], Q[k], None, search=False) is not None:
+        if finder.vias(Q[x], Q[k], None, search=False) is not None:
             return int(x)
     return None
 
@@ -308,9 +311,11 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
     the tour's own, checked afresh after a drop), else through via postures (:class:`PathFinder`:
     the lifted arm, structured vias, a path search of at most ``budget`` checked steps, default
     campaign.plan.pathsearch.BUDGET, seeded by the two pose ids), else the pose is dropped. A
-    pose that a clear path without search joins to a pose dropped before (:func:`_joined`) is
-    dropped without a search: a path to it would reach that pose too. Every motion of the
-    repaired tour is thereby checked."""
+    pose that a clear path without search joins to a pose dropped before is dropped without a
+    search (a path to it would reach that pose too): the straight motion from the pose before
+    it in the tour, when that one was dropped (tried first), else one of :func:`_joined`'s
+    (tried after the lifted arm and the structured paths). Every motion of the repaired tour is
+    thereby checked."""
     finder = PathFinder(robot, checker, max_step, clearance, budget=budget)
     vias, dropped = {}, []
     keep = np.ones(len(order), dtype=bool)
@@ -320,15 +325,17 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
         if prev == k - 1 and ok[k - 1]:
             prev = k
             continue
-        if prev != k - 1 and check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
+        # a clear path from a pose that no search reached: a path here would reach it too
+        found, joined = None, k - 1 if unreached[k - 1] and ok[k - 1] else None
+        if joined is None and prev != k - 1 and \
+                check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
             prev = k
             continue
         seed = (int(order[prev]), int(order[k]))
-        found = finder.vias(Q[prev], Q[k], seed, search=False)
-        joined = None
-        if found is None:
-            # a clear path from a pose that no search reached: a path here would reach it too
-            joined = k - 1 if unreached[k - 1] and ok[k - 1] else _joined(finder, Q, np.flatnonzero(unreached[:k]), k)
+        if joined is None:
+            found = finder.vias(Q[prev], Q[k], seed, search=False)
+        if found is None and joined is None:
+            joined = _joined(finder, Q, np.flatnonzero(unreached[:k]), k)
             if joined is None:
                 found = finder.search(Q[prev], Q[k], seed)
         if found is not None:
