@@ -347,7 +347,9 @@ def test_select_more_than_the_tour_can_reach_says_why_and_predicts_for_the_toure
     sel = s["selection"]
     assert "cannot select 110 of" in sel["replacement"]["why_short"] and len(dropped) > 0
     assert sel["chosen"] == 110 > sel["selected"] == len(selected) and sel["validation"] == len(validation)
-    assert f"{110 - len(selected)} chosen poses not toured: choosing again without the" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"{110 - len(selected)} chosen poses not toured: choosing again without the" in out
+    assert f": {len(selected)} of the 110 poses chosen toured, {len(validation)} random validation poses added" in out
     # the prediction is for the selected poses toured, over every suitable pose
     from campaign.plan.pipeline import suitable_poses
 

@@ -132,7 +132,9 @@ def selection_text(sel) -> str:
     eff = f" + {', '.join(sel['effects'])}" if sel["effects"] else ""
     return "\n".join([
         f"selection ({sel['criterion']}-optimal for {what}; {sel['n_unknowns']} unknowns: geometry{eff}): "
-        f"{sel['selected']} poses chosen, {sel['validation']} random validation poses added, "
+        + (f"{sel['selected']} poses chosen, " if sel.get("chosen", sel["selected"]) == sel["selected"] else
+           f"{sel['selected']} of the {sel['chosen']} poses chosen toured, ")
+        + f"{sel['validation']} random validation poses added, "
         f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times",
         f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position"
         + (f", {p['model_orientation_mrad']:.3f} mrad" if p.get("model_orientation_mrad") is not None
