@@ -237,6 +237,14 @@ def test_under_a_ceiling_every_pose_is_toured_through_searched_paths(ceiling):
         assert min(ref.min_clearance(q) for q in _motion_samples([Q[k - 1], Q[k]], step)) < MOTION_CLEARANCE_M
 
 
+def test_the_searched_paths_are_the_same_when_planned_again(ceiling, tmp_path):
+    run, cell = ceiling
+    again = tmp_path / "again"
+    assert main(["plan", "--config", str(cell.parent / "campaign.yaml"), "--run", str(again), "--all", "--quiet"]) == 0
+    for name in ("poses.csv", "vias.csv", "dropped.csv"):
+        assert (again / "plan" / name).read_bytes() == (run / "plan" / name).read_bytes(), name
+
+
 # --- a UR10 on the pedestal: three ranges of joint 2 that no motion joins --------------------------
 
 #: the UR10 stands upright in the default cell: its z (up) along the cell's -y, a quarter turn about x

@@ -34,7 +34,7 @@ MARGIN_RAD = np.pi
 @dataclass(frozen=True)
 class Search:
     """path: (m, N) postures from the start to the goal (both included), or None when the budget
-    ran out; checks: steps and shortcuts checked."""
+    ran out; checks: the steps checked."""
 
     path: np.ndarray | None
     checks: int
