@@ -175,7 +175,9 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     if selection is not None and selection.noise_m is None and cfg.tracker.noise_m is not None:
         selection = dataclasses.replace(selection, noise_m=cfg.tracker.noise_m)  # the user's tracker, for the prediction
     if selection is not None:
-        selection.check()
+        from campaign.plan.selection import check_select_size
+
+        check_select_size(robot, selection.check())  # before the filters, not after them
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
         return _plan(run, cfg, robot, scene, grid, progress, selection, mode)

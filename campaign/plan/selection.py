@@ -697,6 +697,24 @@ def _draw_validation(m, chosen, fraction, minimum, seed=VALIDATION_SEED):
     return np.sort(rng.choice(rest, n_val, replace=False)) if n_val else np.zeros(0, dtype=np.int64)
 
 
+def check_select_size(robot, opts: SelectionOptions, *, n_probe: int = 64, seed: int = 0) -> None:
+    """ConfigError when ``--select N`` asks for fewer poses than the unknowns need, checked on
+    ``n_probe`` random joint vectors within the limits before the grid is filtered (the count of
+    unknowns and equations per pose does not depend on which poses: the same line as
+    :func:`choose_campaign` gives, in a fraction of a second instead of after the filters)."""
+    if opts.n is None:
+        return
+    lo = np.maximum(np.asarray(robot.q_lower, dtype=float), -np.pi)
+    hi = np.minimum(np.asarray(robot.q_upper, dtype=float), np.pi)
+    q = lo + (hi - lo) * np.random.default_rng(seed).random((n_probe, len(lo)))
+    info = information_model(robot, q, effects=opts.effects,
+                             noise_m=TRACKER_NOISE_M if opts.noise_m is None else float(opts.noise_m))
+    p_min = int(np.ceil(info.n_unknowns / info.block_size))
+    if opts.n < p_min:
+        raise ConfigError(f"--select {opts.n}: {info.n_unknowns} unknowns need at least {p_min} poses "
+                          f"({info.block_size} equations each)")
+
+
 def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: float, tracker_s: float,
                     travel_from=None, start_s=None, tour_time=None, progress=None) -> CampaignChoice:
     """Choose the campaign among the ``suitable`` grid indices (what `plan --select`,
