@@ -28,8 +28,8 @@ from campaign.identify.metrics import error_stats, format_table6, reflector_stat
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, validation_file
 from campaign.measure.floor import noise_floor, times_the_noise
-from campaign.measure.store import open_run
 from campaign.measure.reflectors import transform_points
+from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
@@ -247,7 +247,7 @@ def register_tracker(robot, poses, train):
     poses (Kabsch; raw reflectors: of every seen reflector's nominal position to its measured one). The remaining tracker-pose error is identified by the base transform's six
     parameters (pL_I0_*, pR_I0_*), which are the same unknowns as a tracker pose. Returns the
     poses in F_I and a record of the registration."""
-    from campaign.measure.reflectors import invert, register_points, transform_points
+    from campaign.measure.reflectors import invert, register_points
 
     if poses.kind == "markers" and poses.markers is not None:
         # raw reflectors: every seen reflector of the training poses, also of poses with fewer than three

@@ -18,9 +18,8 @@ def calibrate_task(task: dict, report=None) -> dict:
     """Calibrate one run; returns ``{"id", "metrics", "wall_s", "cpu_s"}`` (metrics.json's content)."""
     import time
 
-    from campaign.identify.calibrate import calibrate
-
     from campaign.errors import CampaignError
+    from campaign.identify.calibrate import calibrate
 
     t0, c0 = time.perf_counter(), time.process_time()
     opts = dict(task.get("options", {}))

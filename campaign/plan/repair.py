@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.model.kinematics import frames
 from campaign.plan.geometry import nominal_frames_entry_first
 from campaign.plan.tour import interior_samples
 
