@@ -545,7 +545,7 @@ def smallest_reaching(info: Information, target_mm: float, *, criterion: str = "
     chosen size is then improved by exchanges."""
     m = info.n_candidates
     max_n = min(max_n or m, m)
-    p_min = max(1, int(np.ceil(info.n_unknowns / info.block_size)) + 1)
+    p_min = _min_poses(info) + 1  # one pose more than the unknowns need
     best = predict_accuracy(info, np.arange(m) if max_n == m else select(info, max_n, exchange=False).index,
                             evaluate)
     if best.model_position_mm > target_mm:
@@ -709,9 +709,19 @@ def check_select_size(robot, opts: SelectionOptions, *, n_probe: int = 64, seed:
     q = lo + (hi - lo) * np.random.default_rng(seed).random((n_probe, len(lo)))
     info = information_model(robot, q, effects=opts.effects,
                              noise_m=TRACKER_NOISE_M if opts.noise_m is None else float(opts.noise_m))
-    p_min = int(np.ceil(info.n_unknowns / info.block_size))
-    if opts.n < p_min:
-        raise ConfigError(f"--select {opts.n}: {info.n_unknowns} unknowns need at least {p_min} poses "
+    _require_poses(info, opts.n)
+
+
+def _min_poses(info: Information) -> int:
+    """The fewest poses whose equations are as many as ``info``'s unknowns."""
+    return int(np.ceil(info.n_unknowns / info.block_size))
+
+
+def _require_poses(info: Information, n: int) -> None:
+    """ConfigError for ``--select n`` when n poses give fewer equations than ``info`` has unknowns."""
+    p_min = _min_poses(info)
+    if n < p_min:
+        raise ConfigError(f"--select {n}: {info.n_unknowns} unknowns need at least {p_min} poses "
                           f"({info.block_size} equations each)")
 
 
@@ -738,12 +748,10 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     t_info = time.perf_counter() - t0
     say(f"information of {m:,} suitable poses about {info.n_unknowns} unknowns ({t_info:.1f} s)")
     per_pose_s = settle_s + tracker_s
-    p_min = int(np.ceil(info.n_unknowns / info.block_size))
+    p_min = _min_poses(info)
     n_val = lambda n: 0 if n == 0 else max(opts.min_validation, int(round(opts.validation_fraction * n)))  # noqa: E731
     if opts.n is not None:
-        if opts.n < p_min:
-            raise ConfigError(f"--select {opts.n}: {info.n_unknowns} unknowns need at least {p_min} poses "
-                              f"({info.block_size} equations each)")
+        _require_poses(info, opts.n)
         sel = select(info, opts.n, criterion=opts.criterion)
         mode = {"select": opts.n}
     elif opts.target_mm is not None:
