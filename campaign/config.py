@@ -304,6 +304,22 @@ class CampaignConfig:
         p = self.resolve(self.robot)
         return str(p) if p.exists() else self.robot
 
+    def with_robot(self, robot=None, tool_frame=None, base_frame=None) -> "CampaignConfig":
+        """This configuration for ``robot`` (a name, or a path, made absolute, relative to the
+        current directory as a command line gives it) and its frames, as given (`--robot`,
+        `--tool-frame`, `--base-frame`); frames alone: new frames on this configuration's robot;
+        nothing given: this configuration."""
+        from dataclasses import replace
+
+        if robot is None and tool_frame is None and base_frame is None:
+            return self
+        kw = {"tool_frame": tool_frame, "base_frame": base_frame}
+        if robot is not None:
+            kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() else str(robot)
+        else:
+            kw = {k: v if v is not None else getattr(self, k) for k, v in kw.items()}
+        return replace(self, **kw)
+
     def as_yaml_dict(self, *, absolute: bool = False) -> dict:
         """The keys as campaign.yaml holds them (``absolute``: paths made absolute, for a copy
         of the file elsewhere)."""

@@ -146,7 +146,7 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         cfg = load_config(config)
     else:
         cfg = run.config  # the run's own, or the embedded default for a new folder
-    cfg = _with_robot(cfg, robot, tool_frame, base_frame)
+    cfg = cfg.with_robot(robot, tool_frame, base_frame)
     run = RunFolder(run_dir, config=cfg)
     robot = run.robot().with_default_reflectors()
     from campaign.plan.geometry import check_plannable
@@ -181,18 +181,6 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
         return _plan(run, cfg, robot, scene, grid, progress, selection, mode)
-
-
-def _with_robot(cfg: CampaignConfig, robot, tool_frame, base_frame) -> CampaignConfig:
-    """``cfg`` planning for ``robot`` (a name, or a path made absolute) and its frames, as given."""
-    if robot is None and tool_frame is None and base_frame is None:
-        return cfg
-    kw = {"tool_frame": tool_frame, "base_frame": base_frame}
-    if robot is not None:
-        kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() else str(robot)
-    else:  # new frames on the configuration's robot
-        kw = {k: v if v is not None else getattr(cfg, k) for k, v in kw.items()}
-    return dataclasses.replace(cfg, **kw)
 
 
 def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection, mode) -> dict:

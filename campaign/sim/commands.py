@@ -131,21 +131,14 @@ def sim_config(run, robot=None, tool_frame=None, base_frame=None):
     """The configuration a simulated cell for ``run`` serves: the run's (RUN/campaign.yaml, or
     the one given), with ``robot`` and its frames in place of its robot where given. A run that
     records another robot is a ConfigError: the cell never simulates a robot the run is not."""
-    import dataclasses
-
     from campaign.errors import ConfigError
     from campaign.run import RunFolder, load_robot, same_robot
 
     run.check_recorded_robot()
     cfg = run.config
-    if robot is None and tool_frame is None and base_frame is None:
+    asked = cfg.with_robot(robot, tool_frame, base_frame)
+    if asked is cfg:
         return cfg
-    kw = {"robot": str(Path(robot).resolve()) if robot is not None and Path(robot).exists() else robot,
-          "tool_frame": tool_frame, "base_frame": base_frame}
-    if robot is None:  # new frames on the configuration's robot
-        kw = {"robot": cfg.robot_spec, "tool_frame": tool_frame or cfg.tool_frame,
-              "base_frame": base_frame or cfg.base_frame}
-    asked = dataclasses.replace(cfg, **kw)
     wanted = load_robot(asked.robot_spec, tool_frame=asked.tool_frame, base_frame=asked.base_frame)
     recorded = RunFolder(run.path)
     if recorded.has_config and not same_robot(wanted, recorded.robot()):
