@@ -7,7 +7,6 @@ loads the meshes, python-fcl measures the distances, and the cell is placed by h
 
 import json
 import re
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -25,20 +24,13 @@ from campaign.plan.grid import DEFAULT_GRID_SIZE, PAPER_CELLS, Grid, default_cel
 from campaign.plan.repair import arm_joints, lift_posture
 from campaign.plan.scene import load_scene
 
+from fcl_reference import FclReference, erd_robot
+
 CLEARANCE_M = 0.035
 
 
-def _share():
-    try:
-        dist = metadata.distribution("example-robot-data")
-    except metadata.PackageNotFoundError:
-        pytest.skip("example-robot-data (test extra) is not installed")
-    return Path(dist.locate_file("cmeel.prefix/share"))
-
-
 def _urdf(which):
-    rel = {"ur10": "ur_description/urdf/ur10_robot.urdf", "panda": "panda_description/urdf/panda.urdf"}[which]
-    return _share() / "example-robot-data" / "robots" / rel
+    return erd_robot({"ur10": "ur_description/urdf/ur10_robot.urdf", "panda": "panda_description/urdf/panda.urdf"}[which])
 
 
 PANDA_YAML = {
@@ -78,114 +70,13 @@ def panda_plan(tmp_path_factory, panda_yaml):
     return _plan(tmp_path_factory.mktemp("panda_plan"), ["--robot", str(panda_yaml)], [6, 4, 5, 4, 5, 4, 3])
 
 
-class Reference:
-    """The suitability criteria computed without the planner's code: Pinocchio's URDF parser and
-    forward kinematics place every <collision> of the URDF, trimesh loads the meshes, FCL measures;
-    the robot stands in the default cell where a z-up robot stands by the scene's rule, worked out
+def _reference(robot):
+    """The suitability criteria computed without the planner's code (tests/fcl_reference.py); the
+    robot stands in the default cell where a z-up robot stands by the scene's rule, worked out
     here by hand: its gravity (-z) turned onto the cell's down (+y), a quarter turn about x."""
-
-    def __init__(self, robot):
-        import fcl
-        import pinocchio as pin
-        import trimesh
-
-        self.robot, self.pin = robot, pin
-        self.model = pin.buildModelFromUrdf(str(robot.urdf_path))
-        self.data = self.model.createData()
-        self.gmodel = pin.buildGeomFromUrdf(self.model, str(robot.urdf_path), pin.COLLISION,
-                                            package_dirs=[str(_share())])
-        self.gdata = pin.GeometryData(self.gmodel)
-        assert np.array_equal(robot.T_root_base, np.eye(4))  # F_I is the URDF's root for both arms
-        c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
-        self.T_cell_root = np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
-        self.objs, self.links, self.joint = [], [], []
-        for g in self.gmodel.geometryObjects:
-            if g.meshPath.endswith((".stl", ".STL", ".dae", ".obj")):
-                m = trimesh.load(g.meshPath, force="mesh")
-                shape = fcl.BVHModel()
-                v = np.asarray(m.vertices) * np.asarray(g.meshScale)
-                shape.beginModel(len(v), len(m.faces))
-                shape.addSubModel(v, np.asarray(m.faces, dtype=np.int32))
-                shape.endModel()
-            else:
-                shape = fcl.Box(*(2 * np.asarray(g.geometry.halfSide)))
-            self.objs.append(fcl.CollisionObject(shape, fcl.Transform()))
-            self.links.append(self.model.frames[g.parentFrame].name)
-            self.joint.append(g.parentJoint)
-        self.scene = load_scene(DEFAULT_SCENE)  # in the cell's frame, not placed
-        self.obstacles = [fcl.CollisionObject(fcl.Box(*o.size) if o.kind == "box" else fcl.Cylinder(*o.size),
-                                              fcl.Transform(o.T_I[:3, :3], o.T_I[:3, 3])) for o in self.scene.obstacles]
-        self.fcl = fcl
-
-    def place(self, q):
-        """Put the geometry at joint vector q (N,) (other joints at robot.yaml's locked values)."""
-        qp = self.pin.neutral(self.model)
-        for jid in range(1, self.model.njoints):
-            name = self.model.names[jid]
-            v = q[self.robot.joint_names.index(name)] if name in self.robot.joint_names else \
-                self.robot.locked_joints.get(name, 0.0)
-            qp[self.model.joints[jid].idx_q] = v
-        self.pin.framesForwardKinematics(self.model, self.data, qp)
-        self.pin.updateGeometryPlacements(self.model, self.data, self.gmodel, self.gdata, qp)
-        for obj, M in zip(self.objs, self.gdata.oMg):
-            T = self.T_cell_root @ M.homogeneous
-            obj.setTransform(self.fcl.Transform(T[:3, :3], T[:3, 3]))
-        T_tool = self.T_cell_root @ self.data.oMf[self.model.getFrameId(self.robot.tool_frame)].homogeneous
-        return T_tool
-
-    def dist(self, a, b):
-        return self.fcl.distance(a, b, self.fcl.DistanceRequest(), self.fcl.DistanceResult())
-
-    def min_clearance(self, q, self_pairs):
-        """Smallest distance (m): every moving link to every obstacle, and the link pairs given."""
-        self.place(q)
-        d = [self.dist(o, s) for o, j in zip(self.objs, self.joint) if j >= 1 for s in self.obstacles]
-        d += [self.dist(self.objs[i], self.objs[k]) for i, k in self_pairs]
-        return min(d)
-
-    def visible(self, q, reflectors):
-        """Every reflector within range, inside its nest's cone, and its beam (a capsule of the beam
-        radius) clear of the cell and of the links before the last joint."""
-        T = self.place(q)
-        o = self.scene.tracker_position
-        N = self.robot.n_joints
-        for r in reflectors:
-            p = T[:3, :3] @ r.position_in_E + T[:3, 3]
-            axis = T[:3, :3] @ r.axis_in_E
-            to = o - p
-            d = np.linalg.norm(to)
-            if not self.scene.min_range_m <= d <= self.scene.max_range_m:
-                return False
-            if np.arccos(np.clip(axis @ to / d, -1, 1)) > r.half_angle:
-                return False
-            z = to / d
-            x = np.cross(z, [1.0, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1.0, 0])
-            x /= np.linalg.norm(x)
-            beam = self.fcl.CollisionObject(self.fcl.Capsule(self.scene.beam_radius_m, d),
-                                            self.fcl.Transform(np.stack([x, np.cross(z, x), z], axis=1), p + 0.5 * to))
-            others = self.obstacles + [ob for ob, j in zip(self.objs, self.joint) if j < N]
-            if any(self.dist(beam, other) <= 0.0 for other in others):
-                return False
-        return True
-
-
-def _pin_index(ref, prims):
-    """For each planner primitive, the index of the same <collision> among Pinocchio's geometry
-    objects (the n-th collision of a link in URDF order, both sides)."""
-    by_link, seen, out = {}, {}, []
-    for n, link in enumerate(ref.links):
-        by_link.setdefault(link, []).append(n)
-    for p in prims:
-        out.append(by_link[p.link][seen.get(p.link, 0)])
-        seen[p.link] = seen.get(p.link, 0) + 1
-    return out
-
-
-def _reference_pairs(ref, checker):
-    """The link pairs the planner checks (all but adjacent links and pairs always in contact), as
-    pairs of Pinocchio's geometry objects."""
-    index = _pin_index(ref, checker.prims)
-    return [(index[i], index[k]) for i, k in checker.self_pairs]
+    assert np.array_equal(robot.T_root_base, np.eye(4))  # F_I is the URDF's root for both arms
+    c, s = np.cos(np.pi / 2), np.sin(np.pi / 2)
+    return FclReference(robot, DEFAULT_SCENE, np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]]))
 
 
 def _read_poses(run):
@@ -207,9 +98,9 @@ def test_accepted_poses_are_clear_visible_and_rejected_ones_really_fail(which, r
     assert any(p.kind == "mesh" for p in robot_primitives(robot))
     grid = Grid.for_robot(robot, s["grid_cells"])
     np.testing.assert_allclose(Q, grid.q(ids), atol=1e-12)
-    ref = Reference(robot)
+    ref = _reference(robot)
     checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), CLEARANCE_M)
-    pairs = _reference_pairs(ref, checker)
+    pairs = ref.pairs(checker)
     rng = np.random.default_rng(7)
     for q in Q[rng.choice(len(Q), size=min(25, len(Q)), replace=False)]:
         assert ref.min_clearance(q, pairs) >= CLEARANCE_M
@@ -230,9 +121,9 @@ def test_the_tour_motions_keep_the_motion_clearance_in_the_reference(ur10_plan):
     cfg = yaml.safe_load((ur10_plan / "campaign.yaml").read_text())
     robot = RobotModel.load(cfg["robot"], tool_frame=cfg["tool_frame"]).with_default_reflectors()
     _, ids, Q = _read_poses(ur10_plan)
-    ref = Reference(robot)
+    ref = _reference(robot)
     checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), CLEARANCE_M)
-    pairs = _reference_pairs(ref, checker)
+    pairs = ref.pairs(checker)
     vias = {}
     for line in (ur10_plan / "plan" / "vias.csv").read_text().splitlines()[1:]:
         c = [float(v) for v in line.split(",")]
@@ -254,11 +145,11 @@ def test_the_tour_motions_keep_the_motion_clearance_in_the_reference(ur10_plan):
 
 def test_collision_geometry_sits_on_the_chain_where_pinocchio_puts_it(panda_yaml):
     robot = RobotModel.load(panda_yaml)
-    ref = Reference(robot)
+    ref = _reference(robot)
     rng = np.random.default_rng(2)
     prims = robot_primitives(robot)
     assert {p.kind for p in prims} == {"mesh", "box"} and len(prims) == len(ref.links) == 17
-    index = _pin_index(ref, prims)
+    index = ref.index_of(prims)
     for q in rng.uniform(robot.q_lower, robot.q_upper, size=(4, 7)):
         ref.place(q)
         R, t = frames(robot, q[None])

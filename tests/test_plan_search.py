@@ -4,8 +4,6 @@ search; a pose no motion reaches is dropped once the search's budget is spent. T
 re-checked from outside: Pinocchio places the URDF's collision geometry, python-fcl measures."""
 
 import json
-from importlib import metadata
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +16,8 @@ from campaign.plan import pathsearch
 from campaign.plan.checks import ClearanceChecker
 from campaign.plan.repair import _via_path
 from campaign.plan.scene import load_scene
+
+from fcl_reference import FclReference, erd_robot
 
 MOTION_CLEARANCE_M = 0.01
 
@@ -91,87 +91,8 @@ def test_sampling_box_is_half_a_turn_beyond_the_two_poses_within_the_limits():
 
 # --- a reference outside the planner --------------------------------------------------------------
 
-def _share():
-    try:
-        dist = metadata.distribution("example-robot-data")
-    except metadata.PackageNotFoundError:
-        pytest.skip("example-robot-data (test extra) is not installed")
-    return Path(dist.locate_file("cmeel.prefix/share"))
-
-
 def _urdf(which):
-    rel = {"ur10": "ur_description/urdf/ur10_robot.urdf"}[which]
-    return _share() / "example-robot-data" / "robots" / rel
-
-
-class FclReference:
-    """Distances with Pinocchio (URDF parser, forward kinematics, geometry placement) and
-    python-fcl (meshes through trimesh); the cell's obstacles at their poses in the cell, the robot's
-    root at ``T_cell_root`` (4, 4) in the cell. Link pairs: those the planner checks, matched by
-    link name and order (which pairs to check is the planner's choice, where they are is not)."""
-
-    def __init__(self, robot, scene_path, T_cell_root, checker):
-        import fcl
-        import pinocchio as pin
-        import trimesh
-
-        self.robot, self.pin, self.fcl, self.T = robot, pin, fcl, np.asarray(T_cell_root, dtype=float)
-        self.model = pin.buildModelFromUrdf(str(robot.urdf_path))
-        self.data = self.model.createData()
-        dirs = [str(_share())] if "example-robot-data" in str(robot.urdf_path) else []
-        self.gmodel = pin.buildGeomFromUrdf(self.model, str(robot.urdf_path), pin.COLLISION, package_dirs=dirs)
-        self.gdata = pin.GeometryData(self.gmodel)
-        self.objs, links = [], []
-        for g in self.gmodel.geometryObjects:
-            kind = type(g.geometry).__name__
-            if kind == "Box":
-                shape = fcl.Box(*(2 * np.asarray(g.geometry.halfSide)))
-            elif kind == "Cylinder":
-                shape = fcl.Cylinder(g.geometry.radius, 2 * g.geometry.halfLength)
-            else:
-                m = trimesh.load(g.meshPath, force="mesh")
-                shape = fcl.BVHModel()
-                shape.beginModel(len(m.vertices), len(m.faces))
-                shape.addSubModel(np.asarray(m.vertices) * np.asarray(g.meshScale), np.asarray(m.faces, np.int32))
-                shape.endModel()
-            self.objs.append(fcl.CollisionObject(shape, fcl.Transform()))
-            links.append(self.model.frames[g.parentFrame].name)
-        self.links = links
-        self.moving = [g.parentJoint >= 1 for g in self.gmodel.geometryObjects]
-        scene = load_scene(scene_path)  # in the cell's frame
-        self.obstacles = [fcl.CollisionObject(fcl.Box(*o.size) if o.kind == "box" else fcl.Cylinder(*o.size),
-                                              fcl.Transform(o.T_I[:3, :3], o.T_I[:3, 3])) for o in scene.obstacles]
-        self.names = [o.name for o in scene.obstacles]
-        by_link, seen, index = {}, {}, []
-        for n, link in enumerate(links):
-            by_link.setdefault(link, []).append(n)
-        for p in checker.prims:
-            index.append(by_link[p.link][seen.get(p.link, 0)])
-            seen[p.link] = seen.get(p.link, 0) + 1
-        self.pairs = [(index[i], index[k]) for i, k in checker.self_pairs]
-
-    def place(self, q):
-        qp = self.pin.neutral(self.model)
-        for jid in range(1, self.model.njoints):
-            qp[self.model.joints[jid].idx_q] = q[self.robot.joint_names.index(self.model.names[jid])]
-        self.pin.framesForwardKinematics(self.model, self.data, qp)
-        self.pin.updateGeometryPlacements(self.model, self.data, self.gmodel, self.gdata, qp)
-        for obj, M in zip(self.objs, self.gdata.oMg):
-            T = self.T @ M.homogeneous
-            obj.setTransform(self.fcl.Transform(T[:3, :3], T[:3, 3]))
-
-    def _d(self, a, b):
-        return self.fcl.distance(a, b, self.fcl.DistanceRequest(), self.fcl.DistanceResult())
-
-    def min_clearance(self, q) -> float:
-        """Smallest distance (m) at joint vector q: moving links to the cell, and the link pairs."""
-        self.place(q)
-        d = [self._d(o, s) for o, m in zip(self.objs, self.moving) if m for s in self.obstacles]
-        return min(d + [self._d(self.objs[i], self.objs[k]) for i, k in self.pairs])
-
-    def link_to(self, q, link_index, obstacle) -> float:
-        self.place(q)
-        return self._d(self.objs[link_index], self.obstacles[self.names.index(obstacle)])
+    return erd_robot({"ur10": "ur_description/urdf/ur10_robot.urdf"}[which])
 
 
 def _motion_samples(path, step):
@@ -218,7 +139,8 @@ def test_under_a_ceiling_every_pose_is_toured_through_searched_paths(ceiling):
     run, cell = ceiling
     robot = RobotModel.load()
     poses, vias, dropped, s = _read(run)
-    ref = FclReference(robot, cell, np.eye(4), ClearanceChecker(robot, load_scene(cell).placed(robot), 0.035))
+    ref = FclReference(robot, cell, np.eye(4))
+    pairs = ref.pairs(ClearanceChecker(robot, load_scene(cell).placed(robot), 0.035))
     assert dropped == [] and s["tour"]["dropped"] == 0 and len(poses) == s["suitable"] > 20
     assert s["tour"]["via_poses"] == sum(len(v) for v in vias.values()) > 0
     assert s["tour"]["path_search"]["motions"] > 0
@@ -231,10 +153,10 @@ def test_under_a_ceiling_every_pose_is_toured_through_searched_paths(ceiling):
         if ids[k] not in vias:
             continue
         path = [Q[k - 1], *vias[ids[k]], Q[k]]
-        assert min(ref.min_clearance(v) for v in _via_path(robot, Q[k - 1], Q[k])[1:3]) < MOTION_CLEARANCE_M
-        assert all(ref.min_clearance(v) >= MOTION_CLEARANCE_M for v in vias[ids[k]])
-        assert min(ref.min_clearance(q) for q in _motion_samples(path, step)) >= MOTION_CLEARANCE_M, ids[k]
-        assert min(ref.min_clearance(q) for q in _motion_samples([Q[k - 1], Q[k]], step)) < MOTION_CLEARANCE_M
+        assert min(ref.min_clearance(v, pairs) for v in _via_path(robot, Q[k - 1], Q[k])[1:3]) < MOTION_CLEARANCE_M
+        assert all(ref.min_clearance(v, pairs) >= MOTION_CLEARANCE_M for v in vias[ids[k]])
+        assert min(ref.min_clearance(q, pairs) for q in _motion_samples(path, step)) >= MOTION_CLEARANCE_M, ids[k]
+        assert min(ref.min_clearance(q, pairs) for q in _motion_samples([Q[k - 1], Q[k]], step)) < MOTION_CLEARANCE_M
 
 
 def test_the_searched_paths_are_the_same_when_planned_again(ceiling, tmp_path):
@@ -270,8 +192,7 @@ def test_ur10_drops_only_the_poses_beyond_the_arm_pointing_into_the_pedestal(ur1
     search giving up within its budget."""
     robot = RobotModel.load(_urdf("ur10"), tool_frame="tool0")
     poses, vias, dropped, s = _read(ur10_run)
-    ref = FclReference(robot, DEFAULT_SCENE, UR10_IN_CELL,
-                       ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035))
+    ref = FclReference(robot, DEFAULT_SCENE, UR10_IN_CELL)
     upper_arm = ref.links.index("upper_arm_link")
     for q2 in np.pi / 2 + np.deg2rad([-2, -1, 0, 1, 2]):
         for q1 in np.deg2rad(np.arange(0, 360)):
@@ -297,8 +218,8 @@ def test_ur10_drops_only_the_poses_beyond_the_arm_pointing_into_the_pedestal(ur1
 def test_ur10_tour_keeps_the_motion_clearance_in_the_reference(ur10_run):
     robot = RobotModel.load(_urdf("ur10"), tool_frame="tool0")
     poses, vias, _, _ = _read(ur10_run)
-    ref = FclReference(robot, DEFAULT_SCENE, UR10_IN_CELL,
-                       ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035))
+    ref = FclReference(robot, DEFAULT_SCENE, UR10_IN_CELL)
+    pairs = ref.pairs(ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035))
     step = np.deg2rad(2.0)
     repaired, straight = [], []
     for (_, a), (p, b) in zip(poses[:-1], poses[1:]):
@@ -310,7 +231,7 @@ def test_ur10_tour_keeps_the_motion_clearance_in_the_reference(ur10_run):
     rng = np.random.default_rng(3)
     picked = [repaired[i] for i in rng.choice(len(repaired), min(150, len(repaired)), replace=False)]
     picked += [straight[i] for i in rng.choice(len(straight), 60, replace=False)]
-    assert min(ref.min_clearance(q) for q in picked) >= MOTION_CLEARANCE_M
+    assert min(ref.min_clearance(q, pairs) for q in picked) >= MOTION_CLEARANCE_M
 
 
 # --- a chosen campaign is toured as chosen: the poses a tour drops are replaced ------------------
