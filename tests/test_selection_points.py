@@ -170,6 +170,18 @@ def test_position_only_prediction_is_the_covariance_carried_to_the_measured_poin
     assert pred.model_position_mm < pred.model_position_rms_mm < pred.heldout_position_mm
 
 
+def _plan_select(tmp_path, robot_yaml, *, seed, n):
+    """`campaign plan --select n` for ``robot_yaml`` on the small grid, its simulated cell with
+    geometric errors only (``seed``) and noise SIGMA_M; returns the run folder."""
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": GRID, "motion_sample_deg": 2.0},
+                                   "sim": {"seed": seed, "hidden_effects": [], "noise_m": SIGMA_M}}))
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--robot", str(robot_yaml), "--run", str(run),
+                 "--select", str(n), "--quiet"]) == 0
+    return run
+
+
 def _truth_points(truth, robot, q, T_LI):
     """The true reflector position (m) in the frame the set-up points measured, (n, 3)."""
     T = truth.pose_in_measured_frame(q, T_LI)
@@ -191,12 +203,7 @@ def test_one_reflector_plan_select_run_calibrate_beats_random_poses_as_predicted
     from campaign.run import RunFolder
     from campaign.sim.truth import read_truth
 
-    cfg = tmp_path / "campaign.yaml"
-    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": GRID, "motion_sample_deg": 2.0},
-                                   "sim": {"seed": 1, "hidden_effects": [], "noise_m": SIGMA_M}}))
-    run = tmp_path / "run"
-    assert main(["plan", "--config", str(cfg), "--robot", str(panda_yamls["one"]), "--run", str(run),
-                 "--select", "20", "--quiet"]) == 0
+    run = _plan_select(tmp_path, panda_yamls["one"], seed=1, n=20)
     sel = json.loads((run / "plan" / "summary.json").read_text())["selection"]
     assert sel["measured"] == {"kind": "points", "reflectors": ["m1"], "equations_per_pose": 3,
                                "text": "the position of m1: position only"}
@@ -248,12 +255,7 @@ def test_two_reflector_robot_plan_run_calibrate_reaches_the_noise_floor(tmp_path
     from campaign.measure.store import open_run
     from campaign.sim.truth import read_truth
 
-    cfg = tmp_path / "campaign.yaml"
-    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": GRID, "motion_sample_deg": 2.0},
-                                   "sim": {"seed": 2, "hidden_effects": [], "noise_m": SIGMA_M}}))
-    run = tmp_path / "run"
-    assert main(["plan", "--config", str(cfg), "--robot", str(panda_yamls["two"]), "--run", str(run),
-                 "--select", "60", "--quiet"]) == 0
+    run = _plan_select(tmp_path, panda_yamls["two"], seed=2, n=60)
     sel = json.loads((run / "plan" / "summary.json").read_text())["selection"]
     assert sel["measured"]["kind"] == "points" and sel["measured"]["equations_per_pose"] == 6
     assert main(["run", str(run), "--sim", "--quiet"]) == 0
