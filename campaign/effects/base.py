@@ -27,9 +27,7 @@ group ``campaign.effects`` — and the solver does not change (docs/effects.md).
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import pkgutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,30 +90,14 @@ def resolve_effect_spec(spec: str, base_dir=None) -> str:
     return f"{p.resolve()}:{cls}"
 
 
-_FILE_MODULES: dict = {}
-
-
 def _load_file_class(spec: str):
+    from campaign.userfiles import load_user_module
+
     path, _, cls_name = spec.rpartition(":")
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"effect '{spec}': no such file {p}")
-    key = (str(p.resolve()), p.stat().st_mtime_ns)
-    module = _FILE_MODULES.get(key)
-    if module is None:
-        mod_name = f"campaign_user_effect_{abs(hash(key)):x}"
-        loader_spec = importlib.util.spec_from_file_location(mod_name, p)
-        module = importlib.util.module_from_spec(loader_spec)
-        sys.modules[mod_name] = module
-        try:
-            loader_spec.loader.exec_module(module)
-        except Exception as exc:  # the user's file: report it in one line, whatever it raised
-            sys.modules.pop(mod_name, None)
-            raise ConfigError(f"effect '{spec}': {p} failed to load ({exc.__class__.__name__}: {exc})") from None
-        _FILE_MODULES[key] = module
+    module = load_user_module(path, f"effect '{spec}'")
     cls = getattr(module, cls_name, None)
     if cls is None:
-        raise ConfigError(f"effect '{spec}': {p} defines no class '{cls_name}'")
+        raise ConfigError(f"effect '{spec}': {Path(path)} defines no class '{cls_name}'")
     return cls
 
 
