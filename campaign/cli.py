@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "campaign.measure.commands",
     "campaign.identify.commands",
     "campaign.sim.commands",
+    "campaign.cell.commands",
     "campaign.diagnose.commands",
 )
 

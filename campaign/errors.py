@@ -55,3 +55,8 @@ class RunHoldsMeasurements(CampaignError):
 
 class PlanError(CampaignError):
     """The configuration is valid but no plan can be made from it (e.g. no suitable pose)."""
+
+
+class AuthError(ProtocolError):
+    """A frame failed authentication (no, wrong or replayed shared secret), or a peer that
+    should authenticate its frames did not; nothing it asked is done."""

@@ -211,7 +211,7 @@ def test_the_protocol_document_names_every_message_status_target_and_fault():
     doc = (Path(__file__).parents[1] / "docs" / "protocol.md").read_text()
     types = [f.default for cls in vars(P).values() if dataclasses.is_dataclass(cls)
              for f in dataclasses.fields(cls) if f.name == "type"]
-    assert len(types) == 8
+    assert len(types) == 9  # hello (authenticated frames) joined the eight
     for name in (*types, *P.TARGET_STATUS, *P.SETUP_TARGETS, *REFLECTORS, *FAULT_KINDS, *POSE_FAULT_CODES):
         assert f"`{name}`" in doc, name
     assert f"{P.MAX_FRAME:,}" in doc

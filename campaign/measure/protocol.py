@@ -18,7 +18,8 @@ import struct
 import time
 from dataclasses import asdict, dataclass, field
 
-from campaign.errors import PeerError, ProtocolError, TrackerTimeout
+from campaign.errors import AuthError, PeerError, ProtocolError, TrackerTimeout
+from campaign.measure.auth import SCHEME, TAG_BYTES, FrameAuth
 
 MAX_FRAME = 64 * 1024
 _HEADER = struct.Struct(">I")
@@ -60,10 +61,18 @@ class Fault:
 
 @dataclass(frozen=True)
 class Measure:
-    """Tracker request: measure the named targets."""
+    """Tracker request: measure the named targets. ``aims``: optional ((name, (x, y, z) m or
+    None), ...), the driver's prediction of each target's centre in F_L (None: not predictable
+    yet); a tracker may point its beam there."""
     id: int
     targets: tuple
+    aims: tuple | None = None
     type: str = "measure"
+
+    def aims_by_target(self) -> dict:
+        """{target: (3,) tuple m or None} for every target (None where no aim was sent)."""
+        given = dict(self.aims or ())
+        return {t: given.get(t) for t in self.targets}
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,15 @@ class HeartbeatAck:
     time_s: float
     peer: str
     type: str = "heartbeat_ack"
+
+
+@dataclass(frozen=True)
+class Hello:
+    """Peer -> driver, first frame of a connection to a peer that authenticates frames
+    (campaign.measure.auth): the connection's nonce (32 hex digits) and the scheme."""
+    nonce: str
+    auth: str = "hmac-sha256"
+    type: str = "hello"
 
 
 @dataclass(frozen=True)
@@ -150,6 +168,21 @@ def _str(obj, key, what, max_len=200):
     return v
 
 
+def _aims(obj, what):
+    """A measure's optional ``aims``: {name: [x, y, z] or null} -> ((name, xyz or None), ...)."""
+    a = obj.get("aims")
+    if a is None:
+        return None
+    if not isinstance(a, dict) or len(a) > 16:
+        raise ProtocolError(f"{what}: field 'aims' must be an object of at most 16 targets")
+    out = []
+    for name, v in a.items():
+        if len(name) > 64:
+            raise ProtocolError(f"{what}: field 'aims' holds a target name over 64 characters")
+        out.append((name, None if v is None else _vec(a, name, 3, f"{what} aims")))
+    return tuple(out)
+
+
 def from_dict(obj) -> object:
     """Validate a decoded JSON object into a message dataclass."""
     if not isinstance(obj, dict):
@@ -166,7 +199,7 @@ def from_dict(obj) -> object:
         t = obj.get("targets")
         if not isinstance(t, list) or not 1 <= len(t) <= 16 or not all(isinstance(x, str) and len(x) <= 64 for x in t):
             raise ProtocolError(f"{what}: field 'targets' must be a list of 1-16 target names")
-        return Measure(_id(obj, what), tuple(t))
+        return Measure(_id(obj, what), tuple(t), _aims(obj, what))
     if kind == "measurement":
         rs = obj.get("readings")
         if not isinstance(rs, list) or len(rs) > 16:
@@ -188,6 +221,11 @@ def from_dict(obj) -> object:
         return Heartbeat(_id(obj, what))
     if kind == "heartbeat_ack":
         return HeartbeatAck(_id(obj, what), _num(obj, "time_s", what), _str(obj, "peer", what))
+    if kind == "hello":
+        nonce = _str(obj, "nonce", what, 64)
+        if len(nonce) != 32 or any(c not in "0123456789abcdef" for c in nonce):
+            raise ProtocolError(f"{what}: field 'nonce' must be 32 lower-case hex digits")
+        return Hello(nonce, _str(obj, "auth", what, 64))
     if kind == "error":
         return ErrorReply(_id(obj, what) if "id" in obj else 0, _str(obj, "message", what, 2000))
     raise ProtocolError(f"unknown message type {kind!r}")
@@ -199,6 +237,11 @@ def to_dict(msg) -> dict:
         d["readings"] = [{k: v for k, v in asdict(r).items() if v is not None} for r in msg.readings]
         if msg.temperature_c is None:
             del d["temperature_c"]
+    if isinstance(msg, Measure):
+        if msg.aims is None:
+            del d["aims"]
+        else:
+            d["aims"] = {name: None if v is None else list(v) for name, v in msg.aims}
     for key in ("q", "q_encoder", "targets"):
         if key in d:
             d[key] = list(d[key])
@@ -228,14 +271,33 @@ def decode(body: bytes):
 # -- a framed connection ----------------------------------------------------------------------
 
 class Connection:
-    """A TCP connection that sends and receives whole frames, with a per-call timeout."""
+    """A TCP connection that sends and receives whole frames, with a per-call timeout.
+    ``auth``: a :class:`campaign.measure.auth.FrameAuth` when frames are authenticated."""
 
-    def __init__(self, sock: socket.socket, peer: str):
-        self.sock, self.peer = sock, peer
+    def __init__(self, sock: socket.socket, peer: str, auth: FrameAuth | None = None):
+        self.sock, self.peer, self.auth = sock, peer, auth
         self._buf = b""
 
     @classmethod
-    def connect(cls, host: str, port: int, timeout_s: float, name: str) -> "Connection":
+    def connect(cls, host: str, port: int, timeout_s: float, name: str, key: bytes | None = None) -> "Connection":
+        """Connect to a peer; with ``key`` (campaign.measure.auth.read_token) read its hello and
+        authenticate every frame from then on (AuthError when it sends none)."""
+        conn = cls._open(host, port, timeout_s, name)
+        if key is not None:
+            try:
+                hello = conn.receive(timeout_s)
+            except (TrackerTimeout, PeerError, ProtocolError):
+                conn.close()
+                raise AuthError(f"{conn.peer}: sent no hello within {timeout_s:g} s (is it served with "
+                                "--token-file?)") from None
+            if not isinstance(hello, Hello) or hello.auth != SCHEME:
+                conn.close()
+                raise AuthError(f"{conn.peer}: answered '{getattr(hello, 'type', '?')}' instead of a {SCHEME} hello")
+            conn.auth = FrameAuth(key, bytes.fromhex(hello.nonce), "driver")
+        return conn
+
+    @classmethod
+    def _open(cls, host, port, timeout_s, name) -> "Connection":
         peer = f"{name} {host}:{port}"
         try:
             sock = socket.create_connection((host, port), timeout=timeout_s)
@@ -249,7 +311,11 @@ class Connection:
         return cls(sock, peer)
 
     def send(self, msg) -> None:
-        self.send_raw(encode(msg))
+        data = encode(msg)
+        if self.auth is not None:
+            body = self.auth.seal(data[_HEADER.size:])
+            data = _HEADER.pack(len(body)) + body
+        self.send_raw(data)
 
     def send_raw(self, data: bytes) -> None:
         try:
@@ -283,9 +349,13 @@ class Connection:
         """
         deadline = time.monotonic() + timeout_s
         (length,) = _HEADER.unpack(self._read_exact(4, deadline, timeout_s))
-        if length > MAX_FRAME:
-            raise ProtocolError(f"{self.peer}: frame of {length} bytes exceeds the {MAX_FRAME}-byte limit")
-        return decode(self._read_exact(length, deadline, timeout_s))
+        limit = MAX_FRAME + (TAG_BYTES if self.auth is not None else 0)
+        if length > limit:
+            raise ProtocolError(f"{self.peer}: frame of {length} bytes exceeds the {limit}-byte limit")
+        body = self._read_exact(length, deadline, timeout_s)
+        if self.auth is not None:
+            body = self.auth.open(body)
+        return decode(body)
 
     def close(self) -> None:
         try:

@@ -12,7 +12,8 @@ def register(sub):
         description="Serve the simulated robot controller and laser tracker (docs/protocol.md) on two TCP ports "
                     "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml; "
                     "one cell serves a run at a time (it holds RUN/sim/.lock while it serves). "
-                    "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`.")
+                    "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`. "
+                    "It is `campaign serve --controller sim --tracker sim` (docs/cell.md) with a default run.")
     s.add_argument("--config", metavar="FILE", default=None,
                    help="configuration (default: RUN/campaign.yaml, or the embedded one for a run without it)")
     s.add_argument("--robot", metavar="NAME|URDF|robot.yaml", default=None,
@@ -105,8 +106,7 @@ def yaml_markers(P) -> str:
 
 
 def _sim(args):
-    import time
-
+    from campaign.cell.server import serve_until_interrupted
     from campaign.run import RunFolder
     from campaign.sim.cell import start_cell
 
@@ -116,15 +116,10 @@ def _sim(args):
     # may hold RUN/.lock beside it: `campaign run RUN --controller ... --tracker ...`)
     with run.sim_lock("sim"):
         # a run that holds measurements continues its campaign clock (never backwards)
-        world, ctrl, trk = start_cell(cfg, run.path, args.host, args.controller_port, args.tracker_port,
-                                      run.clock_s())
-        print(f"simulated cell: {world.robot.name}, controller {args.host}:{ctrl.port}, "
-              f"tracker {args.host}:{trk.port} (truth in {world.truth_path}); Ctrl-C stops", flush=True)
-        try:
-            while True:
-                time.sleep(3600)
-        except KeyboardInterrupt:
-            return 0
+        world, cell = start_cell(cfg, run.path, args.host, args.controller_port, args.tracker_port, run.clock_s())
+        print(f"simulated cell: {world.robot.name}, controller {args.host}:{cell.controller_port}, "
+              f"tracker {args.host}:{cell.tracker_port} (truth in {world.truth_path}); Ctrl-C stops", flush=True)
+        return serve_until_interrupted(cell)
 
 
 def sim_config(run, robot=None, tool_frame=None, base_frame=None):
