@@ -1,4 +1,4 @@
-"""`campaign run RUN --sim | --controller HOST:PORT --tracker HOST:PORT`."""
+"""`campaign run RUN --sim | --cell SPEC | --controller HOST:PORT --tracker HOST:PORT`."""
 
 from __future__ import annotations
 
@@ -20,12 +20,21 @@ def register(sub):
         description="Measure every pose of RUN/plan/poses.csv that has no stored outcome yet: base-frame set-up "
                     "(T_LI), then move -> reached -> measure the three reflectors -> store, one SQLite transaction "
                     "per pose in RUN/measurements.sqlite. Re-running resumes; Ctrl-C stops after the current pose. "
-                    "--sim starts the simulated cell (see `campaign sim`) and stops it at the end.")
+                    "--sim starts the simulated cell (see `campaign sim`) and stops it at the end; --cell SPEC "
+                    "does the same with `campaign serve` for any cell's adapters (docs/cell.md).")
     p.add_argument("run", metavar="RUN", help="run folder with plan/poses.csv (from `campaign plan`)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--sim", action="store_true", help="start the simulated cell, drive it, stop it")
+    src.add_argument("--cell", metavar="SPEC",
+                     help="start `campaign serve` for these adapters, drive it, stop it: sim (= --sim), mujoco, "
+                          "FILE.py with classes Controller and Tracker (relative to here or to RUN's campaign.yaml), "
+                          "package.module or an entry point of group campaign.cell")
     src.add_argument("--controller", metavar="HOST:PORT", help="the robot controller")
     p.add_argument("--tracker", metavar="HOST:PORT", help="the laser tracker (with --controller)")
+    p.add_argument("--options", metavar="FILE", default=None,
+                   help="with --cell: the adapters' options (YAML with 'controller:' and 'tracker:' sections)")
+    p.add_argument("--token-file", metavar="FILE", default=None,
+                   help="with --controller/--tracker: the shared secret of a cell served with --token-file")
     p.add_argument("--config", metavar="FILE", default=None,
                    help="configuration (default: RUN/campaign.yaml, else the embedded one)")
     p.add_argument("--poses", metavar="CSV", default=None,
@@ -48,15 +57,19 @@ def _run(args):
 
     run = args.run
     log = lambda msg: print(f"\n{msg}", file=sys.stderr, flush=True)  # noqa: E731
-    if args.sim and args.tracker:
-        raise ConfigError("--tracker goes with --controller, not with --sim")
-    if not args.sim and not args.tracker:
+    local = args.sim or args.cell is not None
+    if local and args.tracker:
+        raise ConfigError(f"--tracker goes with --controller, not with {'--sim' if args.sim else '--cell'}")
+    if not local and not args.tracker:
         raise ConfigError("--controller needs --tracker HOST:PORT too")
-    peers = {} if args.sim else {"controller": _hostport(args.controller, "controller"),
-                                 "tracker": _hostport(args.tracker, "tracker")}
+    if local and args.token_file:
+        raise ConfigError("--token-file goes with --controller/--tracker (a cell started here serves on loopback)")
+    peers = {} if local else {"controller": _hostport(args.controller, "controller"),
+                              "tracker": _hostport(args.tracker, "tracker")}
     res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
                       log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
-                      verbose=args.verbose, frame=args.frame, **peers)
+                      verbose=args.verbose, frame=args.frame, cell=args.cell, options=args.options,
+                      token_file=args.token_file, **peers)
     h = res.simulated_duration_s / 3600
     print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
           f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"

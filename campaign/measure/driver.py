@@ -25,8 +25,9 @@ import numpy as np
 
 from campaign.config import MAX_GRID_SIZE as MAX_POSE_ID  # pose ids are the plan's grid indices
 from campaign.config import RunConfig
-from campaign.errors import DataError, PeerError, ProtocolError, RobotFault
+from campaign.errors import AuthError, DataError, PeerError, ProtocolError, RobotFault
 from campaign.measure import protocol as P
+from campaign.measure.aims import AimPredictor
 from campaign.measure.reflectors import frame_from_setup_points, invert, pose_from_reflectors, transform_points
 from campaign.measure.store import PoseRecord, open_run
 from campaign.model.rotations import matrix_to_rotvec
@@ -49,6 +50,11 @@ class PeerUnreachable(PeerError):
     """A peer could not be connected to after every reconnect attempt; the campaign stops."""
 
 
+class AuthFailed(PeerUnreachable):
+    """The peer and the driver disagree about authenticated frames (a token on one side only);
+    retrying cannot help, the campaign stops."""
+
+
 @dataclass(frozen=True)
 class RunOptions(RunConfig):
     """How the driver waits and retries: the validated ``run:`` section of campaign.yaml
@@ -67,10 +73,12 @@ class RunOptions(RunConfig):
 
 
 class Peer:
-    """A client of one peer with reconnect, back-off and idempotent retries."""
+    """A client of one peer with reconnect, back-off and idempotent retries; ``key``: the shared
+    secret of authenticated frames (campaign.measure.auth.read_token) or None."""
 
-    def __init__(self, host: str, port: int, name: str, opts: RunOptions, log):
+    def __init__(self, host: str, port: int, name: str, opts: RunOptions, log, key: bytes | None = None):
         self.host, self.port, self.name, self.opts, self.log = host, int(port), name, opts, log
+        self.key = key
         self.conn = None
         self.reconnects = 0
         self._heartbeats = 0
@@ -83,8 +91,10 @@ class Peer:
                 time.sleep(delay)
                 delay = min(delay * 2, 5.0)
             try:
-                self.conn = P.Connection.connect(self.host, self.port, self.opts.timeout_s, self.name)
+                self.conn = P.Connection.connect(self.host, self.port, self.opts.timeout_s, self.name, self.key)
                 return
+            except AuthError as exc:
+                raise AuthFailed(f"{exc}; the driver has --token-file, the peer must be served with the same") from None
             except PeerError as exc:
                 last = exc
         raise PeerUnreachable(str(last))
@@ -111,6 +121,9 @@ class Peer:
                 deadline = time.monotonic() + timeout_s
                 while True:
                     reply = self.conn.receive(max(deadline - time.monotonic(), 1e-3))
+                    if isinstance(reply, P.Hello):
+                        raise AuthFailed(f"{self.name} {self.host}:{self.port}: the peer authenticates its frames; "
+                                         "give its shared secret (campaign run --token-file FILE)")
                     if getattr(reply, "id", None) == msg.id:
                         return reply
                     if isinstance(reply, P.ErrorReply) and reply.id == 0:
@@ -232,13 +245,15 @@ class RunResult:
 
 def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOptions(), *, progress=False,
                  log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False, plan=None,
-                 frame: str = "robot") -> RunResult:
+                 frame: str = "robot", key: bytes | None = None) -> RunResult:
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
     controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
     warnings (one line each), and with ``verbose`` every retry too. ``retry_failed`` forgets
     the failed poses first so they are measured again. ``poses_csv`` replaces
     RUN/plan/poses.csv; ``plan``: the (ids, q, vias) of :func:`read_plan` when already read.
+    ``key``: the shared secret when the peers authenticate frames (`campaign serve --token-file`).
+    Each measure request carries the aims (campaign.measure.aims).
     Returns counts and the campaign clock (s) at the end, which continues from the last
     stored time. The caller holds the run's lock (campaign.measure.session). Ctrl-C
     (SIGINT) stops after the current pose; a second one stops at once (the pose in flight is
@@ -278,8 +293,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             done = store.stored_ids()
             stored_before = len(done)
             chatter = say if verbose else (lambda msg: None)
-            ctrl = Peer(*controller, "controller", opts, chatter)
-            trk = Peer(*tracker, "tracker", opts, chatter)
+            ctrl = Peer(*controller, "controller", opts, chatter, key)
+            trk = Peer(*tracker, "tracker", opts, chatter, key)
             ctrl.heartbeat()
             trk.heartbeat()
             store.add_event("session_start", {"controller": f"{ctrl.host}:{ctrl.port}",
@@ -304,6 +319,7 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             robot = measured_robot(robot)
             P_E = robot.reflector_positions_in_E
             targets = tuple(r.name for r in robot.reflectors)
+            aim = AimPredictor(robot, targets, P_E, None if frame == "tracker" else T_LI)
             if len(P_E) == 1 and store.get_meta("kind") is None:
                 store.set_meta("kind", "point")  # one reflector: positions only (calibrate fits them there)
             if len(P_E) == 2 and store.get_meta("kind") is None:
@@ -317,7 +333,7 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
                 todo = todo[:max_poses]
             clock = store.clock_s()
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
-                           stored_before, clock, targets)
+                           stored_before, clock, targets, aim)
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             if kind not in ("unreachable", "robot_fault"):
                 try:  # the clock after the last measurement's tracker time
@@ -359,7 +375,7 @@ def _setup(store, trk, opts, base):
 
 
 def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before,
-          clock_start=0.0, targets=REFLECTORS):
+          clock_start=0.0, targets=REFLECTORS, aim=None):
     bar = Progress("measuring", len(todo), progress, " poses")
     n_ok = n_fail = drift_warnings = in_a_row = 0
     clock = clock0 = clock_start
@@ -369,7 +385,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
         for n, k in enumerate(todo):
             pid = int(ids[k])
             rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base,
-                                   targets)
+                                   targets, aim)
             store.add_pose(rec)
             clock = max(clock, c)
             if n == 0:
@@ -386,7 +402,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
             n_stored = stored_before + n + 1
             every = opts.drift_check_every
             if reference is not None and every and n_stored % every == 0 and n + 1 < len(todo):
-                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets)
+                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets, aim)
                 clock = max(clock, c)
                 over = drift is not None and drift * 1e3 > opts.drift_threshold_mm
                 store.add_event("drift_check", {"reference_pose_id": reference["pose_id"],
@@ -430,8 +446,9 @@ def _move(ctrl, msg, opts):
     return reply, None
 
 
-def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=REFLECTORS):
-    """One pose, start to stored record. Returns (PoseRecord, campaign clock s)."""
+def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=REFLECTORS, aim=None):
+    """One pose, start to stored record. Returns (PoseRecord, campaign clock s). ``aim``: the
+    AimPredictor whose aims the measure requests carry (and which learns from the result)."""
     retries = 0
     clock = 0.0
     rid = base + pid * 64
@@ -449,7 +466,7 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
         for attempt in range(opts.retries + 1):
             if attempt:
                 retries += 1
-            m = trk.request(P.Measure(rid + 1 + attempt, targets), opts.timeout_s)
+            m = trk.request(P.Measure(rid + 1 + attempt, targets, aim(q) if aim is not None else None), opts.timeout_s)
             if not isinstance(m, P.Measurement):
                 last_reason = f"tracker answered '{m.type}'" + (f": {m.message}" if isinstance(m, P.ErrorReply) else "")
                 continue
@@ -460,7 +477,10 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
             if bad:
                 last_reason = "; ".join(bad)
                 continue
-            xyz, rotvec, rms = _derive(T_LI, P_E, np.array([by[t].xyz_m for t in targets]))
+            P_L = np.array([by[t].xyz_m for t in targets])
+            xyz, rotvec, rms = _derive(T_LI, P_E, P_L)
+            if aim is not None:
+                aim.learn(q, P_L)
             return PoseRecord(pid, "measured", tuple(q), seq=seq, time_s=clock, wall_time_unix_s=time.time(),
                               q_encoder=tuple(q_enc), xyz=xyz, rotvec=rotvec, fit_rms_m=rms, retries=retries,
                               context={} if m.temperature_c is None else {"temperature_c": m.temperature_c},
@@ -475,7 +495,7 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
                           retries=retries, reason=str(exc)), clock
 
 
-def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS):
+def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS, aim=None):
     """Re-measure the reference pose: (distance (m) of its derived position from the first
     time or None when it could not be measured, campaign clock s)."""
     clock = 0.0
@@ -484,7 +504,7 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS)
         if err:
             return None, clock
         clock = reply.time_s
-        m = trk.request(P.Measure(rid + 1, targets), opts.timeout_s)
+        m = trk.request(P.Measure(rid + 1, targets, aim(reference["q"]) if aim is not None else None), opts.timeout_s)
         if not isinstance(m, P.Measurement):
             return None, clock
         clock = m.time_s

@@ -9,11 +9,15 @@ from campaign.run import RunFolder
 
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
                 log=None, max_poses=None, poses_csv=None, retry_failed: bool = False,
-                verbose: bool = False, frame: str = "robot") -> RunResult:
+                verbose: bool = False, frame: str = "robot", cell: str | None = None, options=None,
+                token_file=None) -> RunResult:
     """Measure the planned poses of ``run_dir`` that have no stored outcome yet.
 
-    sim: start the simulated cell (a child process, stopped at the end) and drive it;
-    otherwise controller and tracker are (host, port). config: a campaign.yaml to use
+    sim: start the simulated cell (a child process, stopped at the end) and drive it; cell:
+    start `campaign serve` for that SPEC (``sim``, ``mujoco``, a FILE.py or module with classes
+    Controller and Tracker; ``options``: their options file) the same way; otherwise controller
+    and tracker are (host, port), with ``token_file`` the shared secret when they authenticate
+    frames. config: a campaign.yaml to use
     instead of RUN/campaign.yaml. Everything is checked before the run is touched: the
     configuration, the robot, the plan; then the run's lock is taken (RunBusy when another
     process drives it) before the cell is started or contacted and before the log is opened.
@@ -27,7 +31,20 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     opts = RunOptions.from_config(cfg.run)
     if max_poses is not None and max_poses < 0:
         raise ConfigError(f"--max-poses must be >= 0, got {max_poses}")
-    if not sim and (controller is None or tracker is None):
+    if cell is not None and str(cell).strip() == "sim":
+        sim, cell = True, None
+    if options is not None and cell is None:
+        raise ConfigError("--options goes with --cell (the adapters' options; `campaign serve --options` otherwise)")
+    if cell is not None:
+        from campaign.cell.launcher import cell_specs
+
+        cell_specs(cell)
+    key = None
+    if token_file is not None:
+        from campaign.measure.auth import read_token
+
+        key = read_token(token_file)
+    if not sim and cell is None and (controller is None or tracker is None):
         raise ConfigError("give the controller and the tracker (HOST:PORT each), or use the simulated cell")
     plan = read_plan(run.path, poses_csv)
     robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv))
@@ -38,11 +55,16 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
         for name in cfg.sim.hidden_effects:
             make_effect(name, robot)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
-              verbose=verbose, plan=plan, frame=frame)
+              verbose=verbose, plan=plan, frame=frame, key=key)
     with run.lock("run"):
         if sim:
             from campaign.sim.launcher import SimulatedCell
 
-            with SimulatedCell(cfg.path, run.path, start_clock_s=run.clock_s()) as cell:
-                return run_campaign(run.path, robot, cell.controller, cell.tracker, opts, **kw)
+            with SimulatedCell(cfg.path, run.path, start_clock_s=run.clock_s()) as served:
+                return run_campaign(run.path, robot, served.controller, served.tracker, opts, **kw)
+        if cell is not None:
+            from campaign.cell.launcher import ServeProcess
+
+            with ServeProcess(cell, cfg.path, run.path, start_clock_s=run.clock_s(), options=options) as served:
+                return run_campaign(run.path, robot, served.controller, served.tracker, opts, **kw)
         return run_campaign(run.path, robot, controller, tracker, opts, **kw)
