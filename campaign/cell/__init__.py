@@ -33,7 +33,7 @@ returns, for each of those names, the measured centre (3,) in m in F_L, or None 
 (the driver re-measures as for any lost beam); a name left out counts as lost.
 
 Both get ``robot``, the run's :class:`campaign.model.robot.RobotModel` (joint names and limits,
-``reflectors`` with their positions in the tool frame, ``pinocchio_model()``), and ``options``,
+``reflectors`` with their positions in the tool frame, ``pinocchio_model``), and ``options``,
 the ``controller:`` / ``tracker:`` section of ``--options FILE.yaml`` (a dict, empty without one).
 
 Optional hooks for simulators (the built-in ``sim`` uses them; a real cell needs none):

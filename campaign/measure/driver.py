@@ -442,7 +442,8 @@ def _move(ctrl, msg, opts):
             raise RobotFault(f"{reply.code}: {reply.message}")
         return None, f"robot fault {reply.code}: {reply.message}"
     if not isinstance(reply, P.Reached):
-        return None, f"controller answered '{reply.type}' to a move"
+        why = f": {reply.message}" if isinstance(reply, P.ErrorReply) else ""
+        return None, f"controller answered '{reply.type}' to a move{why}"
     return reply, None
 
 
