@@ -92,6 +92,13 @@ class AdapterCall:
             _CONTEXT.reset(t1)
 
 
+def require_token(host: str, key) -> None:
+    """ConfigError when ``host`` is not loopback and no shared secret is given."""
+    if key is None and not is_loopback(host):
+        raise ConfigError(f"--host {host}: serving beyond loopback moves a robot for anyone who reaches the "
+                          "port; give a shared secret (--token-file FILE, also given to `campaign run`)")
+
+
 class ServedCell:
     """A controller adapter and a tracker adapter served on two TCP ports (threads of this process).
 
@@ -104,9 +111,7 @@ class ServedCell:
     def __init__(self, controller, tracker, robot, *, host="127.0.0.1", controller_port=0, tracker_port=0,
                  key: bytes | None = None, call_timeout_s: float = DEFAULT_CALL_TIMEOUT_S,
                  cell_context: CellContext | None = None):
-        if key is None and not is_loopback(host):
-            raise ConfigError(f"--host {host}: serving beyond loopback moves a robot for anyone who reaches the "
-                              "port; give a shared secret (--token-file FILE, also given to `campaign run`)")
+        require_token(host, key)
         if not call_timeout_s > 0:
             raise ConfigError(f"--move-timeout-s must be > 0, got {call_timeout_s}")
         self.robot, self.key, self.call_timeout_s = robot, key, float(call_timeout_s)
@@ -410,6 +415,7 @@ def served_cell_from_args(args, start_clock_s=None):
     from campaign.run import RunFolder
 
     key = read_token(args.token_file) if args.token_file else None
+    require_token(args.host, key)  # before any adapter is loaded
     options = load_options(args.options)
     run = None
     if args.run is not None:
