@@ -186,3 +186,129 @@ def test_an_adapter_file_serves_a_campaign_that_calibrates(tmp_path, runs, robot
     # noise (10 µm per coordinate per reflector)
     assert test["nominal"]["test"]["position_mm"]["mean"] > 0.8
     assert test["geometric"]["test"]["position_mm"]["mean"] < 0.03
+
+
+ROBOT_VENDOR = '''
+"""A stand-in for a controller's Python interface (what docs/cell.md's example calls)."""
+import numpy as np
+
+STATE = {"q_deg": None, "speed": None}
+
+
+class Arm:
+    def set_speed(self, v):
+        STATE["speed"] = v
+
+    def move_joints(self, q, wait):
+        if not wait:
+            return False, "only blocking moves here"
+        STATE["q_deg"] = np.degrees(q)
+        return True, ""
+
+    def read_joints_deg(self):
+        return list(STATE["q_deg"])
+
+    def disconnect(self):
+        STATE["disconnected"] = True
+
+
+def connect(address):
+    STATE["address"] = address
+    return Arm()
+'''
+
+TRACKER_VENDOR = '''
+"""A stand-in for a tracker SDK: it locks on the reflector nearest to where it points (within
+10 mm); its search finds the base's set-up marks in turn. Lengths in mm, as SDKs like them."""
+import numpy as np
+
+import robot_vendor
+from campaign.model.kinematics import forward
+
+ROBOT = None  # set by the test: the world's robot
+T_LI = np.array([[1, 0, 0, 2.0], [0, 1, 0, 0.3], [0, 0, 1, -0.4], [0, 0, 0, 1.0]])
+SETUP_I = np.array([[0, 0, 0], [0.3, 0, 0], [0, 0.3, 0]])
+
+
+class Tracker:
+    def __init__(self, address):
+        self.target, self.searches = None, 0
+
+    def search(self):
+        self.target = None
+
+    def point_at(self, x, y, z):
+        self.target = np.array([x, y, z]) / 1000.0
+
+    def measure_point(self):
+        if self.target is None:
+            p = SETUP_I[self.searches % 3] + T_LI[:3, 3]
+            self.searches += 1
+            return True, 1000.0 * p
+        T = T_LI @ forward(ROBOT, np.radians(robot_vendor.STATE["q_deg"])[None])[0]
+        pts = ROBOT.reflector_positions_in_E @ T[:3, :3].T + T[:3, 3]
+        d = np.linalg.norm(pts - self.target, axis=1)
+        k = int(np.argmin(d))
+        return bool(d[k] < 0.01), 1000.0 * pts[k]
+
+    def close(self):
+        pass
+'''
+
+
+def test_the_docs_example_serves_a_campaign_against_stand_in_vendor_modules(tmp_path, runs, robot, monkeypatch):
+    from campaign.cell import load_adapters
+    from campaign.cell.server import ServedCell
+    from campaign.measure.session import measure_run
+    from campaign.model.kinematics import forward
+
+    doc = (Path(__file__).parents[1] / "docs" / "cell.md").read_text()
+    example = re.search(r"```python\n(# my_cell\.py.*?)```", doc, re.S).group(1)
+    (tmp_path / "my_cell.py").write_text(example)
+    (tmp_path / "robot_vendor.py").write_text(ROBOT_VENDOR)
+    (tmp_path / "tracker_vendor.py").write_text(TRACKER_VENDOR)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("robot_vendor", "tracker_vendor"):
+        monkeypatch.delitem(sys.modules, name, raising=False)  # so they are gone again after the test
+    import robot_vendor
+    import tracker_vendor
+
+    rob = robot.with_default_reflectors()
+    tracker_vendor.ROBOT = rob
+    run = runs.make(n=4, seed=2, run={"timeout_s": 5.0})
+    options = {"controller": {"address": "192.168.0.10"}, "tracker": {"address": "192.168.0.20"}}
+    ctrl, trk = load_adapters(str(tmp_path / "my_cell.py"), str(tmp_path / "my_cell.py"), rob, options, None)
+    cell = ServedCell(ctrl, trk, rob).start()
+    try:
+        res = measure_run(run, controller=("127.0.0.1", cell.controller_port),
+                          tracker=("127.0.0.1", cell.tracker_port))
+    finally:
+        cell.close()
+    assert (res.measured, res.failed) == (4, 0)
+    assert robot_vendor.STATE["address"] == "192.168.0.10" and robot_vendor.STATE["speed"] == 0.2
+    assert robot_vendor.STATE["disconnected"]
+    with open_run(run) as store:
+        poses = store.load_measured()
+    # the stand-in world is the nominal robot seen from T_LI: the poses are its forward kinematics
+    assert np.allclose(poses.T_IE, forward(rob, poses.q), atol=1e-9)
+
+
+def test_run_cell_file_starts_serves_and_stops_the_adapters(tmp_path, runs, capsys):
+    run = runs.make(n=6, seed=5, run={"timeout_s": 5.0})
+    (run / "toy_cell.py").write_text(TOY)  # beside the run's campaign.yaml, named relative to it
+    stats = tmp_path / "stats.json"
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump({
+        "controller": {"fault_q4": [], "glitch_q4": []},
+        "tracker": {"seed": 1, "noise_m": NOISE_M, "stats": str(stats)}}))
+    assert main(["run", str(run), "--cell", "toy_cell.py", "--options", str(tmp_path / "cell.yaml"), "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert "measured 6, failed 0" in out.out and "Traceback" not in out.err
+    assert json.loads(stats.read_text())["aimed"] >= 18  # written by close(): the server stopped cleanly
+    assert (run / "cell" / "serve.log").read_text() == ""
+    for bad, match in ((["--cell", "nosuch.py"], r"nosuch\.py:Controller: no such file"),
+                       (["--cell", "toy_cell.py:Controller"], "--cell names a file or module holding classes"),
+                       (["--cell", "toy_cell.py"], r"toy_cell\.py:Controller: Controller\(robot, options\) failed "
+                                                   r"\(KeyError: 'fault_q4'\)")):
+        assert main(["run", str(run), *bad, "--quiet"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and re.search(match, err), err
