@@ -26,7 +26,8 @@ from campaign.effects.base import EffectSet, make_effect, model_pose
 from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_open, read_yaml_mapping
 from campaign.measure.csvio import read_numeric_table
-from campaign.model.kinematics import forward, pose_error
+from campaign.model.ik import solve_pose
+from campaign.model.kinematics import forward
 from campaign.model.robot import RobotModel
 from campaign.model.rotations import matrix_to_rotvec
 from campaign.tolerances import JOINT_LIMIT_SLACK
@@ -165,38 +166,8 @@ class CalibratedRobot:
         return q, r, ok
 
     def _solve(self, T_target, q, context, tol_m, tol_rad, max_iter, step_rad, max_step_rad):
-        lam = np.full(len(q), 1e-9)
-        r = pose_error(self.predict(q, context), T_target)
-
-        def done(res):
-            return (np.linalg.norm(res[:, :3], axis=1) <= tol_m) & (np.linalg.norm(res[:, 3:], axis=1) <= tol_rad)
-
-        for _ in range(max_iter):
-            idx = np.flatnonzero(~done(r))
-            if len(idx) == 0:
-                break
-            ctx = _rows(context, idx)
-            N = q.shape[1]
-            J = np.empty((len(idx), 6, N))
-            for j in range(N):
-                dq = np.zeros(N)
-                dq[j] = step_rad
-                r_plus = pose_error(self.predict(q[idx] + dq, ctx), T_target[idx])
-                r_minus = pose_error(self.predict(q[idx] - dq, ctx), T_target[idx])
-                J[:, :, j] = (r_plus - r_minus) / (2 * step_rad)
-            JtJ = np.einsum("nki,nkj->nij", J, J)
-            g = np.einsum("nki,nk->ni", J, r[idx])
-            damping = lam[idx, None, None] * (np.eye(N) * np.einsum("nii->ni", JtJ)[:, None, :] + 1e-12 * np.eye(N))
-            step = -np.linalg.solve(JtJ + damping, g[:, :, None])[:, :, 0]
-            big = np.abs(step).max(axis=1) > max_step_rad
-            step[big] *= (max_step_rad / np.abs(step[big]).max(axis=1))[:, None]
-            r_new = pose_error(self.predict(q[idx] + step, ctx), T_target[idx])
-            better = np.sum(r_new ** 2, axis=1) < np.sum(r[idx] ** 2, axis=1)
-            q[idx[better]] += step[better]
-            r[idx[better]] = r_new[better]
-            lam[idx] = np.where(better, np.maximum(lam[idx] / 10, 1e-12), lam[idx] * 10)
-        converged = (np.linalg.norm(r[:, :3], axis=1) <= 10 * tol_m) & (np.linalg.norm(r[:, 3:], axis=1) <= 10 * tol_rad)
-        return q, r, converged
+        return solve_pose(lambda qq, idx: self.predict(qq, _rows(context, idx)), T_target, q, tol_m=tol_m,
+                          tol_rad=tol_rad, max_iter=max_iter, step_rad=step_rad, max_step_rad=max_step_rad)
 
 
 def calibrated_geometry(run_dir) -> tuple:
