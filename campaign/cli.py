@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "campaign.sim.commands",
     "campaign.cell.commands",
     "campaign.diagnose.commands",
+    "campaign.iso9283.commands",
 )
 
 

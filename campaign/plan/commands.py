@@ -45,10 +45,19 @@ def register(sub):
                    help="random validation poses added, as a share of the selected ones (default: 0.2, at least 30)")
     p.add_argument("--repeats", type=int, metavar="N", default=None,
                    help="poses measured 3 times, spread over the tour, for the noise floor (default: 3 with a selection)")
+    iso = p.add_argument_group("ISO 9283 (pose accuracy and repeatability test; `campaign iso9283 RUN` evaluates it)")
+    iso.add_argument("--iso9283", action="store_true",
+                     help="plan the standard's test instead: P1..P5 of the largest suitable cube, visited in cycles")
+    iso.add_argument("--cycles", type=int, metavar="N", default=None, help="cycles of the five poses (default: 30)")
+    iso.add_argument("--compensate", metavar="CALIBRATED_RUN", default=None,
+                     help="correct the test's joint commands with this calibrated run's model (the test after "
+                          "calibration)")
     p.set_defaults(func=_plan)
 
 
 def _plan(args):
+    if args.iso9283 or args.cycles is not None or args.compensate is not None:
+        return _plan_iso9283(args)
     from campaign.plan.pipeline import plan_campaign
 
     selection = _selection_options(args)
@@ -89,6 +98,31 @@ def _plan(args):
               f"({est['paper']['seconds_per_pose']:.1f} s a pose)")
     extra = ", validation.csv, repeats.csv" if "selection" in s else ""
     print(f"written: {args.run}/plan/poses.csv{extra}, summary.json, tour.png ({s['timing_s']['total']:.1f} s)")
+    return 0
+
+
+def _plan_iso9283(args):
+    from campaign.errors import ConfigError
+    from campaign.iso9283.plan import DEFAULT_CYCLES, plan_iso9283
+
+    if not args.iso9283:
+        raise ConfigError("--cycles and --compensate belong to the ISO 9283 test: give them with --iso9283")
+    for flag, value in (("--select", args.select), ("--budget", args.budget), ("--target-mm", args.target_mm),
+                        ("--all", args.all_poses or None), ("--for-effects", args.for_effects),
+                        ("--validation", args.validation), ("--repeats", args.repeats), ("--criterion", args.criterion)):
+        if value is not None:
+            raise ConfigError(f"{flag} chooses a calibration campaign; --iso9283 plans the standard's five poses")
+    s = plan_iso9283(args.config, args.run, cycles=DEFAULT_CYCLES if args.cycles is None else args.cycles,
+                     compensate=args.compensate, grid_scale=args.grid_scale,
+                     progress=not args.quiet and sys.stderr.isatty(), robot=args.robot, tool_frame=args.tool_frame,
+                     base_frame=args.base_frame)
+    iso, t, est = s["iso9283"], s["tour"], s["estimated_campaign"]
+    print(f"suitable poses {s['suitable']:,} of {s['candidates']:,} candidates (the cube's centre is one of them)")
+    print(f"ISO 9283 cube: edge {1e3 * iso['edge_m']:.0f} mm, centre ({', '.join(f'{1e3 * c:.0f}' for c in iso['centre_m'])}) mm "
+          f"in F_I; P1..P5, {iso['cycles']} cycles of P1, P5, P4, P3, P2"
+          + (f"; commands compensated with {iso['compensated_with']}" if iso["compensated_with"] else ""))
+    print(f"tour: {t['poses']:,} poses, motion {t['motion_time_s'] / 60:.1f} min; estimated {est['total_s'] / 3600:.2f} h")
+    print(f"written: {args.run}/plan/poses.csv, iso9283.json, summary.json ({s['timing_s']['total']:.1f} s)")
     return 0
 
 
