@@ -41,10 +41,23 @@ def build_parser() -> argparse.ArgumentParser:
         prog="campaign",
         description="Plan, run and evaluate a laser-tracker calibration campaign of a 6-axis robot.",
     )
+    parser.add_argument("--version", action="version", version=f"campaign {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
     return parser
+
+
+def _version() -> str:
+    """The installed distribution's version (the package's own when run from a source tree)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("campaign")
+    except metadata.PackageNotFoundError:
+        from campaign import __version__
+
+        return __version__
 
 
 def _one_line(command, message) -> int:

@@ -20,6 +20,24 @@ def register(sub):
     c.add_argument("--tool-frame", default=None, metavar="LINK")
     c.add_argument("--base-frame", default=None, metavar="LINK")
     c.set_defaults(func=_chain)
+    r = sub.add_parser("robots", help="list the robot names --robot accepts (embedded, and example-robot-data's "
+                                      "arms when that package is installed)")
+    r.set_defaults(func=_robots)
+
+
+def _robots(args):
+    from campaign.model.catalog import known_robots
+
+    rows = known_robots()
+    print(f"{'name':<18} {'tool frame':<14} {'base frame':<15} {'source':<19} description")
+    for known, path in rows:
+        where = known.source if path is not None else f"{known.source} (not installed)"
+        print(f"{known.name:<18} {known.tool_frame or '(robot.yaml)' if known.source == 'embedded' else known.tool_frame or '-':<14} "
+              f"{known.base_frame or '(URDF root)':<15} {where:<19} {known.description}")
+    if any(p is None for _, p in rows):
+        print("(pip install example-robot-data for the robots marked not installed)")
+    print("any other robot: --robot PATH/robot.urdf --tool-frame LINK, or a robot.yaml (docs/robot_yaml.md)")
+    return 0
 
 
 def _base_params(args):

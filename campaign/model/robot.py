@@ -161,6 +161,9 @@ class RobotModel:
         ``tool_frame`` / ``base_frame`` (URDF link names) override robot.yaml's and the defaults.
         Any problem is one :class:`ConfigError` line naming the file and the element.
         """
+        named = _named_example(spec)
+        if named is not None:
+            spec, tool_frame, base_frame = named[0], tool_frame or named[1], base_frame or named[2]
         urdf, meta = _resolve(spec)
         # files edited in place are read again (the cache key holds their modification times)
         files = [urdf] if urdf else [meta, *sorted(meta.parent.glob("*.urdf"))]
@@ -397,6 +400,24 @@ class RobotModel:
 
 
 # -- resolution of the spec ----------------------------------------------------------------
+def _named_example(spec):
+    """(URDF path, tool frame, base frame) when ``spec`` names one of example-robot-data's robots
+    (and no file, folder or embedded model of that name exists); None otherwise."""
+    from campaign.model import catalog
+
+    text = str(spec)
+    if "/" in text or Path(text).exists() or (ROBOT_MODELS / text).is_dir():
+        return None
+    known = catalog.lookup(text)
+    if known is None:
+        return None
+    path = catalog.urdf_of(known)
+    if path is None or not path.is_file():
+        raise ConfigError(f"robot '{spec}' is one of example-robot-data's robots, which is not installed "
+                          "(pip install example-robot-data)")
+    return path, known.tool_frame, known.base_frame
+
+
 def _resolve(spec) -> tuple:
     """(urdf path or None, robot.yaml path or None) for what `load` was given."""
     p = Path(spec)
@@ -413,8 +434,8 @@ def _resolve(spec) -> tuple:
     if "/" not in str(spec) and named.is_dir():
         return _resolve(named)
     known = ", ".join(sorted(d.name for d in ROBOT_MODELS.iterdir() if d.is_dir())) if ROBOT_MODELS.is_dir() else ""
-    raise ConfigError(f"robot '{spec}': neither a URDF file, a robot.yaml (or its folder), nor a name under "
-                      f"{ROBOT_MODELS} ({known})")
+    raise ConfigError(f"robot '{spec}': neither a URDF file, a robot.yaml (or its folder), nor a known name "
+                      f"({known}; `campaign robots` lists every name)")
 
 
 def _xml_diagnosis(urdf_path: Path) -> str:
