@@ -35,6 +35,10 @@ HALF_EDGES_M = (0.40, 0.32, 0.25, 0.20, 0.16, 0.13, 0.10, 0.08, 0.065, 0.05, 0.0
 #: candidate cube centres: suitable poses whose tool points lie nearest the middle of the suitable workspace
 CENTRE_CANDIDATES = 48
 BISECTION_STEPS = 5
+#: the cube planned is this fraction of the largest that fits: its outer poses then keep their
+#: distance from the workspace's boundary, so a calibrated robot, whose geometry differs by
+#: millimetres, still reaches them with corrected commands (--compensate)
+SIZE_MARGIN = 0.9
 #: an inverse-kinematics solution must reach its target this well (m, rad)
 IK_TOL_M, IK_TOL_RAD = 1e-7, 1e-6
 
@@ -166,6 +170,10 @@ def find_cube(robot, scene, checker, q_suitable, *, clearance_m, motion_clearanc
             else:
                 hi = mid
         h = lo
+    if h * SIZE_MARGIN >= HALF_EDGES_M[-1]:  # back off from the boundary the bisection found
+        Q5m, ok = feas.solve(centres[i : i + 1], R_tools[i : i + 1], Q_seed[i : i + 1], h * SIZE_MARGIN, axes)
+        if ok[0]:
+            h, Q5 = h * SIZE_MARGIN, Q5m[0]
     targets = _targets(test_points(centres[i], axes, h), R_tools[i])
     return {"centre_m": centres[i], "axes": axes, "half_edge_m": float(h), "R_tool": R_tools[i], "q": Q5,
             "targets": targets}
@@ -249,9 +257,13 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
         if calibrated is not None:
             q_command, res, conv = calibrated.compensate(cube["targets"], q_nominal)
             feas = _Feasibility(model, scene, checker, pc.clearance_m, pc.motion_clearance_m, max_step)
-            if not conv.all() or not feas.poses_ok(q_command).all() or not feas.cycle_ok(q_command):
-                raise PlanError(f"--compensate {compensate}: the corrected commands of the test poses do not all "
-                                "converge, stay within the limits and stay suitable and collision-free")
+            why = [f"P{k + 1} did not converge" for k in np.flatnonzero(~conv)]
+            why += [f"P{k + 1} is not suitable (limits, tracker or clearance)"
+                    for k in np.flatnonzero(~feas.poses_ok(q_command))]
+            if not why and not feas.cycle_ok(q_command):
+                why.append("a motion of the cycle collides")
+            if why:
+                raise PlanError(f"--compensate {compensate}: the corrected commands fail: {'; '.join(why)}")
             compensation = {"run": str(Path(compensate).resolve()), "stage": calibrated.stage,
                             "residual_position_mm": (1e3 * np.linalg.norm(res[:, :3], axis=1)).tolist()}
         ids = cycle_ids(cycles)
