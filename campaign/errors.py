@@ -60,3 +60,12 @@ class PlanError(CampaignError):
 class AuthError(ProtocolError):
     """A frame failed authentication (no, wrong or replayed shared secret), or a peer that
     should authenticate its frames did not; nothing it asked is done."""
+
+
+class Implausible(CampaignError):
+    """With ``--strict``: the data or the result fail a plausibility check; nothing was written.
+    ``warnings``: the plausibility warnings (campaign.measure.plausibility.Implausible)."""
+
+    def __init__(self, message: str, warnings=()):
+        super().__init__(message)
+        self.warnings = tuple(warnings)

@@ -49,3 +49,60 @@ SETUP_POINT_MIN_SEPARATION_M = 1e-3
 #: (noise-free measurements, e.g. a simulated tracker without noise): the round-off of a
 #: float64 fit of a metre-sized arm, far below any tracker's noise (µm).
 ZERO_NOISE_MODEL_ATOL_M = 1e-9
+
+# -- plausibility (campaign/measure/plausibility.py): what a real robot and tracker can give --
+
+#: Poses the plausibility checks look at (spread evenly over a larger campaign): the checks
+#: compare whole-campaign statistics, which 2000 poses pin down to a few per cent.
+PLAUSIBILITY_MAX_POSES = 2000
+
+#: Measured positions spanning more than this factor times the nominal workspace (or less than
+#: its inverse) are another unit or another robot: a campaign's poses cover the workspace the
+#: nominal model predicts to within a few per cent (geometric errors are mm on a metre arm).
+WORKSPACE_SCALE_MAX = 2.0
+
+#: The nominal model's registered rms error above which the data and the model disagree beyond
+#: geometric error: industrial arms are built to a few mm (the paper's COMAU: 2.4 mm mean before
+#: calibration; large arms up to ~10 mm); 20 mm or 3 % of the stretched chain, whichever is larger.
+NOMINAL_RESIDUAL_MAX_M = 0.020
+NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE = 0.03
+
+#: A candidate joint convention is named when it cuts the registered rms by this factor (and
+#: brings it under the nominal limit): a wrong convention errs by tens of cm, a right one by mm.
+CONVENTION_GAIN_MIN = 10.0
+
+#: Median mismatch of the distances between raw reflectors and their nominal positions above
+#: which the layout is wrong: a tracker measures a reflector to ~10 µm and a nest is machined to
+#: ~0.1 mm; 1 mm is a wrong order or a wrong tool.
+REFLECTOR_DISTANCE_TOL_M = 1e-3
+
+#: Mean angle between measured and nominal orientations (beyond one constant rotation) above
+#: which the orientation columns are read wrongly: geometric errors turn a tool by mrad
+#: (the paper: 3.6 mrad mean before calibration), a wrong Euler reading by tenths of a radian.
+ORIENTATION_SPREAD_MAX_RAD = 0.05
+
+#: An identified translation correction larger than this fraction of the stretched chain
+#: (sum of the nominal link translations) reshapes the robot rather than correcting it: real
+#: corrections are mm on a metre arm (0.1-1 %).
+CORRECTION_MAX_FRACTION_OF_SIZE = 0.05
+
+#: An identified rotation correction above this (rad, 5.7 deg) is not a manufacturing error:
+#: zero offsets and axis tilts of real arms are a fraction of a degree.
+CORRECTION_MAX_RAD = 0.1
+
+#: The fit's own noise σ this many times below the measured (repeats) or stated tracker noise
+#: means the model fits what the measurements cannot carry (the noise cannot be fitted away).
+FITTED_NOISE_BELOW_FLOOR_FACTOR = 5.0
+
+#: Without a known floor: a fitted position noise below this (m) is below any laser tracker's
+#: (their single-point noise is 5-20 µm; the best interferometric modes ~0.5 µm + 0.4 µm/m).
+TRACKER_NOISE_MIN_M = 0.3e-6
+
+#: A calibrated model's held-out mean position error above this (5 mm, or 0.5 % of the stretched
+#: chain) is no calibration: even uncalibrated arms are within a few mm, and a fit makes it better.
+MODEL_RESIDUAL_MAX_M = 0.005
+MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE = 0.005
+
+#: Quaternion columns whose norm differs from 1 by more than this are not unit quaternions (a
+#: file's 6 printed digits keep the norm within 1e-5 of 1).
+QUATERNION_NORM_TOL = 1e-3

@@ -21,19 +21,21 @@ import numpy as np
 import yaml
 
 from campaign.effects.base import effect_context, effect_name, make_effect, parse_effect_list, resolve_effect_spec
-from campaign.errors import ConfigError, DataError
+from campaign.errors import ConfigError, DataError, Implausible
 from campaign.fileio import atomic_write
 from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, validation_file
+from campaign.measure import plausibility
 from campaign.measure.floor import noise_floor, times_the_noise
 from campaign.measure.reflectors import transform_points
 from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
-from campaign.tolerances import JOINT_LIMIT_SLACK
+from campaign.identify.checks import with_checks
+from campaign.measure.importer import joint_slack
 
 CALIBRATION_DIR = "calibration"
 #: fewer training poses than this: `calibrate` trains no network unless asked (``ann=True``).
@@ -78,6 +80,10 @@ class CalibrationResult:
     folds: dict | None = None
     #: the written report.html, when one was written
     report_path: Path | None = None
+    #: plausibility warnings (campaign.measure.plausibility.Implausible), metrics.json's ``warnings``
+    warnings: tuple = ()
+    #: ids of the held-out test poses, in the order of the run's poses (metrics.json's ``test_pose_ids``)
+    test_pose_ids: tuple = ()
 
     @property
     def metrics(self) -> dict:
@@ -96,6 +102,8 @@ class CalibrationResult:
             out["noise_floor"] = self.noise_floor
         if self.folds is not None:
             out["folds"] = self.folds
+        out["warnings"] = [w.as_json() for w in self.warnings]
+        out["test_pose_ids"] = [int(i) for i in self.test_pose_ids]
         return out
 
     def floor_line(self) -> str:
@@ -222,9 +230,7 @@ def distinct_poses(q) -> int:
 def measured_point(robot, poses):
     """Where one-reflector data were measured in the tool frame, (3,) m: robot.yaml's single
     reflector, else the tool frame's origin (None for other kinds)."""
-    if poses.kind != "point":
-        return None
-    return np.asarray(robot.reflector_positions_in_E[0]) if len(robot.reflectors) == 1 else np.zeros(3)
+    return plausibility.measured_point(robot, poses.kind)
 
 
 def prepare_measured(robot, poses, train):
@@ -287,7 +293,7 @@ def stage_name(effects) -> str:
 
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
-              write: bool = True, report: bool = True) -> CalibrationResult:
+              write: bool = True, report: bool = True, strict: bool = False) -> CalibrationResult:
     """Identify the model of a run and write its calibration folder, holding the run's lock
     (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
@@ -296,7 +302,9 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     compensator (campaign.ann); ``"auto"``: only with at least ANN_MIN_TRAIN_POSES training
     poses. progress: optional callable receiving status lines (str) and,
     during ANN training, campaign.ann.selection.TrainingProgress reports. report: also write
-    report.html and its plots (with ``write``).
+    report.html and its plots (with ``write``). The result carries plausibility ``warnings``
+    (campaign.identify.checks); strict: any warning raises :class:`campaign.errors.Implausible`
+    and nothing is written.
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
@@ -308,18 +316,18 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         make_effect(name, robot)
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
-        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report)
+        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report, strict)
 
 
 def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
-               report) -> CalibrationResult:
+               report, strict=False) -> CalibrationResult:
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
     if poses.q.shape[1] != robot.n_joints:
         raise DataError(f"{run_dir}: the measurements have {poses.q.shape[1]} joint values per pose, the run's robot "
                         f"{robot.name} has {robot.n_joints} joints")
-    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=JOINT_LIMIT_SLACK, pose_ids=poses.pose_id)
+    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=joint_slack(run_dir, robot), pose_ids=poses.pose_id)
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     raw = poses.kind == "markers" and poses.markers is not None
     if raw:  # identified from the seen reflectors' positions: every pose with one seen contributes
@@ -448,6 +456,10 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         noise_floor=noise_floor(run_dir, poses.subset(np.flatnonzero(usable)) if at_origin else poses,
                                 robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json())
+    result = with_checks(result, robot, poses, geo, stage_name(effects))
+    if strict and result.warnings:
+        raise Implausible(f"{run_dir}: {len(result.warnings)} plausibility warning(s) with --strict "
+                          f"({', '.join(w.code for w in result.warnings)}): nothing written", result.warnings)
     if write:
         _write(result, robot, geo)
     if write and report:

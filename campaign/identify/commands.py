@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 
 
@@ -20,9 +21,23 @@ def register(sub):
                         "identifies the tracker's pose with the model")
     p.add_argument("--markers", default=None, metavar="FILE",
                    help="nominal positions of raw reflectors m1..mk in the tool frame (YAML: markers: [[x, y, z], ...], m)")
-    p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad", help="unit of q and rx,ry,rz in the CSV")
+    p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
+                   help="unit of q and of the orientation angles in the CSV")
     p.add_argument("--length-unit", choices=("m", "mm"), default="m",
                    help="unit of positions (and prismatic joints) in the CSV")
+    p.add_argument("--rotation", choices=("rotvec", "rpy", "abc", "quat"), default="rotvec",
+                   help="how the CSV writes orientation: rotvec (rx,ry,rz rotation vector, default), rpy (rx,ry,rz "
+                        "roll, pitch, yaw about fixed x, y, z: R = Rz Ry Rx, URDF/ROS), abc (KUKA's a,b,c: "
+                        "R = Rz(a) Ry(b) Rx(c)), quat (qw,qx,qy,qz)")
+    p.add_argument("--delimiter", default=None, metavar="CHAR",
+                   help="field separator: ',' (default), ';', tab, space (any run of blanks), '|'")
+    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
+                   help="the file's own column names, e.g. x=X_mm,q1=J1 (default: robot.yaml's columns:)")
+    p.add_argument("--limit-slack", type=float, default=0.0, metavar="DEG_OR_MM",
+                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
+                        "prismatic ones); the readings accepted are counted and said")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse the import (exit 1, nothing written) when a plausibility check warns")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_import)
 
@@ -43,6 +58,8 @@ def register(sub):
                         "(relative to the current directory) or installed entry points of group campaign.effects "
                         "(default: those in DIR/campaign.yaml; docs/effects.md)")
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
+    p.add_argument("--strict", action="store_true",
+                   help="exit 1 and write nothing when a plausibility check warns (the previous calibration stays)")
     ann = p.add_mutually_exclusive_group()
     ann.add_argument("--ann", dest="ann", action="store_true", default=None,
                      help="train the neural residual compensator (default from 250 training poses)")
@@ -83,6 +100,8 @@ def register(sub):
     p.add_argument("--out", metavar="OUT", default=None,
                    help="CSV to write: pose_id,q1..qN,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
+    p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
+                   help="unit of the joint columns read and written (default: rad)")
     p.set_defaults(func=_predict)
 
     p = sub.add_parser("compensate",
@@ -94,6 +113,8 @@ def register(sub):
                    help="CSV to write: pose_id,q1..qN (corrected, rad),dq1..dqN,residual_position_mm,"
                         "residual_orientation_mrad,converged,within_limits (default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
+    p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
+                   help="unit of the joint columns read and written, dq included (default: rad)")
     p.set_defaults(func=_compensate)
 
 
@@ -103,13 +124,33 @@ def _import(args):
     from campaign.measure.csvio import ImportOptions
     from campaign.progress import Progress
 
+    from campaign.errors import Implausible
+    from campaign.measure.csvio import parse_columns
+
+    options = ImportOptions(angle_unit=args.angle_unit, length_unit=args.length_unit, frame=args.frame,
+                            rotation=args.rotation, delimiter=args.delimiter, columns=parse_columns(args.columns),
+                            limit_slack_rad=math.radians(args.limit_slack), limit_slack_m=args.limit_slack * 1e-3)
     bar = Progress("import", total=1000, enabled=not args.quiet and sys.stderr.isatty(), unit="‰")
-    n = import_run(args.csv, args.run, robot=args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame,
-                   options=ImportOptions(angle_unit=args.angle_unit, length_unit=args.length_unit, frame=args.frame),
-                   markers_file=args.markers, progress=lambda f: bar.update(int(1000 * f) - bar.done))
+    try:
+        res = import_run(args.csv, args.run, robot=args.robot, tool_frame=args.tool_frame,
+                         base_frame=args.base_frame, options=options, markers_file=args.markers,
+                         progress=lambda f: bar.update(int(1000 * f) - bar.done), strict=args.strict)
+    except Implausible as exc:
+        bar.close()
+        print_warnings(exc.warnings)
+        raise
     bar.close()
-    print(f"imported {n} poses into {args.run}/measurements.sqlite")
+    print(f"imported {res.n_poses} poses into {args.run}/measurements.sqlite")
+    if res.past_limits:
+        print(res.past_limits)
+    print_warnings(res.warnings)
     return 0
+
+
+def print_warnings(warnings) -> None:
+    """Plausibility warnings, one ``warning: ...`` line each on stderr."""
+    for w in warnings:
+        print(f"warning: {w.message} [{w.code}]", file=sys.stderr)
 
 
 def _export(args):
@@ -156,12 +197,21 @@ def _calibrate(args):
     ann = "auto" if args.ann is None else args.ann  # auto: not for a campaign too small for a network
     if len(args.run) > 1:
         return _calibrate_fleet(args, ann, ann_options)
+    from campaign.errors import Implausible
+
     progress = None if args.quiet else _CalibrateProgress()
-    result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
-                       ann_options=ann_options, progress=progress, report=not args.no_report)
+    try:
+        result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
+                           ann_options=ann_options, progress=progress, report=not args.no_report, strict=args.strict)
+    except Implausible as exc:
+        if progress is not None:
+            progress.close()
+        print_warnings(exc.warnings)
+        raise
     if progress is not None:
         progress.close()
     print(summary_text(result))
+    print_warnings(result.warnings)
     return 0
 
 

@@ -6,13 +6,17 @@ orientation in rad), ``x,y,z`` (one reflector), or ``m1_x,m1_y,m1_z,...,mk_z`` (
 centres, m; an empty cell where the tracker missed one). q as commanded (rad, m for prismatic
 joints). Frame: the robot's base (or the tracker's, ``--frame tracker``). ``--angle-unit deg`` and
 ``--length-unit mm`` convert on reading. Extra named numeric columns are kept as context.
-Every error names the file, the line and the column.
+Real files as they come (docs/csv_import.md): orientation as roll-pitch-yaw, KUKA's A, B, C or
+quaternions (``--rotation``), another delimiter (``--delimiter``), other column names
+(``--columns``), joint readings slightly past the URDF limits (``--limit-slack``).
+Every error names the file, the line (1-based) and the column.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +25,9 @@ import numpy as np
 from campaign.errors import DataError
 from campaign.fileio import atomic_open
 from campaign.measure.data import CSV_COLUMNS, MAX_STORED_POSE_ID, MeasuredPoses
-from campaign.tolerances import JOINT_LIMIT_SLACK, METRES_MAX_ABS, RADIANS_MAX_ABS, ROTVEC_NORM_SLACK
+from campaign.model.rotations import kuka_abc, matrix_to_rotvec, quaternion_to_matrix, rotvec_to_matrix, urdf_rpy
+from campaign.tolerances import (JOINT_LIMIT_SLACK, METRES_MAX_ABS, QUATERNION_NORM_TOL, RADIANS_MAX_ABS,
+                                 ROTVEC_NORM_SLACK)
 
 
 #: rows parsed and validated together when streaming a CSV (bounds the reader's memory)
@@ -40,24 +46,88 @@ def _open_text(path):
         raise DataError(f"{path}: not a UTF-8 text file") from None
 
 
-def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None):
+#: the delimiters `--delimiter` names: name -> character (``space``: any run of blanks or tabs)
+DELIMITERS = {",": ",", "comma": ",", ";": ";", "semicolon": ";", "tab": "\t", "\t": "\t", "space": " ", " ": " ",
+              "|": "|"}
+
+
+def delimiter_char(name) -> str:
+    """The delimiter character of ``--delimiter`` (``,`` ``;`` ``tab`` ``space`` ``|``); DataError otherwise."""
+    if name is None:
+        return ","
+    if name not in DELIMITERS:
+        raise DataError(f"--delimiter must be one of ',', ';', tab, space, '|', not {name!r}")
+    return DELIMITERS[name]
+
+
+def _delimiter_name(ch: str) -> str:
+    return {"\t": "tab", " ": "space"}.get(ch, ch)
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+        return True
+    except ValueError:
+        return False
+
+
+def _check_first_line(path, line: str, delimiter: str) -> None:
+    """A header separated by another delimiter, or no header at all: one line naming it."""
+    def split(ch):
+        return line.split() if ch == " " else line.split(ch)
+
+    fields = split(delimiter)
+    if len(fields) <= 2:  # the chosen delimiter does not split the header: which one does?
+        best = max((ch for ch in (",", ";", "\t", " ", "|") if ch != delimiter), key=lambda ch: len(split(ch)))
+        if len(split(best)) > 2:
+            head = " and no header (line 1 holds numbers)" if all(_is_number(c) for c in split(best)) else ""
+            raise DataError(f"{path}: line 1: not {'comma' if delimiter == ',' else _delimiter_name(delimiter)}"
+                            f"-separated: looks like {_delimiter_name(best)!r}{head}; read it with "
+                            f"--delimiter {_delimiter_name(best)!r} (docs/csv_import.md)")
+    if fields and all(_is_number(c.strip()) for c in fields if c.strip()) and any(c.strip() for c in fields):
+        raise DataError(f"{path}: no header: line 1 holds numbers ({', '.join(c.strip() for c in fields[:4])}"
+                        f"{', ...' if len(fields) > 4 else ''}); the first line must name the columns "
+                        "(pose_id,time_s,q1..qN,x,y,z,rx,ry,rz; other names with --columns; docs/csv_import.md)")
+
+
+def _rename_header(path, header, rename) -> list:
+    """Header with ``rename`` ({name in the file: name used here}) applied; each must exist."""
+    if not rename:
+        return header
+    missing = [src for src in rename if src not in header]
+    if missing:
+        raise DataError(f"{path}: --columns names column(s) {', '.join(missing)}, which the header does not have "
+                        f"(it has {', '.join(header)})")
+    return [rename.get(h, h) for h in header]
+
+
+def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None,
+                        delimiter: str | None = None, rename=None):
     """Stream a CSV of numbers with a header, ``chunk_rows`` rows at a time.
 
-    Yields (header, values (m, columns) float64, source line numbers (m,)). ``required``
+    Yields (header, values (m, columns) float64, source line numbers (m,), 1-based). ``required``
     columns must be present; every cell finite, except in columns for which ``may_be_empty``
     (a callable on the column name) is true, where an empty cell is NaN. ``progress``: called
-    with the bytes read so far. Every error names the file, and where it applies the line
-    and column.
+    with the bytes read so far. delimiter: ``--delimiter``'s name (default comma; ``space``:
+    any run of blanks). rename: {column in the file: name used} (``--columns``). A file without
+    a header, or separated by another delimiter than asked, is one line naming it. Every error
+    names the file, and where it applies the line and column.
     """
     path = Path(path)
+    ch = delimiter_char(delimiter)
     fh = _open_text(path)
     with fh:
-        reader = csv.reader(fh)
+        lines_in = (",".join(ln.split()) for ln in fh) if ch == " " else fh
+        reader = csv.reader(lines_in, delimiter="," if ch == " " else ch)
         try:
+            first_raw = fh.readline()
+            fh.seek(0)
+            _check_first_line(path, first_raw.strip("\r\n"), ch)
             first = next(reader, None)
             if first is None:
                 raise DataError(f"{path}: empty file (expected header {','.join(required)})")
-            header = [h.strip() for h in first]
+            header = _rename_header(path, [h.strip() for h in first], rename)
             missing = [c for c in required if c not in header]
             if missing:
                 raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
@@ -84,8 +154,10 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
                         if empty_ok[j] and not cell.strip():
                             row[j] = np.nan
                             continue
+                        hint = " (a decimal comma? write decimal points)" if _is_number(cell.replace(",", ".")) \
+                            else ""
                         raise DataError(f"{path}: line {line}, column {header[j]}: '{cell.strip()}' "
-                                        "is not a number") from None
+                                        f"is not a number{hint}") from None
                     if not math.isfinite(v):
                         raise DataError(f"{path}: line {line}, column {header[j]}: {cell.strip()} "
                                         "is not a finite number")
@@ -108,13 +180,15 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
             raise DataError(f"{path}: line {reader.line_num}: not valid CSV ({exc})") from None
 
 
-def read_numeric_table(path, required, *, may_be_empty=None) -> tuple:
+def read_numeric_table(path, required, *, may_be_empty=None, delimiter: str | None = None, rename=None) -> tuple:
     """Read a whole CSV of numbers with a header; every cell finite.
 
-    Returns (header, {column: values (n,)}, source line numbers (n,)). ``required`` columns
-    must be present; every error names the file, and where it applies the line and column.
+    Returns (header, {column: values (n,)}, source line numbers (n,), 1-based). ``required``
+    columns must be present; every error names the file, and where it applies the line and
+    column. delimiter, rename: as :func:`iter_numeric_chunks`.
     """
-    chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty))
+    chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty, delimiter=delimiter,
+                                      rename=rename))
     header = chunks[0][0]
     values = np.concatenate([c[1] for c in chunks])
     lines = np.concatenate([c[2] for c in chunks])
@@ -136,6 +210,37 @@ def read_markers_file(path) -> np.ndarray:
     return P
 
 
+POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
+
+#: how a 6-D CSV writes the orientation (``--rotation``): name -> (columns, angles?, description)
+ROTATIONS = {
+    "rotvec": (("rx", "ry", "rz"), True, "rotation vectors (axis times angle)"),
+    "rpy": (("rx", "ry", "rz"), True, "roll, pitch, yaw about the fixed x, y, z axes, R = Rz(yaw) Ry(pitch) "
+                                      "Rx(roll) (URDF, ROS, Pinocchio)"),
+    "abc": (("a", "b", "c"), True, "KUKA's A, B, C, R = Rz(A) Ry(B) Rx(C)"),
+    "quat": (("qw", "qx", "qy", "qz"), False, "unit quaternions (w, x, y, z)"),
+}
+
+
+def rotation_matrices(rotation: str, values) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) from orientation columns (n, k) read as ``rotation``
+    (:data:`ROTATIONS`; angles in rad)."""
+    v = np.asarray(values, dtype=float)
+    if rotation == "rotvec":
+        return rotvec_to_matrix(v)
+    if rotation == "rpy":
+        return urdf_rpy(v[:, 0], v[:, 1], v[:, 2])
+    if rotation == "abc":
+        return kuka_abc(v[:, 0], v[:, 1], v[:, 2])
+    return quaternion_to_matrix(v)
+
+
+def rotation_readings_table() -> dict:
+    """{name: (columns, values -> R, angles?)} of every ``--rotation`` (for the plausibility checks)."""
+    return {name: (cols, (lambda v, r=name: rotation_matrices(r, v)), angles)
+            for name, (cols, angles, _) in ROTATIONS.items()}
+
+
 @dataclass(frozen=True)
 class CsvLayout:
     """What a measured-pose CSV holds, from its header (and the robot's joint count)."""
@@ -145,22 +250,34 @@ class CsvLayout:
     n_markers: int
     context: tuple  # other columns
     has_time: bool
+    rotation: str = "rotvec"  # how a 6-D CSV writes the orientation (ROTATIONS)
+
+    @property
+    def rotation_columns(self) -> tuple:
+        return ROTATIONS[self.rotation][0]
 
     @property
     def measure_columns(self) -> tuple:
         if self.kind == "pose":
-            return POSE_COLUMNS
+            return POSE_COLUMNS[:3] + self.rotation_columns
         if self.kind == "point":
             return POSE_COLUMNS[:3]
         return tuple(f"m{i}_{a}" for i in range(1, self.n_markers + 1) for a in "xyz")
 
 
-POSE_COLUMNS = ("x", "y", "z", "rx", "ry", "rz")
+def _other_rotation(path, hs, rotation) -> None:
+    """Orientation columns of another ``--rotation`` than asked: one line naming it."""
+    for name, (cols, _, what) in ROTATIONS.items():
+        if set(cols) <= hs and cols != ROTATIONS[rotation][0]:
+            raise DataError(f"{path}: columns {','.join(cols)} look like {what}, and --rotation {rotation} reads "
+                            f"{','.join(ROTATIONS[rotation][0])}: import with --rotation {name}"
+                            + (" (or rotvec)" if name == "rpy" else "") + " (docs/csv_import.md)")
 
 
-def csv_layout(path, header, n_joints: int | None) -> CsvLayout:
-    """Detect the measurement kind from the header: ``x,y,z,rx,ry,rz`` (6-D), ``m1_x,..`` (raw
-    reflectors), ``x,y,z`` (one reflector). Joints ``q1..qN``."""
+def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> CsvLayout:
+    """Detect the measurement kind from the header: ``x,y,z`` and the orientation columns of
+    ``rotation`` (6-D; :data:`ROTATIONS`), ``m1_x,..`` (raw reflectors), ``x,y,z`` (one
+    reflector). Joints ``q1..qN``. Orientation columns of another reading are named."""
     hs = set(header)
     qs = [h for h in header if h.startswith("q") and h[1:].isdigit()]
     N = n_joints if n_joints is not None else len(qs)
@@ -171,7 +288,8 @@ def csv_layout(path, header, n_joints: int | None) -> CsvLayout:
     missing = [c for c in ("pose_id", *joints) if c not in hs]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
-    if set(POSE_COLUMNS) <= hs:
+    rot_cols = ROTATIONS[rotation][0]
+    if {"x", "y", "z", *rot_cols} <= hs:
         kind, k = "pose", 0
     elif "m1_x" in hs:
         kind, k = "markers", 0
@@ -182,27 +300,65 @@ def csv_layout(path, header, n_joints: int | None) -> CsvLayout:
                 if f"m{i}_{a}" not in hs:
                     raise DataError(f"{path}: reflector columns: m{i}_x is there, m{i}_{a} is missing")
     elif {"x", "y", "z"} <= hs:
-        if hs & {"rx", "ry", "rz"}:
-            missing = [c for c in ("rx", "ry", "rz") if c not in hs]
+        _other_rotation(path, hs, rotation)
+        if hs & set(rot_cols):
+            missing = [c for c in rot_cols if c not in hs]
             raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header (orientation columns "
-                            "rx,ry,rz go together)")
+                            f"{','.join(rot_cols)} go together)")
         kind, k = "point", 0
     else:
         raise DataError(f"{path}: no measurement columns: expected x,y,z,rx,ry,rz (6-D), x,y,z (one reflector) "
                         "or m1_x,m1_y,m1_z,... (raw reflectors)")
-    layout = CsvLayout(kind, joints, k, (), "time_s" in hs)
+    layout = CsvLayout(kind, joints, k, (), "time_s" in hs, rotation)
     known = {"pose_id", "time_s", *joints, *layout.measure_columns}
-    return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs)
+    return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs, rotation)
+
+
+def parse_columns(text) -> dict:
+    """``--columns x=x1,y=y1,...`` (or robot.yaml's ``columns: {x: x1, ...}``) to {column in the
+    file: name used}; ConfigError on a malformed mapping."""
+    from campaign.errors import ConfigError
+
+    if text is None or text == "" or text == {}:
+        return {}
+    if isinstance(text, dict):
+        pairs = [(str(k), str(v)) for k, v in text.items()]
+    else:
+        pairs = []
+        for item in str(text).split(","):
+            name, eq, src = item.partition("=")
+            if not eq or not name.strip() or not src.strip():
+                raise ConfigError(f"--columns: expected NAME=COLUMN,... (e.g. x=X_mm,q1=J1), got {item.strip()!r}")
+            pairs.append((name.strip(), src.strip()))
+    out = {}
+    for name, src in pairs:
+        if src in out:
+            raise ConfigError(f"--columns: column {src!r} is mapped twice")
+        out[src] = name
+    if len(set(out.values())) != len(out):
+        dup = sorted({v for v in out.values() if list(out.values()).count(v) > 1})
+        raise ConfigError(f"--columns: {', '.join(dup)} named twice")
+    return out
 
 
 @dataclass(frozen=True)
 class ImportOptions:
-    """How to read a measured-pose CSV: units, frame, nominal reflector positions."""
+    """How to read a measured-pose CSV: units, frame, nominal reflector positions, and the
+    file's own conventions (docs/csv_import.md).
+
+    rotation: :data:`ROTATIONS`; delimiter: ``--delimiter``'s name (None: comma); columns:
+    {column in the file: name used}; limit_slack_rad / limit_slack_m: how far past the URDF's
+    joint limits a reading is accepted (revolute / prismatic joints)."""
 
     angle_unit: str = "rad"
     length_unit: str = "m"
     frame: str = "robot"
     markers: np.ndarray | None = None  # (k, 3) m in the tool frame, for raw reflectors
+    rotation: str = "rotvec"
+    delimiter: str | None = None
+    columns: dict = None
+    limit_slack_rad: float = 0.0
+    limit_slack_m: float = 0.0
 
     def __post_init__(self):
         if self.angle_unit not in ("rad", "deg"):
@@ -211,6 +367,16 @@ class ImportOptions:
             raise DataError(f"--length-unit must be m or mm, not {self.length_unit!r}")
         if self.frame not in ("robot", "tracker"):
             raise DataError(f"--frame must be robot or tracker, not {self.frame!r}")
+        if self.rotation not in ROTATIONS:
+            raise DataError(f"--rotation must be one of {', '.join(ROTATIONS)}, not {self.rotation!r}")
+        delimiter_char(self.delimiter)
+        for v in (self.limit_slack_rad, self.limit_slack_m):
+            if not (math.isfinite(v) and v >= 0):
+                raise DataError(f"--limit-slack must be a finite number >= 0, not {v!r}")
+
+    def slack(self, robot) -> np.ndarray:
+        """Per joint, how far past its limit a reading is accepted (N,), rad or m."""
+        return JOINT_LIMIT_SLACK + np.where(robot.prismatic, self.limit_slack_m, self.limit_slack_rad)
 
 
 def _marker_positions(path, layout, robot, options):
@@ -267,17 +433,27 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom):
         if big.any():
             fail(big, name, "exceeds 2*pi and the joint's limits: joint values must be in rad (this looks like "
                             "degrees; --angle-unit deg)", q[:, j] if deg else None)
+    past = None
     if robot is not None:
         q = robot.to_model_q(q)
         limited = np.array([t != "continuous" for t in robot.joint_types], dtype=bool)
-        lo = (q < robot.q_lower - JOINT_LIMIT_SLACK) & limited
-        hi = (q > robot.q_upper + JOINT_LIMIT_SLACK) & limited
+        slack = options.slack(robot)
+        lo = (q < robot.q_lower - slack) & limited
+        hi = (q > robot.q_upper + slack) & limited
         if (lo | hi).any():
             k, j = np.argwhere(lo | hi)[0]
             lim = robot.q_lower[j] if lo[k, j] else robot.q_upper[j]
             u = robot.joint_units[j]
             raise DataError(f"{path}: line {lines[k]}, column q{j + 1}: {q[k, j]:.6g} {u} is outside "
-                            f"the joint limit {lim:.6g} {u} of {robot.name}")
+                            f"the joint limit {lim:.6g} {u} of {robot.name}"
+                            + ("" if options.limit_slack_rad or options.limit_slack_m else
+                               " (readings slightly past a limit: --limit-slack DEG_OR_MM)"))
+        excess = np.maximum(robot.q_lower - JOINT_LIMIT_SLACK - q, q - robot.q_upper - JOINT_LIMIT_SLACK) * limited
+        if (excess > 0).any():
+            k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+            lim = robot.q_lower[j] if q[k, j] < robot.q_lower[j] else robot.q_upper[j]
+            past = PastLimits(int((excess > 0).sum()), int(lines[k]), f"q{j + 1}", float(q[k, j]), float(lim),
+                              robot.joint_units[j])
     n = len(pid)
     xyz = np.full((n, 3), np.nan)
     rv = np.full((n, 3), np.nan)
@@ -290,13 +466,7 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom):
                 fail(big, name, f"exceeds {METRES_MAX_ABS:g} m: positions must be in m (this looks like mm; "
                                 "--length-unit mm)", xyz[:, a])
     if layout.kind == "pose":
-        rv = np.stack([col["rx"], col["ry"], col["rz"]], axis=1) * a_scale
-        big = np.linalg.norm(rv, axis=1) > math.pi + ROTVEC_NORM_SLACK
-        if big.any():
-            k = int(np.argmax(big))
-            raise DataError(f"{path}: line {lines[k]}, columns rx,ry,rz: rotation vector norm "
-                            f"{np.linalg.norm(rv[k]):.6g} exceeds pi: must be in rad (this looks like degrees; "
-                            "--angle-unit deg)")
+        rv = _orientation(path, layout, col, lines, a_scale, robot, q, options)
     if layout.kind == "markers":
         from campaign.measure.reflectors import fit_markers
 
@@ -314,25 +484,125 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom):
                             f"{METRES_MAX_ABS:g} m (this looks like mm; --length-unit mm)")
         T, _ = fit_markers(P_nom, markers)
         xyz = T[:, :3, 3]
-        from campaign.model.rotations import matrix_to_rotvec
-
         ok = np.isfinite(T[:, 0, 0])
         rv[ok] = matrix_to_rotvec(T[ok, :3, :3])
     t = col["time_s"] if layout.has_time else np.full(n, np.nan)
     return {"pose_id": pid.astype(np.int64), "time_s": t, "q": q, "xyz": xyz, "rotvec": rv, "markers": markers,
-            "context": {h: col[h] for h in layout.context}, "lines": lines}
+            "context": {h: col[h] for h in layout.context}, "lines": lines, "past_limits": past}
+
+
+@dataclass(frozen=True)
+class PastLimits:
+    """Joint readings accepted past the URDF's limits (``--limit-slack``): how many, and the largest."""
+
+    count: int
+    line: int
+    column: str
+    value: float
+    limit: float
+    unit: str
+
+    def worse(self, other: "PastLimits | None") -> "PastLimits":
+        """The two counts together, with the larger excess of the two."""
+        if other is None:
+            return self
+        big = self if abs(self.value - self.limit) >= abs(other.value - other.limit) else other
+        return PastLimits(self.count + other.count, big.line, big.column, big.value, big.limit, big.unit)
+
+    def text(self, robot_name: str) -> str:
+        return (f"{self.count} joint reading(s) past the URDF limits of {robot_name} accepted (--limit-slack); "
+                f"the largest: line {self.line}, {self.column} = {self.value:.6g} {self.unit} "
+                f"(limit {self.limit:.6g} {self.unit})")
+
+
+def orientation_values(layout, col, a_scale) -> np.ndarray:
+    """The orientation columns (n, k) as written, angles scaled to rad."""
+    v = np.stack([col[c] for c in layout.rotation_columns], axis=1)
+    return v * a_scale if ROTATIONS[layout.rotation][1] else v
+
+
+def _orientation(path, layout, col, lines, a_scale, robot, q, options) -> np.ndarray:
+    """Rotation vectors (n, 3) rad of a 6-D chunk read as ``layout.rotation``, validated."""
+    v = orientation_values(layout, col, a_scale)
+    cols = ",".join(layout.rotation_columns)
+    if layout.rotation == "rotvec":
+        big = np.linalg.norm(v, axis=1) > math.pi + ROTVEC_NORM_SLACK
+        if big.any():
+            k = int(np.argmax(big))
+            raise DataError(f"{path}: line {lines[k]}, columns {cols}: rotation vector norm "
+                            f"{np.linalg.norm(v[k]):.6g} exceeds pi: {_reading_hint(robot, q, v, layout, options)}")
+        return v
+    if layout.rotation == "quat":
+        norm = np.linalg.norm(v, axis=1)
+        bad = np.abs(norm - 1) > QUATERNION_NORM_TOL
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise DataError(f"{path}: line {lines[k]}, columns {cols}: quaternion norm {norm[k]:.6g} is not 1 "
+                            "(columns qw,qx,qy,qz: w first)")
+    else:
+        big = np.abs(v) > RADIANS_MAX_ABS
+        if big.any():
+            k, a = np.argwhere(big)[0]
+            raise DataError(f"{path}: line {lines[k]}, column {layout.rotation_columns[a]}: {v[k, a]:.6g} rad exceeds "
+                            "2*pi: angles must be in rad (this looks like degrees; --angle-unit deg)")
+    return matrix_to_rotvec(rotation_matrices(layout.rotation, v))
+
+
+def _reading_hint(robot, q, values, layout, options) -> str:
+    """What a rotation-vector norm above pi means: the reading of the columns (and their unit)
+    that agrees with the nominal orientations, tested with the nominal model, else degrees."""
+    default = "must be in rad (this looks like degrees; --angle-unit deg)"
+    if robot is None or options.frame not in ("robot", "tracker"):
+        return default
+    from campaign.measure.plausibility import rotation_readings
+    from campaign.tolerances import ORIENTATION_SPREAD_MAX_RAD
+
+    scales = (1.0, math.pi / 180) if options.angle_unit == "rad" else (1.0, 180 / math.pi)
+    ranked = rotation_readings(robot, q, values, layout.rotation_columns, rotation_readings_table(), scales)
+    spread, name, scale = ranked[0]
+    if not np.isfinite(spread) or spread > ORIENTATION_SPREAD_MAX_RAD:
+        return default + "; no reading of the columns agrees with the nominal orientations (--rotation rotvec|rpy)"
+    unit = options.angle_unit if scale == 1.0 else ("deg" if options.angle_unit == "rad" else "rad")
+    if name == layout.rotation:
+        return (f"must be in rad: read in {unit}, the columns agree with the nominal orientations to "
+                f"{spread * 1e3:.1f} mrad (--angle-unit {unit})")
+    flags = f"--rotation {name}" + ("" if unit == options.angle_unit else f" with the columns in {unit}")
+    return (f"not rotation vectors: read as {ROTATIONS[name][2]} ({unit}), the columns agree with the nominal "
+            f"orientations to {spread * 1e3:.1f} mrad: {flags} (docs/csv_import.md)")
 
 
 def _may_be_empty(h: str) -> bool:
     return h.startswith("m") and "_" in h and h[1:h.index("_")].isdigit()
 
 
+@dataclass(frozen=True)
+class CsvReading:
+    """A validated measured-pose CSV, ready to stream: its layout, the raw reflectors' nominal
+    positions (or None), the joint readings accepted past the limits (or None), and
+    ``chunks``, a generator of MeasuredPoses (one pass)."""
+
+    layout: CsvLayout
+    marker_positions: np.ndarray | None
+    past_limits: PastLimits | None
+    chunks: object
+
+    def __iter__(self):  # (layout, marker positions, chunks), as before
+        return iter((self.layout, self.marker_positions, self.chunks))
+
+
+def _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom):
+    c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
+    return c, MeasuredPoses.from_vectors(c["pose_id"], c["time_s"], c["q"], c["xyz"], c["rotvec"], c["context"],
+                                         kind=layout.kind, frame=options.frame, markers=c["markers"],
+                                         marker_positions=P_nom)
+
+
 def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None, *, progress=None,
-                         chunk_rows: int = CHUNK_ROWS):
+                         chunk_rows: int = CHUNK_ROWS) -> CsvReading:
     """Validate a measured-pose CSV whole (streaming, bounded memory: a chunk of rows and the
-    pose ids), then stream it again as MeasuredPoses chunks. Returns (layout, marker nominal
-    positions or None, generator). ``progress``: called with the fraction done (0..1) over both
-    passes."""
+    pose ids), then stream it again as MeasuredPoses chunks. Returns a :class:`CsvReading`
+    (which unpacks as (layout, marker nominal positions or None, generator)). ``progress``:
+    called with the fraction done (0..1) over both passes."""
     path = Path(path)
     options = options or ImportOptions()
     size = max(path.stat().st_size, 1) if path.is_file() else 1
@@ -341,16 +611,20 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
         if progress is not None:
             progress(min(1.0, 0.5 * half + 0.5 * offset / size))
 
-    it = iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=chunk_rows,
-                             progress=lambda b: report(b, 0))
+    read = dict(may_be_empty=_may_be_empty, chunk_rows=chunk_rows, delimiter=options.delimiter,
+                rename=options.columns)
+    it = iter_numeric_chunks(path, (), progress=lambda b: report(b, 0), **read)
     header, values, lines = next(it)
-    layout = csv_layout(path, header, robot.n_joints if robot is not None else None)
+    layout = csv_layout(path, header, robot.n_joints if robot is not None else None, options.rotation)
     P_nom = _marker_positions(path, layout, robot, options)
     ids, id_lines = [], []
+    past = None
     for hdr, vals, lns in _chain_first((header, values, lines), it):
         c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
         ids.append(c["pose_id"])
         id_lines.append(lns)
+        if c["past_limits"] is not None:
+            past = c["past_limits"].worse(past)
     report(size, 0)
     pid = np.concatenate(ids)
     lines_all = np.concatenate(id_lines)
@@ -364,15 +638,27 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
     del pid, lines_all, order
 
     def chunks():
-        for hdr, vals, lns in iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=chunk_rows,
-                                                  progress=lambda b: report(b, 1)):
-            c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
-            yield MeasuredPoses.from_vectors(c["pose_id"], c["time_s"], c["q"], c["xyz"], c["rotvec"], c["context"],
-                                             kind=layout.kind, frame=options.frame, markers=c["markers"],
-                                             marker_positions=P_nom)
+        for hdr, vals, lns in iter_numeric_chunks(path, (), progress=lambda b: report(b, 1), **read):
+            yield _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom)[1]
         report(size, 1)
 
-    return layout, P_nom, chunks()
+    return CsvReading(layout, P_nom, past, chunks())
+
+
+def read_check_sample(path, robot, options: ImportOptions | None = None, *, rows: int = 2000) -> tuple:
+    """The first ``rows`` rows of a measured-pose CSV (already validated by
+    :func:`iter_measured_chunks`) for the plausibility checks: (MeasuredPoses, orientation
+    columns (n, k) as written, angles in rad, or None)."""
+    options = options or ImportOptions()
+    hdr, vals, lns = next(iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=rows,
+                                              delimiter=options.delimiter, rename=options.columns))
+    layout = csv_layout(path, hdr, robot.n_joints, options.rotation)
+    P_nom = _marker_positions(path, layout, robot, options)
+    c, poses = _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom)
+    if layout.kind != "pose":
+        return poses, None
+    a_scale = np.pi / 180.0 if options.angle_unit == "deg" else 1.0
+    return poses, orientation_values(layout, {h: vals[:, j] for j, h in enumerate(hdr)}, a_scale)
 
 
 def _chain_first(first, rest):
@@ -397,8 +683,7 @@ def read_measured_csv(path, robot=None, options: ImportOptions | None = None) ->
     With ``robot`` (a RobotModel), the joint count and limits are checked, and joint values
     converted by robot.yaml's controller convention.
     """
-    _, _, chunks = iter_measured_chunks(path, robot, options)
-    return concat_poses(chunks)
+    return concat_poses(iter_measured_chunks(path, robot, options).chunks)
 
 
 def write_measured_csv(path, poses: MeasuredPoses, robot=None) -> None:

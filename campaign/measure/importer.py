@@ -2,23 +2,43 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from campaign.errors import ConfigError, DataError
+from campaign.errors import ConfigError, DataError, Implausible
 from campaign.paths import DEFAULT_ROBOT
 from campaign.run import RunFolder, load_robot, same_robot
 
 
+@dataclass(frozen=True)
+class ImportResult:
+    """What `import` stored: the pose count, the plausibility warnings (also stored in the log's
+    ``source`` meta, where `calibrate` finds them) and the joint readings accepted past the
+    URDF's limits (a sentence, or None)."""
+
+    n_poses: int
+    warnings: tuple = ()
+    past_limits: str | None = None
+    robot: str = ""
+
+    def __int__(self):
+        return self.n_poses
+
+
 def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str | None = None,
-               base_frame: str | None = None, options=None, markers_file=None, progress=None) -> int:
-    """Import ``csv_path`` into ``run_dir``; returns the number of poses.
+               base_frame: str | None = None, options=None, markers_file=None, progress=None,
+               strict: bool = False) -> ImportResult:
+    """Import ``csv_path`` into ``run_dir``; returns an :class:`ImportResult`.
 
     robot: name, URDF or robot.yaml (None: the robot the run records, else the default).
     A run that records another robot is refused; a folder without campaign.yaml gets one
     recording the robot. The CSV is validated whole (streaming, bounded memory) before the
     folder is touched, then streamed into the log. options: campaign.measure.csvio.ImportOptions
     (units, frame); markers_file: YAML with the raw reflectors' nominal positions.
-    progress: callable receiving the fraction done (0..1).
+    progress: callable receiving the fraction done (0..1). The data are checked against the
+    nominal model (campaign.measure.plausibility.check_data); strict: any warning refuses the
+    import (:class:`campaign.errors.Implausible`, the warnings in ``.warnings``), nothing written.
+    robot.yaml's ``columns:`` maps the file's column names when ``options.columns`` is empty.
     """
     from dataclasses import replace
 
@@ -46,15 +66,75 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
     options = options or ImportOptions()
     if markers_file is not None:
         options = replace(options, markers=read_markers_file(markers_file))
-    _, _, chunks = iter_measured_chunks(csv_path, model, options, progress=progress)
+    if not options.columns:
+        options = replace(options, columns=robot_yaml_columns(model))
+    reading = iter_measured_chunks(csv_path, model, options, progress=progress)
+    warnings = import_warnings(csv_path, model, options)
+    if strict and warnings:
+        raise Implausible(f"{csv_path}: {len(warnings)} plausibility warning(s) with --strict "
+                          f"({', '.join(w.code for w in warnings)}): nothing imported", warnings)
+    past = None if reading.past_limits is None else reading.past_limits.text(model.name)
     with run.lock("import"):
-        n = write_imported(chunks, run.path, source={"kind": "import", "csv": str(Path(csv_path).resolve()),
-                                                     "angle_unit": options.angle_unit,
-                                                     "length_unit": options.length_unit},
+        n = write_imported(reading.chunks, run.path,
+                           source={"kind": "import", "csv": str(Path(csv_path).resolve()),
+                                   "angle_unit": options.angle_unit, "length_unit": options.length_unit,
+                                   "rotation": options.rotation, "limit_slack_rad": options.limit_slack_rad,
+                                   "limit_slack_m": options.limit_slack_m, "past_limits": past,
+                                   "warnings": [w.as_json() for w in warnings]},
                            robot=model)
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
-    return n
+    return ImportResult(n, tuple(warnings), past, model.name)
+
+
+def import_warnings(csv_path, robot, options) -> list:
+    """The plausibility warnings of a validated CSV (its first rows; see
+    campaign.measure.plausibility.check_data), orientation readings tested for 6-D data."""
+    from campaign.measure.csvio import ROTATIONS, read_check_sample, rotation_readings_table
+    from campaign.measure.plausibility import check_data, measured_point
+
+    sample, orient = read_check_sample(csv_path, robot, options)
+    point = measured_point(robot, sample.kind)
+    checked = robot if point is None else robot.with_tool_point(point)
+    orientation = None
+    if orient is not None:
+        scales = (1.0, 3.141592653589793 / 180) if options.angle_unit == "rad" else (1.0,)
+        orientation = (orient, ROTATIONS[options.rotation][0], options.rotation, rotation_readings_table(), scales)
+    return check_data(checked, sample, orientation=orientation)
+
+
+def robot_yaml_columns(robot) -> dict:
+    """robot.yaml's ``columns: {name used: column in the file, ...}`` as {column in the file: name used}."""
+    from campaign.fileio import read_yaml_mapping
+    from campaign.measure.csvio import parse_columns
+
+    if robot.meta_path is None:
+        return {}
+    cols = read_yaml_mapping(robot.meta_path, ConfigError).get("columns")
+    if cols is None:
+        return {}
+    if not isinstance(cols, dict):
+        raise ConfigError(f"{robot.meta_path}: field 'columns' must map names to the file's columns "
+                          "({x: X_mm, q1: J1, ...})")
+    return parse_columns(cols)
+
+
+def recorded_source(run_dir) -> dict:
+    """The log's ``source`` meta (what `import` recorded: units, reading, limit slack, warnings), {} if none."""
+    src = RunFolder(run_dir).meta("source", {}) or {}
+    return src if isinstance(src, dict) else {}
+
+
+def joint_slack(run_dir, robot):
+    """Per joint, how far past the URDF limits the run's readings were accepted (N,), rad or m:
+    JOINT_LIMIT_SLACK plus the ``--limit-slack`` the import recorded."""
+    import numpy as np
+
+    from campaign.tolerances import JOINT_LIMIT_SLACK
+
+    src = recorded_source(run_dir)
+    return JOINT_LIMIT_SLACK + np.where(robot.prismatic, float(src.get("limit_slack_m") or 0.0),
+                                        float(src.get("limit_slack_rad") or 0.0))
 
 
 def _frames(tool_frame, base_frame) -> str:

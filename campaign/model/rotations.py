@@ -4,6 +4,8 @@ Conventions (see README, "Conventions"):
 
 * ``cardan_xyz(a, b, c) = Rx(a) @ Ry(b) @ Rz(c)``: the paper's R(alpha, beta, gamma).
 * URDF ``rpy = (r, p, y)`` means ``Rz(y) @ Ry(p) @ Rx(r)`` (fixed axes x, then y, then z).
+* KUKA's ``A, B, C`` mean ``Rz(A) @ Ry(B) @ Rx(C)``: URDF's rpy with roll C, pitch B, yaw A.
+* Quaternions ``(w, x, y, z)``, scalar first.
 * Orientation errors are rotation vectors (axis * angle, rad).
 
 Every function accepts arrays with arbitrary leading shape; angles in rad.
@@ -48,6 +50,22 @@ def cardan_xyz(a, b, c):
 def urdf_rpy(r, p, y):
     """URDF's fixed-axis roll-pitch-yaw: ``Rz(y) Ry(p) Rx(r)``."""
     return rot_z(y) @ rot_y(p) @ rot_x(r)
+
+
+def kuka_abc(a, b, c):
+    """KUKA's A, B, C: ``Rz(a) Ry(b) Rx(c)`` (= ``urdf_rpy(c, b, a)``)."""
+    return rot_z(a) @ rot_y(b) @ rot_x(c)
+
+
+def quaternion_to_matrix(q_wxyz):
+    """Unit quaternions ``(..., 4)`` (w, x, y, z; normalised here) to matrices ``(..., 3, 3)``."""
+    q = np.asarray(q_wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                    axis=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def cardan_xyz_from_matrix(R):

@@ -1,0 +1,388 @@
+"""Plausibility: measured data and an identified model checked against physics, said out loud.
+
+A metrology tool's worst failure is a confident wrong answer: data in metres read as mm fit a
+robot shrunk a thousandfold to 0.000 mm; joints read in another controller's convention give a
+95 mm "calibration". Each check here compares what was measured or identified with what a real
+robot and a real laser tracker can give, and when they disagree returns a :class:`Implausible` that
+says what is implausible, the likely cause and the fix (docs/csv_import.md, "Plausibility").
+
+Checks on the data (after `import`, and again in `calibrate`), :func:`check_data`:
+
+* ``workspace_scale`` — the measured positions span a workspace of another size than the
+  nominal model's (a length unit: 1000× is metres read as mm or mm read as metres);
+* ``reflector_layout`` — raw reflectors as far apart as their nominal positions say (a
+  ``--markers`` file in mm, reflectors in another order);
+* ``nominal_residual`` — the nominal model and the measurements, registered rigidly, disagree
+  by more than any real robot's geometric errors; ``joint_convention`` then names the usual
+  controller convention (a missing J2/J3 coupling, a sign flip, a 90°/180° offset) whose
+  registration fits, re-fitted here for each candidate;
+* ``base_frame`` — robot-frame data that fit the nominal model only after a rigid move;
+* ``rotation_reading`` / ``orientation_residual`` — the orientation columns read in another
+  convention (roll-pitch-yaw, KUKA's A, B, C) agree with the nominal orientations.
+
+Checks on a fit (after `calibrate`), :func:`check_fit`: ``large_corrections`` (identified
+translations or rotations large against the robot), ``noise_below_floor`` (the fit leaves less
+than the tracker's noise: it fits what the measurements cannot carry), ``model_residual``
+(the calibrated model still misses by more than a calibrated robot can).
+
+Thresholds are in campaign/tolerances.py with their reasons. This module reads arrays only: it
+sits below `identify` (which calls it) and beside the CSV reader (which asks it which rotation
+reading fits).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from campaign.measure.reflectors import kabsch, register_points, transform_points
+from campaign.model.kinematics import forward
+from campaign.model.rotations import matrix_to_rotvec
+from campaign.tolerances import (CORRECTION_MAX_FRACTION_OF_SIZE, CORRECTION_MAX_RAD, CONVENTION_GAIN_MIN,
+                                 FITTED_NOISE_BELOW_FLOOR_FACTOR, MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE,
+                                 MODEL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE, NOMINAL_RESIDUAL_MAX_M,
+                                 ORIENTATION_SPREAD_MAX_RAD, PLAUSIBILITY_MAX_POSES, REFLECTOR_DISTANCE_TOL_M,
+                                 TRACKER_NOISE_MIN_M, WORKSPACE_SCALE_MAX)
+
+
+@dataclass(frozen=True)
+class Implausible:
+    """One implausibility: a stable ``code`` and a one-line ``message`` (what, likely cause, fix)."""
+
+    code: str
+    message: str
+
+    def as_json(self) -> dict:
+        return {"code": self.code, "message": self.message}
+
+    @classmethod
+    def from_json(cls, d) -> "Implausible":
+        return cls(str(d["code"]), str(d["message"]))
+
+
+def merge(*lists) -> list:
+    """Warnings of several checks in order, the first of each code kept."""
+    seen, out = set(), []
+    for ws in lists:
+        for w in ws:
+            if w.code not in seen:
+                seen.add(w.code)
+                out.append(w)
+    return out
+
+
+def robot_size_m(robot) -> float:
+    """The chain stretched out: the sum of the nominal transforms' translations, m."""
+    return float(np.linalg.norm(robot.t_nominal, axis=1).sum())
+
+
+def measured_point(robot, kind: str):
+    """Where one-reflector (``kind`` "point") data were measured in the tool frame, (3,) m:
+    robot.yaml's single reflector, else the tool frame's origin (None for other kinds)."""
+    if kind != "point":
+        return None
+    return np.asarray(robot.reflector_positions_in_E[0]) if len(robot.reflectors) == 1 else np.zeros(3)
+
+
+def _sample(n: int) -> np.ndarray:
+    """At most PLAUSIBILITY_MAX_POSES row indices spread evenly over n rows."""
+    if n <= PLAUSIBILITY_MAX_POSES:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, PLAUSIBILITY_MAX_POSES).astype(int))
+
+
+def _points(robot, q, poses_kind, marker_positions, p_e=None):
+    """Nominal points (n, k, 3) where the data were measured: the tool point, or each reflector."""
+    T = forward(robot, q, p_e)
+    if poses_kind == "markers" and marker_positions is not None:
+        return transform_points(T, np.broadcast_to(marker_positions, (len(q),) + np.shape(marker_positions)))
+    return T[:, None, :3, 3]
+
+
+def _registered_rms(P_nom, P_meas) -> tuple:
+    """(rms (m) of the measured points about the rigidly registered nominal ones, registration T)."""
+    A, B = P_nom.reshape(-1, 3), P_meas.reshape(-1, 3)
+    ok = np.isfinite(A).all(axis=1) & np.isfinite(B).all(axis=1)
+    if ok.sum() < 3:
+        return np.nan, np.eye(4)
+    T = register_points(A[ok], B[ok])
+    fitted = A[ok] @ T[:3, :3].T + T[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((fitted - B[ok]) ** 2, axis=1)))), T
+
+
+def _spread_m(P) -> float:
+    """rms distance of points (m, 3) from their centroid, m."""
+    P = P[np.isfinite(P).all(axis=1)]
+    return float(np.sqrt(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1)))) if len(P) > 1 else np.nan
+
+
+def _mm(v) -> str:
+    v = float(v) * 1e3
+    return f"{v:,.0f} mm" if abs(v) >= 100 else f"{v:.3g} mm"
+
+
+def _unit_cause(scale: float) -> str:
+    """The length unit a scale factor (measured / nominal) points to."""
+    for factor, cause in ((1e-3, "data in metres imported with --length-unit mm"),
+                          (1e3, "data in mm imported as metres (--length-unit mm)"),
+                          (1 / 25.4, "data in inches?"), (25.4, "data in inches?"),
+                          (1e-2, "data in cm?"), (1e2, "data in cm?")):
+        if abs(np.log(scale / factor)) < np.log(1.3):
+            return cause
+    return "another robot, or a tool frame far from the measured one"
+
+
+def orientation_spread_rad(R_nom, R_meas) -> float:
+    """Mean angle (rad) by which measured orientations (n, 3, 3) differ from nominal ones beyond
+    one constant rotation on the tool side (R_meas ≈ R_nom X) or on the base side (R_meas ≈ X R_nom,
+    a tracker's frame): the smaller of the two."""
+    ok = np.isfinite(R_nom).all(axis=(1, 2)) & np.isfinite(R_meas).all(axis=(1, 2))
+    if ok.sum() < 2:
+        return np.nan
+    A, B = R_nom[ok], R_meas[ok]
+    best = np.inf
+    for D in (np.swapaxes(A, 1, 2) @ B, B @ np.swapaxes(A, 1, 2)):
+        U, _, Vt = np.linalg.svd(D.mean(axis=0))
+        X = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        best = min(best, float(np.mean(np.linalg.norm(matrix_to_rotvec(X.T @ D), axis=1))))
+    return best
+
+
+def rotation_readings(robot, q, values, columns, readings, angle_scales=(1.0,)) -> list:
+    """Which reading of orientation columns agrees with the nominal orientations.
+
+    values: (n, k) the columns as written; readings: {name: (columns, values (n, k) -> R (n, 3, 3))};
+    angle_scales: factors to try on angle columns (rad: 1, degrees read as rad: pi/180).
+    Returns [(spread_rad, name, scale), ...] best first (:func:`orientation_spread_rad`)."""
+    idx = _sample(len(q))
+    R_nom = forward(robot, q[idx])[:, :3, :3]
+    out = []
+    for name, (cols, to_matrix, angles) in readings.items():
+        if tuple(cols) != tuple(columns):
+            continue
+        for s in (angle_scales if angles else (1.0,)):
+            with np.errstate(all="ignore"):
+                R = to_matrix(values[idx] * s)
+            out.append((orientation_spread_rad(R_nom, R), name, s))
+    return sorted(out, key=lambda t: (np.nan_to_num(t[0], nan=np.inf), t[1] != "rotvec"))
+
+
+# -- the joint conventions a controller may use ------------------------------------------------
+def convention_candidates(robot) -> list:
+    """The usual controller conventions as maps of the model's q: [(label, M (N, N), b (N,))],
+    the model then sees q' = M q + b. Per joint a sign flip and offsets of ±90° and 180°
+    (revolute joints); per pair of neighbours a coupling q_j ∓ q_(j-1) (FANUC's J3 measured
+    from the horizontal: q3 of the model = q3 of the controller − q2)."""
+    N = robot.n_joints
+    out = []
+    for j in range(N):
+        M = np.eye(N)
+        M[j, j] = -1
+        out.append((f"joint {j + 1}'s sign is flipped (q{j + 1} -> -q{j + 1})", M, np.zeros(N)))
+        if robot.prismatic[j]:
+            continue
+        for deg in (90, -90, 180):
+            b = np.zeros(N)
+            b[j] = np.deg2rad(deg)
+            out.append((f"joint {j + 1} is offset by {deg:+d} deg (q{j + 1} {'+' if deg > 0 else '-'} {abs(deg)} deg)",
+                        np.eye(N), b))
+    for j in range(1, N):
+        if robot.prismatic[j] or robot.prismatic[j - 1]:
+            continue
+        for s, sign in ((-1, "-"), (1, "+")):
+            M = np.eye(N)
+            M[j, j - 1] = s
+            out.append((f"joint {j + 1} looks coupled to joint {j} (q{j + 1} {sign} q{j})", M, np.zeros(N)))
+    return out
+
+
+def controller_yaml(robot, M, b) -> str:
+    """robot.yaml's ``controller:`` block for the convention ``q_model = M (A q_ctrl + b_c) + b``
+    (A, b_c the robot's current convention)."""
+    N = robot.n_joints
+    A = np.eye(N) if robot.controller_matrix is None else np.asarray(robot.controller_matrix)
+    b_c = np.zeros(N) if robot.controller_offset is None else np.asarray(robot.controller_offset)
+    A2, b2 = M @ A, M @ b_c + b
+
+    def num(v):
+        return str(int(v)) if float(v).is_integer() else repr(float(v))
+
+    text = "controller: {coupling: [" + ", ".join("[" + ", ".join(num(v) for v in row) + "]" for row in A2) + "]"
+    if np.any(b2 != 0):
+        text += ", offset: [" + ", ".join(num(v) for v in b2) + "]"
+    return text + "}"
+
+
+def test_conventions(robot, q, P_meas, kind, marker_positions) -> list:
+    """Registered rms (m) of the nominal model under each candidate convention:
+    [(rms, label, M, b), ...] best first, the data's own convention (label None) among them."""
+    N = robot.n_joints
+    out = [(_registered_rms(_points(robot, q, kind, marker_positions), P_meas)[0], None, np.eye(N), np.zeros(N))]
+    for label, M, b in convention_candidates(robot):
+        rms = _registered_rms(_points(robot, q @ M.T + b, kind, marker_positions), P_meas)[0]
+        out.append((rms, label, M, b))
+    return sorted(out, key=lambda t: np.nan_to_num(t[0], nan=np.inf))
+
+
+# -- the checks ------------------------------------------------------------------------------
+def _measured_points(poses):
+    """(n, k, 3) measured points: the reflectors (raw), else the tool point."""
+    if poses.kind == "markers" and poses.markers is not None:
+        return poses.markers
+    return poses.xyz[:, None, :]
+
+
+def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None) -> list:
+    """Warnings on measured data (MeasuredPoses) against the nominal ``robot`` (whose tool frame is
+    the measured point for one-reflector data). noise_mm: the measurement noise floor (E‖e‖, mm)
+    when known, to say how far the disagreement is from it. orientation: optional
+    ``(values (n, k), columns, reading, readings, angle_scales)`` of the orientation columns as
+    written, to test other rotation readings (:func:`rotation_readings`). Returns a list of
+    :class:`Implausible`."""
+    idx = _sample(len(poses))
+    q = poses.q[idx]
+    kind = poses.kind
+    P_meas = _measured_points(poses)[idx]
+    P_nom = _points(robot, q, kind, poses.marker_positions)
+    size = robot_size_m(robot)
+    out = []
+    layout_bad = False
+    if kind == "markers" and poses.markers is not None and poses.markers.shape[1] >= 2:
+        w = _reflector_layout(poses.markers[idx], poses.marker_positions)
+        if w is not None:
+            out.append(w)
+            layout_bad = True
+    scale = _spread_m(P_meas.reshape(-1, 3)) / max(_spread_m(P_nom.reshape(-1, 3)), 1e-300)
+    if not layout_bad and np.isfinite(scale) and not 1 / WORKSPACE_SCALE_MAX <= scale <= WORKSPACE_SCALE_MAX:
+        out.append(Implausible("workspace_scale",
+                           f"the measured positions span {scale:.3g}× the nominal model's workspace "
+                           f"({_mm(_spread_m(P_meas.reshape(-1, 3)))} vs {_mm(_spread_m(P_nom.reshape(-1, 3)))} rms "
+                           f"about their centre): likely {_unit_cause(scale)}; check --length-unit (m or mm) "
+                           f"and the robot ({robot.name})"))
+    if out:
+        return out
+    limit = max(NOMINAL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
+    rms, _ = _registered_rms(P_nom, P_meas)
+    noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
+    if np.isfinite(rms) and rms > limit:
+        out.append(Implausible("nominal_residual",
+                           f"the nominal model and the measurements disagree by {_mm(rms)} rms after a rigid "
+                           f"registration{noise}, more than a real {robot.name}'s geometric errors "
+                           f"(≤ {_mm(limit)}): check the joint convention (coupling, signs, offsets: robot.yaml's "
+                           "controller), the length and angle units, the tool frame"))
+        ranked = test_conventions(robot, q, P_meas, kind, poses.marker_positions)
+        best = ranked[0]
+        if best[1] is not None and best[0] < limit and best[0] * CONVENTION_GAIN_MIN < rms:
+            out.append(Implausible("joint_convention",
+                               f"{best[1]}: registered rms {_mm(rms)} -> {_mm(best[0])} with that convention; "
+                               f"import with the controller's convention in robot.yaml: "
+                               f"{controller_yaml(robot, best[2], best[3])} (docs/robot_yaml.md)"))
+    elif poses.frame == "robot":
+        plain = float(np.sqrt(np.nanmean(np.sum((P_nom - P_meas) ** 2, axis=-1))))
+        if np.isfinite(plain) and plain > limit:
+            out.append(Implausible("base_frame",
+                               f"the measurements sit {_mm(plain)} rms from the nominal model in the robot's base "
+                               f"frame but {_mm(rms)} after one rigid move: the base frame set-up (T_LI) is off; "
+                               "import with --frame tracker to identify it"))
+    if kind == "pose" and orientation is not None:
+        out += _orientation(robot, poses, idx, orientation)
+    return out
+
+
+def _reflector_layout(markers, P_nominal):
+    """``reflector_layout`` when the measured reflectors' distances do not match the nominal ones."""
+    k = markers.shape[1]
+    i, j = np.triu_indices(k, 1)
+    d_meas = np.linalg.norm(markers[:, i] - markers[:, j], axis=-1)
+    d_nom = np.linalg.norm(P_nominal[i] - P_nominal[j], axis=-1)
+    ok = np.isfinite(d_meas) & (d_nom > 0)
+    if not ok.any():
+        return None
+    ratio = float(np.median((d_meas / d_nom)[ok]))
+    diff = float(np.median(np.abs(d_meas - d_nom)[ok]))
+    meas, nom = float(np.median(d_meas[ok])), float(np.median(np.broadcast_to(d_nom, d_meas.shape)[ok]))
+    if not 1 / WORKSPACE_SCALE_MAX <= ratio <= WORKSPACE_SCALE_MAX:
+        cause = ("the markers file looks like mm (it must be in m)" if abs(np.log(ratio / 1e-3)) < np.log(1.3) else
+                 "the data look like mm imported as metres" if abs(np.log(ratio / 1e3)) < np.log(1.3) else
+                 "another tool, or the wrong file")
+        return Implausible("reflector_layout",
+                       f"the measured reflectors are {ratio:.3g}× as far apart as their nominal positions say "
+                       f"(median distance {_mm(meas)} vs {_mm(nom)}): {cause}; check --markers / robot.yaml's "
+                       "reflectors (tool frame, m) and --length-unit")
+    if diff > REFLECTOR_DISTANCE_TOL_M:
+        return Implausible("reflector_layout",
+                       f"the distances between the measured reflectors differ from the nominal ones by {_mm(diff)} "
+                       "(median): check the reflectors' order (m1..mk) and positions in --markers / robot.yaml")
+    return None
+
+
+def _orientation(robot, poses, idx, orientation) -> list:
+    values, columns, reading, readings, scales = orientation
+    ranked = rotation_readings(robot, poses.q, values, columns, readings, scales)
+    here = next((t for t in ranked if t[1] == reading and t[2] == 1.0), None)
+    if here is None or not np.isfinite(here[0]) or here[0] <= ORIENTATION_SPREAD_MAX_RAD:
+        return []
+    best = ranked[0]
+    cols = ",".join(columns)
+    if best[1] != reading or best[2] != 1.0:
+        if best[0] <= ORIENTATION_SPREAD_MAX_RAD and best[0] * CONVENTION_GAIN_MIN < here[0]:
+            unit = "" if best[2] == 1.0 else " (and in degrees: the columns, not the joints)"
+            return [Implausible("rotation_reading",
+                            f"columns {cols} read as {reading} disagree with the nominal orientations by "
+                            f"{here[0] * 1e3:.0f} mrad on average; read as {best[1]}{unit} they agree to "
+                            f"{best[0] * 1e3:.1f} mrad: import with --rotation {best[1]} (docs/csv_import.md)")]
+    return [Implausible("orientation_residual",
+                    f"the measured orientations disagree with the nominal ones by {here[0] * 1e3:.0f} mrad on average "
+                    f"beyond one constant rotation, and no reading of {cols} (--rotation rotvec|rpy|abc|quat) fits: "
+                    "check the orientation columns and the tool frame")]
+
+
+def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | None = None,
+              floor_sigma_m: float | None = None) -> list:
+    """Warnings on an identified model. params: p_e (6N + 12,) of the minimum-norm solution (m, rad);
+    noise_sigma_m: the fit's own position noise estimate (σ per coordinate, m); heldout_mean_m:
+    the current model's held-out mean position error, m; floor_sigma_m: the measurement noise
+    from repeats or stated (σ per coordinate, m), when known."""
+    out = []
+    size = robot_size_m(robot)
+    p = np.asarray(params, dtype=float)
+    units = np.asarray(robot.param_units)
+    names = robot.param_names
+    lin = units == "m"
+    if lin.any():
+        k = int(np.flatnonzero(lin)[np.argmax(np.abs(p[lin]))])
+        if abs(p[k]) > CORRECTION_MAX_FRACTION_OF_SIZE * size:
+            out.append(Implausible("large_corrections",
+                               f"the identified correction {names[k]} = {p[k] * 1e3:,.1f} mm is "
+                               f"{abs(p[k]) / size:.0%} of the robot's stretched length ({_mm(size)}): the fit "
+                               "reshapes the robot instead of correcting it; check the length unit, the joint "
+                               "convention and the tool frame"))
+    rot = units == "rad"
+    if rot.any() and not out:
+        k = int(np.flatnonzero(rot)[np.argmax(np.abs(p[rot]))])
+        if abs(p[k]) > CORRECTION_MAX_RAD:
+            out.append(Implausible("large_corrections",
+                               f"the identified correction {names[k]} = {np.rad2deg(p[k]):.1f} deg is larger than a "
+                               f"real robot's angular errors (≤ {np.rad2deg(CORRECTION_MAX_RAD):.1f} deg): check the "
+                               "joint convention (signs, offsets) and the tool frame"))
+    if floor_sigma_m is not None and floor_sigma_m > 0:
+        if noise_sigma_m * FITTED_NOISE_BELOW_FLOOR_FACTOR < floor_sigma_m:
+            out.append(Implausible("noise_below_floor",
+                               f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, "
+                               f"{floor_sigma_m / max(noise_sigma_m, 1e-300):,.0f}× below the measurement noise "
+                               f"({floor_sigma_m * 1e6:.3g} µm from repeats or campaign.yaml): the model fits more than "
+                               "the measurements carry; check the length unit (metres imported as mm)"))
+    elif floor_sigma_m is None and 0 < noise_sigma_m < TRACKER_NOISE_MIN_M:
+        out.append(Implausible("noise_below_floor",
+                           f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, below any laser tracker's "
+                           f"(≥ {TRACKER_NOISE_MIN_M * 1e6:.3g} µm): the data are scaled down or are not measurements; "
+                           "check the length unit (metres imported as mm)"))
+    if heldout_mean_m is not None:
+        limit = max(MODEL_RESIDUAL_MAX_M, MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
+        if heldout_mean_m > limit:
+            out.append(Implausible("model_residual",
+                               f"the calibrated model still misses the held-out poses by {_mm(heldout_mean_m)} on "
+                               f"average, more than a calibrated robot can (≤ {_mm(limit)}): the model cannot "
+                               "describe these data; check the joint convention, the units and the tool frame"))
+    return out
