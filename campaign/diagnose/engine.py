@@ -124,6 +124,8 @@ class Diagnosis:
     skipped: tuple = ()
     #: held-out error a correct model reaches with these folds, over the pure noise (≥ 1)
     expected_model_to_noise: float = 1.0
+    #: the training poses' ids of each held-out fold, in the order of the run's poses
+    fold_pose_ids: tuple = ()
 
     @property
     def model_to_noise(self) -> float | None:
@@ -161,6 +163,7 @@ class Diagnosis:
             "config_line": config_line(self.current_effects, self._verdict_spec()),
             "folds": self.folds,
             "fold_rule": None if self.fold_rule is None else self.fold_rule.as_json(),
+            "fold_pose_ids": [list(ids) for ids in self.fold_pose_ids],
             "skipped_candidates": [{"effect": e, "reason": r} for e, r in self.skipped],
             "n_train_poses": self.n_train,
         }
@@ -268,6 +271,11 @@ def pose_folds(pose_id, k):
     u = train_test_split(ids, seed=7919, test_fraction=0.5)  # decorrelated bits
     rank = np.argsort(np.argsort(ids * 2654435761 % 4294967291 + u))
     return (rank % k)[inverse.reshape(-1)]
+
+
+def fold_pose_ids(pose_id, fold, k) -> tuple:
+    """The pose ids (n,) of each of the ``k`` folds (``fold`` (n,) its index per pose), in order."""
+    return tuple(tuple(int(i) for i in pose_id[fold == j]) for j in range(k))
 
 
 def regressor_inputs(q, context) -> tuple:
@@ -487,4 +495,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
-                     residual_in_joint1_frame(robot, poses.q[tr], dz_before), rule, tuple(skipped), expected)
+                     residual_in_joint1_frame(robot, poses.q[tr], dz_before), rule, tuple(skipped), expected,
+                     fold_pose_ids(poses.pose_id[tr], fold, folds))

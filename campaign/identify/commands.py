@@ -96,7 +96,8 @@ def register(sub):
     p = sub.add_parser("predict", help="calibrated pose of E in F_I for given joint coordinates")
     p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
     p.add_argument("--csv", required=True, metavar="IN",
-                   help="CSV with q1..qN (rad, N the robot's joints), optional pose_id and context columns (time_s, temperature_c, ...)")
+                   help="CSV with q1..qN (rad or --angle-unit, N the robot's joints), optional pose_id and context "
+                        "columns (time_s, temperature_c, ...)")
     p.add_argument("--out", metavar="OUT", default=None,
                    help="CSV to write: pose_id,q1..qN,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
@@ -293,8 +294,8 @@ def _predict(args):
     from campaign.identify.use import CalibratedRobot, predict_rows, read_joint_csv, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
-    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys)
-    header, rows = predict_rows(calibrated, pose_id, q, context)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit)
+    header, rows = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} calibrated poses ({calibrated.stage}) to {args.out}")
@@ -305,8 +306,8 @@ def _compensate(args):
     from campaign.identify.use import CalibratedRobot, compensate_rows, read_joint_csv, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
-    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys)
-    header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit)
+    header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} corrected joint commands ({calibrated.stage}) to {args.out}")

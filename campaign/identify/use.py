@@ -188,14 +188,23 @@ def _rows(context, idx):
     return {k: np.asarray(v)[idx] for k, v in (context or {}).items()}
 
 
-def read_joint_csv(path, robot: RobotModel, context_keys=()) -> tuple:
+def joint_scale(robot: RobotModel, angle_unit: str = "rad") -> np.ndarray:
+    """(N,) factors from the CSV's joint unit to SI: pi/180 for revolute joints in degrees, else 1."""
+    if angle_unit not in ("rad", "deg"):
+        raise ConfigError(f"--angle-unit must be rad or deg, not {angle_unit!r}")
+    return np.where(robot.prismatic | (angle_unit == "rad"), 1.0, np.pi / 180.0)
+
+
+def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad") -> tuple:
     """Joint coordinates (and the context columns an effect needs) from a CSV.
 
-    Header: ``q1..qN`` (rad, m for prismatic joints; in the controller's convention, converted
-    by robot.yaml's ``controller``), optionally ``pose_id`` and any context columns
-    (``time_s``, ``temperature_c``, ...). Returns (pose_id (n,), q (n, N) model, context dict).
+    Header: ``q1..qN`` (rad, or deg with ``angle_unit``; m for prismatic joints; in the
+    controller's convention, converted by robot.yaml's ``controller``), optionally ``pose_id``
+    and any context columns (``time_s``, ``temperature_c``, ...). Returns (pose_id (n,),
+    q (n, N) model, rad and m, context dict).
     """
     cols = joint_columns(robot.n_joints)
+    scale = joint_scale(robot, angle_unit)
     header, col, lines = read_numeric_table(path, cols)
     missing = [k for k in context_keys if k not in col]
     if missing:
@@ -204,8 +213,9 @@ def read_joint_csv(path, robot: RobotModel, context_keys=()) -> tuple:
     extra = [h for h in header if h.startswith("q") and h[1:].isdigit() and h not in cols]
     if extra:
         raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
-    q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1))
-    robot.check_joints(q, field=f"{path}: q", slack=JOINT_LIMIT_SLACK)
+    q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1) * scale)
+    robot.check_joints(q, field=f"{path}: q" + (" (read in deg)" if angle_unit == "deg" else ""),
+                       slack=JOINT_LIMIT_SLACK)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
     context = {k: col[k] for k in header if k not in cols and k != "pose_id"}
     return pose_id, q, context
@@ -227,21 +237,21 @@ def write_table(path, header, rows) -> None:
         w.writerows(rows)
 
 
-def predict_rows(calibrated: CalibratedRobot, pose_id, q, context):
-    """Rows ``pose_id,q1..qN,x,y,z,rx,ry,rz`` (m, rad) of the calibrated poses."""
+def predict_rows(calibrated: CalibratedRobot, pose_id, q, context, angle_unit: str = "rad"):
+    """Rows ``pose_id,q1..qN,x,y,z,rx,ry,rz`` (m, rad; q in ``angle_unit``) of the calibrated poses."""
     T = calibrated.predict(q, context)
     rv = matrix_to_rotvec(T[:, :3, :3])
     header = ["pose_id", *joint_columns(calibrated.robot.n_joints), *POSE_COLUMNS]
-    q_out = calibrated.robot.to_controller_q(q)
+    q_out = calibrated.robot.to_controller_q(q) / joint_scale(calibrated.robot, angle_unit)
     rows = [[int(i), *(repr(float(v)) for v in qq), *(repr(float(v)) for v in T[k, :3, 3]),
              *(repr(float(v)) for v in rv[k])] for k, (i, qq) in enumerate(zip(pose_id, q_out))]
     return header, rows
 
 
-def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context):
+def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, angle_unit: str = "rad"):
     """Rows of corrected joint commands for the poses the nominal model gives at q_nominal.
 
-    Columns: ``pose_id, q1..qN`` (corrected, rad), ``dq1..dqN`` (correction, rad),
+    Columns: ``pose_id, q1..qN`` (corrected, rad or ``angle_unit``), ``dq1..dqN`` (correction, same unit),
     ``residual_position_mm, residual_orientation_mrad`` (model at the corrected q vs target),
     ``converged``, ``within_limits`` (0/1). Returns (header, rows, converged, within_limits).
     """
@@ -249,7 +259,8 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context):
     T_target = forward(robot, q_nominal)
     q, r, ok = calibrated.compensate(T_target, q_nominal, context)
     inside = np.all((q >= robot.q_lower) & (q <= robot.q_upper), axis=1)
-    q_ctrl, q_nominal_ctrl = robot.to_controller_q(q), robot.to_controller_q(q_nominal)
+    scale = joint_scale(robot, angle_unit)
+    q_ctrl, q_nominal_ctrl = robot.to_controller_q(q) / scale, robot.to_controller_q(q_nominal) / scale
     cols = joint_columns(robot.n_joints)
     header = ["pose_id", *cols, *(f"d{c}" for c in cols),
               "residual_position_mm", "residual_orientation_mrad", "converged", "within_limits"]

@@ -285,7 +285,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
                                f"the measurements sit {_mm(plain)} rms from the nominal model in the robot's base "
                                f"frame but {_mm(rms)} after one rigid move: the base frame set-up (T_LI) is off; "
                                "import with --frame tracker to identify it"))
-    if kind == "pose" and orientation is not None:
+    if kind == "pose" and orientation is not None and not out:  # orientations mean something once positions fit
         out += _orientation(robot, poses, idx, orientation)
     return out
 
