@@ -214,8 +214,8 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     if extra:
         raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
     q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1) * scale)
-    robot.check_joints(q, field=f"{path}: q" + (" (read in deg)" if angle_unit == "deg" else ""),
-                       slack=JOINT_LIMIT_SLACK)
+    robot.check_joints(q, field=f"{path}" + (" (read in deg)" if angle_unit == "deg" else ""),
+                       slack=JOINT_LIMIT_SLACK, lines=lines)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
     context = {k: col[k] for k in header if k not in cols and k != "pose_id"}
     return pose_id, q, context

@@ -262,7 +262,7 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
     run_dir = Path(run_dir)
     say = log or (lambda msg: None)
     ids, Q, vias = plan if plan is not None else read_plan(run_dir, poses_csv)
-    robot.check_joints(Q, field=str(poses_csv or f"{run_dir}/plan/poses.csv"))
+    robot.check_joints(Q, field=str(poses_csv or f"{run_dir}/plan/poses.csv"), pose_ids=ids)
     stop = {"flag": None}
     old_handler = None
 

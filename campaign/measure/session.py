@@ -47,7 +47,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     if not sim and cell is None and (controller is None or tracker is None):
         raise ConfigError("give the controller and the tracker (HOST:PORT each), or use the simulated cell")
     plan = read_plan(run.path, poses_csv)
-    robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv))
+    robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv), pose_ids=plan[0])
     measured_robot(robot)  # refused before the run is touched
     if sim:  # what the simulated cell would refuse, refused before it is started
         from campaign.effects.base import make_effect

@@ -358,11 +358,12 @@ class RobotModel:
             return q
         return np.linalg.solve(self.controller_matrix, (q - self.controller_offset).T).T
 
-    def check_joints(self, q, *, field: str = "q", slack: float = 0.0, pose_ids=None) -> np.ndarray:
+    def check_joints(self, q, *, field: str = "q", slack=0.0, pose_ids=None, lines=None) -> np.ndarray:
         """Validate joint vectors; return them as float64 (n, N).
 
-        Raises :class:`campaign.errors.DataError` naming the robot, the row, the joint, the
-        value and the limit (continuous joints have none).
+        Raises :class:`campaign.errors.DataError` naming the robot, the row (its ``pose_ids``
+        entry, its file line from ``lines``, else its 1-based row number), the joint, the value
+        and the limit (continuous joints have none). slack: scalar or (N,), rad or m.
         """
         from campaign.errors import DataError
 
@@ -375,7 +376,7 @@ class RobotModel:
         bad = ~np.isfinite(q)
         if bad.any():
             i, j = np.argwhere(bad)[0]
-            raise DataError(f"{field}: row {i}, q{j + 1} is {q[i, j]} (not a finite number)")
+            raise DataError(f"{field}: {_row_label(i, pose_ids, lines)}, q{j + 1} is {q[i, j]} (not a finite number)")
         limited = np.array([t != "continuous" for t in self.joint_types], dtype=bool)
         lo = (q < self.q_lower - slack) & limited
         hi = (q > self.q_upper + slack) & limited
@@ -383,7 +384,7 @@ class RobotModel:
             i, j = np.argwhere(lo | hi)[0]
             lim = self.q_lower[j] if lo[i, j] else self.q_upper[j]
             u = self.joint_units[j]
-            where = f"pose_id {int(pose_ids[i])}" if pose_ids is not None else f"row {i}"
+            where = _row_label(i, pose_ids, lines)
             raise DataError(f"{field}: {where}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
                             f"{lim:.6g} {u} of {self.name}")
         return q
@@ -397,6 +398,15 @@ class RobotModel:
             kind = self.joint_types[k - 1] if 1 <= k <= self.n_joints else "fixed"
             lines.append(f"  T_{tname:<6} {kind:<10} {', '.join(self.transform_joints[k]) or '(identity)'}")
         return "\n".join(lines)
+
+
+def _row_label(i: int, pose_ids=None, lines=None) -> str:
+    """``pose_id 17``, ``line 5`` (a file's, 1-based) or ``row 3`` (1-based) for row index i."""
+    if pose_ids is not None:
+        return f"pose_id {int(pose_ids[i])}"
+    if lines is not None:
+        return f"line {int(lines[i])}"
+    return f"row {i + 1}"
 
 
 # -- resolution of the spec ----------------------------------------------------------------
