@@ -64,7 +64,7 @@ class AuthError(ProtocolError):
 
 class Implausible(CampaignError):
     """With ``--strict``: the data or the result fail a plausibility check; nothing was written.
-    ``warnings``: the plausibility warnings (campaign.measure.plausibility.Implausible)."""
+    ``warnings``: the plausibility warnings (campaign.measure.plausibility.Finding)."""
 
     def __init__(self, message: str, warnings=()):
         super().__init__(message)

@@ -80,7 +80,7 @@ class CalibrationResult:
     folds: dict | None = None
     #: the written report.html, when one was written
     report_path: Path | None = None
-    #: plausibility warnings (campaign.measure.plausibility.Implausible), metrics.json's ``warnings``
+    #: plausibility warnings (campaign.measure.plausibility.Finding), metrics.json's ``warnings``
     warnings: tuple = ()
     #: ids of the held-out test poses, in the order of the run's poses (metrics.json's ``test_pose_ids``)
     test_pose_ids: tuple = ()

@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 from campaign.measure.importer import recorded_source
-from campaign.measure.plausibility import Implausible, check_data, check_fit, merge
+from campaign.measure.plausibility import Finding, check_data, check_fit, merge
 
 
 def calibration_warnings(run_dir, robot, poses, model, heldout_mean_mm, noise_floor: dict | None) -> list:
-    """Warnings (list of Implausible) for a calibration of ``poses`` (as the model sees them) by
+    """Warnings (list of Finding) for a calibration of ``poses`` (as the model sees them) by
     ``model`` (the fitted geometric CalibrationModel of ``robot``); heldout_mean_mm: the current
     physical model's held-out mean position error; noise_floor: NoiseFloor.as_json() or None."""
     floor_mm = sigma_m = None
@@ -23,7 +23,7 @@ def calibration_warnings(run_dir, robot, poses, model, heldout_mean_mm, noise_fl
         floor_mm = noise_floor["mean_position_mm"]
         sigma_m = float(np.mean(noise_floor["sigma_position_mm"])) * 1e-3
     data = check_data(robot, poses, noise_mm=floor_mm or None)
-    recorded = [Implausible.from_json(w) for w in recorded_source(run_dir).get("warnings") or []]
+    recorded = [Finding.from_json(w) for w in recorded_source(run_dir).get("warnings") or []]
     fit = check_fit(robot, model.params_min_norm_, noise_sigma_m=model.noise_sigma_["position_m"],
                     heldout_mean_m=None if heldout_mean_mm is None else heldout_mean_mm * 1e-3, floor_sigma_m=sigma_m)
     return merge(data, recorded, fit)

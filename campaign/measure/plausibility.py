@@ -3,7 +3,7 @@
 A metrology tool's worst failure is a confident wrong answer: data in metres read as mm fit a
 robot shrunk a thousandfold to 0.000 mm; joints read in another controller's convention give a
 95 mm "calibration". Each check here compares what was measured or identified with what a real
-robot and a real laser tracker can give, and when they disagree returns a :class:`Implausible` that
+robot and a real laser tracker can give, and when they disagree returns a :class:`Finding` that
 says what is implausible, the likely cause and the fix (docs/csv_import.md, "Plausibility").
 
 Checks on the data (after `import`, and again in `calibrate`), :func:`check_data`:
@@ -47,7 +47,7 @@ from campaign.tolerances import (CORRECTION_MAX_FRACTION_OF_SIZE, CORRECTION_MAX
 
 
 @dataclass(frozen=True)
-class Implausible:
+class Finding:
     """One implausibility: a stable ``code`` and a one-line ``message`` (what, likely cause, fix)."""
 
     code: str
@@ -57,7 +57,7 @@ class Implausible:
         return {"code": self.code, "message": self.message}
 
     @classmethod
-    def from_json(cls, d) -> "Implausible":
+    def from_json(cls, d) -> "Finding":
         return cls(str(d["code"]), str(d["message"]))
 
 
@@ -239,7 +239,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
     when known, to say how far the disagreement is from it. orientation: optional
     ``(values (n, k), columns, reading, readings, angle_scales)`` of the orientation columns as
     written, to test other rotation readings (:func:`rotation_readings`). Returns a list of
-    :class:`Implausible`."""
+    :class:`Finding`."""
     idx = _sample(len(poses))
     q = poses.q[idx]
     kind = poses.kind
@@ -255,7 +255,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
             layout_bad = True
     scale = _spread_m(P_meas.reshape(-1, 3)) / max(_spread_m(P_nom.reshape(-1, 3)), 1e-300)
     if not layout_bad and np.isfinite(scale) and not 1 / WORKSPACE_SCALE_MAX <= scale <= WORKSPACE_SCALE_MAX:
-        out.append(Implausible("workspace_scale",
+        out.append(Finding("workspace_scale",
                            f"the measured positions span {scale:.3g}× the nominal model's workspace "
                            f"({_mm(_spread_m(P_meas.reshape(-1, 3)))} vs {_mm(_spread_m(P_nom.reshape(-1, 3)))} rms "
                            f"about their centre): likely {_unit_cause(scale)}; check --length-unit (m or mm) "
@@ -266,7 +266,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
     rms, _ = _registered_rms(P_nom, P_meas)
     noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
     if np.isfinite(rms) and rms > limit:
-        out.append(Implausible("nominal_residual",
+        out.append(Finding("nominal_residual",
                            f"the nominal model and the measurements disagree by {_mm(rms)} rms after a rigid "
                            f"registration{noise}, more than a real {robot.name}'s geometric errors "
                            f"(≤ {_mm(limit)}): check the joint convention (coupling, signs, offsets: robot.yaml's "
@@ -274,14 +274,14 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
         ranked = test_conventions(robot, q, P_meas, kind, poses.marker_positions)
         best = ranked[0]
         if best[1] is not None and best[0] < limit and best[0] * CONVENTION_GAIN_MIN < rms:
-            out.append(Implausible("joint_convention",
+            out.append(Finding("joint_convention",
                                f"{best[1]}: registered rms {_mm(rms)} -> {_mm(best[0])} with that convention; "
                                f"import with the controller's convention in robot.yaml: "
                                f"{controller_yaml(robot, best[2], best[3])} (docs/robot_yaml.md)"))
     elif poses.frame == "robot":
         plain = float(np.sqrt(np.nanmean(np.sum((P_nom - P_meas) ** 2, axis=-1))))
         if np.isfinite(plain) and plain > limit:
-            out.append(Implausible("base_frame",
+            out.append(Finding("base_frame",
                                f"the measurements sit {_mm(plain)} rms from the nominal model in the robot's base "
                                f"frame but {_mm(rms)} after one rigid move: the base frame set-up (T_LI) is off; "
                                "import with --frame tracker to identify it"))
@@ -306,12 +306,12 @@ def _reflector_layout(markers, P_nominal):
         cause = ("the markers file looks like mm (it must be in m)" if abs(np.log(ratio / 1e-3)) < np.log(1.3) else
                  "the data look like mm imported as metres" if abs(np.log(ratio / 1e3)) < np.log(1.3) else
                  "another tool, or the wrong file")
-        return Implausible("reflector_layout",
+        return Finding("reflector_layout",
                        f"the measured reflectors are {ratio:.3g}× as far apart as their nominal positions say "
                        f"(median distance {_mm(meas)} vs {_mm(nom)}): {cause}; check --markers / robot.yaml's "
                        "reflectors (tool frame, m) and --length-unit")
     if diff > REFLECTOR_DISTANCE_TOL_M:
-        return Implausible("reflector_layout",
+        return Finding("reflector_layout",
                        f"the distances between the measured reflectors differ from the nominal ones by {_mm(diff)} "
                        "(median): check the reflectors' order (m1..mk) and positions in --markers / robot.yaml")
     return None
@@ -328,11 +328,11 @@ def _orientation(robot, poses, idx, orientation) -> list:
     if best[1] != reading or best[2] != 1.0:
         if best[0] <= ORIENTATION_SPREAD_MAX_RAD and best[0] * CONVENTION_GAIN_MIN < here[0]:
             unit = "" if best[2] == 1.0 else " (and in degrees: the columns, not the joints)"
-            return [Implausible("rotation_reading",
+            return [Finding("rotation_reading",
                             f"columns {cols} read as {reading} disagree with the nominal orientations by "
                             f"{here[0] * 1e3:.0f} mrad on average; read as {best[1]}{unit} they agree to "
                             f"{best[0] * 1e3:.1f} mrad: import with --rotation {best[1]} (docs/csv_import.md)")]
-    return [Implausible("orientation_residual",
+    return [Finding("orientation_residual",
                     f"the measured orientations disagree with the nominal ones by {here[0] * 1e3:.0f} mrad on average "
                     f"beyond one constant rotation, and no reading of {cols} (--rotation rotvec|rpy|abc|quat) fits: "
                     "check the orientation columns and the tool frame")]
@@ -353,7 +353,7 @@ def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | No
     if lin.any():
         k = int(np.flatnonzero(lin)[np.argmax(np.abs(p[lin]))])
         if abs(p[k]) > CORRECTION_MAX_FRACTION_OF_SIZE * size:
-            out.append(Implausible("large_corrections",
+            out.append(Finding("large_corrections",
                                f"the identified correction {names[k]} = {p[k] * 1e3:,.1f} mm is "
                                f"{abs(p[k]) / size:.0%} of the robot's stretched length ({_mm(size)}): the fit "
                                "reshapes the robot instead of correcting it; check the length unit, the joint "
@@ -362,26 +362,26 @@ def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | No
     if rot.any() and not out:
         k = int(np.flatnonzero(rot)[np.argmax(np.abs(p[rot]))])
         if abs(p[k]) > CORRECTION_MAX_RAD:
-            out.append(Implausible("large_corrections",
+            out.append(Finding("large_corrections",
                                f"the identified correction {names[k]} = {np.rad2deg(p[k]):.1f} deg is larger than a "
                                f"real robot's angular errors (≤ {np.rad2deg(CORRECTION_MAX_RAD):.1f} deg): check the "
                                "joint convention (signs, offsets) and the tool frame"))
     if floor_sigma_m is not None and floor_sigma_m > 0:
         if noise_sigma_m * FITTED_NOISE_BELOW_FLOOR_FACTOR < floor_sigma_m:
-            out.append(Implausible("noise_below_floor",
+            out.append(Finding("noise_below_floor",
                                f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, "
                                f"{floor_sigma_m / max(noise_sigma_m, 1e-300):,.0f}× below the measurement noise "
                                f"({floor_sigma_m * 1e6:.3g} µm from repeats or campaign.yaml): the model fits more than "
                                "the measurements carry; check the length unit (metres imported as mm)"))
     elif floor_sigma_m is None and 0 < noise_sigma_m < TRACKER_NOISE_MIN_M:
-        out.append(Implausible("noise_below_floor",
+        out.append(Finding("noise_below_floor",
                            f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, below any laser tracker's "
                            f"(≥ {TRACKER_NOISE_MIN_M * 1e6:.3g} µm): the data are scaled down or are not measurements; "
                            "check the length unit (metres imported as mm)"))
     if heldout_mean_m is not None:
         limit = max(MODEL_RESIDUAL_MAX_M, MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
         if heldout_mean_m > limit:
-            out.append(Implausible("model_residual",
+            out.append(Finding("model_residual",
                                f"the calibrated model still misses the held-out poses by {_mm(heldout_mean_m)} on "
                                f"average, more than a calibrated robot can (≤ {_mm(limit)}): the model cannot "
                                "describe these data; check the joint convention, the units and the tool frame"))
