@@ -156,6 +156,14 @@ def test_delimiters_and_missing_headers_are_named_and_read(rotvec_csv, tmp_path,
     assert run_cli("import", bare_space, "--run", tmp_path / "d", "--quiet") == 1
     err = capsys.readouterr().err
     assert "not comma-separated: looks like 'space' and no header" in err and "--delimiter 'space'" in err
+    names = read_rows(rotvec_csv)[0]
+    got = read_measured_csv(bare_space, None, ImportOptions(delimiter="space", header=tuple(names)))
+    np.testing.assert_array_equal(got.q, ref.q)
+    np.testing.assert_array_equal(got.T_IE, ref.T_IE)
+    assert run_cli("import", bare, "--run", tmp_path / "d", "--header", ",".join(names), "--quiet") == 0
+    assert run_cli("import", rotvec_csv, "--run", tmp_path / "d2", "--header", ",".join(names), "--quiet") == 1
+    assert "line 1 is a header (pose_id, time_s, q1, q2, ...) and --header names the columns too" in \
+        capsys.readouterr().err
     comma = _rewrite(rotvec_csv, tmp_path / "comma.csv", ";", decimal_comma=True)
     assert run_cli("import", comma, "--run", tmp_path / "e", "--delimiter", ";", "--quiet") == 1
     assert "line 2, column time_s: '0,0' is not a number (a decimal comma?" in capsys.readouterr().err
@@ -226,7 +234,7 @@ def test_limit_slack_accepts_tiago_torso_past_its_limit(tmp_path, capsys):
     assert run_cli("calibrate", run, "--no-ann", "--quiet", "--no-report") == 0
 
 
-def test_predict_and_compensate_read_and_write_degrees(rotvec_csv, tmp_path):
+def test_predict_and_compensate_read_and_write_degrees(rotvec_csv, tmp_path, capsys):
     run = tmp_path / "run"
     assert run_cli("import", rotvec_csv, "--run", run, "--quiet") == 0
     assert run_cli("calibrate", run, "--no-ann", "--quiet", "--no-report") == 0
@@ -249,3 +257,10 @@ def test_predict_and_compensate_read_and_write_degrees(rotvec_csv, tmp_path):
         np.testing.assert_allclose(b[:, other], a[:, other], rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.deg2rad(np.array(read_rows(tmp_path / "predict_deg.csv")[1], dtype=float)[:, 1:7]),
                                q, rtol=0, atol=1e-12)
+    lines = (tmp_path / "q_deg.csv").read_text().splitlines()
+    cells = lines[3].split(",")
+    cells[4] = "120.0"  # q5 beyond its ±98 deg limit, on the file's line 4
+    lines[3] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    assert run_cli("predict", run, "--csv", tmp_path / "bad.csv", "--angle-unit", "deg") == 1
+    assert "(read in deg): line 4, q5 = 2.0944 rad is outside the joint limit" in capsys.readouterr().err

@@ -31,6 +31,8 @@ def register(sub):
                         "R = Rz(a) Ry(b) Rx(c)), quat (qw,qx,qy,qz)")
     p.add_argument("--delimiter", default=None, metavar="CHAR",
                    help="field separator: ',' (default), ';', tab, space (any run of blanks), '|'")
+    p.add_argument("--header", default=None, metavar="NAME,...",
+                   help="the column names of a file without a header line, in order (e.g. pose_id,q1,...,q6,x,y,z)")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
                    help="the file's own column names, e.g. x=X_mm,q1=J1 (default: robot.yaml's columns:)")
     p.add_argument("--limit-slack", type=float, default=0.0, metavar="DEG_OR_MM",
@@ -130,6 +132,7 @@ def _import(args):
 
     options = ImportOptions(angle_unit=args.angle_unit, length_unit=args.length_unit, frame=args.frame,
                             rotation=args.rotation, delimiter=args.delimiter, columns=parse_columns(args.columns),
+                            header=None if args.header is None else tuple(h.strip() for h in args.header.split(",")),
                             limit_slack_rad=math.radians(args.limit_slack), limit_slack_m=args.limit_slack * 1e-3)
     bar = Progress("import", total=1000, enabled=not args.quiet and sys.stderr.isatty(), unit="‰")
     try:

@@ -72,8 +72,9 @@ def _is_number(cell: str) -> bool:
         return False
 
 
-def _check_first_line(path, line: str, delimiter: str) -> None:
-    """A header separated by another delimiter, or no header at all: one line naming it."""
+def _check_first_line(path, line: str, delimiter: str, header_given: bool = False) -> None:
+    """A header separated by another delimiter, or no header at all (or one where ``--header``
+    says there is none): one line naming it."""
     def split(ch):
         return line.split() if ch == " " else line.split(ch)
 
@@ -81,14 +82,20 @@ def _check_first_line(path, line: str, delimiter: str) -> None:
     if len(fields) <= 2:  # the chosen delimiter does not split the header: which one does?
         best = max((ch for ch in (",", ";", "\t", " ", "|") if ch != delimiter), key=lambda ch: len(split(ch)))
         if len(split(best)) > 2:
-            head = " and no header (line 1 holds numbers)" if all(_is_number(c) for c in split(best)) else ""
+            head = (" and no header (line 1 holds numbers: name the columns with --header)"
+                    if all(_is_number(c) for c in split(best)) and not header_given else "")
             raise DataError(f"{path}: line 1: not {'comma' if delimiter == ',' else _delimiter_name(delimiter)}"
                             f"-separated: looks like {_delimiter_name(best)!r}{head}; read it with "
                             f"--delimiter {_delimiter_name(best)!r} (docs/csv_import.md)")
-    if fields and all(_is_number(c.strip()) for c in fields if c.strip()) and any(c.strip() for c in fields):
+    numbers = all(_is_number(c.strip()) for c in fields if c.strip()) and any(c.strip() for c in fields)
+    if header_given and not numbers:
+        raise DataError(f"{path}: line 1 is a header ({', '.join(c.strip() for c in fields[:4])}"
+                        f"{', ...' if len(fields) > 4 else ''}) and --header names the columns too: drop --header")
+    if numbers and not header_given:
         raise DataError(f"{path}: no header: line 1 holds numbers ({', '.join(c.strip() for c in fields[:4])}"
                         f"{', ...' if len(fields) > 4 else ''}); the first line must name the columns "
-                        "(pose_id,time_s,q1..qN,x,y,z,rx,ry,rz; other names with --columns; docs/csv_import.md)")
+                        "(pose_id,time_s,q1..qN,x,y,z,rx,ry,rz; other names with --columns), or name them with "
+                        "--header pose_id,q1,... (docs/csv_import.md)")
 
 
 def _rename_header(path, header, rename) -> list:
@@ -103,16 +110,17 @@ def _rename_header(path, header, rename) -> list:
 
 
 def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None,
-                        delimiter: str | None = None, rename=None):
+                        delimiter: str | None = None, rename=None, names=None):
     """Stream a CSV of numbers with a header, ``chunk_rows`` rows at a time.
 
     Yields (header, values (m, columns) float64, source line numbers (m,), 1-based). ``required``
     columns must be present; every cell finite, except in columns for which ``may_be_empty``
     (a callable on the column name) is true, where an empty cell is NaN. ``progress``: called
     with the bytes read so far. delimiter: ``--delimiter``'s name (default comma; ``space``:
-    any run of blanks). rename: {column in the file: name used} (``--columns``). A file without
-    a header, or separated by another delimiter than asked, is one line naming it. Every error
-    names the file, and where it applies the line and column.
+    any run of blanks). rename: {column in the file: name used} (``--columns``). names: the
+    columns of a file without a header line (``--header``). A file without a header, or
+    separated by another delimiter than asked, is one line naming it. Every error names the
+    file, and where it applies the line and column.
     """
     path = Path(path)
     ch = delimiter_char(delimiter)
@@ -123,8 +131,8 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
         try:
             first_raw = fh.readline()
             fh.seek(0)
-            _check_first_line(path, first_raw.strip("\r\n"), ch)
-            first = next(reader, None)
+            _check_first_line(path, first_raw.strip("\r\n"), ch, header_given=names is not None)
+            first = next(reader, None) if names is None else list(names)
             if first is None:
                 raise DataError(f"{path}: empty file (expected header {','.join(required)})")
             header = _rename_header(path, [h.strip() for h in first], rename)
@@ -346,7 +354,8 @@ class ImportOptions:
     """How to read a measured-pose CSV: units, frame, nominal reflector positions, and the
     file's own conventions (docs/csv_import.md).
 
-    rotation: :data:`ROTATIONS`; delimiter: ``--delimiter``'s name (None: comma); columns:
+    rotation: :data:`ROTATIONS`; delimiter: ``--delimiter``'s name (None: comma); header: the
+    column names of a file without a header line; columns:
     {column in the file: name used}; limit_slack_rad / limit_slack_m: how far past the URDF's
     joint limits a reading is accepted (revolute / prismatic joints)."""
 
@@ -357,6 +366,7 @@ class ImportOptions:
     rotation: str = "rotvec"
     delimiter: str | None = None
     columns: dict = None
+    header: tuple | None = None  # the columns of a file without a header line (--header)
     limit_slack_rad: float = 0.0
     limit_slack_m: float = 0.0
 
@@ -612,7 +622,7 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
             progress(min(1.0, 0.5 * half + 0.5 * offset / size))
 
     read = dict(may_be_empty=_may_be_empty, chunk_rows=chunk_rows, delimiter=options.delimiter,
-                rename=options.columns)
+                rename=options.columns, names=options.header)
     it = iter_numeric_chunks(path, (), progress=lambda b: report(b, 0), **read)
     header, values, lines = next(it)
     layout = csv_layout(path, header, robot.n_joints if robot is not None else None, options.rotation)
@@ -651,7 +661,8 @@ def read_check_sample(path, robot, options: ImportOptions | None = None, *, rows
     columns (n, k) as written, angles in rad, or None)."""
     options = options or ImportOptions()
     hdr, vals, lns = next(iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=rows,
-                                              delimiter=options.delimiter, rename=options.columns))
+                                              delimiter=options.delimiter, rename=options.columns,
+                                              names=options.header))
     layout = csv_layout(path, hdr, robot.n_joints, options.rotation)
     P_nom = _marker_positions(path, layout, robot, options)
     c, poses = _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom)
