@@ -198,3 +198,13 @@ def test_a_base_frame_offset_is_told_from_a_convention(robot, campaign_data):
     (w,) = check_data(robot, replace(campaign_data, T_IE=shifted))
     assert w.code == "base_frame" and "--frame tracker" in w.message
     assert check_data(robot, replace(campaign_data, T_IE=shifted, frame="tracker")) == []
+
+
+def test_joints_in_rad_imported_as_degrees_are_named(robot, good_csv, campaign_data, tmp_path, capsys):
+    assert run_cli("import", good_csv, "--run", tmp_path / "deg", "--angle-unit", "deg", "--quiet") == 0
+    (line,) = warning_lines(capsys.readouterr().err)
+    assert line.endswith("[workspace_scale]") and "joints in rad imported with --angle-unit deg" in line
+    fits_mm = float(re.search(r"fits to ([0-9.]+) mm rms", line).group(1))
+    # read as meant, Pinocchio's nominal model registered by SVD fits to the same rms
+    assert fits_mm == pytest.approx(_registered_rms(_pin_positions(robot, campaign_data.q), campaign_data.xyz) * 1e3,
+                                    rel=5e-3)

@@ -122,15 +122,23 @@ def _mm(v) -> str:
     return f"{v:,.0f} mm" if abs(v) >= 100 else f"{v:.3g} mm"
 
 
-def _unit_cause(scale: float) -> str:
-    """The length unit a scale factor (measured / nominal) points to."""
-    for factor, cause in ((1e-3, "data in metres imported with --length-unit mm"),
-                          (1e3, "data in mm imported as metres (--length-unit mm)"),
-                          (1 / 25.4, "data in inches?"), (25.4, "data in inches?"),
-                          (1e-2, "data in cm?"), (1e2, "data in cm?")):
-        if abs(np.log(scale / factor)) < np.log(1.3):
-            return cause
-    return "another robot, or a tool frame far from the measured one"
+def _unit_cause(robot, q, P_meas, kind, marker_positions, limit: float) -> str:
+    """Which unit mistake makes the data fit the nominal model: positions scaled by 1000 either
+    way (m vs mm), or the revolute joints by 180/pi either way (rad vs deg), each re-registered;
+    the best under ``limit`` (m, registered rms) is named with its rms."""
+    deg = np.where(robot.prismatic, 1.0, 180 / np.pi)
+    trials = (("data in metres imported with --length-unit mm", 1.0, 1e3),
+              ("data in mm imported as metres (--length-unit mm)", 1.0, 1e-3),
+              ("joints in rad imported with --angle-unit deg", deg, 1.0),
+              ("joints in degrees imported as rad (--angle-unit deg)", 1 / deg, 1.0))
+    best = None
+    for cause, k_q, k_p in trials:
+        rms = _registered_rms(_points(robot, q * k_q, kind, marker_positions), P_meas * k_p)[0]
+        if np.isfinite(rms) and rms < limit and (best is None or rms < best[1]):
+            best = (cause, rms)
+    if best is None:
+        return "another robot, or a tool frame far from the measured one (no unit mistake fits)"
+    return f"{best[0]} (read that way the nominal model fits to {_mm(best[1])} rms)"
 
 
 def orientation_spread_rad(R_nom, R_meas) -> float:
@@ -254,15 +262,16 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
             out.append(w)
             layout_bad = True
     scale = _spread_m(P_meas.reshape(-1, 3)) / max(_spread_m(P_nom.reshape(-1, 3)), 1e-300)
+    limit = max(NOMINAL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
     if not layout_bad and np.isfinite(scale) and not 1 / WORKSPACE_SCALE_MAX <= scale <= WORKSPACE_SCALE_MAX:
+        cause = _unit_cause(robot, q, P_meas, kind, poses.marker_positions, limit)
         out.append(Finding("workspace_scale",
                            f"the measured positions span {scale:.3g}× the nominal model's workspace "
                            f"({_mm(_spread_m(P_meas.reshape(-1, 3)))} vs {_mm(_spread_m(P_nom.reshape(-1, 3)))} rms "
-                           f"about their centre): likely {_unit_cause(scale)}; check --length-unit (m or mm) "
-                           f"and the robot ({robot.name})"))
+                           f"about their centre): likely {cause}; check --length-unit, --angle-unit and the robot "
+                           f"({robot.name})"))
     if out:
         return out
-    limit = max(NOMINAL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
     rms, _ = _registered_rms(P_nom, P_meas)
     noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
     if np.isfinite(rms) and rms > limit:
