@@ -208,3 +208,23 @@ def test_joints_in_rad_imported_as_degrees_are_named(robot, good_csv, campaign_d
     # read as meant, Pinocchio's nominal model registered by SVD fits to the same rms
     assert fits_mm == pytest.approx(_registered_rms(_pin_positions(robot, campaign_data.q), campaign_data.xyz) * 1e3,
                                     rel=5e-3)
+
+
+@pytest.mark.parametrize("joint, change, label", [
+    (4, lambda q: -q, "joint 5's sign is flipped (q5 -> -q5)"),
+    (3, lambda q: q + np.pi / 2, "joint 4 is offset by -90 deg (q4 - 90 deg)"),
+    (0, lambda q: q + np.pi / 2, "joint 1 is offset by -90 deg (q1 - 90 deg)"),  # robot frame: not a set-up error
+])
+def test_a_sign_flip_or_an_offset_is_named(robot, campaign_data, joint, change, label):
+    from campaign.measure.plausibility import check_data
+
+    q = campaign_data.q.copy()
+    q[:, joint] = change(q[:, joint])
+    found = {w.code: w.message for w in check_data(robot, replace(campaign_data, q=q))}
+    assert found["joint_convention"].startswith(label)
+    after = float(re.search(r"-> ([0-9.]+) mm with that convention", found["joint_convention"]).group(1))
+    if joint:  # registered: Pinocchio's nominal model at the q meant, registered by SVD
+        ref = _registered_rms(_pin_positions(robot, campaign_data.q), campaign_data.xyz)
+    else:  # as it stands in the robot's frame
+        ref = np.sqrt(np.mean(np.sum((_pin_positions(robot, campaign_data.q) - campaign_data.xyz) ** 2, axis=1)))
+    assert after == pytest.approx(ref * 1e3, rel=5e-3)

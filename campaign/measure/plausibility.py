@@ -222,15 +222,33 @@ def controller_yaml(robot, M, b) -> str:
     return text + "}"
 
 
-def test_conventions(robot, q, P_meas, kind, marker_positions) -> list:
-    """Registered rms (m) of the nominal model under each candidate convention:
-    [(rms, label, M, b), ...] best first, the data's own convention (label None) among them."""
+def test_conventions(robot, q, P_meas, kind, marker_positions, *, register: bool = True) -> list:
+    """rms (m) of the nominal model under each candidate convention, rigidly registered to the
+    data (``register``) or as it stands (data in the robot's frame): [(rms, label, M, b), ...]
+    best first, the data's own convention (label None) among them."""
     N = robot.n_joints
-    out = [(_registered_rms(_points(robot, q, kind, marker_positions), P_meas)[0], None, np.eye(N), np.zeros(N))]
-    for label, M, b in convention_candidates(robot):
-        rms = _registered_rms(_points(robot, q @ M.T + b, kind, marker_positions), P_meas)[0]
-        out.append((rms, label, M, b))
+
+    def rms(qq):
+        P = _points(robot, qq, kind, marker_positions)
+        if register:
+            return _registered_rms(P, P_meas)[0]
+        return float(np.sqrt(np.nanmean(np.sum((P - P_meas) ** 2, axis=-1))))
+
+    out = [(rms(q), None, np.eye(N), np.zeros(N))]
+    out += [(rms(q @ M.T + b), label, M, b) for label, M, b in convention_candidates(robot)]
     return sorted(out, key=lambda t: np.nan_to_num(t[0], nan=np.inf))
+
+
+def _convention_finding(robot, ranked, rms, limit, what):
+    """``joint_convention`` when the best candidate of ``ranked`` fits (under ``limit`` and
+    CONVENTION_GAIN_MIN times better than ``rms``), else None."""
+    best = ranked[0]
+    if best[1] is None or not best[0] < limit or not best[0] * CONVENTION_GAIN_MIN < rms:
+        return None
+    return Finding("joint_convention",
+                   f"{best[1]}: {what} {_mm(rms)} -> {_mm(best[0])} with that convention; import with the "
+                   f"controller's convention in robot.yaml: {controller_yaml(robot, best[2], best[3])} "
+                   "(docs/robot_yaml.md)")
 
 
 # -- the checks ------------------------------------------------------------------------------
@@ -280,20 +298,20 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
                            f"registration{noise}, more than a real {robot.name}'s geometric errors "
                            f"(≤ {_mm(limit)}): check the joint convention (coupling, signs, offsets: robot.yaml's "
                            "controller), the length and angle units, the tool frame"))
-        ranked = test_conventions(robot, q, P_meas, kind, poses.marker_positions)
-        best = ranked[0]
-        if best[1] is not None and best[0] < limit and best[0] * CONVENTION_GAIN_MIN < rms:
-            out.append(Finding("joint_convention",
-                               f"{best[1]}: registered rms {_mm(rms)} -> {_mm(best[0])} with that convention; "
-                               f"import with the controller's convention in robot.yaml: "
-                               f"{controller_yaml(robot, best[2], best[3])} (docs/robot_yaml.md)"))
+        found = _convention_finding(robot, test_conventions(robot, q, P_meas, kind, poses.marker_positions),
+                                    rms, limit, "registered rms")
+        if found is not None:
+            out.append(found)
     elif poses.frame == "robot":
         plain = float(np.sqrt(np.nanmean(np.sum((P_nom - P_meas) ** 2, axis=-1))))
         if np.isfinite(plain) and plain > limit:
-            out.append(Finding("base_frame",
-                               f"the measurements sit {_mm(plain)} rms from the nominal model in the robot's base "
-                               f"frame but {_mm(rms)} after one rigid move: the base frame set-up (T_LI) is off; "
-                               "import with --frame tracker to identify it"))
+            # one rigid move fits: a joint-1 offset or sign turns the whole arm as a set-up error does
+            found = _convention_finding(robot, test_conventions(robot, q, P_meas, kind, poses.marker_positions,
+                                                                register=False), plain, limit, "rms")
+            out.append(found or Finding(
+                "base_frame", f"the measurements sit {_mm(plain)} rms from the nominal model in the robot's base "
+                              f"frame but {_mm(rms)} after one rigid move: the base frame set-up (T_LI) is off; "
+                              "import with --frame tracker to identify it"))
     if kind == "pose" and orientation is not None and not out:  # orientations mean something once positions fit
         out += _orientation(robot, poses, idx, orientation)
     return out
