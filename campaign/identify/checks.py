@@ -25,7 +25,8 @@ def calibration_warnings(run_dir, robot, poses, model, heldout_mean_mm, noise_fl
     data = check_data(robot, poses, noise_mm=floor_mm or None)
     recorded = [Finding.from_json(w) for w in recorded_source(run_dir).get("warnings") or []]
     fit = check_fit(robot, model.params_min_norm_, noise_sigma_m=model.noise_sigma_["position_m"],
-                    heldout_mean_m=None if heldout_mean_mm is None else heldout_mean_mm * 1e-3, floor_sigma_m=sigma_m)
+                    heldout_mean_m=None if heldout_mean_mm is None else heldout_mean_mm * 1e-3, floor_sigma_m=sigma_m,
+                    floor_source=(noise_floor or {}).get("source") or "stated")
     return merge(data, recorded, fit)
 
 

@@ -252,8 +252,10 @@ def _calibrate_fleet(args, ann, ann_options) -> int:
             continue
         stage = m["order"][-1]
         test = m["stages"][stage]["test"]
+        warned = len(m.get("warnings") or [])
         print(f"{run}: {stage}: held-out mean position {test['position_mm']['mean']:.4g} mm "
-              f"({test['n_poses']} test poses); outputs in {Path(run) / 'calibration'}")
+              f"({test['n_poses']} test poses); outputs in {Path(run) / 'calibration'}"
+              + (f"; {warned} plausibility warning(s) in metrics.json" if warned else ""))
     print(f"calibrated {len(runs) - failed} of {len(runs)} runs on {executor.name}")
     return 1 if failed else 0
 

@@ -366,11 +366,12 @@ def _orientation(robot, poses, idx, orientation) -> list:
 
 
 def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | None = None,
-              floor_sigma_m: float | None = None) -> list:
+              floor_sigma_m: float | None = None, floor_source: str = "stated") -> list:
     """Warnings on an identified model. params: p_e (6N + 12,) of the minimum-norm solution (m, rad);
     noise_sigma_m: the fit's own position noise estimate (σ per coordinate, m); heldout_mean_m:
     the current model's held-out mean position error, m; floor_sigma_m: the measurement noise
-    from repeats or stated (σ per coordinate, m), when known."""
+    from repeats or stated (σ per coordinate, m), when known; floor_source: ``"repeats"`` or
+    ``"stated"`` (repeats far apart in time measure drift too)."""
     out = []
     size = robot_size_m(robot)
     p = np.asarray(params, dtype=float)
@@ -395,11 +396,13 @@ def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | No
                                "joint convention (signs, offsets) and the tool frame"))
     if floor_sigma_m is not None and floor_sigma_m > 0:
         if noise_sigma_m * FITTED_NOISE_BELOW_FLOOR_FACTOR < floor_sigma_m:
+            where = ("from repeats: if they were measured far apart in time, they measure drift too"
+                     if floor_source == "repeats" else "stated in campaign.yaml")
             out.append(Finding("noise_below_floor",
                                f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, "
                                f"{floor_sigma_m / max(noise_sigma_m, 1e-300):,.0f}× below the measurement noise "
-                               f"({floor_sigma_m * 1e6:.3g} µm from repeats or campaign.yaml): the model fits more than "
-                               "the measurements carry; check the length unit (metres imported as mm)"))
+                               f"({floor_sigma_m * 1e6:.3g} µm, {where}): the model fits more than the measurements "
+                               "carry; check the length unit (metres imported as mm)"))
     elif floor_sigma_m is None and 0 < noise_sigma_m < TRACKER_NOISE_MIN_M:
         out.append(Finding("noise_below_floor",
                            f"the fit leaves a noise σ of {noise_sigma_m * 1e6:.3g} µm, below any laser tracker's "
