@@ -115,6 +115,12 @@ def test_rpy_read_as_rotation_vectors_is_named(rotvec_csv, tmp_path, capsys):
     assert run_cli("import", part, "--run", tmp_path / "b", "--quiet") == 0
     (line,) = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("warning:")]
     assert line.endswith("[rotation_reading]") and "read as rpy they agree" in line and "--rotation rpy" in line
+    # calibrate cannot see the columns as written any more: it repeats the import's warning
+    assert run_cli("calibrate", tmp_path / "b", "--no-ann", "--quiet", "--no-report") == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("warning:")]
+    assert line in lines
+    warned = json.loads((tmp_path / "b" / "calibration" / "metrics.json").read_text())["warnings"]
+    assert "rotation_reading" in [w["code"] for w in warned]
     assert run_cli("import", part, "--run", tmp_path / "c", "--quiet", "--rotation", "rpy", "--strict") == 0
 
 
