@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.measure.reflectors import kabsch, register_points, transform_points
+from campaign.measure.reflectors import register_points, transform_points
 from campaign.model.kinematics import forward
 from campaign.model.rotations import matrix_to_rotvec
 from campaign.tolerances import (CORRECTION_MAX_FRACTION_OF_SIZE, CORRECTION_MAX_RAD, CONVENTION_GAIN_MIN,
