@@ -29,9 +29,10 @@ def _shown_commands(text: str) -> list:
     for block in FENCE.findall(text):
         joined = block.replace("\\\n", " ")
         for line in joined.splitlines():
-            line = line.strip().removeprefix("$ ")
-            if line.startswith("campaign "):
-                lines.append(line.split("#")[0].strip())
+            for part in line.split("#")[0].split("&&"):  # `a && b`: two commands
+                part = part.strip().removeprefix("$ ")
+                if part.startswith("campaign "):
+                    lines.append(part)
     lines += [m.strip() for m in INLINE.findall(text)]
     # "campaign calibrate: ..." is an error message shown, not a command
     return [line for line in lines if not line.split()[1].endswith(":")]
