@@ -4,6 +4,7 @@ timeout, joint limits and conventions, the aims; and authenticated frames beyond
 with no token, a wrong token, or a replayed frame moves nothing."""
 
 import socket
+import sys
 import struct
 import threading
 import time
@@ -14,7 +15,7 @@ import pytest
 from campaign.cell import RobotFault
 from campaign.cell.server import ServedCell
 from campaign.cli import main
-from campaign.errors import AuthError, PeerError
+from campaign.errors import AuthError, ConfigError, PeerError
 from campaign.measure import protocol as P
 from campaign.measure.auth import FrameAuth
 
@@ -331,3 +332,20 @@ def test_frame_tags_bind_nonce_direction_and_order():
     tampered = f1[:-2] + b"2}"
     with pytest.raises(AuthError, match="failed authentication"):
         FrameAuth(KEY, nonce, "peer").open(tampered)
+
+
+def test_an_installed_package_names_its_cell_by_an_entry_point(tmp_path, monkeypatch, robot):
+    from campaign.cell import load_adapters
+
+    (tmp_path / "acme_cell.py").write_text(ADAPTERS)
+    dist = tmp_path / "acme_cell-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: acme-cell\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[campaign.cell]\nacme = acme_cell\nacme-blind = acme_cell:Blind\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "acme_cell", raising=False)
+    ctrl, trk = load_adapters("acme", "acme", robot, None, None)
+    assert (type(ctrl).__name__, type(trk).__name__) == ("Controller", "Tracker")
+    assert type(ctrl).__module__ == type(trk).__module__ == "acme_cell"
+    with pytest.raises(ConfigError, match=r"--controller acme-blind: a controller adapter needs a method move"):
+        load_adapters("acme-blind", "acme", robot, None, None)

@@ -469,7 +469,9 @@ def main(argv=None, prog="python -m campaign.cell.server") -> int:
         from campaign.run import RunFolder
 
         # one cell per run, for this process's lifetime (RUN/sim/.lock; the driver holds RUN/.lock)
-        lock = RunFolder(args.run).sim_lock("sim (a driver's simulated cell)") if args.run else contextlib.nullcontext()
+        what = "sim (a driver's simulated cell)" if (args.controller, args.tracker) == ("sim", "sim") else \
+            f"serve --controller {args.controller} --tracker {args.tracker} (a driver's cell)"
+        lock = RunFolder(args.run).sim_lock(what) if args.run else contextlib.nullcontext()
         with lock:
             _, cell = served_cell_from_args(args, args.start_clock_s)
             info = {"controller": cell.controller_port, "tracker": cell.tracker_port, "host": args.host,
