@@ -432,15 +432,21 @@ def served_cell_from_args(args, start_clock_s=None):
 
 
 def serve_until_interrupted(cell: ServedCell, *, watch_stdin: bool = False) -> int:
-    """Serve until Ctrl-C (or, with ``watch_stdin``, until stdin closes: a child of the driver,
-    which ignores SIGINT, as Ctrl-C is the driver's to handle); then close the adapters. 0."""
+    """Serve until Ctrl-C or SIGTERM (or, with ``watch_stdin``, until stdin closes: a child of the
+    driver, which ignores SIGINT, as Ctrl-C is the driver's to handle); then close the adapters. 0."""
     import signal
 
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
     if watch_stdin:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             while sys.stdin.buffer.read(1024):
                 pass
+        except KeyboardInterrupt:
+            pass
         finally:
             cell.close()
             os._exit(0)
