@@ -68,7 +68,10 @@ def _story(args, run: Path, folder) -> int:
     rc = cli(["diagnose", str(run)])
     if rc != 0:
         sys.exit(rc)
-    verdict = json.loads((folder.diagnose_dir / "diagnosis.json").read_text())["verdict"]
+    first = json.loads((folder.diagnose_dir / "diagnosis.json").read_text())
+    verdict = first["verdict"]
+    # this diagnosis's own report: step 8's diagnosis becomes RUN/diagnose and leaves this one as it is
+    first_report = Path("diagnoses", first["diagnosis_id"], "report.html")
     if verdict not in (None, "unexplained"):
         effects = folder.add_effects([verdict])
         print(f"\n=== 5. add the suggested effect: `effects: [{', '.join(effects)}]` in {folder.config_path}")
@@ -77,7 +80,8 @@ def _story(args, run: Path, folder) -> int:
           "--sizes", "32x16,64x32", "--folds", "3", *(["--epochs", args.ann_epochs] if args.ann_epochs else []))
     print("\n=== 7. watch the error fall (held-out test set)")
     print(history_table(run))
-    print(f"\nreports: {run}/calibration/report.html, {run}/diagnose/report.html, {run}/plan/tour.png")
+    print(f"\nreports: {run}/calibration/report.html, {run / first_report} (step 4's diagnosis), "
+          f"{run}/plan/tour.png")
     print(f"\n=== 8. is anything left to find?\n$ campaign diagnose {run}", flush=True)
     rc = cli(["diagnose", str(run)])
     if rc != 0:

@@ -4,11 +4,17 @@
 ``NAME.partial`` beside the target and replaces it with one ``rename`` (atomic on POSIX), so
 a crash, a full disk or Ctrl-C leaves either the old file or the new one. Errors name the
 file and are :class:`campaign.errors.StorageError` (one line, never a traceback).
+
+:func:`strict_json` is the one JSON writer of the package: every JSON file and every
+``--json`` output is strict JSON (RFC 8259: no ``NaN``, no ``Infinity``), a value that is not a
+finite number written as ``null`` with its reason beside it (docs/files.md).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 from pathlib import Path
 
@@ -51,6 +57,60 @@ def atomic_write(path, data) -> Path:
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as fh:
         fh.write(data)
     return Path(path)
+
+
+#: the key beside a mapping's values that were not finite numbers: {key: why it is null}
+NULL_REASONS_KEY = "null_reasons"
+
+
+def _non_finite_reason(value: float) -> str:
+    what = "not a number (NaN)" if math.isnan(value) else f"{'+' if value > 0 else '-'}infinity"
+    return f"{what}: not computable from these data"
+
+
+def finite_json(obj):
+    """``obj`` with every float that is not finite (NaN, ±inf) replaced by None; in a mapping
+    the reason goes beside it, under ``null_reasons`` ({key: reason}). numpy scalars and arrays
+    become plain numbers and lists; tuples become lists."""
+    if isinstance(obj, bool) or obj is None or isinstance(obj, (str, int)):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        out, reasons = {}, {}
+        for key, value in obj.items():
+            if isinstance(value, float) and not math.isfinite(value) or _is_np_nonfinite(value):
+                reasons[str(key)] = _non_finite_reason(float(value))
+                out[key] = None
+            else:
+                out[key] = finite_json(value)
+        if reasons:
+            out[NULL_REASONS_KEY] = {**(out.get(NULL_REASONS_KEY) or {}), **reasons}
+        return out
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    tolist = getattr(obj, "tolist", None)  # numpy scalars and arrays
+    if tolist is not None:
+        return finite_json(tolist())
+    return obj
+
+
+def _is_np_nonfinite(value) -> bool:
+    import numbers
+
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, int, float)) and \
+        not math.isfinite(float(value))
+
+
+def strict_json(obj, *, indent=2, **kwargs) -> str:
+    """``obj`` as strict JSON text (:func:`finite_json` first, then ``allow_nan=False``, so a
+    value that slipped through raises rather than writes ``NaN``)."""
+    return json.dumps(finite_json(obj), allow_nan=False, indent=indent, **kwargs)
+
+
+def atomic_write_json(path, obj) -> Path:
+    """Write ``obj`` as strict JSON (:func:`strict_json`) to ``path`` atomically."""
+    return atomic_write(path, strict_json(obj) + "\n")
 
 
 def read_yaml_mapping(path, error=ConfigError) -> dict:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 
 
@@ -28,7 +27,8 @@ def _diagnose(args):
 
     if args.folds is not None and args.folds < 2:
         raise ConfigError(f"--folds must be at least 2, got {args.folds}")
-    from campaign.diagnose.report import write_diagnosis
+    from campaign.diagnose.report import diagnosis_doc, write_diagnosis
+    from campaign.fileio import strict_json
     from campaign.run import RunFolder
 
     progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -36,8 +36,9 @@ def _diagnose(args):
         d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
         report = write_diagnosis(d, report=not args.no_report)
     if args.json:
-        print(json.dumps(d.as_json(), indent=2))
+        print(strict_json(diagnosis_doc(d, report.parent.name)))  # diagnosis.json, strict JSON
     else:
+        # the diagnosis's own folder, which later diagnoses leave as it is (RUN/diagnose: the newest);
         # the verdict is the last line a person reads (the demo ends with it)
         print(f"{'report' if not args.no_report else 'written'}: {report}")
         print(d.text())

@@ -436,8 +436,11 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     for i, spec in enumerate(names):
         cls = effect_class(spec)
         say(f"candidate {i + 1}/{len(names)}: {cls.name}")
-        if any(key not in context for key in getattr(cls, "context_keys", ())):
-            skipped.append((cls.name, f"needs context {', '.join(cls.context_keys)}"))
+        lacking = [k for k in getattr(cls, "context_keys", ()) if k not in context
+                   or not np.isfinite(np.asarray(context[k], dtype=float)).all()]  # e.g. data without time_s
+        if lacking:
+            skipped.append((cls.name, f"needs context {', '.join(cls.context_keys)} "
+                                      f"({', '.join(lacking)}: not in the data for every pose)"))
             say(f"  {cls.name}: skipped ({skipped[-1][1]})")
             continue
         n_params = make_effect(spec, robot).n_params

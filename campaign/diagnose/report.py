@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import html
-import json
 from pathlib import Path
 
 import numpy as np
 
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.report import (PAGE_STYLE, _plt, binned_quantiles, plot_against_joints, plot_history,
                                      plot_workspace)
 
@@ -134,26 +133,39 @@ def plot_ranking(diagnosis, out: Path, name: str = "ranking.png") -> str:
     return name
 
 
+def diagnosis_doc(diagnosis, diagnosis_id: str | None) -> dict:
+    """diagnosis.json: ``{"diagnosis_id", ...}`` and what :meth:`Diagnosis.as_json` holds."""
+    return {"diagnosis_id": diagnosis_id, **diagnosis.as_json()}
+
+
 def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
-    """Write RUN/diagnose/diagnosis.json (what `diagnose --json` prints) and, with ``report``,
-    RUN/diagnose/report.html and its PNGs, holding the run's lock; returns the report's path
-    (or the JSON's)."""
+    """Write a new diagnosis, holding the run's lock: RUN/diagnoses/<diagnosis_id>/ with
+    diagnosis.json (what `diagnose --json` prints, with its ``diagnosis_id``) and, with
+    ``report``, report.html and its PNGs, all of it made the current RUN/diagnose at once
+    (campaign.versioned); earlier diagnoses stay in RUN/diagnoses/. Returns the report's path
+    (or the JSON's) in the diagnosis's own folder, which later diagnoses leave as it is."""
     from campaign.run import RunFolder
+    from campaign.versioned import diagnosis_folder
 
     run = RunFolder(diagnosis.run_dir)
-    with run.lock("diagnose"):
+    versions = diagnosis_folder(run.path)
+    with run.lock("diagnose"), versions.new_version() as version:
         if not report:
-            return atomic_write(run.diagnose_dir / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
-        with run.store() as store:
-            poses = store.load_measured()
-        return write_report(diagnosis, poses, run.robot())
+            atomic_write_json(version.path / "diagnosis.json", diagnosis_doc(diagnosis, version.id))
+            name = "diagnosis.json"
+        else:
+            with run.store() as store:
+                poses = store.load_measured()
+            name = write_report(diagnosis, poses, run.robot(), out=version.path, diagnosis_id=version.id).name
+    return versions.store_dir / version.id / name
 
 
-def write_report(diagnosis, poses, robot) -> Path:
-    """Write RUN/diagnose/report.html, its PNGs and diagnosis.json; return the HTML path."""
+def write_report(diagnosis, poses, robot, *, out=None, diagnosis_id: str | None = None) -> Path:
+    """Write report.html, its PNGs and diagnosis.json into ``out`` (default RUN/diagnose); return
+    the HTML path. diagnosis_id: in diagnosis.json and shown on the page."""
     from campaign.effects.gravity import gravity_torques, overturning_moment
 
-    out = Path(diagnosis.run_dir) / "diagnose"
+    out = Path(out) if out is not None else Path(diagnosis.run_dir) / "diagnose"
     out.mkdir(parents=True, exist_ok=True)
     res, is_test = diagnosis.residuals, diagnosis.is_test
     title = "current model"
@@ -172,10 +184,12 @@ def write_report(diagnosis, poses, robot) -> Path:
     imgs.append(plot_against_context(res, series, is_test, out))
     signature = plot_signature(diagnosis, out)
     hist = plot_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out)
-    atomic_write(out / "diagnosis.json", json.dumps(diagnosis.as_json(), indent=2))
+    atomic_write_json(out / "diagnosis.json", diagnosis_doc(diagnosis, diagnosis_id))
     parts = ["<!doctype html><meta charset='utf-8'><title>campaign diagnosis</title>",
              PAGE_STYLE.replace("pre{", "pre{white-space:pre-wrap;overflow-wrap:anywhere;"),
              f"<h1>Diagnosis: {html.escape(Path(diagnosis.run_dir).name)}</h1>",
+             *([f"<p class='diagnosis-id'>Diagnosis <code>{html.escape(diagnosis_id)}</code> (the "
+                "<code>diagnosis_id</code> of diagnosis.json)</p>"] if diagnosis_id else []),
              f"<pre>{html.escape(diagnosis.text())}</pre>"]
     if hist:
         parts += ["<h2>Watch the error fall (calibrate history)</h2>", f"<img src='{hist}'>"]

@@ -16,14 +16,13 @@ kinematic model.
 from __future__ import annotations
 
 import html
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import ConfigError
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write_json
 from campaign.model.kinematics import pose_error
 
 #: hidden sizes tried by default: the paper's four and one beyond
@@ -98,7 +97,7 @@ class AnnStages:
                 f"<pre>{html.escape(self.table5)}</pre>")
 
 
-def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict, progress=None):
+def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict, progress=None, out_dir=None):
     """Train the residual networks; return ({stage: Δz (n, 6)}, :class:`AnnStages`).
 
     robot: the run's robot (its N joints' limits map the inputs); poses: the measured poses
@@ -111,7 +110,8 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     ``dask`` (a local Dask cluster of ``workers`` on 127.0.0.1), ``device`` ("auto" default:
     "cuda" where torch finds a GPU, else "cpu"; or a torch device), and the solver's own
     hyperparameters (e.g. ``max_epochs``). All (prior, size) trainings of the grid are one map
-    over the executor.
+    over the executor. out_dir: where the networks and ann_cv.json go (default RUN/calibration;
+    `calibrate` gives the new calibration's folder).
     """
     try:
         from campaign.ann import compensate_pose
@@ -119,7 +119,7 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     except ImportError as exc:
         raise ConfigError(f"the neural compensator is unavailable ({exc}); run with --no-ann") from None
 
-    out = Path(run_dir) / "calibration"
+    out = Path(out_dir) if out_dir is not None else Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
     tr = ~np.asarray(is_test, dtype=bool)
     options = dict(options)
@@ -160,5 +160,5 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
         fname = "ann_nominal.pt" if prior == "nominal" else "ann_geometric.pt"
         net.save(out / fname)
         files[stage] = fname
-    atomic_write(out / "ann_cv.json", json.dumps(cv_all, indent=2))
+    atomic_write_json(out / "ann_cv.json", cv_all)
     return residuals, AnnStages(cross_validation=cv_all, files=files, table5=format_table5(cv_all))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import html
 import json
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -22,7 +23,7 @@ import yaml
 
 from campaign.effects.base import effect_context, effect_name, make_effect, parse_effect_list, resolve_effect_spec
 from campaign.errors import ConfigError, DataError, Implausible
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.solver import CalibrationModel
@@ -36,6 +37,7 @@ from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
 from campaign.identify.checks import with_checks
 from campaign.measure.importer import joint_slack
+from campaign.versioned import Version, calibration_folder
 
 CALIBRATION_DIR = "calibration"
 #: fewer training poses than this: `calibrate` trains no network unless asked (``ann=True``).
@@ -84,10 +86,12 @@ class CalibrationResult:
     warnings: tuple = ()
     #: ids of the held-out test poses, in the order of the run's poses (metrics.json's ``test_pose_ids``)
     test_pose_ids: tuple = ()
+    #: the id every output of this calibration carries (campaign.versioned; None when not written)
+    calibration_id: str | None = None
 
     @property
     def metrics(self) -> dict:
-        out = {"stages": self.stages, "order": self.order}
+        out = {"calibration_id": self.calibration_id, "stages": self.stages, "order": self.order}
         first = self.stages[self.order[0]]["test"]
         out["ratio_to_nominal_test"] = {
             name: {block: {k: st["test"][block][k] / max(first[block][k], 1e-300) for k in ("max", "mean", "q90")}
@@ -316,11 +320,21 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         make_effect(name, robot)
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
-        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report, strict)
+        if not write:  # a network trained on the way is saved in a scratch folder, then dropped
+            with tempfile.TemporaryDirectory() as scratch:
+                return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
+                                  strict, Version(None, Path(scratch)))
+        # every output into a new version of RUN/calibration, current only once whole (campaign.versioned)
+        with calibration_folder(run_dir).new_version() as version:
+            result = _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
+                                strict, version)
+    if result.report_path is not None:
+        result = replace(result, report_path=run.calibration_dir / Path(result.report_path).name)
+    return result
 
 
 def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
-               report, strict=False) -> CalibrationResult:
+               report, strict, version) -> CalibrationResult:
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
@@ -443,7 +457,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                 f"({int((~usable).sum())} without a pose skipped)")
         T_prior = {"nominal": T_nom[usable], stage_name(effects): model.predict(poses.q, context)[usable]}
         ann_residuals, ann_stages = run_ann_stages(run_dir, robot, poses.subset(np.flatnonzero(usable)),
-                                                   is_test[usable], T_prior, options=ann_options, progress=progress)
+                                                   is_test[usable], T_prior, options=ann_options, progress=progress,
+                                                   out_dir=version.path)
         for name, dz in ann_residuals.items():
             full = np.full((len(poses), 6), np.nan)
             full[usable] = dz
@@ -455,13 +470,13 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
         noise_floor=noise_floor(run_dir, poses.subset(np.flatnonzero(usable)) if at_origin else poses,
                                 robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
-        folds=None if rule is None else rule.as_json())
+        folds=None if rule is None else rule.as_json(), calibration_id=version.id)
     result = with_checks(result, robot, poses, geo, stage_name(effects))
     if strict and result.warnings:
         raise Implausible(f"{run_dir}: {len(result.warnings)} plausibility warning(s) with --strict "
                           f"({', '.join(w.code for w in result.warnings)}): nothing written", result.warnings)
     if write:
-        _write(result, robot, geo)
+        _write(result, robot, geo, version.path)
     if write and report:
         from campaign.identify.report import write_report
 
@@ -472,7 +487,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                             param_text=parameter_text(model),
                             extra_html=f"<h2>Against the measurement noise</h2>"
                             f"<pre>{html.escape(result.floor_line())}</pre>"
-                            + (result.ann.report_html() if result.ann is not None else ""))
+                            + (result.ann.report_html() if result.ann is not None else ""),
+                            out_dir=version.path, calibration_id=version.id)
         result = replace(result, report_path=Path(page))
     return result
 
@@ -520,11 +536,10 @@ def _param_block(model: CalibrationModel) -> dict:
     return out
 
 
-def _write(result: CalibrationResult, robot, geo) -> None:
-    out = result.run_dir / CALIBRATION_DIR
-    out.mkdir(parents=True, exist_ok=True)
+def _write(result: CalibrationResult, robot, geo, out: Path) -> None:
+    """metrics.json, params.yaml and history.json into ``out``, the new calibration's folder."""
     model = result.model
-    params = {"robot": robot.name, "model_stage": result.order[-1]}
+    params = {"calibration_id": result.calibration_id, "robot": robot.name, "model_stage": result.order[-1]}
     params.update(_param_block(model))
     if result.measured_point_in_tool_m is not None:  # the model's tool frame is this point (one reflector)
         params["measured_point_in_tool_m"] = list(result.measured_point_in_tool_m)
@@ -533,22 +548,26 @@ def _write(result: CalibrationResult, robot, geo) -> None:
     # networks trained by this calibrate run (stage -> file beside params.yaml)
     params["ann_stages"] = dict(result.ann.files) if result.ann is not None else {}
     atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
-    atomic_write(out / "metrics.json", json.dumps(result.metrics, indent=2))
-    # history: one entry per calibrate run, so a report can show the error falling
-    hist_path = out / "history.json"
+    metrics = result.metrics
+    metrics.setdefault("warnings", [])  # plausibility warnings (DESIGN.md): an empty list when none
+    atomic_write_json(out / "metrics.json", metrics)
+    # history: one entry per completed calibrate run, so a report can show the error falling; the
+    # previous calibration's history plus this one (a killed calibrate is in no history)
     history = []
-    if hist_path.is_file():
+    current = calibration_folder(result.run_dir).current()
+    if current is not None and (current / "history.json").is_file():
         try:
-            history = json.loads(hist_path.read_text()).get("runs", [])
+            history = json.loads((current / "history.json").read_text()).get("runs", [])
         except (json.JSONDecodeError, AttributeError):
             history = []
     history.append({
+        "calibration_id": result.calibration_id,
         "time_unix_s": time.time(),
         "effects": list(result.effects),
         "stages": {name: result.stages[name]["test"] for name in result.order},
         "order": result.order,
     })
-    atomic_write(hist_path, json.dumps({"runs": history}, indent=2))
+    atomic_write_json(out / "history.json", {"runs": history})
 
 
 def summary_text(result: CalibrationResult) -> str:

@@ -310,14 +310,17 @@ PAGE_STYLE = ("<style>body{font-family:sans-serif;max-width:1340px;margin:2em au
 
 
 def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is_test,
-                 param_text: str = "", extra_html: str = "", noise_floor="auto") -> Path:
+                 param_text: str = "", extra_html: str = "", noise_floor="auto", out_dir=None,
+                 calibration_id: str | None = None) -> Path:
     """Write ``RUN/calibration/report.html`` and its PNGs; return the HTML path.
 
     residuals: stage name -> Δz (n, 6) for every pose; q (n, N) rad; xyz (n, 3) m measured
     tool positions; is_test (n,) bool. noise_floor: a campaign.measure.floor.NoiseFloor, None,
     or "auto" (:func:`tracker_noise_floor` of the run: repeats, drift checks, stated noise).
+    out_dir: the folder to write into (default RUN/calibration; `calibrate` gives the new
+    calibration's folder); calibration_id: shown on the page (the id of metrics.json and params.yaml).
     """
-    out = Path(run_dir) / "calibration"
+    out = Path(out_dir) if out_dir is not None else Path(run_dir) / "calibration"
     out.mkdir(parents=True, exist_ok=True)
     is_test = np.asarray(is_test, dtype=bool)
     if isinstance(noise_floor, str) and noise_floor == "auto":
@@ -334,6 +337,8 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
         "<!doctype html><meta charset='utf-8'><title>campaign calibration report</title>", PAGE_STYLE,
         f"<h1>Calibration report: {html.escape(str(Path(run_dir).name))}</h1>",
         f"<p>Current model: <b>{html.escape(current)}</b>. Statistics in the shape of the paper's Table 6.</p>",
+        *([f"<p class='calibration-id'>Calibration <code>{html.escape(calibration_id)}</code> (the "
+           "<code>calibration_id</code> of metrics.json, params.yaml and the history)</p>"] if calibration_id else []),
         "<h2>Test set</h2>", f"<pre>{html.escape(table_test)}</pre>",
         "<h2>Training set</h2>", f"<pre>{html.escape(table_train)}</pre>",
     ]

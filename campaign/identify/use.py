@@ -85,9 +85,11 @@ class CalibratedRobot:
     def __init__(self, run_dir, stage: str | None = None, robot: RobotModel | None = None):
         from campaign.identify.calibrate import CALIBRATION_DIR
         from campaign.run import RunFolder
+        from campaign.versioned import calibration_folder
 
         self.run_dir = Path(run_dir)
-        folder = self.run_dir / CALIBRATION_DIR
+        # the current calibration, resolved once: every file below is of that one calibration
+        folder = calibration_folder(self.run_dir).current() or self.run_dir / CALIBRATION_DIR
         metrics_path, params_path = folder / "metrics.json", folder / "params.yaml"
         for path in (metrics_path, params_path):
             if not path.is_file():
@@ -174,7 +176,9 @@ def calibrated_geometry(run_dir) -> tuple:
     """(robot, p_e (6N + 12,)) of a calibrated run: the geometric-only identification."""
     from campaign.identify.calibrate import CALIBRATION_DIR, load_robot_for_run
 
-    params_path = Path(run_dir) / CALIBRATION_DIR / "params.yaml"
+    from campaign.versioned import calibration_folder
+
+    params_path = (calibration_folder(run_dir).current() or Path(run_dir) / CALIBRATION_DIR) / "params.yaml"
     if not params_path.is_file():
         raise DataError(f"{params_path}: not found; run `campaign calibrate {run_dir}` first")
     params = read_yaml_mapping(params_path, DataError)

@@ -17,7 +17,6 @@ suitable pose, the long campaign.
 from __future__ import annotations
 
 import dataclasses
-import json
 import resource
 import time
 from pathlib import Path
@@ -26,7 +25,8 @@ import numpy as np
 
 from campaign.config import CampaignConfig, load_config
 from campaign.errors import ConfigError, PlanError
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write_json
+from campaign.versioned import plan_folder
 from campaign.model.kinematics import frames
 from campaign.plan import checks
 from campaign.plan.grid import Grid, default_cells, iter_tool_points
@@ -180,10 +180,13 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         check_select_size(robot, selection.check())  # before the filters, not after them
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
-        return _plan(run, cfg, robot, scene, grid, progress, selection, mode)
+        # every file of the plan into a new version of RUN/plan, current only once whole (campaign.versioned)
+        with plan_folder(run.path).new_version() as version:
+            return _plan(run, cfg, robot, scene, grid, progress, selection, mode, version)
 
 
-def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection, mode) -> dict:
+def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection, mode,
+          version) -> dict:
     t_start = time.perf_counter()
     timing = {}  # seconds per stage, wall
     clock = [t_start]
@@ -196,7 +199,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     pc = cfg.plan
     cells = grid.cells
     n_reflectors = len(robot.reflectors)
-    out = run.plan_dir
+    out = version.path
     lap("setup")
 
     suitable, counts, checker = _filter_grid(robot, scene, grid, pc.clearance_m, progress)
@@ -278,7 +281,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     write_tour(out, order_final, Q_final, vias, dropped)
     front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, robot.n_joints + 1]) if n else np.zeros(0, bool)
     summary = {
-        "robot": robot.name, "tool_frame": robot.tool_frame, "reflectors": [r.name for r in robot.reflectors],
+        "plan_id": version.id, "robot": robot.name, "tool_frame": robot.tool_frame, "reflectors": [r.name for r in robot.reflectors],
         "scene": str(scene.path), "grid_cells": [int(c) for c in cells],
         "candidates": counts["candidates"],
         "removed_by_filter": counts["removed_by_filter"], "filter_order": counts["filter_order"],
@@ -315,7 +318,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     lap("plot")
     summary["timing_s"] = {**timing, "total": time.perf_counter() - t_start}
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    atomic_write(out / "summary.json", json.dumps(summary, indent=2))
+    atomic_write_json(out / "summary.json", summary)
     return summary
 
 
