@@ -30,7 +30,7 @@ from pathlib import Path
 from campaign.config import CampaignConfig, check_names, load_config, parse_config, write_run_config
 from campaign.errors import ConfigError, DataError, RunBusy, RunHoldsMeasurements, StorageError
 from campaign.fileio import atomic_write, read_yaml_mapping
-from campaign.measure.store import MEASUREMENTS_FILE
+from campaign.measure.store import MEASUREMENTS_FILE, check_integrity
 from campaign.paths import DEFAULT_CONFIG
 
 CONFIG_FILE = "campaign.yaml"
@@ -61,6 +61,7 @@ class RunFolder:
     def __init__(self, path, *, config=None):
         self.path = Path(path)
         self._config_override = config
+        self._checked = False  # the log's integrity (campaign.measure.store.check_integrity)
 
     def __repr__(self) -> str:
         return f"RunFolder({str(self.path)!r})"
@@ -111,7 +112,10 @@ class RunFolder:
         if self._config_override is not None:
             return load_config(self._config_override)
         if self.has_config:
-            return load_config(self.config_path)
+            cfg = load_config(self.config_path)
+            if read_yaml_mapping(self.config_path).get("robot") is None:  # e.g. an emptied file
+                cfg = self._recorded_robot_config(cfg)
+            return cfg
         cfg = load_config(DEFAULT_CONFIG)
         self._check_recorded_robot(cfg)
         return cfg
@@ -126,10 +130,25 @@ class RunFolder:
             raise ConfigError(f"{self.path}: its measurements record robot {recorded!r} but it has no {CONFIG_FILE}; "
                               f"write one with `robot: <name or path>`")
 
+    def _recorded_robot_config(self, cfg):
+        """``cfg`` for the robot the measurement log records (campaign.measure.robot_record),
+        when it records one; else ``cfg`` as it is."""
+        from campaign.measure.robot_record import META_KEY
+
+        recorded = self.meta(META_KEY)
+        if not recorded or not recorded.get("spec"):
+            return cfg
+        return cfg.with_robot(recorded["spec"], recorded.get("tool_frame"), recorded.get("base_frame"))
+
     @functools.cached_property
     def _robot(self):
+        from campaign.measure.robot_record import META_KEY, check_same_robot
+
         cfg = self.config
-        return load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
+        robot = load_robot(cfg.robot_spec, tool_frame=cfg.tool_frame, base_frame=cfg.base_frame)
+        # the configuration names the robot the log was measured with, or the command is refused
+        check_same_robot(self.meta(META_KEY), robot, self.measurements_path, cfg.path)
+        return robot
 
     def robot(self):
         """The run's RobotModel: ``RobotModel.load(cfg.robot, tool_frame=..., base_frame=...)``,
@@ -179,6 +198,9 @@ class RunFolder:
         except sqlite3.Error as exc:
             raise StorageError(f"{self.measurements_path}: cannot open ({exc})") from None
         try:
+            if not self._checked:  # once per RunFolder: a damaged log is one line, never rewritten
+                check_integrity(db, self.measurements_path)
+                self._checked = True
             yield db
         except sqlite3.OperationalError as exc:
             raise StorageError(f"{self.measurements_path}: cannot read ({exc})") from None

@@ -122,6 +122,8 @@ class VersionedFolder:
         finally:
             if not ok:
                 shutil.rmtree(staging, ignore_errors=True)
+                with contextlib.suppress(OSError):
+                    self.store_dir.rmdir()  # only when empty: a failed first version leaves no trace
         self.publish(Version(vid, staging))
 
     def publish(self, version: Version) -> Path:

@@ -3,6 +3,7 @@ the command line (synth -> import -> calibrate -> diagnose -> export). The truth
 the pipeline has answered."""
 
 import json
+import sqlite3
 from importlib import metadata
 from pathlib import Path
 
@@ -178,7 +179,11 @@ def test_data_that_do_not_fit_the_runs_robot_name_robot_and_pose(tmp_path, capsy
     run = tmp_path / "run"
     assert main(["import", str(csv_path), "--run", str(run), "--robot", urdf, "--tool-frame", "tool0",
                  "--quiet"]) == 0
-    # the run is told another robot afterwards: calibrate names that robot and the first pose outside it
+    # a log written before the robot record (campaign.measure.robot_record; a log that records it refuses
+    # another robot at once, tests/test_trust_log.py), told another robot afterwards: calibrate names
+    # that robot and the first pose outside it
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        db.execute("DELETE FROM meta WHERE key = 'robot_record'")
     cfg = run / "campaign.yaml"
     cfg.write_text(cfg.read_text().replace(urdf, "comau_racer5_080").replace("tool_frame: tool0\n", ""))
     capsys.readouterr()

@@ -597,5 +597,6 @@ def summary_text(result: CalibrationResult) -> str:
         lines.append(result.ann_skipped)
     lines.append(result.floor_line())
     lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml"
-                 + (", report.html" if result.report_path is not None else ""))
+                 + (", report.html" if result.report_path is not None else "")
+                 + (f" (calibration {result.calibration_id})" if result.calibration_id else ""))
     return "\n".join(lines)

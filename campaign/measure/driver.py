@@ -282,6 +282,7 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
     try:
         with open_run(run_dir, create=True) as store:
             store.use_wal()
+            store.record_robot(robot)  # the robot these measurements belong to (checked when recorded)
             epoch = int(store.get_meta("id_epoch", 0))
             if retry_failed:
                 forgotten = store.forget_failed()

@@ -99,17 +99,31 @@ class MeasurementStore:
         self.path = Path(path)
         if not create and not self.path.is_file():
             raise DataError(f"{self.path}: no measurement log here")
+        existing = self.path.is_file() and self.path.stat().st_size > 0
         try:
             self._db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT_S)
+            if existing:  # before anything could write to it
+                check_integrity(self._db, self.path)
             self._db.executescript(SCHEMA)
             cols = [r[1] for r in self._db.execute("PRAGMA table_info(poses)")]
             if "q_json" not in cols:  # a log written before robots with N != 6 joints
                 with self._db:
                     self._db.execute("ALTER TABLE poses ADD COLUMN q_json TEXT")
         except sqlite3.OperationalError as exc:
+            self._close_quietly()
             raise StorageError(f"{self.path}: cannot open the measurement log ({exc})") from None
         except sqlite3.DatabaseError as exc:
+            self._close_quietly()
             raise DataError(f"{self.path}: not a measurement log ({exc})") from None
+        except DataError:
+            self._close_quietly()
+            raise
+
+    def _close_quietly(self):
+        db = getattr(self, "_db", None)
+        if db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                db.close()
 
     def __enter__(self):
         return self
@@ -149,6 +163,21 @@ class MeasurementStore:
     def get_meta(self, key: str, default=None):
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
         return default if row is None else json.loads(row[0])
+
+    def record_robot(self, robot) -> dict:
+        """The robot the log was measured with (campaign.measure.robot_record): recorded now when
+        the log has no record yet, else checked: a ConfigError line when ``robot`` is another."""
+        from campaign.measure.robot_record import META_KEY, check_same_robot, robot_record
+
+        recorded = self.get_meta(META_KEY)
+        if recorded is None:
+            recorded = robot_record(robot)
+            self.set_meta(META_KEY, recorded)
+            if self.get_meta("robot") is None:
+                self.set_meta("robot", robot.name)
+            return recorded
+        check_same_robot(recorded, robot, self.path, "the configuration")
+        return recorded
 
     # -- poses ------------------------------------------------------------------------
     def add_pose(self, rec: PoseRecord) -> None:
@@ -282,6 +311,31 @@ class MeasurementStore:
         return poses.subset(np.flatnonzero(usable))
 
 
+def damaged_message(path, detail) -> str:
+    """One line: the log is damaged, nothing was changed, what to do."""
+    return (f"{path}: the measurement log is damaged (SQLite: {detail}); nothing was changed or rewritten: restore "
+            f"it from a backup, or recover what is readable into a new log with "
+            f"`sqlite3 {path} .recover | sqlite3 recovered.sqlite`")
+
+
+def check_integrity(db, path) -> None:
+    """DataError (one line, :func:`damaged_message`) when SQLite's ``PRAGMA integrity_check`` of
+    the open connection ``db`` finds damage or cannot read the file at all (a page of random
+    bytes: ``sqlite3.DatabaseError``). Reads only."""
+    try:
+        rows = db.execute("PRAGMA integrity_check").fetchall()
+    except sqlite3.OperationalError as exc:
+        if "locked" in str(exc) or "busy" in str(exc):
+            raise StorageError(f"{path}: cannot open the measurement log ({exc})") from None
+        raise DataError(damaged_message(path, exc)) from None
+    except sqlite3.DatabaseError as exc:
+        raise DataError(damaged_message(path, exc)) from None
+    if rows != [("ok",)]:
+        detail = str(rows[0][0]) if rows else "no answer"
+        more = f" and {len(rows) - 1} more" if len(rows) > 1 else ""
+        raise DataError(damaged_message(path, f"{detail}{more}"))
+
+
 def open_run(run_dir, *, create: bool = False) -> MeasurementStore:
     """The measurement log of a run folder."""
     run_dir = Path(run_dir)
@@ -322,7 +376,7 @@ def write_imported(poses, run_dir, *, source: dict, robot=None) -> int:
         with MeasurementStore(tmp) as store:
             store.set_meta("source", source)
             if robot is not None:
-                store.set_meta("robot", robot.name)
+                store.record_robot(robot)
             for part in chunks:
                 if n == 0:
                     store.set_meta("kind", part.kind)
