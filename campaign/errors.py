@@ -69,3 +69,8 @@ class Implausible(CampaignError):
     def __init__(self, message: str, warnings=()):
         super().__init__(message)
         self.warnings = tuple(warnings)
+
+
+class PluginError(CampaignError):
+    """A user's effect (``file.py:Class``) or an installed plug-in failed in one of its hooks:
+    it raised, or returned the wrong shape or values that are not finite."""

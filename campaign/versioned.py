@@ -119,6 +119,10 @@ class VersionedFolder:
         try:
             yield Version(vid, staging)
             ok = True
+        except OSError as exc:  # a full disk, a file too large, ...: one line, the current version kept
+            where = f" writing {Path(exc.filename).name}" if exc.filename else ""
+            raise StorageError(f"{self.link}: cannot write the new version ({exc.strerror or exc}{where}); "
+                               f"nothing of it was kept, the current one is unchanged") from None
         finally:
             if not ok:
                 shutil.rmtree(staging, ignore_errors=True)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import ConfigError
+from campaign.errors import ConfigError, DataError, PluginError
 
 _REGISTRY: dict = {}
 
@@ -137,6 +137,9 @@ def make_effect(name: str, robot, **options) -> "Effect":
         effect = cls(robot, **options)
     except TypeError as exc:
         raise ConfigError(f"effect '{name}': {exc}") from None
+    except Exception as exc:  # the plug-in's own code: one line, whatever it raised
+        raise PluginError(f"{_where(cls)}.__init__(robot) raised {exc.__class__.__name__}: {_clip(exc)}; "
+                          "expected it to build the effect") from None
     if len(effect.param_names) != len(effect.param_units):
         raise ConfigError(f"effect '{name}': {len(effect.param_names)} param_names but "
                           f"{len(effect.param_units)} param_units")
@@ -236,6 +239,41 @@ class EffectSet:
     def param_units(self) -> tuple:
         return tuple(u for e in self.effects for u in e.param_units)
 
+    def _hook(self, effect, hook: str, result_shape, optional: bool, *args):
+        """``effect.<hook>(*args)`` checked: a PluginError line (the file, the class, the hook,
+        what was expected and what came back) when it raises, or returns another shape than
+        ``result_shape`` or values that are not finite; None passes when ``optional``."""
+        expected = f"None or an array of shape {result_shape}" if optional else f"an array of shape {result_shape}"
+        sig = HOOK_SIGNATURES[hook]
+        try:
+            out = getattr(effect, hook)(*args)
+        except Exception as exc:  # the plug-in's own code: one line, whatever it raised
+            raise PluginError(f"{_where(type(effect))}.{hook}{sig} raised {exc.__class__.__name__}: "
+                              f"{_clip(exc)}; expected {expected}") from None
+        if out is None and optional:
+            return None
+        try:
+            arr = np.asarray(out, dtype=float)
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.shape != tuple(result_shape):
+            got = f"shape {arr.shape}" if arr is not None else f"a {type(out).__name__}"
+            raise PluginError(f"{_where(type(effect))}.{hook}{sig} returned {got}; expected {expected}")
+        bad = ~np.isfinite(arr)
+        if bad.any() and all(np.isfinite(np.asarray(a, dtype=float)).all() for a in args[:-1]):
+            context = (args[-1] or {}) if args else {}
+            lacking = [k for k in effect.context_keys if k in context
+                       and not np.isfinite(np.asarray(context[k], dtype=float)).all()]
+            if lacking:  # not the plug-in's fault: the data lack what it needs
+                n = int(sum((~np.isfinite(np.asarray(context[k], dtype=float))).sum() for k in lacking))
+                raise DataError(f"effect '{effect.name}' needs the context {', '.join(lacking)} for every pose; "
+                                f"{n} values are missing (the measurements have no {lacking[0]} column?)")
+            kinds = sorted({"NaN" if np.isnan(v) else "inf" for v in arr[bad][:1000]})
+            raise PluginError(f"{_where(type(effect))}.{hook}{sig} returned {int(bad.sum())} of {arr.size} values "
+                              f"not finite ({', '.join(kinds)}) for finite parameters and joints; expected {expected}, "
+                              "every value finite")
+        return arr
+
     def split(self, theta):
         """Flat vector -> list of per-effect parameter arrays."""
         theta = np.asarray(theta, dtype=float)
@@ -248,7 +286,7 @@ class EffectSet:
     def initial_params(self) -> np.ndarray:
         if not self.effects:
             return np.zeros(0)
-        return np.concatenate([e.initial_params() for e in self.effects])
+        return np.concatenate([self._hook(e, "initial_params", (e.n_params,), False) for e in self.effects])
 
     def check_context(self, context, n):
         for e in self.effects:
@@ -258,7 +296,7 @@ class EffectSet:
         """Σ Δq over the effects, (n, 6) rad."""
         dq = np.zeros_like(q)
         for e, th in zip(self.effects, self.split(theta)):
-            d = e.joint_offset(th, q, context)
+            d = self._hook(e, "joint_offset", q.shape, True, th, q, context)
             if d is not None:
                 dq = dq + d
         return dq
@@ -267,7 +305,7 @@ class EffectSet:
         """Σ ξ over the effects, (n, N, 6), or None when no effect has twists."""
         total = None
         for e, th in zip(self.effects, self.split(theta)):
-            xi = e.joint_twist(th, q, context)
+            xi = self._hook(e, "joint_twist", (*q.shape, 6), True, th, q, context)
             if xi is not None:
                 total = xi if total is None else total + xi
         return total
@@ -278,8 +316,29 @@ class EffectSet:
 
     def pose_map(self, theta, T_IE, q, context):
         for e, th in zip(self.effects, self.split(theta)):
-            T_IE = e.pose_map(th, T_IE, q, context)
+            T_IE = self._hook(e, "pose_map", np.shape(T_IE), False, th, T_IE, q, context)
         return T_IE
+
+
+#: how each checked hook is called (named in a plug-in's error line)
+HOOK_SIGNATURES = {"initial_params": "()", "joint_offset": "(params, q, context)",
+                   "joint_twist": "(params, q, context)", "pose_map": "(params, T_IE, q, context)"}
+
+
+def _where(cls) -> str:
+    """``/path/file.py:ClassName`` of a plug-in's class (its module when it has no file)."""
+    import inspect
+
+    try:
+        where = inspect.getsourcefile(cls) or cls.__module__
+    except TypeError:
+        where = cls.__module__
+    return f"effect {where}:{cls.__name__}"
+
+
+def _clip(exc, n: int = 200) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= n else text[: n - 1] + "…"
 
 
 def has_twist(effect) -> bool:

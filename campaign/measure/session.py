@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from campaign.errors import ConfigError
+import contextlib
+import os
+
+from campaign.errors import CampaignError, ConfigError
 from campaign.measure.driver import RunOptions, RunResult, measured_robot, read_plan, run_campaign
 from campaign.run import RunFolder
 
@@ -56,7 +59,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
             make_effect(name, robot)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
               verbose=verbose, plan=plan, frame=frame, key=key)
-    with run.lock("run"):
+    with run.lock("run"), _no_empty_log(run):
         if sim:
             from campaign.sim.launcher import SimulatedCell
 
@@ -68,3 +71,23 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
             with ServeProcess(cell, cfg.path, run.path, start_clock_s=run.clock_s(), options=options) as served:
                 return run_campaign(run.path, robot, served.controller, served.tracker, opts, **kw)
         return run_campaign(run.path, robot, controller, tracker, opts, **kw)
+
+
+@contextlib.contextmanager
+def _no_empty_log(run):
+    """A log this session created is removed again when the session fails before it stored a
+    pose (a full disk before the first pose, a cell that cannot be reached): the run folder is
+    then as it was."""
+    created = not run.measurements_path.exists()
+    try:
+        yield
+    except BaseException:
+        try:
+            empty = created and run.measurements_path.exists() and RunFolder(run.path).stored_pose_count() == 0
+        except CampaignError:
+            empty = False
+        if empty:
+            for suffix in ("", "-wal", "-shm", "-journal"):
+                with contextlib.suppress(OSError):
+                    os.unlink(f"{run.measurements_path}{suffix}")
+        raise
