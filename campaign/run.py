@@ -5,9 +5,13 @@ Layout (DESIGN.md)::
 
     RUN/campaign.yaml          the run's configuration: robot (+ tool_frame, base_frame), scene, effects, ...
     RUN/plan/                  poses.csv, vias.csv, dropped.csv, summary.json, tour.png   (`campaign plan`)
-    RUN/measurements.sqlite    the measurement log                                         (`run`, `import`)
+    RUN/measurements.sqlite    the measurement log, with its robot's record                (`run`, `import`)
     RUN/calibration/           metrics.json, params.yaml, history.json, report.html        (`calibrate`)
     RUN/diagnose/              diagnosis.json, report.html                                 (`diagnose`)
+
+RUN/plan, RUN/calibration and RUN/diagnose are links to one complete version each
+(RUN/plans/<id>/, RUN/calibrations/<id>/, RUN/diagnoses/<id>/), replaced whole by
+campaign.versioned (docs/files.md).
     RUN/sim/                   the simulated cell's own files (its truth: never read by plan/calibrate/diagnose)
     RUN/.lock                  held by the one command that writes into the run (RunFolder.lock)
 
