@@ -91,7 +91,7 @@ def register(sub):
                         "cpu, cuda, cuda:N")
     p.add_argument("--no-report", action="store_true",
                    help="skip the HTML report and its plots (metrics.json, params.yaml and history.json are written; "
-                        "a report of an earlier calibrate is left as it was)")
+                        "the new calibration has no report: an earlier one's described another model)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_calibrate)
 
