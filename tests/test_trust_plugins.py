@@ -17,6 +17,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import yaml
 
@@ -163,3 +164,46 @@ def test_a_full_disk_before_the_first_pose_of_run_is_one_line_and_no_log(tmp_pat
                      r"full)\)", err), err
     assert not (run / "measurements.sqlite").exists()
     assert {k: v for k, v in folder_state(run).items() if not k.startswith("sim")} == before
+
+
+def test_a_constructor_that_raises_and_initial_params_of_the_wrong_length_are_one_line_each(tmp_path, robot):
+    from campaign.effects.base import EffectSet, make_effect
+    from campaign.errors import ConfigError, PluginError
+
+    (tmp_path / "more.py").write_text('''
+from campaign.effects import Effect
+from campaign.errors import ConfigError
+
+
+class Fails(Effect):
+    name = "fails"
+
+    def __init__(self, robot):
+        raise RuntimeError("no calibration table for this robot")
+
+
+class ShortStart(Effect):
+    name = "short_start"
+    param_names, param_units = ("a", "b"), ("m", "m")
+
+    def initial_params(self):
+        return [0.0]
+
+
+class SaysWhy(Effect):
+    name = "says_why"
+    param_names, param_units = ("a",), ("m",)
+
+    def pose_map(self, params, T_IE, q, context):
+        raise ConfigError("says_why: needs a payload_kg column")
+''')
+    with pytest.raises(PluginError, match=r"more\.py:Fails\.__init__\(robot\) raised RuntimeError: no calibration "
+                                          r"table for this robot; expected it to build the effect"):
+        make_effect(f"{tmp_path / 'more.py'}:Fails", robot)
+    short = EffectSet((make_effect(f"{tmp_path / 'more.py'}:ShortStart", robot),))
+    with pytest.raises(PluginError, match=r"ShortStart\.initial_params\(\) returned shape \(1,\); expected an array "
+                                          r"of shape \(2,\)"):
+        short.initial_params()
+    why = EffectSet((make_effect(f"{tmp_path / 'more.py'}:SaysWhy", robot),))
+    with pytest.raises(ConfigError, match=r"^says_why: needs a payload_kg column$"):  # a line said on purpose, as it is
+        why.pose_map([0.0], np.tile(np.eye(4), (2, 1, 1)), np.zeros((2, 6)), {})

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import ConfigError, DataError, PluginError
+from campaign.errors import CampaignError, ConfigError, DataError, PluginError
 
 _REGISTRY: dict = {}
 
@@ -137,6 +137,8 @@ def make_effect(name: str, robot, **options) -> "Effect":
         effect = cls(robot, **options)
     except TypeError as exc:
         raise ConfigError(f"effect '{name}': {exc}") from None
+    except CampaignError:
+        raise
     except Exception as exc:  # the plug-in's own code: one line, whatever it raised
         raise PluginError(f"{_where(cls)}.__init__(robot) raised {exc.__class__.__name__}: {_clip(exc)}; "
                           "expected it to build the effect") from None
@@ -247,6 +249,8 @@ class EffectSet:
         sig = HOOK_SIGNATURES[hook]
         try:
             out = getattr(effect, hook)(*args)
+        except CampaignError:  # said on purpose, in one line already
+            raise
         except Exception as exc:  # the plug-in's own code: one line, whatever it raised
             raise PluginError(f"{_where(type(effect))}.{hook}{sig} raised {exc.__class__.__name__}: "
                               f"{_clip(exc)}; expected {expected}") from None
