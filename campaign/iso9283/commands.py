@@ -15,13 +15,12 @@ def register(sub):
 
 
 def _iso9283(args):
-    import json
-
+    from campaign.fileio import strict_json
     from campaign.iso9283.report import iso9283_report, table_text
 
     doc = iso9283_report(args.run, args.calibrated)
     if args.json:
-        print(json.dumps(doc, indent=2, allow_nan=False))
+        print(strict_json(doc))
     else:
         print(table_text(doc))
         print(f"written: {args.run}/iso9283/report.json, report.html")

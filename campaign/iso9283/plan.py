@@ -15,14 +15,14 @@ calibrated run whose model corrected the commands (``campaign compensate``).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import ConfigError, PlanError
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write_json
+from campaign.versioned import plan_folder
 
 #: the order of one cycle (ISO 9283, 7.2.1)
 CYCLE_ORDER = (1, 5, 4, 3, 2)
@@ -274,13 +274,20 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
 
 
 def _write(run, cfg, robot, scene, grid, suitable, cube, q_nominal, q_command, ids, Q, cycles, compensation, t0):
+    # every file of the plan into a new version of RUN/plan, current only once whole (campaign.versioned)
+    with plan_folder(run.path).new_version() as version:
+        return _write_version(version, run, cfg, robot, scene, grid, suitable, cube, q_nominal, q_command, ids, Q,
+                              cycles, compensation, t0)
+
+
+def _write_version(version, run, cfg, robot, scene, grid, suitable, cube, q_nominal, q_command, ids, Q, cycles,
+                   compensation, t0):
     from campaign.model.kinematics import frames
     from campaign.plan.outputs import write_tour
     from campaign.plan.timing import path_time
 
     pc = cfg.plan
-    out = run.plan_dir
-    out.mkdir(parents=True, exist_ok=True)
+    out = version.path
     run.write_config(cfg)
     write_tour(out, ids, Q, {}, [])
     motion_s = path_time(robot, Q) if len(Q) > 1 else 0.0
@@ -300,10 +307,10 @@ def _write(run, cfg, robot, scene, grid, suitable, cube, q_nominal, q_command, i
                   for k, n in enumerate(names)],
         "compensated_with": compensation,
     }
-    atomic_write(out / "iso9283.json", json.dumps(iso, indent=2))
+    atomic_write_json(out / "iso9283.json", iso)
     front = scene.side_of_wall(frames(robot, Q)[1][:, robot.n_joints + 1])
     summary = {
-        "robot": robot.name, "tool_frame": robot.tool_frame, "reflectors": [r.name for r in robot.reflectors],
+        "plan_id": version.id, "robot": robot.name, "tool_frame": robot.tool_frame, "reflectors": [r.name for r in robot.reflectors],
         "scene": str(scene.path), "grid_cells": [int(c) for c in grid.cells], "candidates": int(grid.size),
         "suitable": int(len(suitable)), "suitable_fraction": len(suitable) / grid.size,
         "groups": {"front_of_wall": int(front.sum()), "behind_wall": int((~front).sum())},
@@ -320,5 +327,5 @@ def _write(run, cfg, robot, scene, grid, suitable, cube, q_nominal, q_command, i
                                "seconds_per_pose": total / len(Q)},
     }
     summary["timing_s"] = {"total": time.perf_counter() - t0}
-    atomic_write(out / "summary.json", json.dumps(summary, indent=2))
+    atomic_write_json(out / "summary.json", summary)
     return summary

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import DataError
-from campaign.fileio import atomic_write
+from campaign.fileio import atomic_write, atomic_write_json
 from campaign.iso9283.figures import pose_figures
 
 #: targets of two runs are the same test when they agree this well (m, and per matrix entry)
@@ -132,7 +132,7 @@ def iso9283_report(run_dir, calibrated=None) -> dict:
     }
     out = Path(run_dir) / "iso9283"
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / "report.json", json.dumps(doc, indent=2, allow_nan=False))
+    atomic_write_json(out / "report.json", doc)
     atomic_write(out / "report.html", _html(doc))
     return doc
 
