@@ -193,6 +193,8 @@ def _calibrate(args):
     for key in ("workers", "scheduler", "device"):
         if getattr(args, key) is not None:
             ann_options[key] = getattr(args, key)
+    if args.ann is False and args.device == "auto":  # no network: torch (2.5 s to import) is not needed
+        ann_options.pop("device")
     if args.ann_solver:
         ann_options["solver"] = args.ann_solver
     if args.dask:
