@@ -288,7 +288,6 @@ def _write_version(version, run, cfg, robot, scene, grid, suitable, cube, q_nomi
 
     pc = cfg.plan
     out = version.path
-    run.write_config(cfg)
     write_tour(out, ids, Q, {}, [])
     motion_s = path_time(robot, Q) if len(Q) > 1 else 0.0
     per_pose = pc.settle_time_s + len(robot.reflectors) * pc.tracker_time_per_reflector_s
@@ -328,4 +327,5 @@ def _write_version(version, run, cfg, robot, scene, grid, suitable, cube, q_nomi
     }
     summary["timing_s"] = {"total": time.perf_counter() - t0}
     atomic_write_json(out / "summary.json", summary)
+    run.write_config(cfg)  # last: a plan that fails on the way leaves the run's campaign.yaml as it was
     return summary

@@ -277,7 +277,6 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     if n == 0:
         raise PlanError(f"{cfg.path}: every one of the {len(order):,} suitable poses was dropped from the tour "
                         f"(no collision-free motion at plan.motion_clearance_m = {mc:g} m)")
-    run.write_config(cfg)
     write_tour(out, order_final, Q_final, vias, dropped)
     front_final = scene.side_of_wall(frames(robot, Q_final)[1][:, robot.n_joints + 1]) if n else np.zeros(0, bool)
     summary = {
@@ -319,6 +318,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     summary["timing_s"] = {**timing, "total": time.perf_counter() - t_start}
     summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     atomic_write_json(out / "summary.json", summary)
+    run.write_config(cfg)  # last: a plan that fails on the way leaves the run's campaign.yaml as it was
     return summary
 
 
