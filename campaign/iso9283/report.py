@@ -6,7 +6,8 @@ are those of the commands it was planned with: nominal, or corrected by a calibr
 the same cube (the compensated commands), so one report shows both. Writes
 ``RUN/iso9283/report.json`` (``poses``: one entry per test pose, P1..P5, with ``AP_p_mm``,
 ``RP_l_mm`` and the other figures of RUN, and ``nominal`` / ``calibrated`` blocks) and
-``RUN/iso9283/report.html``.
+``RUN/iso9283/report.html``, both of one evaluation (``iso9283_id``): ``RUN/iso9283`` is a link to
+the newest complete one, replaced atomically (campaign/versioned.py).
 """
 
 from __future__ import annotations
@@ -130,10 +131,15 @@ def iso9283_report(run_dir, calibrated=None) -> dict:
                             "RP_l_mm_max": max(f.RP_l_mm for f in b["poses"].values())}
                     for label, b in blocks.items()},
     }
-    out = Path(run_dir) / "iso9283"
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / "report.json", doc)
-    atomic_write(out / "report.html", _html(doc))
+    from campaign.run import RunFolder
+    from campaign.versioned import VersionedFolder
+
+    # report.json and report.html of one evaluation are published together (campaign/versioned.py)
+    folder = VersionedFolder(Path(run_dir), "iso9283", "iso9283_reports", keep=2)
+    with RunFolder(run_dir).lock("iso9283"), folder.new_version() as version:
+        doc["iso9283_id"] = version.id
+        atomic_write_json(version.path / "report.json", doc)
+        atomic_write(version.path / "report.html", _html(doc))
     return doc
 
 
@@ -213,6 +219,7 @@ def _html(doc: dict) -> str:
 <style>body{{font-family:sans-serif;margin:2em;max-width:70em}} table{{border-collapse:collapse}}
 td,th{{border:1px solid #bbb;padding:2px 6px;text-align:right}} .charts svg{{margin-right:2em}}</style></head><body>
 <h1>ISO 9283 pose accuracy and repeatability</h1>
+<p>Evaluation {html.escape(doc.get("iso9283_id") or "")}</p>
 <p>{html.escape(doc['standard'])}. Run <code>{html.escape(doc['run'])}</code>{'' if not doc['calibrated_run'] else
  ', calibrated: <code>' + html.escape(doc['calibrated_run']) + '</code>'}. {doc['cycles']} cycles of P1, P5, P4, P3, P2;
 cube edge {1e3 * cube['edge_m']:.1f} mm, centre ({', '.join(f'{1e3 * c:.1f}' for c in cube['centre_m'])}) mm in F_I,
