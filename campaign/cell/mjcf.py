@@ -38,6 +38,8 @@ import numpy as np
 #: positive mass matrix, and the armature adds inertia only along the joint axis
 MIN_MASS_KG = 1e-6
 MIN_INERTIA_KGM2 = 1e-9
+#: smallest side (m) of the cubes a collision mesh is cut into (:func:`mesh_pieces`)
+MESH_PIECE_MIN_M = 0.03
 
 
 def body_name(k: int, n_joints: int) -> str:
@@ -107,6 +109,40 @@ def _inertial(body, mass, com, inertia, moving):
                               inertia[1, 2]]))
 
 
+def mesh_pieces(vertices, faces, size) -> list:
+    """A mesh cut into pieces whose convex hulls hug it: its triangles grouped by the cube of
+    side ``max(min(size), MESH_PIECE_MIN_M)`` of its bounding box (``size``, centred on the
+    frame's origin) that holds their centroid; a piece too flat or small for a hull joins the
+    next. Each piece (vertices (V, 3), faces (F, 3)) holds whole triangles, so the hulls cover
+    the surface. MuJoCo collides a mesh as its convex hull: a long or bent link's single hull
+    would touch what the link itself does not."""
+    v, f = np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
+    ext = np.maximum(np.asarray(size, dtype=float), 1e-9)
+    side = max(float(ext.min()), MESH_PIECE_MIN_M)
+    dims = np.maximum(1, np.ceil(ext / side - 1e-9)).astype(int)
+    cell = np.clip(np.floor((v[f].mean(axis=1) + 0.5 * ext) / side).astype(int), 0, dims - 1)
+    key = np.ravel_multi_index(cell.T, dims)
+    order = np.argsort(key, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(key[order])) + 1)
+    pieces, carry = [], np.zeros(0, dtype=np.int64)
+    for group in groups:
+        tri = np.concatenate([carry, group])
+        used, inverse = np.unique(f[tri], return_inverse=True)
+        pv = v[used]
+        if len(used) < 4 or np.linalg.matrix_rank(pv - pv.mean(axis=0), tol=1e-6) < 3:
+            carry = tri
+            continue
+        pieces.append((pv, inverse.reshape(-1, 3)))
+        carry = np.zeros(0, dtype=np.int64)
+    if len(carry):
+        if not pieces:
+            return [(v, f)]
+        pv, pf = pieces.pop()
+        used, inverse = np.unique(np.concatenate([f[carry], np.zeros((0, 3), dtype=np.int64)]), return_inverse=True)
+        pieces.append((np.vstack([pv, v[used]]), np.vstack([pf, inverse.reshape(-1, 3) + len(pv)])))
+    return pieces
+
+
 def _geom(parent, name, kind, size, T, assets, mesh=None):
     g = ET.SubElement(parent, "geom")
     g.set("name", name)
@@ -120,16 +156,23 @@ def _geom(parent, name, kind, size, T, assets, mesh=None):
         g.set("type", "sphere")
         g.set("size", _f([size[0]]))
     elif kind == "mesh":
-        mname = f"mesh{len(assets)}"
-        a = ET.Element("mesh")
-        a.set("name", mname)
-        a.set("vertex", _f(mesh.vertices))
-        a.set("face", " ".join(str(int(i)) for i in np.ravel(mesh.faces)))
-        # the convex hull's volume (MuJoCo collides with the hull): open or flat meshes compile too
-        a.set("inertia", "convex")
-        assets.append(a)
-        g.set("type", "mesh")
-        g.set("mesh", mname)
+        pieces = mesh_pieces(mesh.vertices, mesh.faces, size)
+        parent.remove(g)
+        for k, (v, f) in enumerate(pieces):
+            mname = f"mesh{len(assets)}"
+            a = ET.Element("mesh")
+            a.set("name", mname)
+            a.set("vertex", _f(v))
+            a.set("face", " ".join(str(int(i)) for i in np.ravel(f)))
+            # the convex hull's volume (MuJoCo collides with the hull): open or flat meshes compile too
+            a.set("inertia", "convex")
+            assets.append(a)
+            piece = ET.SubElement(parent, "geom", name=name if len(pieces) == 1 else f"{name}.{k}", type="mesh",
+                                  mesh=mname)
+            _place(piece, T)
+            piece.set("contype", "1")
+            piece.set("conaffinity", "1")
+        return None
     else:
         raise ValueError(f"geometry kind {kind!r}")
     _place(g, T)

@@ -293,7 +293,8 @@ class Twin:
         q = np.asarray(q, dtype=float).reshape(self.robot.n_joints)
         m, d = self.model, self.data
         with self.lock:
-            if self.q_cmd is None:  # the arm stands at rest where the operator put it
+            placed = self.q_cmd is None
+            if placed:  # the arm stands at rest where the operator put it
                 start = np.array(self.opts.start_q if self.opts.start_q is not None else q)
                 d.qpos[:] = start
                 d.qvel[:] = 0.0
@@ -329,6 +330,8 @@ class Twin:
                 d.qpos[:], d.qvel[:] = saved[0], saved[1]
                 d.ctrl[:] = q_from
                 mujoco.mj_kinematics(m, d)
+                if placed:  # not a pose to go back to: the operator places the arm again at the next move
+                    self.q_cmd = None
                 raise
             finally:
                 self.stats["motions"] += 1
