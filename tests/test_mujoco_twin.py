@@ -1,0 +1,153 @@
+"""Issue 21, item 3: the MuJoCo twin (`--cell mujoco`), checked against references outside it.
+
+The truth's geometry is read back from RUN/cell/truth.yaml only after the twin has answered and
+written as a URDF (campaign.model.export), which Pinocchio parses on its own: its forward
+kinematics places the reflectors, its generalized gravity gives the sag the servos' stiffness
+must produce. The tracker's lost beam and the planted collision use boxes written into the scene
+file the twin reads, as a user would move one into the cell."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from campaign.cell import CellContext, RobotFault, load_adapters
+from campaign.config import load_config
+from campaign.model.export import write_calibrated_urdf
+from campaign.model.robot import RobotModel
+from campaign.paths import DEFAULT_SCENE
+
+#: two poses of the COMAU's default short campaign (default cell) whose reflectors all face the tracker
+#: with 4° to spare, and whose tool passes 0.25 m from both on the motion between them
+Q_A = np.array([0.0, 0.2478, 0.048, -0.2468, -0.2851, -1.5708])
+Q_B = np.array([-0.345, -0.5061, -0.3726, 0.2468, 0.8552, -2.8274])
+
+
+def _cell(tmp_path, extra_obstacles=(), controller=None, tracker=None):
+    """The twin's two adapters for a run in tmp_path whose scene is the default cell plus
+    ``extra_obstacles`` (scene entries)."""
+    scene = yaml.safe_load(DEFAULT_SCENE.read_text())
+    scene["obstacles"] += list(extra_obstacles)
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    scene_path = tmp_path / "scene.yaml"
+    scene_path.write_text(yaml.safe_dump(scene))
+    cfg_path = tmp_path / "campaign.yaml"
+    cfg_path.write_text(yaml.safe_dump({"scene": str(scene_path), "sim": {"seed": 4, "noise_m": 1e-5}}))
+    robot = RobotModel.load()
+    ctx = CellContext(run_dir=tmp_path, config=load_config(cfg_path), shared={})
+    return load_adapters("mujoco", "mujoco", robot, {"controller": controller or {}, "tracker": tracker or {}},
+                        cell_context=ctx)
+
+
+def _truth_model(run_dir, robot):
+    """Pinocchio's model and data of the truth's geometry (read after the twin answered)."""
+    import pinocchio as pin
+
+    truth = yaml.safe_load((run_dir / "cell" / "truth.yaml").read_text())
+    urdf = write_calibrated_urdf(robot, np.array(truth["p_e"]), run_dir / "truth.urdf")
+    model = pin.buildModelFromUrdf(str(urdf))
+    model.gravity.linear = np.asarray(robot.gravity_in_I, dtype=float)  # the COMAU's root is F_I
+    return model, model.createData(), truth
+
+
+def _reflectors_pin(model, data, q, robot):
+    import pinocchio as pin
+
+    pin.framesForwardKinematics(model, data, q)
+    return {r.name: data.oMf[model.getFrameId(r.name)].translation.copy() for r in robot.reflectors}
+
+
+def test_reflectors_at_rest_without_gravity_are_pinocchio_fk_of_the_truth(tmp_path):
+    ctrl, trk = _cell(tmp_path)
+    twin = ctrl.twin
+    rng = np.random.default_rng(0)
+    robot = twin.robot
+    qs = rng.uniform(robot.q_lower, robot.q_upper, size=(5, robot.n_joints))
+    seen = []
+    for q in qs:  # the kinematics of the compiled model, no dynamics
+        twin.set_joints(q)
+        seen.append({k: p for k, (p, _) in twin.reflectors_in_I().items()})
+    model, data, _ = _truth_model(tmp_path, robot)
+    for q, s in zip(qs, seen):
+        ref = _reflectors_pin(model, data, q, robot)
+        for name in ref:
+            assert np.max(np.abs(s[name] - ref[name])) < 1e-9
+    # the truth is not the nominal robot: the hidden errors move the reflectors by millimetres
+    nominal = RobotModel.load().pinocchio_model
+    nd = nominal.createData()
+    import pinocchio as pin
+
+    pin.framesForwardKinematics(nominal, nd, qs[0])
+    assert np.linalg.norm(nd.oMf[nominal.getFrameId("rrr1")].translation - seen[0]["rrr1"]) > 1e-4
+
+
+def test_static_sag_is_gravity_torque_over_stiffness(tmp_path):
+    """At rest the servo springs hold the weight: q_link = q_cmd − K⁻¹ g(q_link) (Pinocchio's
+    generalized gravity on the truth's URDF), and the reflectors sit where Pinocchio puts them."""
+    import pinocchio as pin
+
+    ctrl, trk = _cell(tmp_path, controller={"stiffness_nm_rad": 1e5})
+    ctrl.move(Q_A)
+    ctrl.move(Q_B)
+    q_link = ctrl.twin.joint_positions()
+    got = {k: p for k, (p, _) in ctrl.twin.reflectors_in_I().items()}
+    assert np.allclose(ctrl.joints(), Q_B, atol=0)  # the encoders read the motor side: the command
+    model, data, truth = _truth_model(tmp_path, ctrl.twin.robot)
+    kp = np.array(truth["servo"]["stiffness"])
+    q = Q_B.copy()
+    for _ in range(20):  # the fixed point of the spring balance
+        q = Q_B - pin.computeGeneralizedGravity(model, data, q) / kp
+    assert np.max(np.abs(q_link - q)) < 1e-8
+    ref = _reflectors_pin(model, data, q, ctrl.twin.robot)
+    rigid = _reflectors_pin(model, data, Q_B, ctrl.twin.robot)
+    sag = np.linalg.norm(rigid["rrr1"] - ref["rrr1"])
+    assert 5e-5 < sag < 1e-3  # tenths of a millimetre
+    for name in ref:
+        assert np.linalg.norm(got[name] - ref[name]) < 1e-3 * sag
+
+
+def test_tracker_loses_the_beam_behind_a_box_and_sees_the_others(tmp_path):
+    ctrl, trk = _cell(tmp_path / "open", tracker={"noise_m": 0.0})
+    ctrl.move(Q_A)
+    aims = {"rrr1": None, "rrr2": None, "brr": None}
+    clear = trk.measure(aims)
+    assert all(v is not None for v in clear.values())
+    # a 2 cm box on rrr1's beam, a third of the way to the tracker
+    p = ctrl.twin.reflectors_in_I()["rrr1"][0]
+    o = trk.T_IL[:3, 3]
+    centre = p + (o - p) / 3
+    box = {"name": "blocker", "box": {"center_m": [float(v) for v in centre], "size_m": [0.02, 0.02, 0.02]}}
+    ctrl2, trk2 = _cell(tmp_path / "blocked", [box], tracker={"noise_m": 0.0})
+    ctrl2.move(Q_A)
+    blocked = trk2.measure(aims)
+    assert blocked["rrr1"] is None
+    assert trk2.twin.first_hit(o, p)[1] == "scene:blocker"
+    for name in ("rrr2", "brr"):  # the same twin (same seed): the other beams pass, to the same point
+        assert np.allclose(blocked[name], clear[name], atol=1e-12)
+    # noise free, a reading is the site's position in the tracker frame
+    x = np.linalg.inv(trk.T_IL) @ np.append(ctrl.twin.reflectors_in_I()["rrr2"][0], 1.0)
+    assert np.allclose(clear["rrr2"], x[:3], atol=1e-12)
+
+
+def test_a_box_moved_into_a_motion_fails_the_pose_with_its_reason(tmp_path):
+    from campaign.model.kinematics import forward
+
+    robot = RobotModel.load()
+    mid = forward(robot, (0.5 * (Q_A + Q_B))[None])[0][:3, 3]  # the tool half-way along the motion
+    box = {"name": "planted", "box": {"center_m": [float(v) for v in mid], "size_m": [0.1, 0.1, 0.1]}}
+    open_ctrl, _ = _cell(tmp_path / "open")
+    open_ctrl.move(Q_A)
+    open_ctrl.move(Q_B)  # the motion is clear in the cell as planned
+    ctrl, trk = _cell(tmp_path / "planted", [box])
+    ctrl.move(Q_A)
+    with pytest.raises(RobotFault, match=r"^collision in the twin: .*scene:planted"):
+        ctrl.move(Q_B)
+    stats = json.loads((tmp_path / "planted" / "cell" / "twin.json").read_text())
+    assert stats["contacts"] >= 1 and stats["collisions"] == 1 and stats["max_penetration_m"] > 0
+    assert stats["motions"] == 2
+    # the arm is back at rest where the motion began, and the encoders still read that command
+    assert np.allclose(ctrl.joints(), Q_A, atol=0)
+    assert np.max(np.abs(ctrl.twin.joint_positions() - Q_A)) < 2e-3
+    ctrl.move(Q_A)  # and it moves on
