@@ -439,6 +439,8 @@ def shared_twin(robot, options=None) -> Twin:
                 start_clock_s=float(getattr(ctx, "start_clock_s", 0.0) or 0.0))
     twin.config = cfg
     shared[SHARED_KEY] = twin
+    if twin.run_dir is not None:  # `campaign serve` prints what the cell announces in its ready line
+        shared.setdefault("announce", {})["truth"] = str(twin.run_dir / "cell" / "truth.yaml")
     return twin
 
 
@@ -547,8 +549,9 @@ class Tracker:
             for name in aims:
                 if name in seen:
                     p, axis = seen[name]
-                    if self.lost(name, p, axis):
-                        out[name] = None
+                    why = self.lost(name, p, axis)
+                    if why:
+                        out[name] = "out_of_range" if why == "out of range" else None
                         continue
                 elif name in SETUP_POINTS_I:
                     p = SETUP_POINTS_I[name]
