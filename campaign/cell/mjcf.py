@@ -23,9 +23,10 @@ the gravity torque: the link side sags by ``τ_g / kp`` from the commanded (moto
 what the time step integrates.
 
 Contacts: robot geoms collide with the scene's and with each other except between adjacent
-chain bodies (frames k and k+1; the tool is part of frame N) and pairs the caller excludes
-(``exclude``: pairs of chain frames always in contact, found by sampling). MuJoCo's own
-parent filter is switched off so that exactly these rules apply.
+chain bodies (frames k and k+1, k < N; the tool, welded to frame N, never meets it, but meets
+frame N - 1 as the planner checks it) and pairs the caller excludes (``exclude``: pairs of
+chain frames always in contact, found by sampling). MuJoCo's own parent filter is switched
+off so that exactly these rules apply; the world's geoms and frame 0 (welded to it) never meet.
 """
 
 from __future__ import annotations
@@ -138,47 +139,41 @@ def mesh_pieces(vertices, faces, size) -> list:
         if not pieces:
             return [(v, f)]
         pv, pf = pieces.pop()
-        used, inverse = np.unique(np.concatenate([f[carry], np.zeros((0, 3), dtype=np.int64)]), return_inverse=True)
+        used, inverse = np.unique(f[carry], return_inverse=True)
         pieces.append((np.vstack([pv, v[used]]), np.vstack([pf, inverse.reshape(-1, 3) + len(pv)])))
     return pieces
 
 
 def _geom(parent, name, kind, size, T, assets, mesh=None):
-    g = ET.SubElement(parent, "geom")
-    g.set("name", name)
-    if kind == "box":
-        g.set("type", "box")
-        g.set("size", _f(0.5 * np.asarray(size, dtype=float)))
-    elif kind in ("cylinder", "capsule"):
-        g.set("type", kind)
-        g.set("size", _f([size[0], 0.5 * size[1]]))
-    elif kind == "sphere":
-        g.set("type", "sphere")
-        g.set("size", _f([size[0]]))
-    elif kind == "mesh":
+    """Geoms of one collision shape at pose T (4, 4) of ``parent`` (a mesh: one per piece,
+    named ``name.k``, their vertices and faces added to ``assets``)."""
+    if kind == "mesh":
         pieces = mesh_pieces(mesh.vertices, mesh.faces, size)
-        parent.remove(g)
         for k, (v, f) in enumerate(pieces):
-            mname = f"mesh{len(assets)}"
-            a = ET.Element("mesh")
-            a.set("name", mname)
+            a = ET.Element("mesh", name=f"mesh{len(assets)}")
             a.set("vertex", _f(v))
             a.set("face", " ".join(str(int(i)) for i in np.ravel(f)))
             # the convex hull's volume (MuJoCo collides with the hull): open or flat meshes compile too
             a.set("inertia", "convex")
             assets.append(a)
-            piece = ET.SubElement(parent, "geom", name=name if len(pieces) == 1 else f"{name}.{k}", type="mesh",
-                                  mesh=mname)
-            _place(piece, T)
-            piece.set("contype", "1")
-            piece.set("conaffinity", "1")
-        return None
+            _contact_geom(parent, name if len(pieces) == 1 else f"{name}.{k}", T, type="mesh", mesh=a.get("name"))
+        return
+    if kind == "box":
+        extents = 0.5 * np.asarray(size, dtype=float)
+    elif kind in ("cylinder", "capsule"):
+        extents = [size[0], 0.5 * size[1]]
+    elif kind == "sphere":
+        extents = [size[0]]
     else:
         raise ValueError(f"geometry kind {kind!r}")
+    _contact_geom(parent, name, T, type=kind, size=_f(extents))
+
+
+def _contact_geom(parent, name, T, **attrs):
+    g = ET.SubElement(parent, "geom", name=name, **attrs)
     _place(g, T)
     g.set("contype", "1")
     g.set("conaffinity", "1")
-    return g
 
 
 def build_mjcf(robot, chain_T, obstacles, *, kp, kv, armature, timestep_s, exclude=(), name=None) -> str:
