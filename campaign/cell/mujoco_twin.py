@@ -160,7 +160,7 @@ class Twin:
     threads).
     """
 
-    def __init__(self, robot, scene, opts: TwinOptions, *, run_dir=None, start_clock_s: float = 0.0):
+    def __init__(self, robot, scene, opts: TwinOptions, *, run_dir=None, start_clock_s: float = 0.0, config=None):
         import mujoco
 
         from campaign.cell.mjcf import build_mjcf
@@ -168,6 +168,8 @@ class Twin:
         from campaign.sim.truth import make_truth
 
         self.robot, self.scene, self.opts = robot, scene, opts
+        #: the cell's CampaignConfig (its plan's tracker time per target, its sim's noise) or None
+        self.config = config
         N = robot.n_joints
         self.p_e = make_truth(robot, seed=opts.seed, noise_m=0.0).p_e
         self.chain_T = np.array(calibrated_transforms(robot, self.p_e))
@@ -199,7 +201,8 @@ class Twin:
                       for r in robot.reflectors}
         self._site_E = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "E")
         self._axis_E = {r.name: np.asarray(r.axis_in_E, dtype=float) for r in robot.reflectors}
-        self._half_angle = {r.name: float(r.half_angle) for r in robot.reflectors}
+        #: acceptance half-angle of each reflector's nest, rad
+        self.half_angle = {r.name: float(r.half_angle) for r in robot.reflectors}
         self._geom_body = np.asarray(m.geom_bodyid)
         self.q_cmd = None  # the last commanded joint vector (the motor side), None before the first move
         self.clock_s = float(start_clock_s)
@@ -436,8 +439,7 @@ def shared_twin(robot, options=None) -> Twin:
     opts = TwinOptions.parse(options or {}, robot.n_joints, default_seed=cfg.sim.seed)
     scene = load_scene(cfg.scene_path).placed(robot)
     twin = Twin(robot, scene, opts, run_dir=getattr(ctx, "run_dir", None),
-                start_clock_s=float(getattr(ctx, "start_clock_s", 0.0) or 0.0))
-    twin.config = cfg
+                start_clock_s=float(getattr(ctx, "start_clock_s", 0.0) or 0.0), config=cfg)
     shared[SHARED_KEY] = twin
     if twin.run_dir is not None:  # `campaign serve` prints what the cell announces in its ready line
         shared.setdefault("announce", {})["truth"] = str(twin.run_dir / "cell" / "truth.yaml")
@@ -531,7 +533,7 @@ class Tracker:
         sc = self.twin.scene
         if not sc.min_range_m <= dist <= sc.max_range_m:
             return "out of range"
-        if axis @ to_tracker < np.cos(self.twin._half_angle[name]) * dist:
+        if axis @ to_tracker < np.cos(self.twin.half_angle[name]) * dist:
             return "outside the nest's cone"
         hit, geom = self.twin.first_hit(o, p)
         if hit < dist - self.opts.nest_radius_m:
