@@ -47,35 +47,11 @@ from pathlib import Path
 
 import numpy as np
 
+from campaign.cell import RobotFault, context, request_id
 from campaign.config import check_int, check_number, load_config
 from campaign.errors import ConfigError
 from campaign.measure.protocol import SETUP_TARGETS
 from campaign.measure.reflectors import transform_points
-
-try:
-    from campaign.cell import RobotFault, context, request_id
-except ImportError:  # TEMPORARY, until campaign/cell/__init__.py (the adapter contract) lands on main
-    from campaign.errors import CampaignError
-
-    class RobotFault(CampaignError):
-        def __init__(self, reason, *, code="move_rejected"):
-            super().__init__(reason)
-            self.reason, self.code = str(reason), str(code)
-
-    @dataclass(frozen=True)
-    class _Context:
-        run_dir: Path | None = None
-        config: object = None
-        start_clock_s: float = 0.0
-        shared: dict = None
-
-    _FALLBACK_SHARED: dict = {}
-
-    def context():
-        return _Context(shared=_FALLBACK_SHARED)
-
-    def request_id():
-        return None
 
 #: key of the twin in the cell's shared dict
 SHARED_KEY = "campaign.cell.mujoco_twin"
@@ -414,11 +390,10 @@ class Twin:
 
 def _cell_config(ctx):
     """The cell's CampaignConfig: the served run's, its campaign.yaml, or the embedded default."""
-    if getattr(ctx, "config", None) is not None:
+    if ctx.config is not None:
         return ctx.config
-    run_dir = getattr(ctx, "run_dir", None)
-    if run_dir is not None and (Path(run_dir) / "campaign.yaml").is_file():
-        return load_config(Path(run_dir) / "campaign.yaml")
+    if ctx.run_dir is not None and (Path(ctx.run_dir) / "campaign.yaml").is_file():
+        return load_config(Path(ctx.run_dir) / "campaign.yaml")
     return load_config(None)
 
 
@@ -427,7 +402,7 @@ def shared_twin(robot, options=None) -> Twin:
     from campaign.plan.scene import load_scene
 
     ctx = context()
-    shared = ctx.shared if getattr(ctx, "shared", None) is not None else {}
+    shared = ctx.shared
     twin = shared.get(SHARED_KEY)
     if twin is not None:
         if options:
@@ -438,8 +413,7 @@ def shared_twin(robot, options=None) -> Twin:
     robot = robot.with_default_reflectors()
     opts = TwinOptions.parse(options or {}, robot.n_joints, default_seed=cfg.sim.seed)
     scene = load_scene(cfg.scene_path).placed(robot)
-    twin = Twin(robot, scene, opts, run_dir=getattr(ctx, "run_dir", None),
-                start_clock_s=float(getattr(ctx, "start_clock_s", 0.0) or 0.0), config=cfg)
+    twin = Twin(robot, scene, opts, run_dir=ctx.run_dir, start_clock_s=ctx.start_clock_s, config=cfg)
     shared[SHARED_KEY] = twin
     if twin.run_dir is not None:  # `campaign serve` prints what the cell announces in its ready line
         shared.setdefault("announce", {})["truth"] = str(twin.run_dir / "cell" / "truth.yaml")
