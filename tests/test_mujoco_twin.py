@@ -94,6 +94,8 @@ def test_static_sag_is_gravity_torque_over_stiffness(tmp_path):
     q_link = ctrl.twin.joint_positions()
     got = {k: p for k, (p, _) in ctrl.twin.reflectors_in_I().items()}
     assert np.allclose(ctrl.joints(), Q_B, atol=0)  # the encoders read the motor side: the command
+    # the COMAU stands upright in F_I, whose y axis is vertical with up = −y (DESIGN.md, "Frames")
+    assert np.allclose(ctrl.twin.model.opt.gravity, [0.0, 9.81, 0.0], atol=0)
     model, data, truth = _truth_model(tmp_path, ctrl.twin.robot)
     kp = np.array(truth["servo"]["stiffness"])
     q = Q_B.copy()
