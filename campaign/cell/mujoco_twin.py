@@ -132,8 +132,8 @@ class Twin:
     robot: the RobotModel with the reflectors the run measures; scene: the Scene placed in the
     robot's F_I; opts: :class:`TwinOptions`; run_dir: where ``cell/truth.yaml`` and
     ``cell/twin.json`` go (None: nowhere); start_clock_s: the campaign clock to start from (s).
-    Every method holds the twin's lock (the controller and the tracker may be served by two
-    threads).
+    ``move``, ``set_joints`` and the tracker's ``measure`` hold the twin's lock (the controller
+    and the tracker are served by two threads).
     """
 
     def __init__(self, robot, scene, opts: TwinOptions, *, run_dir=None, start_clock_s: float = 0.0, config=None):
