@@ -182,7 +182,12 @@ def test_plan_then_run_on_the_twin_is_collision_free_and_calibrate_finds_its_sti
     stats = json.loads((run / "cell" / "twin.json").read_text())
     assert stats["contacts"] == 0 and stats["max_penetration_m"] == 0.0
     assert stats["motions"] == len(ids) + sum(len(v) for v in vias.values())
-    assert stats["steps"] > 1000 * stats["motions"] * 0.05  # tens of ms of simulated motion per move at least
+    # the campaign clock is the twin's simulated time: every step of every motion, and 5 s a target
+    # measured (10 set-up rounds of 3 points; 3 reflectors a pose, tried 4 times when a beam is lost)
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        clock = json.loads(db.execute("SELECT value FROM meta WHERE key = 'campaign_clock_s'").fetchone()[0])
+    targets = 3 * (10 + (len(rows) - len(failed)) + 4 * len(failed))
+    assert clock == pytest.approx(stats["steps"] * stats["timestep_s"] + 5.0 * targets, rel=1e-9)
 
     assert main(["calibrate", str(run), "--effects", "joint_compliance", "--no-ann", "--no-report", "--quiet"]) == 0
     params = yaml.safe_load((run / "calibration" / "params.yaml").read_text())
