@@ -115,7 +115,8 @@ def main():
             last = r["rounds"][-1]
             print(f"{name}: plan {r['plan_wall_s']:.1f} s; run --cell mujoco {r['run_wall_s']:.1f} s wall "
                   f"(goal 180 s): measured {r['measured']} of {r['measured'] + r['failed']}, contacts "
-                  f"{r['twin']['contacts']}, {r['twin']['steps']:,} steps; failures {r['failure_reasons']}")
+                  f"{r['twin']['contacts']}, {r['twin']['steps']:,} steps; failures {r['failure_reasons']}; "
+                  f"lost readings by why {r['twin'].get('lost_beams')}")
             for k, rd in enumerate(r["rounds"]):
                 print(f"  round {k + 1}: effects {rd['effects']}: held-out {rd['model_to_noise']:.2f}x the noise floor "
                       f"({rd['noise_floor_mm']:.4f} mm); verdict {rd['verdict']}")

@@ -126,6 +126,8 @@ def test_tracker_loses_the_beam_behind_a_box_and_sees_the_others(tmp_path):
     blocked = trk2.measure(aims)
     assert blocked["rrr1"] is None
     assert trk2.twin.first_hit(o, p)[1] == "scene:blocker"
+    stats = json.loads((tmp_path / "blocked" / "cell" / "twin.json").read_text())
+    assert stats["lost_beams"] == {"beam blocked by scene:blocker": 1}
     for name in ("rrr2", "brr"):  # the same twin (same seed): the other beams pass, to the same point
         assert np.allclose(blocked[name], clear[name], atol=1e-12)
     # noise free, a reading is the site's position in the tracker frame
@@ -181,6 +183,7 @@ def test_plan_then_run_on_the_twin_is_collision_free_and_calibrate_finds_its_sti
     assert len(failed) <= 0.2 * len(rows)
     stats = json.loads((run / "cell" / "twin.json").read_text())
     assert stats["contacts"] == 0 and stats["max_penetration_m"] == 0.0
+    assert set(stats["lost_beams"]) <= {"outside the nest's cone"}  # no beam blocked, none out of range
     assert stats["motions"] == len(ids) + sum(len(v) for v in vias.values())
     # the campaign clock is the twin's simulated time: every step of every motion, and 5 s a target
     # measured (10 set-up rounds of 3 points; 3 reflectors a pose, tried 4 times when a beam is lost)

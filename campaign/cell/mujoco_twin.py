@@ -185,6 +185,7 @@ class Twin:
         self.lock = threading.RLock()
         self.stats = {"contacts": 0, "max_penetration_m": 0.0, "motions": 0, "steps": 0, "collisions": 0,
                       "contact_pairs": [], "excluded_pairs": [list(p) for p in self.excluded_pairs],
+                      "lost_beams": {},
                       "timestep_s": self.timestep_s, "simulated_s": 0.0}
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.tracker_truth = None
@@ -527,6 +528,8 @@ class Tracker:
                     p, axis = seen[name]
                     why = self.lost(name, p, axis)
                     if why:
+                        lost = tw.stats["lost_beams"]
+                        lost[why] = lost.get(why, 0) + 1
                         out[name] = "out_of_range" if why == "out of range" else None
                         continue
                 elif name in SETUP_POINTS_I:
@@ -541,6 +544,8 @@ class Tracker:
                         x = np.round(x / self.opts.resolution_m) * self.opts.resolution_m
                 out[name] = tuple(float(v) for v in x)
             tw.clock_s += self.tracker_s * len(aims)
+            if any(v is None or isinstance(v, str) for v in out.values()):
+                tw.write_stats()
             return out
 
     def clock(self) -> float:
