@@ -7,7 +7,6 @@ must produce. The tracker's lost beam and the planted collision use boxes writte
 file the twin reads, as a user would move one into the cell."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -107,10 +107,12 @@ class TwinOptions:
         o = dict(options or {})
         extra = sorted(set(o) - set(cls.KEYS))
         if extra:
-            raise ConfigError(f"{where}: unknown option {extra[0]!r} of the MuJoCo twin (allowed: {', '.join(cls.KEYS)})")
+            raise ConfigError(f"{where}: unknown option {extra[0]!r} of the MuJoCo twin "
+                              f"(allowed: {', '.join(cls.KEYS)})")
         w = lambda k: f"{where}: {k}"  # noqa: E731
         kw = {"seed": check_int(o.get("seed", default_seed), w("seed"), low=0, high=2**63 - 1),
-              "stiffness": tuple(_per_joint(o.get("stiffness_nm_rad", DEFAULT_STIFFNESS), n_joints, w("stiffness_nm_rad"))),
+              "stiffness": tuple(_per_joint(o.get("stiffness_nm_rad", DEFAULT_STIFFNESS), n_joints,
+                                            w("stiffness_nm_rad"))),
               "armature": tuple(_per_joint(o.get("armature_kgm2", DEFAULT_ARMATURE), n_joints, w("armature_kgm2"),
                                            low_open=False))}
         if "damping_nms_rad" in o:
@@ -216,8 +218,10 @@ class Twin:
         from campaign.sim.truth import random_joint_poses
 
         d = mujoco.MjData(model)
-        body_frame = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f"frame{k}"): k for k in range(robot.n_joints + 1)}
-        body_frame[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "tool")] = robot.n_joints + 1
+        from campaign.cell.mjcf import body_name
+
+        N = robot.n_joints
+        body_frame = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body_name(k, N)): k for k in range(N + 2)}
         always = None
         for q in random_joint_poses(robot, EXCLUDE_SAMPLES, seed=1, margin=0.0):
             d.qpos[:] = q
