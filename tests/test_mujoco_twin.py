@@ -132,6 +132,10 @@ def test_tracker_loses_the_beam_behind_a_box_and_sees_the_others(tmp_path):
     # noise free, a reading is the site's position in the tracker frame
     x = np.linalg.inv(trk.T_IL) @ np.append(ctrl.twin.reflectors_in_I()["rrr2"][0], 1.0)
     assert np.allclose(clear["rrr2"], x[:3], atol=1e-12)
+    # the tracker finds a reflector near where the driver aims it (5 cm), not 6 cm off
+    near = trk.measure({"rrr2": x[:3] + [0.0, 0.03, 0.03]})
+    far = trk.measure({"rrr2": x[:3] + [0.0, 0.0, 0.06]})
+    assert np.allclose(near["rrr2"], x[:3], atol=1e-12) and far["rrr2"] is None
 
 
 def test_a_box_moved_into_a_motion_fails_the_pose_with_its_reason(tmp_path):

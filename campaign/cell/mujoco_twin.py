@@ -34,7 +34,8 @@ made smaller when a servo's natural frequency needs it), ``settle_velocity_rad_s
 ``settle_steps`` (20), ``max_settle_s`` (10), ``start_q`` (the arm's rest pose before the
 first move; default: the first target, where the operator put it). The ``tracker:`` section:
 ``noise_m`` (default ``sim.noise_m``), ``resolution_m`` (1e-6), ``nest_radius_m`` (0.0191, a
-1.5" reflector), ``position_m`` and ``rotation_cardan_deg`` (its pose in the scene's frame;
+1.5" reflector), ``search_radius_m`` (0.05: a reflector farther than this from the driver's aim is
+not found), ``position_m`` and ``rotation_cardan_deg`` (its pose in the scene's frame;
 default the scene's).
 """
 
@@ -74,6 +75,8 @@ EXCLUDE_SAMPLES = 100
 #: radius of a 1.5" spherically mounted reflector (m): the beam ends at its surface
 DEFAULT_NEST_RADIUS_M = 0.01905
 DEFAULT_RESOLUTION_M = 1e-6
+#: how far from where it is aimed (m) the tracker finds a reflector (its search spiral)
+DEFAULT_SEARCH_RADIUS_M = 0.05
 
 
 def _per_joint(value, n, where, *, low=0.0, low_open=True) -> np.ndarray:
@@ -454,10 +457,11 @@ class TrackerOptions:
     noise_m: float
     resolution_m: float = DEFAULT_RESOLUTION_M
     nest_radius_m: float = DEFAULT_NEST_RADIUS_M
+    search_radius_m: float = DEFAULT_SEARCH_RADIUS_M
     position_m: tuple | None = None
     rotation_cardan_deg: tuple | None = None
 
-    KEYS = ("noise_m", "resolution_m", "nest_radius_m", "position_m", "rotation_cardan_deg")
+    KEYS = ("noise_m", "resolution_m", "nest_radius_m", "search_radius_m", "position_m", "rotation_cardan_deg")
 
     @classmethod
     def parse(cls, options: dict, default_noise_m: float, where: str = "tracker options"):
@@ -467,7 +471,7 @@ class TrackerOptions:
             raise ConfigError(f"{where}: unknown option {extra[0]!r} of the MuJoCo twin's tracker "
                               f"(allowed: {', '.join(cls.KEYS)})")
         kw = {"noise_m": check_number(o.get("noise_m", default_noise_m), f"{where}: noise_m", low=0.0, high=1.0)}
-        for key in ("resolution_m", "nest_radius_m"):
+        for key in ("resolution_m", "nest_radius_m", "search_radius_m"):
             if key in o:
                 kw[key] = check_number(o[key], f"{where}: {key}", low=0.0, high=1.0)
         for key in ("position_m", "rotation_cardan_deg"):
@@ -527,21 +531,25 @@ class Tracker:
             rng = np.random.default_rng([tw.opts.seed, 99, rid if rid is not None else self._count])
             seen = tw.reflectors_in_I()
             out = {}
-            for name in aims:
+            for name, aim in aims.items():
+                why = None
                 if name in seen:
                     p, axis = seen[name]
                     why = self.lost(name, p, axis)
-                    if why:
-                        lost = tw.stats["lost_beams"]
-                        lost[why] = lost.get(why, 0) + 1
-                        out[name] = "out_of_range" if why == "out of range" else None
-                        continue
                 elif name in SETUP_POINTS_I:
                     p = SETUP_POINTS_I[name]
                 else:
                     raise ValueError(f"unknown target {name!r} (the twin's reflectors: {', '.join(seen)}; "
                                      f"set-up points: {', '.join(SETUP_TARGETS)})")
                 x = transform_points(self.T_LI, np.asarray(p, dtype=float)[None])[0]
+                if why is None and aim is not None and np.linalg.norm(np.asarray(aim, dtype=float) - x) > \
+                        self.opts.search_radius_m:
+                    why = "aimed beyond the search radius"
+                if why:
+                    lost = tw.stats["lost_beams"]
+                    lost[why] = lost.get(why, 0) + 1
+                    out[name] = "out_of_range" if why == "out of range" else None
+                    continue
                 if self.opts.noise_m > 0:
                     x = x + rng.normal(0.0, self.opts.noise_m, 3)
                     if self.opts.resolution_m > 0:
