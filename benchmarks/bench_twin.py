@@ -106,8 +106,11 @@ def main():
     ap.add_argument("--grid-scale", type=float, default=1.0)
     args = ap.parse_args()
     names = ["comau", "ur10"] if args.robot == "both" else [args.robot]
-    results = {"command": " ".join(["python", "benchmarks/bench_twin.py"] + sys.argv[1:]), "cpus": os.cpu_count(),
-               "goal_run_wall_s": 180.0, "robots": {}}
+    path = Path(__file__).parent / "results" / "twin.json"
+    # one robot's run replaces that robot's entry only
+    results = json.loads(path.read_text()) if path.is_file() else {"robots": {}}
+    results.update({"command": " ".join(["python", "benchmarks/bench_twin.py"] + sys.argv[1:]),
+                    "cpus": os.cpu_count(), "goal_run_wall_s": 180.0})
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             r = bench(name, tmp, args.grid_scale)
@@ -124,7 +127,6 @@ def main():
                 print(f"  joint compliance {r['identified_joint_compliance']} vs the servos' "
                       f"{r['servo_compliance_rad_per_nm'][0]:.3g} rad/(N·m)")
             print(f"  final: {last['model_to_noise']:.2f}x the noise floor (goal <= 1.5)")
-    path = Path(__file__).parent / "results" / "twin.json"
     path.write_text(json.dumps(results, indent=2) + "\n")
     print(f"written: {path}")
 
