@@ -79,12 +79,22 @@ DEFAULT_RESOLUTION_M = 1e-6
 DEFAULT_SEARCH_RADIUS_M = 0.05
 
 
+def _number(value, where, **limits) -> float:
+    """check_number, also of a number YAML read as text (it reads ``1e5`` so, ``1.0e5`` as a number)."""
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            pass
+    return check_number(value, where, **limits)
+
+
 def _per_joint(value, n, where, *, low=0.0, low_open=True) -> np.ndarray:
     if isinstance(value, (list, tuple)):
         if len(value) != n:
             raise ConfigError(f"{where}: must be one number or {n} (one per joint), got {len(value)}")
-        return np.array([check_number(v, f"{where}[{i}]", low=low, low_open=low_open) for i, v in enumerate(value)])
-    return np.full(n, check_number(value, where, low=low, low_open=low_open))
+        return np.array([_number(v, f"{where}[{i}]", low=low, low_open=low_open) for i, v in enumerate(value)])
+    return np.full(n, _number(value, where, low=low, low_open=low_open))
 
 
 @dataclass(frozen=True)
@@ -123,7 +133,7 @@ class TwinOptions:
         for key, low in (("damping_ratio", 0.0), ("timestep_s", 0.0), ("settle_velocity_rad_s", 0.0),
                          ("max_settle_s", 0.0)):
             if key in o:
-                kw[key] = check_number(o[key], w(key), low=low, low_open=True)
+                kw[key] = _number(o[key], w(key), low=low, low_open=True)
         if "settle_steps" in o:
             kw["settle_steps"] = check_int(o["settle_steps"], w("settle_steps"), low=1, high=10**6)
         if o.get("start_q") is not None:
@@ -470,16 +480,16 @@ class TrackerOptions:
         if extra:
             raise ConfigError(f"{where}: unknown option {extra[0]!r} of the MuJoCo twin's tracker "
                               f"(allowed: {', '.join(cls.KEYS)})")
-        kw = {"noise_m": check_number(o.get("noise_m", default_noise_m), f"{where}: noise_m", low=0.0, high=1.0)}
+        kw = {"noise_m": _number(o.get("noise_m", default_noise_m), f"{where}: noise_m", low=0.0, high=1.0)}
         for key in ("resolution_m", "nest_radius_m", "search_radius_m"):
             if key in o:
-                kw[key] = check_number(o[key], f"{where}: {key}", low=0.0, high=1.0)
+                kw[key] = _number(o[key], f"{where}: {key}", low=0.0, high=1.0)
         for key in ("position_m", "rotation_cardan_deg"):
             if key in o:
                 v = o[key]
                 if not isinstance(v, (list, tuple)) or len(v) != 3:
                     raise ConfigError(f"{where}: {key} must be 3 numbers, got {v!r}")
-                kw[key] = tuple(check_number(x, f"{where}: {key}[{i}]") for i, x in enumerate(v))
+                kw[key] = tuple(_number(x, f"{where}: {key}[{i}]") for i, x in enumerate(v))
         return cls(**kw)
 
 
