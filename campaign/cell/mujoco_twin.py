@@ -194,7 +194,6 @@ class Twin:
         self._axis_E = {r.name: np.asarray(r.axis_in_E, dtype=float) for r in robot.reflectors}
         #: acceptance half-angle of each reflector's nest, rad
         self.half_angle = {r.name: float(r.half_angle) for r in robot.reflectors}
-        self._geom_body = np.asarray(m.geom_bodyid)
         self.q_cmd = None  # the last commanded joint vector (the motor side), None before the first move
         self.clock_s = float(start_clock_s)
         self.lock = threading.RLock()
@@ -228,11 +227,10 @@ class Twin:
         configurations (parts that touch by design, as a set-up assistant disables them)."""
         import mujoco
 
+        from campaign.cell.mjcf import body_name
         from campaign.sim.truth import random_joint_poses
 
         d = mujoco.MjData(model)
-        from campaign.cell.mjcf import body_name
-
         N = robot.n_joints
         body_frame = {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body_name(k, N)): k for k in range(N + 2)}
         always = None
@@ -284,8 +282,8 @@ class Twin:
         it is at rest; RobotFault on a contact or when it does not settle."""
         import mujoco
 
-        from campaign.plan.timing import ruckig_trajectory
         from campaign.cell.mjcf import servo_command
+        from campaign.plan.timing import ruckig_trajectory
 
         q = np.asarray(q, dtype=float).reshape(self.robot.n_joints)
         m, d = self.model, self.data
@@ -298,7 +296,7 @@ class Twin:
                 d.ctrl[:] = start
                 self.q_cmd = start
             q_from = self.q_cmd.copy()
-            saved = (d.qpos.copy(), d.qvel.copy(), d.time)
+            saved = (d.qpos.copy(), d.qvel.copy())
             dt = m.opt.timestep
             duration, traj = ruckig_trajectory(self.robot, q_from, q)
             n_motion = int(np.ceil(duration / dt - 1e-9))
