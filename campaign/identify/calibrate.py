@@ -522,13 +522,13 @@ def _param_block(model: CalibrationModel) -> dict:
         "iterations": model.n_iter_,
         "strongly_correlated": [{"a": a, "b": b, "r": r} for a, b, r in model.correlated_pairs_],
     }
-    i0 = base.n_base
+    i0 = 0  # into effect_sigma_
     for e, th in zip(model.effect_set_.effects, model.effect_set_.split(model.effect_params_)):
         out["effects"][e.name] = {
             "spec": e.spec,
             "description": e.description,
             "parameters": [
-                {"name": pn, "unit": pu, "value": float(v), "sigma": float(model.sigma_[i0 + k])}
+                {"name": pn, "unit": pu, "value": float(v), "sigma": float(model.effect_sigma_[i0 + k])}
                 for k, (pn, pu, v) in enumerate(zip(e.param_names, e.param_units, th))
             ],
         }

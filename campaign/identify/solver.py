@@ -29,6 +29,7 @@ from campaign.effects.base import EffectSet, chain_pose, make_effect, model_pose
 from campaign.errors import DataError, IdentificationError, NotFittedError
 from campaign.model.base_params import BaseParameters, base_parameters, point_rows
 from campaign.model.kinematics import error_jacobian, pose_error
+from campaign.model.priors import base_prior
 from campaign.model.rotations import rotvec_to_matrix
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL, STRONG_CORRELATION
 
@@ -49,10 +50,18 @@ class CalibrationModel:
     estimate_noise : re-estimate the block noise from the residuals (variance components)
     points : (k, 3) m in the tool frame, or None: fit measured positions of these points
         (raw reflectors; ``fit(q, P_meas)`` with P_meas (n, k, 3), NaN where missed) instead of poses
+    prior : campaign.model.priors.Prior, "tolerances" (the robot's and the effects') or None: None fits the base parameters by least squares
+        (the paper's); a prior makes the fit MAP: the zero-mean Gaussian prior of every physical
+        parameter, carried to the base parameters (``C Σ Cᵀ``), adds the rows of ``√s · L (b - μ)``
+        (``LᵀL`` its precision) to the same Levenberg-Marquardt problem (docs/priors.md)
+    prior_strength : s, the factor on the prior's precision (1: the tolerances as stated)
+    fixed : {parameter name: value (SI) or None (nominal)}: held, not fitted (robot error
+        parameters or ``<effect>.<param>``; campaign.model.priors.resolve_fix expands groups)
     """
 
     def __init__(self, *, robot, effects=(), position_only=False, max_iter=50,
-                 sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True, points=None):
+                 sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True, points=None,
+                 prior=None, prior_strength=1.0, fixed=None):
         self.robot = robot
         self.effects = effects
         self.position_only = position_only
@@ -61,6 +70,9 @@ class CalibrationModel:
         self.sigma_orientation_rad = sigma_orientation_rad
         self.estimate_noise = estimate_noise
         self.points = points
+        self.prior = prior
+        self.prior_strength = prior_strength
+        self.fixed = fixed
 
     # -- helpers ----------------------------------------------------------------------
     def _effect_set(self) -> EffectSet:
@@ -185,10 +197,15 @@ class CalibrationModel:
 
         x = np.zeros(n_unknown)
         x[r:] = self.effect_set_.initial_params()
+        names = self.base_.names + self.effect_set_.param_names
         if init:
-            for i, name in enumerate(self.base_.names + self.effect_set_.param_names):
+            for i, name in enumerate(names):
                 if name in init:
                     x[i] = init[name]
+        map_fit = self.prior is not None
+        self.prior_ = self._resolve_prior() if map_fit else None
+        mu, held = self._prior_and_held(x, r, map_fit)
+        x[held] = mu[held]
 
         def unpack(x):
             return self.base_.expand(x[:r]), x[r:]
@@ -208,11 +225,19 @@ class CalibrationModel:
         # identifiability of the combined regressor at the start point
         J0 = jacobian(x) / sig[None, :, None]
         self.absorbed_ = self._absorbed(J0.reshape(-1, n_unknown), r)
-        free = np.array([i for i in range(n_unknown) if i not in self.absorbed_], dtype=int)
+        out = set(self.absorbed_) | set(np.flatnonzero(held).tolist())
+        free = np.array([i for i in range(n_unknown) if i not in out], dtype=int)
+        # the prior's precision on the free unknowns (zeros for least squares), scaled by s
+        pf = self._prior_precision(free, r) if map_fit else np.zeros((len(free), len(free)))
+        mu_f = mu[free]
+
+        def prior_cost(x):
+            d = x[free] - mu_f
+            return float(d @ pf @ d) if map_fit else 0.0
 
         lam = 1e-6
         res = residual(x)
-        cost = float(np.sum((res / sig) ** 2))
+        cost = float(np.sum((res / sig) ** 2)) + prior_cost(x)
         history = [cost]
         n_iter = 0
         for outer in range(3 if self.estimate_noise else 1):
@@ -222,6 +247,9 @@ class CalibrationModel:
                 J2 = J.reshape(-1, len(free))
                 g = J2.T @ (res / sig).reshape(-1)
                 H = J2.T @ J2
+                if map_fit:
+                    g = g + pf @ (x[free] - mu_f)
+                    H = H + pf
                 step_ok = False
                 for _ in range(20):
                     A = H + lam * np.diag(np.diag(H))
@@ -233,7 +261,7 @@ class CalibrationModel:
                     x_new = x.copy()
                     x_new[free] += dx
                     res_new = residual(x_new)
-                    cost_new = float(np.sum((res_new / sig) ** 2))
+                    cost_new = float(np.sum((res_new / sig) ** 2)) + prior_cost(x_new)
                     if cost_new <= cost:
                         step_ok = True
                         break
@@ -250,7 +278,8 @@ class CalibrationModel:
                 break
             # variance components: re-estimate each block's noise from its residuals, giving
             # each block its share of the degrees of freedom
-            dof = max(n_rows - len(free), 1)
+            dof = max(n_rows - (self._effective_unknowns(jacobian(x)[:, :, free] / sig[None, :, None], pf)
+                                if map_fit else len(free)), 1)
             new_sig = sig.copy()
             share = dof / n_rows
             for cols in blocks:
@@ -260,16 +289,20 @@ class CalibrationModel:
                 sig = new_sig
                 break
             sig = new_sig
-            cost = float(np.sum((res / sig) ** 2))
+            cost = float(np.sum((res / sig) ** 2)) + prior_cost(x)
             history.append(cost)
             lam = 1e-6
 
         J = jacobian(x)[:, :, free] / sig[None, :, None]
         J2 = J.reshape(-1, len(free))
         H = J2.T @ J2
-        dof = max(n_rows - len(free), 1)
-        s2 = cost / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
-        cov_free = np.linalg.pinv(H) * s2
+        n_eff = self._effective_unknowns(J, pf) if map_fit else len(free)
+        dof = max(n_rows - n_eff, 1)
+        s2 = (cost - prior_cost(x)) / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
+        if map_fit:  # the posterior: the data's information (at the fit's variance factor) plus the prior's
+            cov_free = np.linalg.pinv(H / s2 + pf, hermitian=True)
+        else:
+            cov_free = np.linalg.pinv(H) * s2
         cov = np.zeros((n_unknown, n_unknown))
         cov[np.ix_(free, free)] = cov_free
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -287,6 +320,20 @@ class CalibrationModel:
         self.params_min_norm_ = self.base_.min_norm(self.base_params_)
         self.effect_params_ = x[r:].copy()
         self.covariance_ = cov
+        #: "lsq" (least squares) or "map" (with the prior)
+        self.kind_ = "map" if map_fit else "lsq"
+        #: the held unknowns: name -> value (SI)
+        self.held_ = {names[i]: float(x[i]) for i in np.flatnonzero(held)}
+        #: the effective number of unknowns the data determine (tr H (H + P)⁻¹; the free count for lsq)
+        self.n_effective_ = float(n_eff)
+        # the physical parameters the estimate stands for (the prior's split), with their covariance
+        bp = self.base_prior_
+        self.physical_params_, self.physical_covariance_ = bp.physical(self.base_params_, cov[:r, :r])
+        #: the last linearisation, for closed-form leave-one-out (campaign.identify.model_choice):
+        #: whitened Jacobian (n, m, f) of the free unknowns ``free_``, whitened residuals (n, m), the
+        #: prior's precision on them (f, f) and the rows' noise σ (m,)
+        self.fit_jacobian_, self.fit_residual_ = J, res / sig
+        self.free_, self.fit_prior_precision_, self.row_sigma_ = free, pf, sig
         #: the a posteriori variance factor in covariance_ (cost / degrees of freedom; ≈ 1 when
         #: the row weights are the noise): covariance_ / variance_factor_ is the weights' own
         self.variance_factor_ = float(s2)
@@ -309,6 +356,55 @@ class CalibrationModel:
         self.correlated_pairs_ = [(self.unknown_names_[i], self.unknown_names_[j], float(corr[i, j]))
                                   for i, j in zip(iu[0][strong], iu[1][strong])]
         return self
+
+    def _resolve_prior(self):
+        """The prior: ``prior`` itself, or ``"tolerances"``: the robot's (robot.yaml) and the effects'."""
+        from campaign.model.priors import make_prior
+
+        prior = make_prior(self.robot, self.effect_set_.effects) if isinstance(self.prior, str) else self.prior
+        if prior.sigma.shape != (self.robot.n_params,) or prior.effect_sigma.shape != (self.effect_set_.n_params,):
+            raise IdentificationError(f"prior: {prior.sigma.shape[0]} + {prior.effect_sigma.shape[0]} standard "
+                                      f"deviations for {self.robot.n_params} error parameters and "
+                                      f"{self.effect_set_.n_params} effect parameters")
+        return prior
+
+    def _prior_and_held(self, x, r, map_fit):
+        """(μ (r + k,), held (r + k,) bool): the prior's mean of the unknowns (the held physical
+        parameters' part of the base parameters; effects 0) and which unknowns are held."""
+        from campaign.model.priors import resolve_fix
+
+        es = self.effect_set_
+        fixed = resolve_fix(self.robot, self.fixed or {}, es.param_names) if self.fixed else {}
+        physical = {n: v for n, v in fixed.items() if n in self.robot.param_names}
+        self.base_prior_ = base_prior(self.base_, self.prior_, physical)
+        mu = np.zeros(len(x))
+        held = np.zeros(len(x), dtype=bool)
+        mu[:r] = self.base_prior_.mean
+        held[:r] = self.base_prior_.held
+        x0 = es.initial_params()
+        for i, name in enumerate(es.param_names):
+            if name in fixed:
+                held[r + i] = True
+                mu[r + i] = x0[i] if fixed[name] is None else fixed[name]
+        return mu, held
+
+    def _prior_precision(self, free, r) -> np.ndarray:
+        """(f, f): s × the prior's precision of the free unknowns (base block dense, effects diagonal)."""
+        s = float(self.prior_strength)
+        fb = [i for i in free if i < r]
+        fe = [i - r for i in free if i >= r]
+        P = np.zeros((len(free), len(free)))
+        P[:len(fb), :len(fb)] = s * self.base_prior_.precision(fb)
+        pe = self.prior_.precision()[self.robot.n_params:]
+        P[len(fb):, len(fb):] = np.diag(s * pe[fe])
+        return P
+
+    @staticmethod
+    def _effective_unknowns(J, P) -> float:
+        """tr(H (H + P)⁻¹): the unknowns the data determine (J (n, m, f) whitened, P (f, f))."""
+        J2 = J.reshape(-1, J.shape[-1])
+        H = J2.T @ J2
+        return float(np.trace(np.linalg.solve(H + P, H)))
 
     def _absorbed(self, J, r):
         """Effect columns that the geometric base columns (and earlier effect columns) span."""
