@@ -26,6 +26,7 @@ from campaign.errors import ConfigError, DataError, Implausible
 from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
+from campaign.identify.model_choice import check_model_options, choice_json, choice_text, fit_model, geometric_fix
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, validation_file
 from campaign.measure import plausibility
@@ -88,6 +89,8 @@ class CalibrationResult:
     test_pose_ids: tuple = ()
     #: the id every output of this calibration carries (campaign.versioned; None when not written)
     calibration_id: str | None = None
+    #: which model was identified and why (campaign.identify.model_choice; metrics.json's ``model``)
+    model_choice: dict | None = None
 
     @property
     def metrics(self) -> dict:
@@ -108,6 +111,8 @@ class CalibrationResult:
             out["folds"] = self.folds
         out["warnings"] = [w.as_json() for w in self.warnings]
         out["test_pose_ids"] = [int(i) for i in self.test_pose_ids]
+        if self.model_choice is not None:
+            out["model"] = self.model_choice
         return out
 
     def floor_line(self) -> str:
@@ -297,14 +302,16 @@ def stage_name(effects) -> str:
 
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
-              write: bool = True, report: bool = True, strict: bool = False) -> CalibrationResult:
+              write: bool = True, report: bool = True, strict: bool = False, model: str = "auto",
+              fix=None) -> CalibrationResult:
     """Identify the model of a run and write its calibration folder, holding the run's lock
     (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
     effects: names of physical effects to identify jointly with the geometric parameters
     (None: those enabled in the run's campaign.yaml). ann: also train the neural residual
     compensator (campaign.ann); ``"auto"``: only with at least ANN_MIN_TRAIN_POSES training
-    poses. progress: optional callable receiving status lines (str) and,
+    poses. model: "lsq", "map" or "auto" (campaign.identify.model_choice); fix: ``--fix``, {name or
+    group: value (SI) or None (nominal)} held, not fitted. progress: optional callable receiving status lines (str) and,
     during ANN training, campaign.ann.selection.TrainingProgress reports. report: also write
     report.html and its plots (with ``write``). The result carries plausibility ``warnings``
     (campaign.identify.checks); strict: any warning raises :class:`campaign.errors.Implausible`
@@ -318,23 +325,24 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
     for name in effects:  # an unknown effect is one line before any fit
         make_effect(name, robot)
+    fix = check_model_options(robot, effects, model, fix)  # a bad --model or --fix: one line before any fit
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
         if not write:  # a network trained on the way is saved in a scratch folder, then dropped
             with tempfile.TemporaryDirectory() as scratch:
                 return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                  strict, Version(None, Path(scratch)))
+                                  strict, Version(None, Path(scratch)), model, fix)
         # every output into a new version of RUN/calibration, current only once whole (campaign.versioned)
         with calibration_folder(run_dir).new_version() as version:
             result = _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                strict, version)
+                                strict, version, model, fix)
     if result.report_path is not None:
         result = replace(result, report_path=run.calibration_dir / Path(result.report_path).name)
     return result
 
 
 def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
-               report, strict, version) -> CalibrationResult:
+               report, strict, version, model_kind="auto", fix=None) -> CalibrationResult:
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
@@ -416,7 +424,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     say(f"geometric identification on {int(tr.sum())} training poses"
         + (f" ({int(n_seen[tr].sum())} seen reflectors)" if raw else ""))
     t0 = time.perf_counter()
-    geo = CalibrationModel(robot=robot, position_only=position_only, points=points).fit(poses.q[tr], Y[tr])
+    geo, choice = fit_model(lambda **kw: CalibrationModel(robot=robot, position_only=position_only, points=points,
+                                                          **kw), poses.q[tr], Y[tr], model=model_kind,
+                            fixed=geometric_fix(fix), progress=say)
     t_geo = time.perf_counter() - t0
     dz_geo = geo.residuals(poses.q, poses.T_IE)
     add_stage("geometric", dz_geo, geo.point_residuals(poses.q, poses.markers) if raw else None)
@@ -424,8 +434,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     dz_model = dz_geo
     if effects:
         say(f"identifying geometric + {', '.join(effects)}")
-        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only, points=points).fit(
-            poses.q[tr], Y[tr], ctx_tr)
+        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only, points=points,
+                                 fixed=fix, **choice.model_kwargs()).fit(poses.q[tr], Y[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
     point = measured_point(robot, poses)
@@ -470,7 +480,10 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
         noise_floor=noise_floor(run_dir, poses.subset(np.flatnonzero(usable)) if at_origin else poses,
                                 robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
-        folds=None if rule is None else rule.as_json(), calibration_id=version.id)
+        folds=None if rule is None else rule.as_json(), calibration_id=version.id,
+        model_choice=choice_json(choice, model, poses.q[te], ctx_te=None if not context else
+                                 {k: v[te] for k, v in context.items()}, stages=stages,
+                                 stage=stage_name(effects) if effects else "geometric", fix=fix))
     result = with_checks(result, robot, poses, geo, stage_name(effects))
     if strict and result.warnings:
         raise Implausible(f"{run_dir}: {len(result.warnings)} plausibility warning(s) with --strict "
@@ -478,7 +491,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if write:
         _write(result, robot, geo, version.path)
     if write and report:
-        from campaign.identify.report import write_report
+        from campaign.identify.report import model_choice_html, write_report
 
         say("writing the report")
         shown = np.flatnonzero(usable) if at_origin else np.arange(len(poses))  # rows with an error at the origin
@@ -486,7 +499,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         page = write_report(run_dir, stages, order, {k: v[shown] for k, v in residuals.items()}, poses.q[shown], xyz[shown], is_test[shown],
                             param_text=parameter_text(model),
                             extra_html=f"<h2>Against the measurement noise</h2>"
-                            f"<pre>{html.escape(result.floor_line())}</pre>"
+                            f"<pre>{html.escape(result.floor_line())}</pre>" + model_choice_html(result.model_choice)
                             + (result.ann.report_html() if result.ann is not None else ""),
                             out_dir=version.path, calibration_id=version.id)
         result = replace(result, report_path=Path(page))
@@ -595,6 +608,8 @@ def summary_text(result: CalibrationResult) -> str:
                      "all in params.yaml")
     if result.ann_skipped:
         lines.append(result.ann_skipped)
+    if result.model_choice is not None:
+        lines.append(choice_text(result.model_choice))
     lines.append(result.floor_line())
     lines.append(f"written: {result.run_dir / CALIBRATION_DIR}/metrics.json, params.yaml"
                  + (", report.html" if result.report_path is not None else "")

@@ -62,6 +62,13 @@ def register(sub):
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
     p.add_argument("--strict", action="store_true",
                    help="exit 1 and write nothing when a plausibility check warns (the previous calibration stays)")
+    p.add_argument("--model", choices=("lsq", "map", "auto"), default="auto",
+                   help="geometric model: lsq (base parameters by least squares), map (with the tolerance priors, "
+                        "strength by cross-validation), auto (default: chosen by cross-validated held-out error "
+                        "below 300 training poses, least squares from there); docs/priors.md")
+    p.add_argument("--fix", metavar="NAME[=VALUE],...", default=None,
+                   help="hold parameters at nominal or at VALUE (SI: m, rad): names (pL_6E_x), groups (base, tool, "
+                        "offsets, joint<j>), patterns (pR_I0_*) or <effect>.<param>")
     ann = p.add_mutually_exclusive_group()
     ann.add_argument("--ann", dest="ann", action="store_true", default=None,
                      help="train the neural residual compensator (default from 250 training poses)")
@@ -208,7 +215,8 @@ def _calibrate(args):
     progress = None if args.quiet else _CalibrateProgress()
     try:
         result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
-                           ann_options=ann_options, progress=progress, report=not args.no_report, strict=args.strict)
+                           ann_options=ann_options, progress=progress, report=not args.no_report, strict=args.strict,
+                           model=args.model, fix=args.fix)
     except Implausible as exc:
         if progress is not None:
             progress.close()
@@ -242,7 +250,7 @@ def _calibrate_fleet(args, ann, ann_options) -> int:
     try:
         results = calibrate_runs(runs, executor=executor, progress=say, errors="collect", effects=args.effects,
                                  position_only=args.position_only, ann=ann, ann_options=fleet_options,
-                                 report=not args.no_report)
+                                 report=not args.no_report, model=args.model, fix=args.fix)
     finally:
         executor.close()
     failed = 0

@@ -383,3 +383,24 @@ def history_table(run_dir) -> str:
             rot = f"{st['orientation_mrad']['mean']:>15.4f}" if "orientation_mrad" in st else f"{'-':>15}"
             lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{rot}")
     return "\n".join(lines)
+
+
+def model_choice_html(choice: dict | None) -> str:
+    """The report's "Model choice" section (campaign.identify.model_choice): the chosen model and
+    why, the cross-validation curve as a table (every candidate's leave-one-out held-out mean),
+    the parameters held by --fix, and the expected held-out error next to the measured one."""
+    if not choice:
+        return ""
+    from campaign.identify.model_choice import choice_text
+
+    def strength(c):
+        return "" if c["strength"] is None else f"{c['strength']:g}"
+
+    rows = "".join(
+        f"<tr><td>{html.escape(c['model'])}</td><td>{strength(c)}</td>"
+        f"<td>{len(c['dropped']) or ''}</td><td>{c['cv_mean_position_mm']:.4f}</td><td>{c['n_effective']:.1f}</td>"
+        f"<td>{'chosen' if c['model'] == choice['choice'] and c['strength'] == choice['strength'] else ''}</td></tr>"
+        for c in choice.get("candidates", []))
+    table = ("<table><tr><th>candidate</th><th>prior strength</th><th>dropped</th>"
+             "<th>CV held-out mean (mm)</th><th>effective unknowns</th><th></th></tr>" + rows + "</table>") if rows else ""
+    return f"<h2>Model choice</h2><pre>{html.escape(choice_text(choice))}</pre>{table}"

@@ -57,11 +57,12 @@ class CalibrationModel:
     prior_strength : s, the factor on the prior's precision (1: the tolerances as stated)
     fixed : {parameter name: value (SI) or None (nominal)}: held, not fitted (robot error
         parameters or ``<effect>.<param>``; campaign.model.priors.resolve_fix expands groups)
+    drop : names of base parameters held at zero (a reduced model, campaign.identify.model_choice)
     """
 
     def __init__(self, *, robot, effects=(), position_only=False, max_iter=50,
                  sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True, points=None,
-                 prior=None, prior_strength=1.0, fixed=None):
+                 prior=None, prior_strength=1.0, fixed=None, drop=()):
         self.robot = robot
         self.effects = effects
         self.position_only = position_only
@@ -73,6 +74,7 @@ class CalibrationModel:
         self.prior = prior
         self.prior_strength = prior_strength
         self.fixed = fixed
+        self.drop = drop
 
     # -- helpers ----------------------------------------------------------------------
     def _effect_set(self) -> EffectSet:
@@ -381,6 +383,9 @@ class CalibrationModel:
         held = np.zeros(len(x), dtype=bool)
         mu[:r] = self.base_prior_.mean
         held[:r] = self.base_prior_.held
+        for name in self.drop or ():
+            j = self.base_.names.index(name)
+            held[j], mu[j] = True, 0.0
         x0 = es.initial_params()
         for i, name in enumerate(es.param_names):
             if name in fixed:
