@@ -50,10 +50,13 @@ class CalibrationModel:
     estimate_noise : re-estimate the block noise from the residuals (variance components)
     points : (k, 3) m in the tool frame, or None: fit measured positions of these points
         (raw reflectors; ``fit(q, P_meas)`` with P_meas (n, k, 3), NaN where missed) instead of poses
-    prior : campaign.model.priors.Prior, "tolerances" (the robot's and the effects') or None: None fits the base parameters by least squares
-        (the paper's); a prior makes the fit MAP: the zero-mean Gaussian prior of every physical
-        parameter, carried to the base parameters (``C Σ Cᵀ``), adds the rows of ``√s · L (b - μ)``
-        (``LᵀL`` its precision) to the same Levenberg-Marquardt problem (docs/priors.md)
+    prior : campaign.model.priors.Prior, "tolerances" (the robot's and the effects') or None: None fits
+        the base parameters by least squares (the paper's); a prior makes the fit MAP, the prior's
+        rows ``√s · p / σ_p`` added to the same Levenberg-Marquardt problem (docs/priors.md)
+    physical : with a prior, the unknowns are every physical parameter (all 6N + 12, the redundant
+        model: the prior splits correlated ones and the second-order terms see the split); False:
+        the base parameters with the prior carried to them (``C Σ Cᵀ``), the split by the prior
+        afterwards (the same first-order model as least squares)
     prior_strength : s, the factor on the prior's precision (1: the tolerances as stated)
     fixed : {parameter name: value (SI) or None (nominal)}: held, not fitted (robot error
         parameters or ``<effect>.<param>``; campaign.model.priors.resolve_fix expands groups)
@@ -62,7 +65,7 @@ class CalibrationModel:
 
     def __init__(self, *, robot, effects=(), position_only=False, max_iter=50,
                  sigma_position_m=1e-5, sigma_orientation_rad=1e-4, estimate_noise=True, points=None,
-                 prior=None, prior_strength=1.0, fixed=None, drop=()):
+                 prior=None, prior_strength=1.0, fixed=None, drop=(), physical=True):
         self.robot = robot
         self.effects = effects
         self.position_only = position_only
@@ -75,6 +78,7 @@ class CalibrationModel:
         self.prior_strength = prior_strength
         self.fixed = fixed
         self.drop = drop
+        self.physical = physical
 
     # -- helpers ----------------------------------------------------------------------
     def _effect_set(self) -> EffectSet:
@@ -90,7 +94,7 @@ class CalibrationModel:
         """Columns for the base parameters and every effect parameter: (n, 6, r + k)."""
         es = self.effect_set_
         if not es.effects:
-            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, list(self.base_.independent)]
+            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, self.cols_]
         qq = q + es.joint_offset(theta, q, context)
         xi = es.joint_twist(theta, q, context)  # the chain with any joint twists
         T_chain = chain_pose(self.robot, q, p_e, es, theta, context)
@@ -112,7 +116,7 @@ class CalibrationModel:
                 Tp[:, :3, :3] = rotvec_to_matrix(w) @ Tp[:, :3, :3]
             J_map[:, :, a] = (pose_error(es.pose_map(theta, Tp, q, context), T_meas) - dz0) / eps
         J_chain = error_jacobian(self.robot, qq, p_e, joint_twists=xi)
-        J_b = J_map @ J_chain[:, :, list(self.base_.independent)]
+        J_b = J_map @ J_chain[:, :, self.cols_]
         cols = [J_b]
         if es.n_params:
             J_th = np.empty((len(q), 6, es.n_params))
@@ -179,7 +183,11 @@ class CalibrationModel:
             self.base_ = base or base_parameters(self.robot, position_only=self.position_only)
         else:
             self.base_ = base or base_parameters(self.robot, position_only=True, points=P)
-        r = self.base_.n_base
+        map_fit = self.prior is not None
+        redundant = map_fit and self.physical
+        # the geometric unknowns: the base parameters, or every physical one (MAP, redundant model)
+        self.cols_ = list(range(self.robot.n_params)) if redundant else list(self.base_.independent)
+        r = len(self.cols_)
         k = self.effect_set_.n_params
         n_unknown = r + k
         if P is None:
@@ -199,18 +207,19 @@ class CalibrationModel:
 
         x = np.zeros(n_unknown)
         x[r:] = self.effect_set_.initial_params()
-        names = self.base_.names + self.effect_set_.param_names
+        names = (tuple(self.robot.param_names) if redundant else self.base_.names) + self.effect_set_.param_names
         if init:
             for i, name in enumerate(names):
                 if name in init:
                     x[i] = init[name]
-        map_fit = self.prior is not None
         self.prior_ = self._resolve_prior() if map_fit else None
-        mu, held = self._prior_and_held(x, r, map_fit)
+        mu, held = self._prior_and_held(x, r, redundant)
         x[held] = mu[held]
 
         def unpack(x):
-            return self.base_.expand(x[:r]), x[r:]
+            p_e = np.zeros(self.robot.n_params)
+            p_e[self.cols_] = x[:r]
+            return p_e, x[r:]
 
         def residual(x):
             p_e, th = unpack(x)
@@ -226,11 +235,14 @@ class CalibrationModel:
 
         # identifiability of the combined regressor at the start point
         J0 = jacobian(x) / sig[None, :, None]
-        self.absorbed_ = self._absorbed(J0.reshape(-1, n_unknown), r)
+        r_base = self.base_.n_base
+        base_cols = list(self.base_.independent) + list(range(r, n_unknown)) if redundant else list(range(n_unknown))
+        # the analysis on the base columns (and effects); unknowns' indices of absorbed effects
+        self.absorbed_ = [i + r - r_base for i in self._absorbed(J0[:, :, base_cols].reshape(-1, r_base + k), r_base)]
         out = set(self.absorbed_) | set(np.flatnonzero(held).tolist())
         free = np.array([i for i in range(n_unknown) if i not in out], dtype=int)
         # the prior's precision on the free unknowns (zeros for least squares), scaled by s
-        pf = self._prior_precision(free, r) if map_fit else np.zeros((len(free), len(free)))
+        pf = self._prior_precision(free, r, redundant) if map_fit else np.zeros((len(free), len(free)))
         mu_f = mu[free]
 
         def prior_cost(x):
@@ -311,14 +323,22 @@ class CalibrationModel:
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = cov / np.outer(sd, sd)
         corr[~np.isfinite(corr)] = 0.0
-        # condition number of the column-scaled regressor, from its small normal matrix
-        d = np.sqrt(np.clip(np.diag(H), 1e-300, None))
-        ev = np.clip(np.linalg.eigvalsh(H / np.outer(d, d)), 0.0, None)
+        # condition number of the column-scaled regressor of the base parameters (and effects)
+        if redundant:
+            Jb = (jacobian(x) / sig[None, :, None])[:, :, [i for i in base_cols if i in set(free.tolist())]]
+            H_b = Jb.reshape(-1, Jb.shape[2]).T @ Jb.reshape(-1, Jb.shape[2])
+        else:
+            H_b = H
+        d = np.sqrt(np.clip(np.diag(H_b), 1e-300, None))
+        ev = np.clip(np.linalg.eigvalsh(H_b / np.outer(d, d)), 0.0, None)
         svals = np.sqrt(ev[::-1])
 
         self.x_ = x
-        self.base_params_ = x[:r].copy()
-        self.params_ = self.base_.expand(self.base_params_)
+        self.params_ = unpack(x)[0]
+        # the base parameters the estimate stands for (first order), with their covariance
+        C_cols = self.base_.combination[:, self.cols_]
+        self.base_params_ = C_cols @ x[:r]
+        self.base_covariance_ = C_cols @ cov[:r, :r] @ C_cols.T
         self.params_min_norm_ = self.base_.min_norm(self.base_params_)
         self.effect_params_ = x[r:].copy()
         self.covariance_ = cov
@@ -329,8 +349,11 @@ class CalibrationModel:
         #: the effective number of unknowns the data determine (tr H (H + P)⁻¹; the free count for lsq)
         self.n_effective_ = float(n_eff)
         # the physical parameters the estimate stands for (the prior's split), with their covariance
-        bp = self.base_prior_
-        self.physical_params_, self.physical_covariance_ = bp.physical(self.base_params_, cov[:r, :r])
+        if redundant:
+            self.physical_params_, self.physical_covariance_ = self.params_.copy(), cov[:r, :r].copy()
+        else:
+            self.physical_params_, self.physical_covariance_ = self.base_prior_.physical(self.base_params_,
+                                                                                        cov[:r, :r])
         #: the last linearisation, for closed-form leave-one-out (campaign.identify.model_choice):
         #: whitened Jacobian (n, m, f) of the free unknowns ``free_``, whitened residuals (n, m), the
         #: prior's precision on them (f, f) and the rows' noise σ (m,)
@@ -340,7 +363,7 @@ class CalibrationModel:
         #: the row weights are the noise): covariance_ / variance_factor_ is the weights' own
         self.variance_factor_ = float(s2)
         self.sigma_ = sd
-        self.base_sigma_ = sd[:r]
+        self.base_sigma_ = np.sqrt(np.clip(np.diag(self.base_covariance_), 0, None))
         self.effect_sigma_ = sd[r:]
         self.correlation_ = corr
         self.condition_number_ = float(svals[0] / svals[-1]) if svals[-1] > 0 else float("inf")
@@ -350,8 +373,9 @@ class CalibrationModel:
         self.n_equations_ = n_rows
         self.n_iter_ = n_iter
         self.cost_history_ = history
-        self.unknown_names_ = self.base_.names + self.effect_set_.param_names
-        self.unknown_units_ = self.base_.units + self.effect_set_.param_units
+        self.unknown_names_ = names
+        self.unknown_units_ = (tuple(self.robot.param_units) if redundant else self.base_.units) + \
+            self.effect_set_.param_units
         self.values_ = dict(zip(self.unknown_names_, (float(v) for v in x)))
         iu = np.triu_indices(n_unknown, 1)
         strong = np.abs(corr[iu]) > STRONG_CORRELATION
@@ -370,9 +394,9 @@ class CalibrationModel:
                                       f"{self.effect_set_.n_params} effect parameters")
         return prior
 
-    def _prior_and_held(self, x, r, map_fit):
-        """(μ (r + k,), held (r + k,) bool): the prior's mean of the unknowns (the held physical
-        parameters' part of the base parameters; effects 0) and which unknowns are held."""
+    def _prior_and_held(self, x, r, redundant):
+        """(μ (r + k,), held (r + k,) bool): the prior's mean of the unknowns (the held values; for
+        base parameters the held physical parameters' part of them; effects 0) and which are held."""
         from campaign.model.priors import resolve_fix
 
         es = self.effect_set_
@@ -381,10 +405,14 @@ class CalibrationModel:
         self.base_prior_ = base_prior(self.base_, self.prior_, physical)
         mu = np.zeros(len(x))
         held = np.zeros(len(x), dtype=bool)
-        mu[:r] = self.base_prior_.mean
-        held[:r] = self.base_prior_.held
+        if redundant:
+            mu[:r] = self.base_prior_.p_held
+            held[:r] = self.base_prior_.held_params
+        else:
+            mu[:r] = self.base_prior_.mean
+            held[:r] = self.base_prior_.held
         for name in self.drop or ():
-            j = self.base_.names.index(name)
+            j = (self.robot.param_names if redundant else self.base_.names).index(name)
             held[j], mu[j] = True, 0.0
         x0 = es.initial_params()
         for i, name in enumerate(es.param_names):
@@ -393,13 +421,17 @@ class CalibrationModel:
                 mu[r + i] = x0[i] if fixed[name] is None else fixed[name]
         return mu, held
 
-    def _prior_precision(self, free, r) -> np.ndarray:
-        """(f, f): s × the prior's precision of the free unknowns (base block dense, effects diagonal)."""
+    def _prior_precision(self, free, r, redundant) -> np.ndarray:
+        """(f, f): s × the prior's precision of the free unknowns (physical parameters and effects:
+        diagonal; base parameters: a dense block)."""
         s = float(self.prior_strength)
         fb = [i for i in free if i < r]
         fe = [i - r for i in free if i >= r]
         P = np.zeros((len(free), len(free)))
-        P[:len(fb), :len(fb)] = s * self.base_prior_.precision(fb)
+        if redundant:
+            P[:len(fb), :len(fb)] = np.diag(s * self.prior_.precision()[fb])
+        else:
+            P[:len(fb), :len(fb)] = s * self.base_prior_.precision(fb)
         pe = self.prior_.precision()[self.robot.n_params:]
         P[len(fb):, len(fb):] = np.diag(s * pe[fe])
         return P
@@ -457,21 +489,25 @@ class CalibrationModel:
         self._check()
         if self.points is None:
             raise DataError("point_jacobian: the model was fitted without points")
-        x_b = self.base_params_ if base_params is None else np.asarray(base_params, dtype=float)
+        p_e = self.params_ if base_params is None else self.base_.expand(np.asarray(base_params, dtype=float))
         theta = self.effect_params_ if effect_params is None else np.asarray(effect_params, dtype=float)
-        return self._point_jacobian(np.asarray(q, dtype=float), self.base_.expand(x_b), theta, context or {})
+        return self._point_jacobian(np.asarray(q, dtype=float), p_e, theta, context or {})
 
     def jacobian(self, q, T_meas, context=None, *, base_params=None, effect_params=None) -> np.ndarray:
         """(n, 6, r + k): the derivative of Δz against the measured poses T_meas (n, 4, 4) with
         respect to the r base parameters and the k effect parameters, at the given values
         (default: the fitted ones); base_params (r,) m / rad, effect_params (k,) in their units."""
         self._check()
-        x_b = self.base_params_ if base_params is None else np.asarray(base_params, dtype=float)
+        p_e = self.params_ if base_params is None else self.base_.expand(np.asarray(base_params, dtype=float))
         theta = self.effect_params_ if effect_params is None else np.asarray(effect_params, dtype=float)
-        return self._jacobian(np.asarray(q, dtype=float), self.base_.expand(x_b), theta, context or {}, T_meas)
+        return self._jacobian(np.asarray(q, dtype=float), p_e, theta, context or {}, T_meas)
 
     def parameter_table(self) -> list:
-        """Rows (name, unit, value, sigma) for every unknown, base parameters first."""
+        """Rows (name, unit, value, sigma): the base parameters (a MAP fit's estimate projected on
+        them, with their posterior σ), then the effect parameters."""
         self._check()
+        es = self.effect_set_
         return [(n, u, float(v), float(s)) for n, u, v, s in
-                zip(self.unknown_names_, self.unknown_units_, self.x_, self.sigma_)]
+                zip(self.base_.names + es.param_names, self.base_.units + es.param_units,
+                    np.concatenate([self.base_params_, self.effect_params_]),
+                    np.concatenate([self.base_sigma_, self.effect_sigma_]))]
