@@ -202,8 +202,9 @@ class CalibrationModel:
             sig = np.full(3 * len(P), self.sigma_position_m)
             blocks = [np.arange(3 * len(P))]
         n_rows = int(mask.sum())
-        if n_rows < n_unknown:
-            raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_unknown} unknowns")
+        n_needed = self.base_.n_base + k  # the redundant model's extra unknowns are the prior's to fix
+        if n_rows < n_needed:
+            raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_needed} unknowns")
 
         x = np.zeros(n_unknown)
         x[r:] = self.effect_set_.initial_params()
