@@ -94,7 +94,7 @@ class CalibrationModel:
         """Columns for the base parameters and every effect parameter: (n, 6, r + k)."""
         es = self.effect_set_
         if not es.effects:
-            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, self.cols_]
+            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, self._geometric_columns()]
         qq = q + es.joint_offset(theta, q, context)
         xi = es.joint_twist(theta, q, context)  # the chain with any joint twists
         T_chain = chain_pose(self.robot, q, p_e, es, theta, context)
@@ -116,7 +116,7 @@ class CalibrationModel:
                 Tp[:, :3, :3] = rotvec_to_matrix(w) @ Tp[:, :3, :3]
             J_map[:, :, a] = (pose_error(es.pose_map(theta, Tp, q, context), T_meas) - dz0) / eps
         J_chain = error_jacobian(self.robot, qq, p_e, joint_twists=xi)
-        J_b = J_map @ J_chain[:, :, self.cols_]
+        J_b = J_map @ J_chain[:, :, self._geometric_columns()]
         cols = [J_b]
         if es.n_params:
             J_th = np.empty((len(q), 6, es.n_params))
@@ -140,6 +140,11 @@ class CalibrationModel:
                 J_th[:, :, k] = col
             cols.append(J_th)
         return np.concatenate(cols, axis=2)
+
+    def _geometric_columns(self) -> list:
+        """Indices of the geometric unknowns among the 6N + 12 error parameters: the base
+        parameters' (least squares) or all (MAP on the redundant model)."""
+        return getattr(self, "cols_", None) or list(self.base_.independent)
 
     def _points(self):
         return None if self.points is None else np.asarray(self.points, dtype=float).reshape(-1, 3)

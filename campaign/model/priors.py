@@ -247,3 +247,15 @@ def resolve_fix(robot, fix: dict, effect_names=()) -> dict:
         for p in hit:
             out[p] = None if value is None else float(value)
     return out
+
+
+def unknowns_precision(base, prior: Prior) -> np.ndarray:
+    """(r + k, r + k): the prior precision of the identification's unknowns, the base parameters
+    of ``base`` (the prior carried to them, ``(C Σ Cᵀ)⁺``) and then the k effect parameters
+    (diagonal; 0 where an effect parameter has no prior). For Bayesian D-optimal design
+    (campaign.plan.selection): information of the poses plus this."""
+    r, k = base.n_base, len(prior.effect_sigma)
+    P = np.zeros((r + k, r + k))
+    P[:r, :r] = np.linalg.pinv(prior.base_covariance(base), hermitian=True)
+    P[r:, r:] = np.diag(prior.precision()[len(prior.sigma):])
+    return P

@@ -90,6 +90,8 @@ class Information:
     blocks: np.ndarray
     scale: np.ndarray
     measured: str = "pose"
+    #: (p, p) the unknowns' prior precision (campaign.model.priors.unknowns_precision), or None
+    prior_precision: np.ndarray | None = None
 
     @property
     def n_candidates(self) -> int:
@@ -121,7 +123,7 @@ class Information:
         """The candidates ``index`` alone (same column scale)."""
         index = np.asarray(index, dtype=np.int64)
         return Information(self.names, self.units, self.J[index], self.noise_cov[index], self.blocks[index],
-                           self.scale, self.measured)
+                           self.scale, self.measured, self.prior_precision)
 
     def information(self, index) -> np.ndarray:
         """Scaled information matrix (p, p) of the poses ``index`` (repeats count twice)."""
@@ -191,10 +193,7 @@ def position_only_jacobian(robot, q, effects=(), context=None):
     reflectors' positions) and the effects' parameters. A reflector at ``d`` (F_I) from the tool
     point moves by ``δt + δφ × d`` under the model's pose error (δt, δφ)."""
     P = np.asarray(robot.reflector_positions_in_E, dtype=float)
-    tool = robot.with_tool_point(P[0])
-    offsets = P - P[0]  # from the tool point, in the (unturned) tool frame
-    base = base_parameters(tool, position_only=True) if len(P) == 1 else \
-        base_parameters(tool, position_only=True, points=offsets)
+    tool, offsets, base = _points_model(robot)
     J6, names, units = unknowns_jacobian(tool, q, effects, context, base=base)
     if len(P) == 1:
         return np.ascontiguousarray(J6[:, :3, :]), names, units
@@ -203,14 +202,27 @@ def position_only_jacobian(robot, q, effects=(), context=None):
     return J.reshape(len(q), 3 * len(P), -1), names, units
 
 
+def _points_model(robot):
+    """Position-only data's model: (the robot whose tool point is the first reflector, the
+    reflectors' offsets from it in the tool frame (k, 3) m, its position-only base parameters)."""
+    P = np.asarray(robot.reflector_positions_in_E, dtype=float)
+    tool = robot.with_tool_point(P[0])
+    offsets = P - P[0]  # from the tool point, in the (unturned) tool frame
+    base = base_parameters(tool, position_only=True) if len(P) == 1 else \
+        base_parameters(tool, position_only=True, points=offsets)
+    return tool, offsets, base
+
+
 def information_model(robot, q, *, effects=(), noise_m: float = TRACKER_NOISE_M, context=None,
-                      noise_cov=None) -> Information:
+                      noise_cov=None, priors: bool = False) -> Information:
     """The :class:`Information` of candidate joint vectors q (m, N) rad.
 
     A robot with three reflectors or more: 6-D poses, noise_cov (m, 6, 6) the covariance of each
     measured Δz, default: the reflectors, each coordinate with σ = ``noise_m`` (m), fitted by
     Kabsch (:func:`reflector_pose_noise`). One or two reflectors: their positions
     (:func:`position_only_jacobian`), each coordinate with σ = ``noise_m`` (noise_cov (m, 3k, 3k)).
+    priors: attach the unknowns' prior precision (the tolerances, campaign.model.priors), which
+    the design then starts from (Bayesian D-optimality: information plus prior precision).
     """
     q = np.asarray(q, dtype=float)
     if measures_points(robot):
@@ -230,9 +242,20 @@ def information_model(robot, q, *, effects=(), noise_m: float = TRACKER_NOISE_M,
         name = names[int(np.flatnonzero(dead)[0])]
         raise ConfigError(f"no candidate pose informs '{name}': it cannot be planned for")
     B = B / scale
-    for a in (J, cov, B, scale):
+    prior = _prior_precision(robot, effects, measured) if priors else None
+    for a in (J, cov, B, scale) + (() if prior is None else (prior,)):
         a.setflags(write=False)
-    return Information(tuple(names), tuple(units), J, cov, B, scale, measured)
+    return Information(tuple(names), tuple(units), J, cov, B, scale, measured, prior)
+
+
+def _prior_precision(robot, effects, measured) -> np.ndarray:
+    """The unknowns' prior precision (p, p) for ``information_model``: the base parameters of
+    the data's model (6-D poses, or positions of the reflectors) and the effects' parameters."""
+    from campaign.model.priors import make_prior, unknowns_precision
+
+    model, base = (robot, base_parameters(robot)) if measured == "pose" else _points_model(robot)[::2]
+    es = tuple(make_effect(e, model) if isinstance(e, str) else e for e in effects)
+    return unknowns_precision(base, make_prior(model, es))
 
 
 def log_det(info: Information, index) -> float:
@@ -256,6 +279,8 @@ class Design:
         self.b = info.blocks.shape[1]
         p = info.n_unknowns
         self.M = RIDGE * np.eye(p)
+        if info.prior_precision is not None:  # Bayesian D-optimality: the prior's precision, scaled
+            self.M = self.M + info.prior_precision / np.outer(info.scale, info.scale)
         self.Minv = np.eye(p) / RIDGE
         # refreshes as M reaches full rank and becomes well conditioned: the updates from the
         # ridge's 1/RIDGE scale down to O(1) lose digits, which a fresh M⁻¹ restores
@@ -627,6 +652,8 @@ class SelectionOptions:
     repeat_poses: int = REPEAT_POSES
     repeat_times: int = REPEAT_TIMES
     noise_m: float | None = None
+    #: start the design from the unknowns' prior precision (Bayesian D-optimality, docs/priors.md)
+    priors: bool = True
 
     def check(self):
         given = [v is not None for v in (self.n, self.budget_h, self.target_mm)]
@@ -744,7 +771,7 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     if m == 0:
         raise ConfigError("no suitable poses to select from")
     noise_m = TRACKER_NOISE_M if opts.noise_m is None else float(opts.noise_m)
-    info = information_model(robot, grid.q(suitable), effects=opts.effects, noise_m=noise_m)
+    info = information_model(robot, grid.q(suitable), effects=opts.effects, noise_m=noise_m, priors=opts.priors)
     t_info = time.perf_counter() - t0
     say(f"information of {m:,} suitable poses about {info.n_unknowns} unknowns ({t_info:.1f} s)")
     per_pose_s = settle_s + tracker_s
