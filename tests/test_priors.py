@@ -174,3 +174,28 @@ def test_calibrate_model_map_with_fix_reports_the_choice_curve_and_what_was_held
     assert "model: map" in out and "held (--fix): pL_6E_x = 0" in out
     page = (run / "calibration" / "report.html").read_text()
     assert "<h2>Model choice</h2>" in page and "CV held-out mean (mm)" in page
+
+
+def test_plan_select_is_bayesian_d_optimal_the_design_starts_from_the_prior_precision(robot):
+    """`plan --select` maximises log det of the poses' information plus the prior's precision
+    (campaign.model.priors.unknowns_precision, in the design's column scale)."""
+    from campaign.model.base_params import base_parameters
+    from campaign.model.priors import unknowns_precision
+    from campaign.plan.selection import RIDGE, Design, information_model, select
+
+    q = random_joint_poses(robot, 200, seed=0)
+    info = information_model(robot, q, priors=True)
+    # the precision by hand: (C Σ Cᵀ)⁻¹ of the base parameters from the tolerances, per kind
+    base = base_parameters(robot)
+    sd = make_prior(robot).sigma
+    np.testing.assert_allclose(info.prior_precision, np.linalg.inv((base.combination * sd**2) @ base.combination.T),
+                               rtol=1e-6, atol=1e-6 * np.abs(info.prior_precision).max())
+    P = info.prior_precision / np.outer(info.scale, info.scale)
+    sel = select(info, 12)
+    d = Design(info, "D")
+    for j in sel.index:
+        d.add(j)
+    expected = np.linalg.slogdet(info.information(sel.index) + P + RIDGE * np.eye(info.n_unknowns))[1]
+    assert d.criterion_value() == pytest.approx(expected, abs=1e-6)
+    assert information_model(robot, q).prior_precision is None
+    np.testing.assert_array_equal(unknowns_precision(base, make_prior(robot)), info.prior_precision)
