@@ -10,7 +10,8 @@ Candidates (docs/priors.md):
   prior σ held at zero (FIGAROH's rule: a parameter the data know worse than the drawings).
 
 The held-out error of each candidate is its closed-form leave-one-out error for the
-linearised problem at its fit: a pose's block of whitened residuals ``e_i`` becomes
+linearised problem at its fit (the MAP candidates: at the Gauss-Newton step from the least-squares
+fit to each strength's MAP, on one linearisation of the redundant model): a pose's block of whitened residuals ``e_i`` becomes
 ``(I - H_ii)⁻¹ e_i`` with ``H_ii = J_i (JᵀJ + P)⁻¹ J_iᵀ`` (exact for the linear problem with the
 prior rows kept; Hastie et al., Elements of Statistical Learning §7.10 for the single-row case).
 Its mean position error (m) is the score. From :data:`CV_MAX_TRAIN_POSES` training poses on,
@@ -87,7 +88,13 @@ class ModelChoice:
 def loo_position_errors(model: CalibrationModel) -> np.ndarray:
     """(n,) m: each training pose's leave-one-out position error (closed form, linearised at the
     fit): the norm of its position rows (pose data), or the mean norm over its seen reflectors."""
-    J, e, P, sig = model.fit_jacobian_, model.fit_residual_, model.fit_prior_precision_, model.row_sigma_
+    return _loo(model.fit_jacobian_, model.fit_residual_, model.fit_prior_precision_, model.row_sigma_,
+                model.points is not None)
+
+
+def _loo(J, e, P, sig, points: bool) -> np.ndarray:
+    """:func:`loo_position_errors` of a linear problem: whitened J (n, m, f) and residuals
+    e (n, m) at its solution, prior precision P (f, f), rows' σ (m,)."""
     n, m, f = J.shape
     J2 = J.reshape(-1, f)
     A_inv = np.linalg.pinv(J2.T @ J2 + P, hermitian=True)
@@ -98,7 +105,7 @@ def loo_position_errors(model: CalibrationModel) -> np.ndarray:
     except np.linalg.LinAlgError:  # a pose with leverage 1: no prediction without it
         e_loo = np.einsum("nij,nj->ni", np.linalg.pinv(Imh), e)
     e_loo = e_loo * sig[None, :]
-    if model.points is None:
+    if not points:
         return np.linalg.norm(e_loo[:, :3], axis=1)
     seen = (np.abs(J).sum(axis=2) > 0).reshape(n, -1, 3).all(axis=2)
     d = np.linalg.norm(e_loo.reshape(n, -1, 3), axis=2)
@@ -131,16 +138,27 @@ def fit_model(make, q, Y, context=None, *, model: str = "auto", fixed=None, prog
                    "n_effective": lsq.n_effective_}]
     fitted = {("lsq", None): lsq}
     curve = []
+    # the MAP candidates from one linearisation of the redundant model at the least-squares fit:
+    # a Gauss-Newton step to each strength's MAP, scored by its closed-form leave-one-out
+    sig = lsq.row_sigma_
+    probe = make(fixed=fixed, prior="tolerances", prior_strength=1.0, max_iter=0, estimate_noise=False,
+                 sigma_position_m=float(sig[0]), sigma_orientation_rad=float(sig[3]) if len(sig) == 6 else 1.0
+                 ).fit(q, Y, context, init=init)
+    tolerances = probe.prior_.tolerances
+    J, e0, P1 = probe.fit_jacobian_, probe.fit_residual_, probe.fit_prior_precision_
+    J2 = J.reshape(-1, J.shape[2])
+    H, g = J2.T @ J2, J2.T @ e0.reshape(-1)
+    x0 = probe.x_[probe.free_]
     for s in STRENGTHS:
-        m = make(fixed=fixed, prior="tolerances", prior_strength=s).fit(q, Y, context, init=init)
-        score = 1e3 * _score(m)
+        dx = -np.linalg.solve(H + s * P1, g + s * P1 @ x0)
+        e = e0 + J @ dx
+        score = 1e3 * float(np.mean(_loo(J, e, s * P1, sig, probe.points is not None)))
+        n_eff = float(np.trace(np.linalg.solve(H + s * P1, H)))
         curve.append({"strength": s, "cv_mean_position_mm": score})
         candidates.append({"model": "map", "strength": s, "dropped": [], "cv_mean_position_mm": score,
-                           "n_effective": m.n_effective_})
-        fitted[("map", s)] = m
-        tolerances = m.prior_.tolerances
+                           "n_effective": n_eff})
     # FIGAROH's rule: the base parameters the data know worse than the prior does
-    prior_sd = np.sqrt(np.diag(fitted[("map", STRENGTHS[0])].base_prior_.covariance))
+    prior_sd = np.sqrt(np.diag(probe.base_prior_.covariance))
     free_base = [j for j in range(lsq.base_.n_base) if lsq.base_.names[j] not in lsq.held_]
     dropped = tuple(lsq.base_.names[j] for j in free_base if lsq.base_sigma_[j] > prior_sd[j])
     if dropped:
@@ -153,6 +171,9 @@ def fit_model(make, q, Y, context=None, *, model: str = "auto", fixed=None, prog
     lsq_cv = candidates[0]["cv_mean_position_mm"]
     if model == "auto" and best["model"] != "lsq" and best["cv_mean_position_mm"] > (1 - CHOICE_MARGIN) * lsq_cv:
         best = candidates[0]
+    if best["model"] == "map":  # the chosen strength's MAP, fitted on the nonlinear model
+        fitted[("map", best["strength"])] = make(fixed=fixed, prior="tolerances", prior_strength=best["strength"]
+                                                 ).fit(q, Y, context, init=init)
     chosen = fitted[(best["model"], best["strength"])]
     what = {"lsq": lambda: "least squares", "map": lambda: f"MAP with the priors at strength {best['strength']:g}",
             "reduced": lambda: f"least squares without {len(dropped)} base parameters the data know worse than "
