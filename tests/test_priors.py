@@ -199,3 +199,29 @@ def test_plan_select_is_bayesian_d_optimal_the_design_starts_from_the_prior_prec
     assert d.criterion_value() == pytest.approx(expected, abs=1e-6)
     assert information_model(robot, q).prior_precision is None
     np.testing.assert_array_equal(unknowns_precision(base, make_prior(robot)), info.prior_precision)
+
+
+def test_an_effect_declares_its_prior_and_map_fits_it_with_the_geometry(robot):
+    from campaign.effects.base import make_effect
+    from campaign.effects.joint_compliance import JointCompliance
+    from campaign.model.priors import EFFECT_PRIOR_TYPICAL_FACTOR
+    from campaign.sim.truth import synthetic_campaign
+
+    class Stiff(JointCompliance):
+        prior_sigma = (1e-6, 2e-6, 3e-6)
+
+    typical = np.abs(make_effect("joint_compliance", robot).typical_params(0))
+    np.testing.assert_allclose(make_prior(robot, [make_effect("joint_compliance", robot)]).effect_sigma,
+                               EFFECT_PRIOR_TYPICAL_FACTOR * typical)
+    np.testing.assert_array_equal(make_prior(robot, [Stiff(robot)]).effect_sigma, [1e-6, 2e-6, 3e-6])
+    poses, truth = synthetic_campaign(robot, 30, seed=1, hidden=("joint_compliance",))
+    tight = CalibrationModel(robot=robot, effects=[Stiff(robot)], prior="tolerances").fit(poses.q, poses.T_IE)
+    loose = CalibrationModel(robot=robot, effects=["joint_compliance"], prior="tolerances").fit(poses.q, poses.T_IE)
+    # truth only now: the loose prior recovers the compliance, the tight one holds it near zero
+    assert np.all(np.abs(loose.effect_params_ - truth.theta) < 3 * loose.effect_sigma_)
+    assert np.all(loose.effect_sigma_ < 0.3 * np.abs(truth.theta))
+    # the posterior is never wider than the prior; where the data know c5 worse than the tight
+    # prior does, the prior pulls it towards zero
+    assert np.all(tight.effect_sigma_ <= np.array([1e-6, 2e-6, 3e-6]))
+    assert tight.effect_sigma_[2] < 0.6 * loose.effect_sigma_[2]
+    assert abs(tight.effect_params_[2]) < 0.5 * abs(loose.effect_params_[2])

@@ -187,6 +187,9 @@ class Effect:
     #: parameter names and units (instances may compute them, e.g. per harmonic)
     param_names: tuple = ()
     param_units: tuple = ()
+    #: the zero-mean prior's standard deviation of each parameter, in its unit (MAP identification,
+    #: docs/priors.md); None: three times |typical_params(0)| where defined, else no prior
+    prior_sigma: tuple | None = None
 
     @property
     def n_params(self) -> int:
