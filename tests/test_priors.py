@@ -225,3 +225,22 @@ def test_an_effect_declares_its_prior_and_map_fits_it_with_the_geometry(robot):
     assert np.all(tight.effect_sigma_ <= np.array([1e-6, 2e-6, 3e-6]))
     assert tight.effect_sigma_[2] < 0.6 * loose.effect_sigma_[2]
     assert abs(tight.effect_params_[2]) < 0.5 * abs(loose.effect_params_[2])
+
+
+def test_map_on_the_base_parameters_agrees_with_scipy_on_the_redundant_model_seen_through_them(robot):
+    """``physical=False`` (what `calibrate --model map|auto` fits): the prior on every physical
+    parameter, the data through the base parameters ``C p`` alone; scipy minimises the same over
+    all 48 parameters, so its physical split is the prior's conditional mean."""
+    q, T = _data(robot)
+    model = CalibrationModel(robot=robot, prior="tolerances", prior_strength=STRENGTH, physical=False,
+                             estimate_noise=False, sigma_position_m=SIG[0], sigma_orientation_rad=SIG[3]).fit(q, T)
+    sd, C = make_prior(robot).sigma, model.base_.combination
+
+    def residuals(p):
+        r = pose_error(forward(robot, q, model.base_.expand(C @ p)), T) / SIG
+        return np.concatenate([r.ravel(), np.sqrt(STRENGTH) * p / sd])
+
+    ref = scipy.optimize.least_squares(residuals, np.zeros(robot.n_params), method="trf", xtol=1e-15, ftol=1e-15,
+                                       gtol=1e-15)
+    assert np.max(np.abs(C @ ref.x - model.base_params_) / model.base_sigma_) < 1e-4
+    np.testing.assert_allclose(model.physical_params_, ref.x, atol=1e-9)

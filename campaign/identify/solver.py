@@ -365,6 +365,7 @@ class CalibrationModel:
         #: prior's precision on them (f, f) and the rows' noise σ (m,)
         self.fit_jacobian_, self.fit_residual_ = J, res / sig
         self.free_, self.fit_prior_precision_, self.row_sigma_ = free, pf, sig
+        self.fit_prior_mean_ = mu_f
         #: the a posteriori variance factor in covariance_ (cost / degrees of freedom; ≈ 1 when
         #: the row weights are the noise): covariance_ / variance_factor_ is the weights' own
         self.variance_factor_ = float(s2)
