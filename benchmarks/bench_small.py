@@ -46,16 +46,21 @@ def load(which):
     return RobotModel.load(str(metadata.distribution("example-robot-data").locate_file(f"{ERD}/{rel}")), tool_frame=tool)
 
 
-def campaign_case(robot, kind, n, seed):
-    """What `campaign synth --kind KIND --frame tracker --poses n --seed seed` writes: (measured, truth)."""
+def campaign_case(robot, kind, n, seed, narrow_rad=None):
+    """What `campaign synth --kind KIND --frame tracker --poses n --seed seed` writes: (measured, truth);
+    ``narrow_rad``: the joints instead within ± that of the middle of their range (a poorly excited
+    campaign, as a cramped cell allows)."""
     _, truth = synthetic_campaign(robot, 1, seed=seed, position_only=kind == "point")
     truth = replace(truth, T_LI=random_tracker_pose(seed))
     q = random_joint_poses(robot, n, seed=seed + 1)
+    if narrow_rad is not None:
+        mid = 0.5 * (robot.q_lower + robot.q_upper)
+        q = mid + np.random.default_rng(seed + 1).uniform(-narrow_rad, narrow_rad, size=(n, robot.n_joints))
     return synthesize_kind(truth, q, kind=kind, frame="tracker", seed=seed + 2), truth
 
 
-def run_case(robot, kind, n, seed, models=("lsq", "auto")):
-    poses, truth = campaign_case(robot, kind, n, seed)
+def run_case(robot, kind, n, seed, models=("lsq", "auto"), narrow_rad=None):
+    poses, truth = campaign_case(robot, kind, n, seed, narrow_rad)
     te = campaign_split(poses.pose_id)
     tr = ~te
     data, rob, _ = prepare_measured(robot, poses, tr)
@@ -128,6 +133,9 @@ def main():
     ap.add_argument("--robots", default="ur10,panda,comau")
     ap.add_argument("--kinds", default="point,pose,markers")
     ap.add_argument("--large", type=int, default=1000, help="pose count of the large-campaign check (0: none)")
+    ap.add_argument("--narrow", type=float, default=0.15,
+                    help="also: point and pose campaigns of 20 and 40 poses with the joints within ± this (rad) of "
+                         "mid-range, where few directions are well excited (0: none)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "small.json"))
     args = ap.parse_args()
     robots = {w: load(w) for w in args.robots.split(",")}
@@ -150,6 +158,17 @@ def main():
                 print(f"{w:6s} {kind:8s} {args.large}: lsq {c['lsq']['heldout_mean_position_mm']:.5f} mm, auto "
                       f"{c['auto']['heldout_mean_position_mm']:.5f} mm ({c['auto']['choice']}), map(1) "
                       f"{c['map1']['heldout_mean_position_mm']:.5f} mm", flush=True)
+    narrow = []
+    if args.narrow:
+        for w, robot in robots.items():
+            for kind in ("point", "pose"):
+                for n in (20, 40):
+                    c = [run_case(robot, kind, n, seed, narrow_rad=args.narrow) for seed in range(args.seeds)]
+                    narrow += c
+                    print(f"{w:6s} {kind:8s} {n:4d} within ±{args.narrow} rad: lsq "
+                          f"{np.mean([x['lsq']['heldout_mean_position_mm'] / x['floor_mm'] for x in c]):.3f}x auto "
+                          f"{np.mean([x['auto']['heldout_mean_position_mm'] / x['floor_mm'] for x in c]):.3f}x the "
+                          f"floor, choices {[x['auto']['choice'] for x in c]}", flush=True)
     summary = summarise(cases, ("lsq", "auto"))
     at40 = [r for r in summary if r["poses"] == 40]
     result = {
@@ -162,6 +181,9 @@ def main():
         "worst_cell_mean_auto_over_lsq": max(r["auto_over_lsq_mean"] for r in summary),
         "at_40_poses_auto_over_floor_mean": float(np.mean([r["auto_over_floor"] for r in at40])) if at40 else None,
         "at_40_poses_lsq_over_floor_mean": float(np.mean([r["lsq_over_floor"] for r in at40])) if at40 else None,
+        "narrow_rad": args.narrow or None,
+        "narrow_summary": summarise(narrow, ("lsq", "auto")) if narrow else [],
+        "narrow_cases": narrow,
         "cases": cases,
         "wall_time_s": time.perf_counter() - t0,
         "load_average": list(os.getloadavg()),
