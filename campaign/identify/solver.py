@@ -244,7 +244,8 @@ class CalibrationModel:
         r_base = self.base_.n_base
         base_cols = list(self.base_.independent) + list(range(r, n_unknown)) if redundant else list(range(n_unknown))
         # the analysis on the base columns (and effects); unknowns' indices of absorbed effects
-        self.absorbed_ = [i + r - r_base for i in self._absorbed(J0[:, :, base_cols].reshape(-1, r_base + k), r_base)]
+        J0b = J0[:, :, base_cols] if redundant else J0
+        self.absorbed_ = [i + r - r_base for i in self._absorbed(J0b.reshape(-1, r_base + k), r_base)]
         out = set(self.absorbed_) | set(np.flatnonzero(held).tolist())
         free = np.array([i for i in range(n_unknown) if i not in out], dtype=int)
         # the prior's precision on the free unknowns (zeros for least squares), scaled by s
@@ -502,8 +503,9 @@ class CalibrationModel:
 
     def jacobian(self, q, T_meas, context=None, *, base_params=None, effect_params=None) -> np.ndarray:
         """(n, 6, r + k): the derivative of Δz against the measured poses T_meas (n, 4, 4) with
-        respect to the r base parameters and the k effect parameters, at the given values
-        (default: the fitted ones); base_params (r,) m / rad, effect_params (k,) in their units."""
+        respect to the r geometric unknowns (the base parameters; every error parameter for a MAP
+        fit on the redundant model) and the k effect parameters, at the given values (default: the
+        fitted ones); base_params (n_base,) m / rad, effect_params (k,) in their units."""
         self._check()
         p_e = self.params_ if base_params is None else self.base_.expand(np.asarray(base_params, dtype=float))
         theta = self.effect_params_ if effect_params is None else np.asarray(effect_params, dtype=float)
