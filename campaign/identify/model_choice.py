@@ -169,7 +169,7 @@ def fit_model(make, q, Y, context=None, *, model: str = "auto", fixed=None, prog
     prior_sd = np.sqrt(np.diag(probe.base_prior_.covariance))
     free_base = [j for j in range(lsq.base_.n_base) if lsq.base_.names[j] not in lsq.held_]
     dropped = tuple(lsq.base_.names[j] for j in free_base if lsq.base_sigma_[j] > prior_sd[j])
-    if dropped:
+    if dropped and len(dropped) < len(free_base):  # a model with nothing left to fit is no candidate
         m = make(fixed=fixed, drop=dropped).fit(q, Y, context, init=init)
         candidates.append({"model": "reduced", "strength": None, "dropped": list(dropped),
                            "cv_mean_position_mm": 1e3 * _score(m), "n_effective": m.n_effective_})
