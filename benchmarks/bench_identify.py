@@ -3,6 +3,7 @@
     python benchmarks/bench_identify.py [--poses 14000] [--robot NAME|URDF|robot.yaml [--tool-frame LINK]]
     python benchmarks/bench_identify.py --robot panda   # the 7R case: example-robot-data's Panda
     python benchmarks/bench_identify.py --markers [--miss-rate 0.05]  # raw three-reflector rows
+    python benchmarks/bench_identify.py --end-to-end [--repeat 3] [--before /work/main]  # the commands
     (on a shared machine: OPENBLAS_NUM_THREADS=1, else BLAS threads fight over the cores)
 
 Simulates a campaign with Table-4-sized geometric errors and 10 µm tracker noise,
@@ -13,6 +14,15 @@ default COMAU) or identify_<robot>.json. ``--robot panda`` loads the Panda (7 re
 tool panda_hand) of the test-only package example-robot-data. ``--markers``: the same poses as
 raw reflector rows (the default triad, each reflector missed with ``--miss-rate``), identified
 from the reflectors' positions as `calibrate` does for raw data; writes identify_markers.json.
+
+``--end-to-end`` (issue 22): the same data as a user runs them, each command a process timed as a
+whole, against the yardstick of a plain numpy + scipy identification script
+(benchmarks/plain_identify.py, same CSV, same model, same accuracy) in the same run: `campaign
+calibrate RUN --no-ann` (report included), `campaign diagnose RUN` (report included) and
+`campaign --help`; wall and CPU time (user + system, what a quiet machine's wall time would be for
+these single-threaded commands), the median of ``--repeat`` rounds; ``--before DIR``: the same
+commands with the `campaign` source tree in DIR (the code before the change) in the same rounds.
+Writes the ``end_to_end`` entry of benchmarks/results/identify.json (the rest kept).
 """
 
 from __future__ import annotations
@@ -21,6 +31,8 @@ import argparse
 import json
 import os
 import resource
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -42,7 +54,12 @@ def main():
     ap.add_argument("--tool-frame", default=None)
     ap.add_argument("--markers", action="store_true", help="raw three-reflector rows, fitted at the reflectors")
     ap.add_argument("--miss-rate", type=float, default=0.0, help="with --markers: probability of a missed reflector")
+    ap.add_argument("--end-to-end", action="store_true", help="time the commands against the plain script")
+    ap.add_argument("--repeat", type=int, default=3, help="with --end-to-end: rounds (the median is kept)")
+    ap.add_argument("--before", default=None, help="with --end-to-end: a campaign source tree to compare")
     args = ap.parse_args()
+    if args.end_to_end:
+        return end_to_end(args)
     spec = args.robot
     if spec == "panda":
         from importlib import metadata
@@ -108,7 +125,85 @@ def main():
     print(f"peak RSS {res['peak_rss_mb']:.0f} MB; load average {res['load_average'][0]:.2f}")
     name = "identify" if args.robot is None else f"identify_{Path(str(args.robot)).stem}"
     out = Path(__file__).parent / "results" / (name + ("_markers" if args.markers else "") + ".json")
+    if out.is_file() and "end_to_end" in json.loads(out.read_text()):  # --end-to-end's entry stays
+        res["end_to_end"] = json.loads(out.read_text())["end_to_end"]
     out.write_text(json.dumps(res, indent=2))
+
+
+
+def _timed(cmd, env, cwd) -> tuple:
+    """(wall s, CPU s of the process and its children) of one command, which must succeed."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(map(str, cmd))}: {proc.stderr.strip()}")
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), proc.stdout
+
+
+def end_to_end(args) -> None:
+    """The commands as a user runs them against the plain script, in the same rounds (see the module)."""
+    import statistics
+    import tempfile
+
+    from campaign.measure.csvio import write_measured_csv
+
+    root = Path(__file__).resolve().parents[1]
+    robot = RobotModel.load()
+    truth = make_truth(robot, seed=args.seed)
+    meas = synthesize(truth, random_joint_poses(robot, args.poses, seed=args.seed + 1), seed=args.seed + 2)
+    trees = {"after": root} | ({"before": Path(args.before)} if args.before else {})
+    rows = {}
+    with tempfile.TemporaryDirectory(prefix="bench-e2e-") as tmp:
+        tmp = Path(tmp)
+        csv = tmp / "measured.csv"
+        write_measured_csv(csv, meas)
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+        runs = {}
+        for name, tree in trees.items():
+            runs[name] = tmp / f"run_{name}"
+            _timed([sys.executable, "-m", "campaign.cli", "import", str(csv), "--run", str(runs[name]), "--quiet"],
+                   {**env, "PYTHONPATH": str(tree)}, tmp)
+        cmds = {"plain_script": ([sys.executable, str(root / "benchmarks" / "plain_identify.py"), str(csv)], env)}
+        for name, tree in trees.items():
+            e = {**env, "PYTHONPATH": str(tree)}
+            cli = [sys.executable, "-m", "campaign.cli"]
+            cmds[f"calibrate_{name}"] = (cli + ["calibrate", str(runs[name]), "--no-ann"], e)
+            cmds[f"diagnose_{name}"] = (cli + ["diagnose", str(runs[name])], e)
+            cmds[f"help_{name}"] = (cli + ["--help"], e)
+        times = {k: [] for k in cmds}
+        outputs = {}
+        for _ in range(args.repeat):  # rounds: every command once a round, so the load hits all alike
+            for key, (cmd, e) in cmds.items():
+                wall, cpu, out = _timed(cmd, e, tmp)  # cwd apart: `python -m` puts it first on the path
+                times[key].append((wall, cpu))
+                outputs[key] = out
+        for key, v in times.items():
+            rows[key] = {"wall_s": statistics.median(w for w, _ in v), "cpu_s": statistics.median(c for _, c in v),
+                         "rounds": v}
+    plain = rows["plain_script"]
+    res = {"poses": args.poses, "repeat": args.repeat, "commands": {k: " ".join(map(str, c[0][1:]))
+                                                                    for k, c in cmds.items()},
+           "times": rows, "plain_script_output": outputs["plain_script"].strip(),
+           "calibrate_output_tail": outputs["calibrate_after"].strip().splitlines()[-4:]}
+    for name in trees:
+        c = rows[f"calibrate_{name}"]
+        res[f"calibrate_over_plain_{name}"] = {"wall": c["wall_s"] / plain["wall_s"], "cpu": c["cpu_s"] / plain["cpu_s"]}
+    res["targets"] = {"calibrate_over_plain": 1.5, "diagnose_s": 15.0, "help_s": 0.5}
+    res["load_average"] = os.getloadavg()
+    res["openblas_num_threads"] = "1"
+    for key, r in rows.items():
+        print(f"{key:<18} wall {r['wall_s']:7.2f} s   cpu {r['cpu_s']:7.2f} s")
+    for name in trees:
+        ratio = res[f"calibrate_over_plain_{name}"]
+        print(f"calibrate ({name}) / plain script: wall {ratio['wall']:.2f}x, cpu {ratio['cpu']:.2f}x")
+    print(f"load average {res['load_average'][0]:.2f}")
+    out = Path(__file__).parent / "results" / "identify.json"
+    doc = json.loads(out.read_text()) if out.is_file() else {}
+    doc["end_to_end"] = res
+    out.write_text(json.dumps(doc, indent=2))
 
 
 if __name__ == "__main__":

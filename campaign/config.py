@@ -182,7 +182,9 @@ class RunConfig:
     retries: int = 3
     reconnect_attempts: int = 5
     backoff_s: float = 0.2
-    drift_check_every: int = 500
+    #: re-measure the reference pose every N stored poses (0: never); "auto": about
+    #: DRIFT_CHECKS_PER_CAMPAIGN times a campaign, at least every 500 poses (campaign.measure.driver)
+    drift_check_every: int | str = "auto"
     drift_threshold_mm: float = 0.05
 
     @classmethod
@@ -200,7 +202,7 @@ class RunConfig:
         if "reconnect_attempts" in doc:
             kw["reconnect_attempts"] = check_int(doc["reconnect_attempts"], where("reconnect_attempts"), low=0,
                                                  high=1000)
-        if "drift_check_every" in doc:
+        if "drift_check_every" in doc and doc["drift_check_every"] != "auto":
             kw["drift_check_every"] = check_int(doc["drift_check_every"], where("drift_check_every"), low=0)
         return cls(**kw)
 

@@ -106,3 +106,17 @@ MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE = 0.005
 #: Quaternion columns whose norm differs from 1 by more than this are not unit quaternions (a
 #: file's 6 printed digits keep the norm within 1e-5 of 1).
 QUATERNION_NORM_TOL = 1e-3
+
+#: Two measurements of one pose at most this far apart in time (s) are *back to back*: their
+#: difference is the tracker's noise, and they give the noise floor (campaign.measure.floor);
+#: repeats further apart measure the drift as well and are reported as drift
+#: (campaign.measure.drift). A warm-up grows a metre-sized arm by up to ~1.5e-4 of its reach in
+#: its first hour (~150 µm/h at 1 m); over 120 s that is 5 µm, which adds under 10 % to a
+#: floor of a 10 µm tracker (σ of the tool origin ~6 µm per coordinate, successive differences
+#: 2σ² + (5 µm)²/3 per coordinate). A back-to-back repeat of the plan (one tour pose in between)
+#: takes 40-60 s in the default cell (2 s settle, 3 reflectors at 5 s, the motions).
+REPEAT_CLOSE_S = 120.0
+
+#: Without measurement times (an imported CSV without ``time_s``), repeats at most this many
+#: rows apart count as back to back: 120 s at the default cell's ~25 s per pose.
+REPEAT_CLOSE_ROWS = 5

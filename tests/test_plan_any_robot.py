@@ -437,7 +437,7 @@ def test_a_one_reflector_robot_gets_the_short_campaign_by_default_and_a_selectio
     assert sel["predicted"]["model_orientation_mrad"] is None
     assert 0 < sel["predicted"]["model_position_mm"] < sel["predicted"]["heldout_position_mm"]
     _, ids, _ = _read_poses(default)
-    assert len(ids) == 120 + 30 + 3 * 2 - s["tour"]["dropped"]
+    assert len(ids) == 120 + 30 + 3 * (sel["repeat_times"] - 1) - s["tour"]["dropped"]
     chosen = _plan(tmp_path / "chosen", ["--robot", str(tmp_path / "one.yaml")], cells, ("--select", "15"))
     s = json.loads((chosen / "plan" / "summary.json").read_text())
     assert s["selection"]["selected"] == 15 and s["selection"]["n_unknowns"] == 29

@@ -260,7 +260,7 @@ def test_select_replaces_the_poses_its_first_tour_dropped(tmp_path, capsys):
     assert rep["rounds"] == len(rep["dropped_per_round"]) >= 2 and rep["why_short"] is None
     assert len(selected) == s["selection"]["selected"] == s["selection"]["chosen"] == 12
     assert len(validation) == s["selection"]["validation"] == 30
-    assert len(poses) == 12 + 30 + 2 * s["selection"]["repeated_poses"] == s["tour"]["poses"]
+    assert len(poses) == 12 + 30 + (s["selection"]["repeat_times"] - 1) * s["selection"]["repeated_poses"] == s["tour"]["poses"]
     side = {int(np.digitize(q[1], [-1.5 * np.pi, 0.5 * np.pi])) for _, q in poses}
     assert len(side) == 1  # one side of the pedestal (test_ur10_drops_only_the_poses_beyond...)
     out = capsys.readouterr().out

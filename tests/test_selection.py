@@ -114,15 +114,24 @@ def test_smallest_design_reaching_a_target_is_the_first_greedy_prefix_that_does(
     assert n <= 30
 
 
-def test_repeats_are_spread_over_the_tour_with_their_own_ids():
-    choice = S.CampaignChoice(np.array([5, 7, 9]), np.array([11]), np.array([5, 9]), 3, None, {})
-    order = choice.with_repeats(np.arange(100, 120))
+def test_repeats_are_measured_back_to_back_with_their_own_ids():
+    """Issue 20: the copies of a repeated pose one tour pose apart (p, a, p', b, p''), not
+    spread over the tour, so that their differences are the noise and not the drift."""
+    choice = S.CampaignChoice(np.array([5, 7, 9]), np.array([11]), np.array([105, 119]), 3, None, {})
+    tour = np.arange(100, 120)
+    order = choice.with_repeats(tour)
     extra = order[order >= S.REPEAT_ID_STRIDE]
-    assert sorted(extra.tolist()) == sorted([5 + S.REPEAT_ID_STRIDE, 9 + S.REPEAT_ID_STRIDE,
-                                             5 + 2 * S.REPEAT_ID_STRIDE, 9 + 2 * S.REPEAT_ID_STRIDE])
-    pos = np.flatnonzero(order >= S.REPEAT_ID_STRIDE)
-    assert np.min(np.diff(pos)) >= 4
-    np.testing.assert_array_equal(S.base_pose_id(extra), [5, 9, 5, 9])
+    assert sorted(extra.tolist()) == sorted([105 + S.REPEAT_ID_STRIDE, 119 + S.REPEAT_ID_STRIDE,
+                                             105 + 2 * S.REPEAT_ID_STRIDE, 119 + 2 * S.REPEAT_ID_STRIDE])
+    np.testing.assert_array_equal(order[order < S.REPEAT_ID_STRIDE], tour)  # the tour itself unchanged
+    at = np.flatnonzero(S.base_pose_id(order) == 105)
+    np.testing.assert_array_equal(np.diff(at), [2, 2])  # one tour pose between successive measurements
+    np.testing.assert_array_equal(order[at[0]:at[-1] + 1], [105, 106, 105 + S.REPEAT_ID_STRIDE, 107,
+                                                            105 + 2 * S.REPEAT_ID_STRIDE])
+    # the tour's last pose: its repeats follow it directly
+    np.testing.assert_array_equal(order[-3:], [119, 119 + S.REPEAT_ID_STRIDE, 119 + 2 * S.REPEAT_ID_STRIDE])
+    layout = S.repeats_in_tour(order)
+    assert layout["poses"] == 2 and layout["measurements"] == {"105": 3, "119": 3} and layout["max_steps_between"] == 2
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +153,7 @@ def test_plan_select_writes_the_design_validation_and_repeats(selected_run):
     header, rows = _read_csv(selected_run / "plan" / "poses.csv")
     assert header == "pose_id,q1,q2,q3,q4,q5,q6"
     ids = np.array([r[0] for r in rows], dtype=np.int64)
-    assert len(ids) == len(set(ids)) == 12 + 30 + 6 - s["tour"]["dropped"]
+    assert len(ids) == len(set(ids)) == 12 + 30 + 3 * (S.REPEAT_TIMES - 1) - s["tour"]["dropped"]
     _, val = _read_csv(selected_run / "plan" / "validation.csv")
     assert set(int(v[0]) for v in val) <= set(ids.tolist())
     _, reps = _read_csv(selected_run / "plan" / "repeats.csv")
@@ -164,7 +173,7 @@ def test_the_default_plan_is_the_short_campaign_and_all_plans_every_suitable_pos
     assert s["campaign"]["mode"] == "default" and s["selection"]["select"] == S.DEFAULT_SELECT == 120
     assert (s["selection"]["selected"], s["selection"]["validation"], s["selection"]["repeated_poses"]) == (120, 30, 3)
     _, rows = _read_csv(short / "plan" / "poses.csv")
-    assert len(rows) == 120 + 30 + 3 * 2 - s["tour"]["dropped"]
+    assert len(rows) == 120 + 30 + 3 * (S.REPEAT_TIMES - 1) - s["tour"]["dropped"]
     assert (short / "plan" / "validation.csv").is_file()
     assert f["campaign"]["kind"] == "all" and "selection" not in f and not (full / "plan" / "validation.csv").exists()
     _, rows = _read_csv(full / "plan" / "poses.csv")
@@ -250,7 +259,7 @@ def test_a_small_campaign_is_tested_on_its_validation_poses_and_trains_no_networ
     assert m["order"] == ["nominal", "geometric"]
     _, val = _read_csv(run / "plan" / "validation.csv")
     assert m["stages"]["geometric"]["test"]["n_poses"] == len(val)
-    assert m["stages"]["geometric"]["train"]["n_poses"] == 12 + 6
+    assert m["stages"]["geometric"]["train"]["n_poses"] == 12 + 3 * (S.REPEAT_TIMES - 1)
 
 
 def test_plan_target_mm_picks_a_campaign_predicted_to_reach_it(tmp_path):

@@ -224,7 +224,7 @@ def test_one_reflector_plan_select_run_calibrate_beats_random_poses_as_predicted
     with open_run(run) as store:
         poses, T_LI = store.load_measured(), np.array(store.get_meta("T_LI"))
     q_train = poses.q[~run_split(run, poses.pose_id)]
-    assert 20 <= len(q_train) <= 26  # 20 poses + 3 × 2 repeats, less any the tour dropped
+    assert 20 <= len(q_train) <= 20 + 3 * (S.REPEAT_TIMES - 1)  # 20 poses + 3 poses' repeats, less any the tour dropped
     true_Q = _truth_points(truth, robot, Q, T_LI)
     tool = robot.with_tool_point(robot.reflector_positions_in_E[0])
     rng = np.random.default_rng(5)

@@ -16,6 +16,15 @@ iteration converges to the joint least-squares optimum up to a term of the order
 Jacobian's change times the residual (noise); tests/test_diagnose_candidates.py checks the
 held-out errors against a full :class:`~campaign.identify.solver.CalibrationModel` refit.
 
+The candidate's columns share the fold's work where its hooks allow (exactly the same
+derivatives, computed once per fold instead of once per candidate): an effect with only a
+``pose_map`` maps the current model's poses at x̂, computed once per fold, so its central
+differences cost no kinematics; an effect with only a ``joint_offset`` Δq(θ) moves the pose
+as an offset of the joints does, so its columns are Σ_j ∂r/∂Δq_j · ∂Δq_j/∂θ, the first factor
+central differences of the model in one joint offset at a time (2N evaluations of the model per
+fold, shared by every such candidate), the second of the effect's own hook. Other effects
+(twists, several hooks) take central differences of the whole model.
+
 Which candidate parameters the current unknowns already span (*absorbed*, held at zero) is
 decided as the solver decides it: the QR of the column-normalised weighted regressor at the
 start point, the candidate's columns after the current ones, a diagonal below
@@ -28,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.effects.base import EffectSet, model_pose
+from campaign.effects.base import Effect, EffectSet, has_twist, model_pose
 from campaign.model.kinematics import pose_error
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL
 
@@ -61,6 +70,8 @@ class FoldLinearisation:
     ref_diag: float
     free: np.ndarray
     H: np.ndarray = field(repr=False)
+    #: what every candidate of the fold shares, computed on first use (:func:`_shared`)
+    shared: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def _weighted(dz, rows, sigma):
@@ -73,7 +84,11 @@ def linearise(model, q, T_meas, context) -> FoldLinearisation:
     rows = slice(0, 3) if model.position_only else slice(0, 6)
     noise = model.noise_sigma_
     sigma = np.array([noise["position_m"]] * 3 + [noise["orientation_rad"] or 1.0] * 3)[rows]
-    Jfull = model.jacobian(q, T_meas, context)[:, rows, :] / sigma[None, :, None]
+    kept = getattr(model, "jacobian_at_fit_", None)  # the fit's own, at the optimum on these poses
+    if kept is not None and model.points is None and kept.shape[:2] == (len(q), rows.stop):
+        Jfull = kept[:, rows, :] / sigma[None, :, None]
+    else:
+        Jfull = model.jacobian(q, T_meas, context)[:, rows, :] / sigma[None, :, None]
     J = Jfull.reshape(-1, Jfull.shape[2])
     residual = _weighted(model.residuals(q, T_meas, context), rows, sigma)
     norms = np.linalg.norm(J, axis=0)
@@ -117,14 +132,7 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
     def weighted_residual(x):
         return _weighted(dz(x, q, T_meas, context), lin.rows, lin.sigma)
 
-    res = weighted_residual(x0)
-    # the candidate's columns at the start point, central differences
-    C = np.empty((len(res), k))
-    for i in range(k):
-        xp, xm = x0.copy(), x0.copy()
-        xp[u + i] += FD_STEP
-        xm[u + i] -= FD_STEP
-        C[:, i] = (weighted_residual(xp) - weighted_residual(xm)) / (2 * FD_STEP)
+    res, C = _start(lin, effect, x0, q, T_meas, context, weighted_residual)
     # absorbed: what is left of each normalised candidate column after the current columns
     # and the candidate's earlier ones (the diagonal of the joint QR)
     norms = np.linalg.norm(C, axis=0)
@@ -169,3 +177,88 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
                 break
     names = tuple(f"{effect.name}.{effect.param_names[i]}" for i in absorbed_c)
     return CandidateFit(dz(x, q_out, T_out, context_out), names, x[u:].copy(), n_steps)
+
+
+def _hooks(effect) -> set:
+    """The hooks an effect overrides: a subset of {"joint_offset", "joint_twist", "pose_map"}."""
+    out = {h for h in ("joint_offset", "pose_map") if getattr(type(effect), h) is not getattr(Effect, h)}
+    return out | ({"joint_twist"} if has_twist(effect) else set())
+
+
+class _JointShift(Effect):
+    """Δq = δ on one joint: the model's derivative in a joint offset (:func:`_joint_columns`)."""
+
+    name = "_joint_shift"
+    param_names = ("delta",)
+    param_units = ("rad or m",)
+
+    def __init__(self, robot, joint: int):
+        super().__init__(robot)
+        self.joint = joint
+
+    def joint_offset(self, params, q, context):
+        dq = np.zeros_like(q)
+        dq[:, self.joint] = params[0]
+        return dq
+
+
+def _shared(lin: FoldLinearisation, key, compute):
+    if key not in lin.shared:
+        lin.shared[key] = compute()
+    return lin.shared[key]
+
+
+def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_residual):
+    """The weighted residual at the start point (n·rows,) and the candidate's columns (n·rows, k)
+    there, central differences in its parameters (see the module: shared work by hooks)."""
+    m = lin.model
+    k = effect.n_params
+    th0 = x0[len(x0) - k:]
+    hooks = _hooks(effect)
+    step = lambda i: FD_STEP * np.eye(k)[i]  # noqa: E731
+    if hooks == {"pose_map"}:
+        r = m.base_.n_base
+        T_cur = _shared(lin, "pose", lambda: model_pose(m.robot, q, m.base_.expand(m.x_[:r]), m.effect_set_,
+                                                        m.x_[r:], context))
+
+        def mapped(th):
+            return _weighted(pose_error(effect.pose_map(th, T_cur, q, context), T_meas), lin.rows, lin.sigma)
+
+        res = mapped(th0)
+        C = np.column_stack([(mapped(th0 + step(i)) - mapped(th0 - step(i))) / (2 * FD_STEP) for i in range(k)]) \
+            if k else np.zeros((len(res), 0))
+        return res, C
+    if hooks == {"joint_offset"}:
+        D = _shared(lin, "joint_offset", lambda: _joint_columns(lin, q, T_meas, context))
+        off0 = effect.joint_offset(th0, q, context)
+        res = lin.residual if off0 is None or not np.any(off0) else weighted_residual(x0)
+        rows = D.shape[0] // len(q)
+        C = np.empty((len(res), k))
+        for i in range(k):
+            g = (effect.joint_offset(th0 + step(i), q, context) - effect.joint_offset(th0 - step(i), q, context)) \
+                / (2 * FD_STEP)  # (n, N): ∂Δq/∂θ_i
+            C[:, i] = np.einsum("rj,rj->r", D, np.repeat(g, rows, axis=0))
+        return res, C
+    res = weighted_residual(x0)
+    C = np.empty((len(res), k))
+    for i in range(k):
+        xp, xm = x0.copy(), x0.copy()
+        xp[len(x0) - k + i] += FD_STEP
+        xm[len(x0) - k + i] -= FD_STEP
+        C[:, i] = (weighted_residual(xp) - weighted_residual(xm)) / (2 * FD_STEP)
+    return res, C
+
+
+def _joint_columns(lin: FoldLinearisation, q, T_meas, context) -> np.ndarray:
+    """(n·rows, N): the weighted residual's derivative in an offset of each joint, at the
+    current model's optimum (central differences, FD_STEP rad or m)."""
+    m = lin.model
+    r = m.base_.n_base
+    p_e = m.base_.expand(m.x_[:r])
+    cols = []
+    for j in range(q.shape[1]):
+        es = EffectSet((*m.effect_set_.effects, _JointShift(m.robot, j)))
+        res = [_weighted(pose_error(model_pose(m.robot, q, p_e, es, np.r_[m.x_[r:], d], context), T_meas),
+                         lin.rows, lin.sigma) for d in (FD_STEP, -FD_STEP)]
+        cols.append((res[0] - res[1]) / (2 * FD_STEP))
+    return np.column_stack(cols)

@@ -42,6 +42,7 @@ from campaign.identify.calibrate import (check_pose_count, configured_effects, d
                                          load_robot_for_run, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import FoldRule, choose_folds, run_split, train_test_split, validation_file
+from campaign.measure.drift import Drift, measured_drift
 from campaign.measure.floor import NoiseFloor, noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
@@ -126,6 +127,8 @@ class Diagnosis:
     expected_model_to_noise: float = 1.0
     #: the training poses' ids of each held-out fold, in the order of the run's poses
     fold_pose_ids: tuple = ()
+    #: the drift over the campaign's time, apart from the floor (campaign.measure.drift.Drift)
+    drift: Drift = field(default_factory=Drift)
 
     @property
     def model_to_noise(self) -> float | None:
@@ -149,6 +152,8 @@ class Diagnosis:
             "at_noise_floor": self.at_floor,
             "expected_model_to_noise": self.expected_model_to_noise,
             "noise_floor": self.floor.as_json(),
+            "drift_um_per_h": self.drift.um_per_h,
+            "drift": self.drift.as_json(),
             "unexplained": {
                 "significant": bool(self.structure_significant),
                 "heldout_gain": None if s is None else s.heldout_gain,
@@ -183,7 +188,7 @@ class Diagnosis:
         if self.expected_model_to_noise > 1.0 + AT_FLOOR_MARGIN:  # a small campaign: what a correct model reaches
             out += (f"\n  a correct model reaches about {self.expected_model_to_noise:.2f}× with these folds (its own "
                     f"parameters' estimation error on {self.fold_rule.fit_poses if self.fold_rule else '?'} poses)")
-        return out
+        return out + "\n" + self.drift.text()
 
     def structure_line(self) -> str:
         s = self.structure
@@ -387,7 +392,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         m = CalibrationModel(robot=robot, effects=list(current), estimate_noise=False, position_only=position_only,
                              sigma_position_m=noise["position_m"],
                              sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
-        m.fit(q_fit, T_fit, ctx_fit, base=base, init=full.values_)
+        m.fit(q_fit, T_fit, ctx_fit, base=base, init=full.values_, init_jacobian=full.jacobian_at_fit_[fold != k])
         dz = m.residuals(q_out, T_out, ctx_out)
         before[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
         dz_before[fold == k] = dz[:, :3]
@@ -429,6 +434,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         r_fit = {k: residual_in_joint1_frame(robot, q_tr[fold != k], fit_res[k]) for k in fit_res}
         struct = structure_test(X, input_names, fold, r_fit, r_out)
         struct_sig = bool(struct.p_value < ALPHA and struct.heldout_gain >= detection)
+        if struct_sig and at_floor:  # structure the model-free test finds is above the noise, whatever the ratio
+            at_floor = False
 
     scores, skipped = [], []
     n_cand = max(len(names), 1)
@@ -499,4 +506,4 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
                      residual_in_joint1_frame(robot, poses.q[tr], dz_before), rule, tuple(skipped), expected,
-                     fold_pose_ids(poses.pose_id[tr], fold, folds))
+                     fold_pose_ids(poses.pose_id[tr], fold, folds), measured_drift(run_dir, poses, floor))

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from campaign.fileio import atomic_write, atomic_write_json
-from campaign.identify.report import (PAGE_STYLE, _plt, binned_quantiles, plot_against_joints, plot_history,
-                                     plot_workspace)
+from campaign.identify.noise_floor import tracker_noise_floor
+from campaign.identify.report import (PAGE_STYLE, PNG_FAST, _plt, binned_quantiles, plot_against_joints,
+                                     plot_history, plot_workspace)
 
 #: font sizes of the diagnose figures (pt at 100 dpi), readable at the page's width
 LABEL_PT, TICK_PT, TITLE_PT = 12, 10, 12
@@ -30,33 +31,30 @@ def plot_signed_against(series: dict, r_um, components, title: str, out: Path, n
     their labels; column_titles: optional title per column."""
     import textwrap
 
+    from campaign.identify.panels import PanelGrid
+
     plt = _plt()
     labels = list(series)
     width_in = min(max(COLUMN_IN * len(labels) + 1.1, MIN_WIDTH_IN), MAX_WIDTH_IN)
     # the title wrapped to the figure's width (about 10 characters per inch at TITLE_PT)
     title = "\n".join(textwrap.fill(line, int(10 * width_in)) for line in title.split("\n"))
     n_title = title.count("\n") + 1
-    fig, axes = plt.subplots(len(components), len(labels), squeeze=False, sharey="row",
-                             figsize=(width_in, 2.1 * len(components) + 0.9 + 0.25 * n_title))
+    fig = plt.figure(figsize=(width_in, 2.1 * len(components) + 0.9 + 0.25 * n_title))
+    w, h = fig.get_size_inches()
+    top_in = 0.25 + 0.22 * n_title + (0.3 if column_titles else 0.0)
+    ax = fig.add_axes((0.1 / w, 0.1 / h, 1 - 0.25 / w, 1 - (0.1 + top_in) / h))  # margins in inches
+    grid = PanelGrid(ax, len(components), len(labels), gap_x=0.08, gap_y=0.1)  # rows share y, columns x
     for c, label in enumerate(labels):
         x = np.asarray(series[label], dtype=float)
         for k, comp in enumerate(components):
-            ax = axes[k, c]
             b = binned_quantiles(x, r_um[:, k])
-            ax.fill_between(b["x"], b["q05"], b["q95"], color=f"C{k}", alpha=0.25, linewidth=0)
-            ax.plot(b["x"], b["mean"], "o-", color=f"C{k}", ms=3, linewidth=1.4)
-            ax.axhline(0.0, color="0.5", linewidth=0.6)
-            ax.grid(alpha=0.3, linewidth=0.5)
-            ax.tick_params(labelsize=TICK_PT)
-            if k == len(components) - 1:
-                ax.set_xlabel(label, fontsize=LABEL_PT)
-            if c == 0:
-                ax.set_ylabel(f"{comp} [µm]", fontsize=LABEL_PT)
-            if k == 0 and column_titles:
-                ax.set_title(column_titles[c], fontsize=TICK_PT + 1)
+            grid.band(k, c, b["x"], b["q05"], b["q95"], color=f"C{k}", alpha=0.25)
+            grid.line(k, c, b["x"], b["mean"], color=f"C{k}", marker="o", ms=3, linewidth=1.4)
+        if column_titles:
+            grid.title(0, c, column_titles[c], fontsize=TICK_PT + 1)
+    grid.finish(xlabels=labels, ylabels=[f"{comp} [µm]" for comp in components], label_size=TICK_PT - 1)
     fig.suptitle(title, fontsize=TITLE_PT)
-    fig.tight_layout()
-    fig.savefig(out / name, dpi=100)
+    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return name
 
@@ -127,8 +125,11 @@ def plot_ranking(diagnosis, out: Path, name: str = "ranking.png") -> str:
         ax.axvline(diagnosis.ranking[0].heldout_mean_position_mm_before, color="k", ls="--", label="current model")
         ax.legend(fontsize=8)
     ax.set_xlabel("held-out mean ‖Δt‖ with the candidate added [mm] (green: significant)")
-    fig.tight_layout()
-    fig.savefig(out / name, dpi=110)
+    # a fixed layout (tight_layout draws the figure once more): room for the longest effect name
+    w, h = fig.get_size_inches()
+    left_in = 0.3 + 0.085 * max([len(label) for label in labels] + [4])
+    fig.subplots_adjust(left=min(left_in / w, 0.6), right=0.97, bottom=0.5 / h + 0.02, top=1 - 0.15 / h)
+    fig.savefig(out / name, dpi=110, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return name
 
@@ -183,7 +184,8 @@ def write_report(diagnosis, poses, robot, *, out=None, diagnosis_id: str | None 
         series[f"gravity torque τ{j + 1} [N·m]"] = tau[:, j]
     imgs.append(plot_against_context(res, series, is_test, out))
     signature = plot_signature(diagnosis, out)
-    hist = plot_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out)
+    hist = plot_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out,
+                        noise_floor=tracker_noise_floor(diagnosis.run_dir, poses, robot))  # the poses read once
     atomic_write_json(out / "diagnosis.json", diagnosis_doc(diagnosis, diagnosis_id))
     parts = ["<!doctype html><meta charset='utf-8'><title>campaign diagnosis</title>",
              PAGE_STYLE.replace("pre{", "pre{white-space:pre-wrap;overflow-wrap:anywhere;"),

@@ -30,6 +30,7 @@ from campaign.identify.model_choice import check_model_options, choice_json, cho
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import run_split, validation_file
 from campaign.measure import plausibility
+from campaign.measure.drift import Drift, measured_drift
 from campaign.measure.floor import noise_floor, times_the_noise
 from campaign.measure.reflectors import transform_points
 from campaign.measure.store import open_run
@@ -75,6 +76,8 @@ class CalibrationResult:
     tracker: dict | None = None
     #: the measurement noise floor (campaign.diagnose.floor.NoiseFloor.as_json())
     noise_floor: dict | None = None
+    #: the drift over the campaign's time (campaign.measure.drift.Drift.as_json()), apart from the floor
+    drift: dict | None = None
     #: the neural stages, when trained
     ann: AnnStages | None = None
     #: why no network was trained, when it was not asked for explicitly
@@ -107,6 +110,8 @@ class CalibrationResult:
             out["ann_cross_validation"] = self.ann.cross_validation
         if self.noise_floor is not None:
             out["noise_floor"] = self.noise_floor
+        if self.drift is not None:
+            out["drift"], out["drift_um_per_h"] = self.drift, self.drift["um_per_h"]
         if self.folds is not None:
             out["folds"] = self.folds
         out["warnings"] = [w.as_json() for w in self.warnings]
@@ -128,6 +133,8 @@ class CalibrationResult:
         for name in self.order[1:]:
             mean = self.stages[name]["test"]["position_mm"]["mean"]
             lines.append(f"  {name}: held-out mean {mean:.3f} mm {times_the_noise(mean, floor['mean_position_mm'])}")
+        if self.drift is not None:
+            lines.append(Drift.from_json(self.drift).text())
         return "\n".join(lines)
 
 
@@ -155,7 +162,7 @@ def check_ann_options(options: dict) -> dict:
     workers = options.get("workers", 1)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ConfigError(f"--workers must be at least 1, not {workers!r}")
-    if options.get("device") is not None:
+    if options.get("device") not in (None, "auto"):  # auto always resolves: no torch import for it
         from campaign.ann.grid import resolve_device
 
         resolve_device(options["device"])  # an unknown or absent device: one line, before any work
@@ -474,12 +481,14 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
             full[usable] = dz
             add_stage(name, full)
 
+    measured = poses.subset(np.flatnonzero(usable)) if at_origin else poses
+    floor = noise_floor(run_dir, measured, robot)
     result = CalibrationResult(
         run_dir, stages, order, model, is_test, effects=tuple(effects), measurement_kind=poses.kind,
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
-        noise_floor=noise_floor(run_dir, poses.subset(np.flatnonzero(usable)) if at_origin else poses,
-                                robot).as_json(), ann=ann_stages, ann_skipped=ann_skipped,
+        noise_floor=floor.as_json(), drift=measured_drift(run_dir, measured, floor).as_json(),
+        ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json(), calibration_id=version.id,
         model_choice=choice_json(choice, model, poses.q[te], ctx_te=None if not context else
                                  {k: v[te] for k, v in context.items()}, stages=stages,
@@ -491,13 +500,15 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if write:
         _write(result, robot, geo, version.path)
     if write and report:
+        from campaign.identify.noise_floor import tracker_noise_floor
         from campaign.identify.report import model_choice_html, write_report
 
         say("writing the report")
         shown = np.flatnonzero(usable) if at_origin else np.arange(len(poses))  # rows with an error at the origin
         xyz = poses.xyz if at_origin else np.nanmean(poses.markers, axis=1)
+        floor = tracker_noise_floor(run_dir, measured, robot)
         page = write_report(run_dir, stages, order, {k: v[shown] for k, v in residuals.items()}, poses.q[shown], xyz[shown], is_test[shown],
-                            param_text=parameter_text(model),
+                            param_text=parameter_text(model), noise_floor=floor,  # the poses read once
                             extra_html=f"<h2>Against the measurement noise</h2>"
                             f"<pre>{html.escape(result.floor_line())}</pre>" + model_choice_html(result.model_choice)
                             + (result.ann.report_html() if result.ann is not None else ""),

@@ -18,6 +18,11 @@ from campaign.identify.metrics import format_table6
 from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 
 
+#: PNGs written with zlib's fastest level: a third of the time of the default level for
+#: files about 1.3× as large (flat-coloured plots compress well at any level)
+PNG_FAST = {"compress_level": 1}
+
+
 def _plt():
     import matplotlib
 
@@ -53,13 +58,6 @@ MAX_BINS = 24
 MIN_BIN_POSES = 8
 
 
-def _margins_in(fig, *, left, right, bottom, top, hspace, wspace):
-    """Figure margins in inches (a fixed layout: tight_layout costs seconds on 36 panels)."""
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
-                        hspace=hspace, wspace=wspace)
-
-
 def binned_quantiles(x, y, *, max_bins: int = MAX_BINS, min_count: int = MIN_BIN_POSES) -> dict:
     """Mean and 5 %/95 % quantiles (a 90 % band) of y in bins of x.
 
@@ -88,16 +86,21 @@ def binned_quantiles(x, y, *, max_bins: int = MAX_BINS, min_count: int = MIN_BIN
             merged.append(bounds[k])
     if len(merged) > 2 and merged[-1] - merged[-2] < min_count:
         del merged[-2]
-    out = {k: [] for k in empty}
-    for lo, hi in zip(merged[:-1], merged[1:]):
-        yb = ys[lo:hi]
-        out["x"].append(xs[lo:hi].mean())
-        out["n"].append(hi - lo)
-        out["mean"].append(yb.mean())
-        q05, q95 = np.quantile(yb, [0.05, 0.95])
-        out["q05"].append(q05)
-        out["q95"].append(q95)
-    return {k: np.asarray(v, dtype=float) for k, v in out.items()}
+    lo, hi = np.asarray(merged[:-1]), np.asarray(merged[1:])
+    count = hi - lo
+    out = {"x": np.add.reduceat(xs, lo) / count, "n": count.astype(float), "mean": np.add.reduceat(ys, lo) / count}
+    # quantiles per bin at once: y sorted within each bin, then np.quantile's linear rule
+    # (position q·(m − 1) between the order statistics) on each bin's slice
+    bin_of = np.repeat(np.arange(len(lo)), count)
+    y_sorted = ys[np.lexsort((ys, bin_of))]
+    for key, qq in (("q05", 0.05), ("q95", 0.95)):
+        pos = qq * (count - 1)
+        below = np.floor(pos).astype(int)
+        frac = pos - below
+        a = y_sorted[lo + below]
+        b = y_sorted[lo + np.minimum(below + 1, count - 1)]
+        out[key] = a + (b - a) * frac
+    return out
 
 
 def _which_poses(is_test):
@@ -114,6 +117,8 @@ def plot_distributions(residuals: dict, is_test, out: Path) -> list:
     """Histograms of ‖Δt‖ (mm) and ‖Δφ‖ (mrad, where measured) of every stage on the test set
     (as the paper's Figs. 3, 4, 6, 7), one row per stage on shared log axes (small multiples:
     identical stages cannot hide each other). Returns the file names."""
+    from campaign.identify.panels import PanelGrid
+
     plt = _plt()
     use = np.asarray(is_test, dtype=bool)
     words = f"held-out test set, {int(use.sum())} poses"
@@ -123,34 +128,32 @@ def plot_distributions(residuals: dict, is_test, out: Path) -> list:
     # a panel's title holds its stage and statistics on one line, or on two for long stage names
     two_lines = max(len(s) for s in names) > 44
     row_h = 1.6 if two_lines else 1.35
-    fig, axes = plt.subplots(len(names), len(blocks), figsize=(6.5 * len(blocks), 0.4 + row_h * len(names)),
-                             sharex="col", squeeze=False)
+    fig = plt.figure(figsize=(6.5 * len(blocks), 0.4 + row_h * len(names)))
+    w, h = fig.get_size_inches()
+    top = 0.55 + (0.2 if two_lines else 0.0)
+    ax = fig.add_axes((0.1 / w, 0.1 / h, 1 - 0.2 / w, 1 - (0.1 + top) / h))  # margins in inches
+    grid = PanelGrid(ax, len(names), len(blocks), gap_x=0.12, gap_y=0.55 if two_lines else 0.35)
     for c, (label, unit, k) in enumerate(blocks):
         vals = [_norms(residuals[s][use])[k] for s in names]
         hi = max(np.max(v) for v in vals)
         lo = max(min(max(np.min(v), 1e-9) for v in vals), hi * 1e-5)
-        bins = np.logspace(np.log10(lo * 0.95), np.log10(hi * 1.05), 50)
+        edges = np.linspace(np.log10(lo * 0.95), np.log10(hi * 1.05), 50)  # log10 of the quantity
         for r, (name, v) in enumerate(zip(names, vals)):
-            ax = axes[r, c]
             color = f"C{r % 10}"
-            ax.hist(v, bins=bins, color=color, alpha=0.45)
-            ax.hist(v, bins=bins, histtype="step", color=color, linewidth=1.2)
+            counts, _ = np.histogram(np.log10(np.maximum(v, 1e-300)), bins=edges)
+            sx, sy = np.repeat(edges, 2)[1:-1], np.repeat(counts, 2).astype(float)  # the histogram's steps
+            grid.band(r, c, sx, np.zeros_like(sy), sy, color=color, alpha=0.45)
+            grid.line(r, c, sx, sy, color=color, linewidth=1.2)
             mean, q90 = float(np.mean(v)), float(np.quantile(v, 0.9))
-            ax.axvline(mean, color="k", linewidth=1.0)
-            ax.axvline(q90, color="k", linewidth=1.0, linestyle="--")
-            ax.set_xscale("log")
-            ax.set_title(f"{name}:{chr(10) if two_lines else '  '}mean {mean:.3g} {unit}, q90 {q90:.3g} {unit}",
-                         loc="left", fontsize=9, pad=3)
-            ax.tick_params(labelsize=8)
-            if c == 0:
-                ax.set_ylabel("poses", fontsize=8)
-        axes[-1, c].set_xlabel(f"{label} [{unit}], log scale", fontsize=9)
+            grid.vline(r, c, np.log10(mean), color="k", linewidth=1.0)
+            grid.vline(r, c, np.log10(q90), color="k", linewidth=1.0, linestyle="--")
+            grid.title(r, c, f"{name}:{chr(10) if two_lines else '  '}mean {mean:.3g} {unit}, q90 {q90:.3g} {unit}")
+    grid.finish(xlabels=[f"{label} [{unit}], log scale" for label, unit, _ in blocks],
+                ylabels=["poses"] * len(names), xlog=True, ylow=0.0, zero_line=False)
     fig.suptitle(f"error distribution of each model stage ({words}); solid line: mean, dashed: 90 % quantile",
                  fontsize=11)
-    _margins_in(fig, left=0.65, right=0.2, bottom=0.55, top=0.55 + (0.2 if two_lines else 0.0),
-                hspace=1.0 if two_lines else 0.6, wspace=0.12)
     name = "distributions.png"
-    fig.savefig(out / name, dpi=100)
+    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return [name]
 
@@ -159,32 +162,29 @@ def plot_against_joints(q, dz, is_test, title: str, out: Path, name: str) -> str
     """Signed error components of one stage against each joint coordinate (deg): per bin of
     the joint, the mean (line) and the 90 % band (5 %–95 % quantiles) of Δx, Δy, Δz (mm) and,
     where measured, Δφx, Δφy, Δφz (mrad); held-out test set (:func:`binned_quantiles`)."""
+    from campaign.identify.panels import PanelGrid
+
     plt = _plt()
     q = np.asarray(q, dtype=float)
     use, words = _which_poses(is_test)
     comps = signed_components(np.asarray(dz)[use])
     n_joints = q.shape[1]
-    fig, axes = plt.subplots(len(comps), n_joints, figsize=(2.35 * n_joints + 0.6, 1.45 * len(comps) + 0.9),
-                             sharey="row", sharex="col", squeeze=False)
+    fig = plt.figure(figsize=(2.35 * n_joints + 0.6, 1.45 * len(comps) + 0.9))
+    w, h = fig.get_size_inches()
+    ax = fig.add_axes((0.1 / w, 0.1 / h, 1 - 0.2 / w, 1 - 0.5 / h))  # margins in inches
+    grid = PanelGrid(ax, len(comps), n_joints)  # one Axes: rows share y, columns share x
     for j in range(n_joints):
         x = np.rad2deg(q[use, j])
         for r, (label, unit, y) in enumerate(comps):
-            ax = axes[r, j]
             b = binned_quantiles(x, y)
             color = "C0" if unit == "mm" else "C1"
-            ax.fill_between(b["x"], b["q05"], b["q95"], color=color, alpha=0.25, linewidth=0)
-            ax.plot(b["x"], b["mean"], "o-", color=color, ms=2.5, linewidth=1.2)
-            ax.axhline(0.0, color="0.5", linewidth=0.6)
-            ax.tick_params(labelsize=7)
-            ax.grid(alpha=0.3, linewidth=0.5)
-            if r == len(comps) - 1:
-                ax.set_xlabel(f"q{j + 1} [deg]", fontsize=9)
-            if j == 0:
-                ax.set_ylabel(f"{label} [{unit}]", fontsize=9)
+            grid.band(r, j, b["x"], b["q05"], b["q95"], color=color, alpha=0.25)
+            grid.line(r, j, b["x"], b["mean"], color=color, marker="o", ms=2.5, linewidth=1.2)
+    grid.finish(xlabels=[f"q{j + 1} [deg]" for j in range(n_joints)],
+                ylabels=[f"{label} [{unit}]" for label, unit, _ in comps])
     fig.suptitle(f"{title}: signed error against each joint — bin mean (line) and 90 % band "
                  f"(5–95 % quantiles); {words}", fontsize=10)
-    _margins_in(fig, left=0.8, right=0.15, bottom=0.55, top=0.4, hspace=0.12, wspace=0.1)
-    fig.savefig(out / name, dpi=100)
+    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return name
 
@@ -196,35 +196,60 @@ def workspace_colour_scale(pos_mm):
     return 0.0, top if top > 0 else 1.0
 
 
+#: cells of the workspace figure's grid along the longer side of a view, at most (~12 mm on a
+#: 2 m view, ~3 px at the figure's 100 dpi: about a marker's size) and at least (a few poses
+#: stay visible: 3·√n cells for n poses in between)
+WORKSPACE_CELLS = 150
+WORKSPACE_MIN_CELLS = 40
+
+
+def largest_per_cell(x, y, v, cells: int = WORKSPACE_CELLS):
+    """The largest ``v`` per cell of a square grid over the points (x, y) (all (n,)): (image
+    (rows, cols) with NaN where no point lies, extent (x0, x1, y0, y1) for imshow)."""
+    x, y, v = (np.asarray(a, dtype=float) for a in (x, y, v))
+    if len(x) == 0:
+        return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0)
+    x0, y0 = x.min(), y.min()
+    size = max(x.max() - x0, y.max() - y0, 1e-9) / cells * (1 + 1e-9)  # the largest point inside
+    ix, iy = ((x - x0) / size).astype(int), ((y - y0) / size).astype(int)
+    img = np.full((iy.max() + 1, ix.max() + 1), np.nan)
+    np.fmax.at(img, (iy, ix), v)
+    return img, (x0, x0 + img.shape[1] * size, y0, y0 + img.shape[0] * size)
+
+
 def plot_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
-    """Tool positions (top view x-z and side view x-y of F_I) coloured by ‖Δt‖ (mm), all poses;
-    the colour scale runs from 0 to the largest error (square-root spacing), the largest
-    errors drawn on top."""
+    """Tool positions (top view x-z and side view x-y of F_I) coloured by ‖Δt‖ (mm), all poses,
+    aggregated: each cell of a square grid (up to :data:`WORKSPACE_CELLS` along the longer side)
+    shows the largest error of its poses, so the largest errors are never hidden; the colour
+    scale runs from 0 to the largest error (square-root spacing)."""
     plt = _plt()
     from matplotlib.colors import PowerNorm
 
     pos, _ = _norms(np.asarray(dz))
     xyz = np.asarray(xyz, dtype=float)
-    top = np.argsort(pos, kind="stable")  # largest last, so on top
+    top = np.argsort(pos, kind="stable")  # the largest last
     vmin, vmax = workspace_colour_scale(pos)
     norm = PowerNorm(0.5, vmin=vmin, vmax=vmax)
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m]", "x_I [m]"), (2, 1, "z_I [m]", "height −y_I [m]"))):
         yb = xyz[top, b] if b != 1 else -xyz[top, 1]
-        sc = ax.scatter(xyz[top, a], yb, c=pos[top], s=6, cmap="viridis", norm=norm)
+        cells = int(np.clip(3 * np.sqrt(len(pos)), WORKSPACE_MIN_CELLS, WORKSPACE_CELLS))
+        img, extent = largest_per_cell(xyz[top, a], yb, pos[top], cells)
+        sc = ax.imshow(img, extent=extent, origin="lower", cmap="viridis", norm=norm, interpolation="nearest")
         if len(pos):
             k = top[-1]
             ax.plot(xyz[k, a], xyz[k, b] if b != 1 else -xyz[k, 1], "o", ms=11, mfc="none", mec="r", mew=1.5)
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
-        ax.set_aspect("equal", adjustable="datalim")
     axes[0].set_title("top view", fontsize=10)
     axes[1].set_title("side view", fontsize=10)
-    cb = fig.colorbar(sc, ax=axes, label="‖Δt‖ [mm] (0 to the largest, square-root scale)")
+    cb = fig.colorbar(sc, cax=fig.add_axes((0.89, 0.1, 0.015, 0.78)),
+                      label="‖Δt‖ [mm] (0 to the largest, square-root scale)")
     cb.ax.axhline(vmax, color="r", linewidth=2)
     fig.suptitle(f"{title}: position error over the workspace, all {len(pos)} poses "
                  f"(red circle: the largest, {vmax:.3g} mm)", fontsize=11)
-    fig.savefig(out / name, dpi=100, bbox_inches="tight")
+    fig.subplots_adjust(left=0.06, right=0.86, bottom=0.1, top=0.88, wspace=0.22)  # fixed: one draw, not two
+    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return name
 
@@ -298,8 +323,12 @@ def plot_history(history_path: Path, out: Path, name: str = "history.png", noise
     ax.set_title("watch the error fall: each model stage as it was added")
     for x, v in enumerate(values):
         ax.annotate(f"{v:.3g}", (x, v), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    # a fixed layout (tight_layout and a tight bounding box draw the figure twice more): room
+    # below for the stage names, wrapped on up to a few lines
+    lines = max([_wrap_stage(label).count("\n") + 1 for label in labels] + [1])
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.8 / w, right=1 - 0.15 / w, top=1 - 0.4 / h, bottom=(0.35 + 0.16 * lines) / h)
+    fig.savefig(out / name, dpi=110, pil_kwargs=PNG_FAST)
     plt.close(fig)
     return name
 

@@ -163,14 +163,17 @@ class CalibrationModel:
         return point_rows(J, d)
 
     # -- estimator API ----------------------------------------------------------------
-    def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None, init: dict | None = None):
+    def fit(self, q, T_meas, context=None, *, base: BaseParameters | None = None, init: dict | None = None,
+            init_jacobian=None):
         """Identify the base parameters (and effect parameters) from measured poses.
 
         q: (n, N) rad (m for prismatic joints); T_meas: (n, 4, 4) measured T_IE (m), or with
         ``points`` the measured positions of those points (n, k, 3) m, NaN where one was missed
         (a pose with none seen adds no row); context: per-pose values.
         init: optional start values by unknown name (e.g. another fit's ``values_``);
-        unknowns not named start at 0 (the paper's start point).
+        unknowns not named start at 0 (the paper's start point). init_jacobian: optional
+        (n, 6, r + k) Jacobian of Δz at the start values on these poses, when the caller has it
+        (another fit's ``jacobian_at_fit_`` rows at the values ``init`` gives): not computed again.
         """
         q = np.asarray(q, dtype=float)
         T_meas = np.asarray(T_meas, dtype=float)
@@ -233,11 +236,20 @@ class CalibrationModel:
                 return (self._model_points(q, p_e, th, context).reshape(len(q), -1) - Y) * mask
             return pose_error(self._model_T(q, p_e, th, context), T_meas)[:, rows]
 
+        last = {}  # the Jacobian at the last point asked for: the start's is the first step's too
+        if init_jacobian is not None and P is None:
+            last.update(x=x.copy(), J=np.asarray(init_jacobian, dtype=float)[:, rows, :])
+
         def jacobian(x):
+            if last.get("x") is not None and np.array_equal(last["x"], x):
+                return last["J"]
             if P is not None:
                 J = self._point_jacobian(q, *unpack(x), context)
-                return J.reshape(len(q), -1, J.shape[-1]) * mask[:, :, None]
-            return self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :]
+                J = J.reshape(len(q), -1, J.shape[-1]) * mask[:, :, None]
+            else:
+                J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :]
+            last.update(x=x.copy(), J=J)
+            return J
 
         # identifiability of the combined regressor at the start point
         J0 = jacobian(x) / sig[None, :, None]
@@ -314,7 +326,13 @@ class CalibrationModel:
             history.append(cost)
             lam = 1e-6
 
-        J = jacobian(x)[:, :, free] / sig[None, :, None]
+        J_final = jacobian(x)
+        #: the Jacobian (n, rows, r + k) of Δz at the fitted values on the fitting poses, not
+        #: whitened, every unknown (rows: 3 or 6 of Δz; with points, the points' rows): what
+        #: self.jacobian(q, T_meas, context) gives there, kept for who needs it again
+        #: (campaign.diagnose: the candidates' linearisation, the fold fits' start)
+        self.jacobian_at_fit_ = J_final
+        J = J_final[:, :, free] / sig[None, :, None]
         J2 = J.reshape(-1, len(free))
         H = J2.T @ J2
         n_eff = self._effective_unknowns(J, pf) if map_fit else len(free)

@@ -46,6 +46,21 @@ _EPOCH_ID = 1 << 44
 POSE_FAULT_CODES = ("joint_limit", "move_rejected", "unreachable")
 
 
+#: ``run.drift_check_every: auto``: the reference pose re-measured about this many times a campaign
+#: (a drift figure for a short campaign too, campaign.measure.drift; 8 checks of ~25 s add ~5 % to
+#: the default short campaign), and at least every DRIFT_CHECK_MAX_EVERY poses (a long one)
+DRIFT_CHECKS_PER_CAMPAIGN = 8
+DRIFT_CHECK_MAX_EVERY = 500
+
+
+def drift_check_interval(every, n_poses: int) -> int:
+    """Stored poses between drift checks: ``every`` as configured (0: none), or for ``"auto"``
+    n_poses / DRIFT_CHECKS_PER_CAMPAIGN, at most DRIFT_CHECK_MAX_EVERY."""
+    if every != "auto":
+        return int(every)
+    return int(min(DRIFT_CHECK_MAX_EVERY, max(1, n_poses // (DRIFT_CHECKS_PER_CAMPAIGN + 1) + 1)))
+
+
 class PeerUnreachable(PeerError):
     """A peer could not be connected to after every reconnect attempt; the campaign stops."""
 
@@ -401,7 +416,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
                 n_fail += 1
                 in_a_row += 1
             n_stored = stored_before + n + 1
-            every = opts.drift_check_every
+            every = drift_check_interval(opts.drift_check_every, len(ids))
             if reference is not None and every and n_stored % every == 0 and n + 1 < len(todo):
                 drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets, aim)
                 clock = max(clock, c)

@@ -8,14 +8,17 @@ held-out mean position error equals the floor has nothing left to explain.
 Sources, in order of preference:
 
 1. **repeats** — poses measured more than once with identical joint vectors (the plan's
-   repeat poses, re-imported data with repeated joint rows) and the drift check's
-   re-measurements of its reference pose (``drift_check`` events in the store, each the
-   distance from the reference's first measurement). σ² is pooled over the groups from
-   successive differences in time order, Σ (x_{i+1} − x_i)²/2 over Σ (m_group − 1) per
-   coordinate; each drift check adds d²/2 spread over 3 coordinates, and is used only when
-   the repeats give fewer than 10 degrees of freedom. Repeats spread over a campaign include
-   whatever drifts between them: the floor is then an upper bound of the noise (repeats
-   measured back to back give the noise itself).
+   repeat poses, measured back to back; re-imported data with repeated joint rows). Only
+   successive measurements of one pose *close in time* (at most
+   :data:`campaign.tolerances.REPEAT_CLOSE_S` apart, or
+   :data:`~campaign.tolerances.REPEAT_CLOSE_ROWS` rows without times) give the floor: σ² is
+   pooled over them from successive differences, Σ (x_{i+1} − x_i)²/2 over their count, per
+   coordinate. Repeats further apart measure the drift as well: they are reported as drift
+   (campaign.measure.drift), never as noise. Only when no repeats are close in time do the
+   repeats far apart and the drift check's re-measurements of its reference pose
+   (``drift_check`` events in the store, each the distance from the reference's first
+   measurement; d²/2 spread over 3 coordinates) give a floor, marked as an upper bound
+   (``upper_bound``: it includes whatever drifted between them).
 2. **stated** — ``tracker: {noise_m: σ}`` in the run's campaign.yaml: σ per coordinate of
    each reflector centre, carried through the same rigid fit of the reflectors that derives
    measured poses (Monte Carlo with a fixed seed).
@@ -38,11 +41,10 @@ import numpy as np
 from campaign.measure.reflectors import pose_from_reflectors
 from campaign.measure.store import open_run
 from campaign.run import RunFolder
+from campaign.tolerances import REPEAT_CLOSE_ROWS, REPEAT_CLOSE_S
 
 #: two joint vectors closer than this (rad, every joint) are the same pose
 REPEAT_JOINT_TOL_RAD = 1e-9
-#: repeated poses giving at least this many degrees of freedom make the drift checks unnecessary
-MIN_REPEAT_DOF = 10
 #: Monte Carlo samples for E‖e‖ and for carrying the reflector noise through the rigid fit
 _MC_SAMPLES = 200_000
 _MC_SEED = 20261123
@@ -55,7 +57,9 @@ class NoiseFloor:
     source: ``"repeats"``, ``"stated"`` or ``"none"``; sigma_position_m: (3,) σ of the measured
     tool position per coordinate of F_I, m (None without a floor); mean_position_mm: the floor,
     E‖e‖ in mm (None without one); dof: degrees of freedom of the estimate (0 when stated);
-    relative_uncertainty: 1-σ relative uncertainty of mean_position_mm; detail: where it came from.
+    relative_uncertainty: 1-σ relative uncertainty of mean_position_mm; detail: where it came from;
+    upper_bound: True when it comes from measurements far apart in time (no back-to-back
+    repeats), which include the drift between them.
     """
 
     source: str
@@ -64,6 +68,7 @@ class NoiseFloor:
     dof: int = 0
     relative_uncertainty: float = 0.0
     detail: str = ""
+    upper_bound: bool = False
 
     @property
     def known(self) -> bool:
@@ -78,7 +83,8 @@ class NoiseFloor:
         return {"source": self.source, "mean_position_mm": self.mean_position_mm,
                 "sigma_position_mm": None if self.sigma_position_m is None
                 else [float(s) * 1e3 for s in self.sigma_position_m],
-                "dof": self.dof, "relative_uncertainty": self.relative_uncertainty, "detail": self.detail}
+                "dof": self.dof, "relative_uncertainty": self.relative_uncertainty, "detail": self.detail,
+                "upper_bound": self.upper_bound}
 
     def text(self) -> str:
         if not self.known:
@@ -123,41 +129,63 @@ def repeat_groups(q, tol: float = REPEAT_JOINT_TOL_RAD) -> list:
     return [np.flatnonzero(inverse == g) for g in np.flatnonzero(counts >= 2)]
 
 
+def repeat_pairs(q, time_s=None, close_s: float = REPEAT_CLOSE_S, close_rows: int = REPEAT_CLOSE_ROWS):
+    """Successive measurements of one pose (q (n, N) rad, time_s (n,) s or None), in time order
+    (row order where a time is unknown): (close (k, 2), far (m, 2)) index pairs, close when at
+    most ``close_s`` apart (``close_rows`` rows when either time is unknown)."""
+    n = len(q)
+    t = np.full(n, np.nan) if time_s is None else np.asarray(time_s, dtype=float)
+    close, far = [], []
+    for g in repeat_groups(q):
+        if np.isfinite(t[g]).all():
+            g = g[np.argsort(t[g], kind="stable")]
+        for i, j in zip(g[:-1], g[1:]):
+            dt = t[j] - t[i]
+            near = abs(dt) <= close_s if np.isfinite(dt) else abs(int(j) - int(i)) <= close_rows
+            (close if near else far).append((int(i), int(j)))
+    as_pairs = lambda p: np.asarray(p, dtype=np.int64).reshape(-1, 2)  # noqa: E731
+    return as_pairs(close), as_pairs(far)
+
+
 def floor_from_repeats(xyz, q, drift_m=(), time_s=None) -> NoiseFloor | None:
-    """The floor from repeated poses (xyz (n, 3) m, q (n, N) rad, in time order by ``time_s``)
-    and drift-check distances (m; used only when the repeats give fewer than
-    :data:`MIN_REPEAT_DOF` degrees of freedom, since they are spread over the campaign)."""
+    """The floor from repeated poses (xyz (n, 3) m, q (n, N) rad, time_s (n,) s or None): from
+    the successive measurements of one pose close in time (:func:`repeat_pairs`); only when
+    there are none, from those far apart and the drift checks' distances (m), as an upper bound."""
     xyz = np.asarray(xyz, dtype=float)
-    groups = repeat_groups(q)
-    order = np.zeros(len(xyz)) if time_s is None else np.asarray(time_s, dtype=float)
-    ss = np.zeros(3)
-    dof = 0
-    for g in groups:
-        # successive differences in time order: var(x_{i+1} − x_i) = 2σ², and a slow drift
-        # between repeats measured close together cancels
-        x = xyz[g[np.argsort(order[g], kind="stable")]]
-        ss += np.sum(np.diff(x, axis=0) ** 2, axis=0) / 2.0
-        dof += len(g) - 1
-    drift = np.asarray([d for d in drift_m if d is not None and np.isfinite(d)], dtype=float)
-    if dof >= MIN_REPEAT_DOF:
-        drift = drift[:0]
+    close, far = repeat_pairs(q, time_s)
+    bound = len(close) < 2
+    pairs = np.concatenate([close, far]) if bound else close
+    # successive differences: var(x_{i+1} − x_i) = 2σ², and a slow drift between repeats
+    # measured close together cancels
+    ss = np.sum((xyz[pairs[:, 1]] - xyz[pairs[:, 0]]) ** 2, axis=0) / 2.0 if len(pairs) else np.zeros(3)
+    drift = np.asarray([d for d in drift_m if d is not None and np.isfinite(d)], dtype=float) if bound else np.zeros(0)
     # a re-measurement minus the first: variance 2σ² per coordinate, spread evenly over 3
-    ss += np.sum(drift ** 2) / 2.0 / 3.0
-    dof_total = dof + len(drift)
+    ss = ss + np.sum(drift ** 2) / 2.0 / 3.0
+    dof_total = len(pairs) + len(drift)
     if dof_total < 2:
         return None
     sigma = np.sqrt(ss / dof_total)
     n_coord_dof = 3 * dof_total
     parts = []
-    if groups:
-        parts.append(f"{len(groups)} poses measured {min(len(g) for g in groups)}"
-                     + (f"-{max(len(g) for g in groups)}" if max(len(g) for g in groups) > min(len(g) for g in groups) else "")
-                     + " times")
+    if len(pairs):
+        groups = [g for g in repeat_groups(q) if np.isin(g, pairs).any()]
+        lo, hi = min(len(g) for g in groups), max(len(g) for g in groups)
+        times = f"{lo}-{hi}" if hi > lo else f"{lo}"
+        parts.append(f"{len(groups)} poses measured {times} times, " +
+                     (f"{len(pairs)} successive differences " + (f"within {REPEAT_CLOSE_S:g} s" if time_s is not None
+                                                                   and np.isfinite(time_s).all() else
+                                                                   f"at most {REPEAT_CLOSE_ROWS} rows apart")
+                      + " (back to back)" if not bound
+                      else f"{len(pairs)} successive differences, far apart in time"))
     if len(drift):
         parts.append(f"{len(drift)} drift-check re-measurements")
+    if bound:
+        parts.append("an upper bound: measurements far apart in time include the drift between them")
+    elif len(far):
+        parts.append(f"{len(far)} repeats further apart left to the drift")
     return NoiseFloor("repeats", sigma, mean_norm_mm(sigma), int(dof_total),
                       # successive differences are ~1.5 times less efficient than deviations from a mean
-                      float(np.sqrt(1.5 / (2.0 * n_coord_dof))), ", ".join(parts))
+                      float(np.sqrt(1.5 / (2.0 * n_coord_dof))), "; ".join(parts), upper_bound=bool(bound))
 
 
 def floor_from_stated(noise_m: float, reflectors_in_E) -> NoiseFloor:

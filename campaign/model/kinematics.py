@@ -100,10 +100,21 @@ def _transform_rotations(robot: RobotModel, q, p):
         if 1 <= k <= N:
             if robot.joint_types[k - 1] == "prismatic":
                 out.append(robot.R_nominal[k] @ cardan_xyz(a, b, p[6 * k + 2]))
-            else:
-                out.append(robot.R_nominal[k] @ cardan_xyz(a, b, q[:, k - 1] + c))
+            else:  # R̄_k Rx(a) Ry(b) is one matrix for all poses: only Rz(q + c) varies
+                out.append(_times_rot_z(robot.R_nominal[k] @ rot_x(a) @ rot_y(b), q[:, k - 1] + c))
         else:
             out.append(robot.R_nominal[k] @ cardan_xyz(a, b, c))
+    return out
+
+
+def _times_rot_z(C, angle):
+    """``C @ Rz(angle)`` for one C (3, 3) and angles (n,): (n, 3, 3), two columns mixed by cos and
+    sin (a matmul per pose and the stacking of Rz cost several times more in the chain)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    out = np.empty((len(angle), 3, 3))
+    out[:, :, 0] = c * C[:, 0] + s * C[:, 1]
+    out[:, :, 1] = c * C[:, 1] - s * C[:, 0]
+    out[:, :, 2] = C[:, 2]
     return out
 
 

@@ -502,6 +502,12 @@ def _load_yourdfpy(urdf_path: Path, build_scene_graph: bool = False):
 
 
 def _parse_urdf(urdf_path: Path):
+    from campaign.model.urdf_chain import read_chain
+
+    try:  # the chain alone, without importing yourdfpy and trimesh (half a second)
+        return read_chain(urdf_path)
+    except Exception:  # a file it does not take: yourdfpy reads it, or words what is wrong as before
+        pass
     try:
         return _load_yourdfpy(urdf_path)
     except Exception as exc:  # yourdfpy raises plain exceptions; word them as one line

@@ -9,7 +9,7 @@ import sys
 
 
 def register(sub):
-    from campaign.plan.selection import DEFAULT_SELECT
+    from campaign.plan.defaults import DEFAULT_SELECT, REPEAT_POSES, REPEAT_TIMES
 
     p = sub.add_parser("plan", help="plan a collision-free list of measurement poses (embedded defaults without a "
                                     "config): by default a short campaign for the physical model, --all every "
@@ -44,7 +44,8 @@ def register(sub):
     p.add_argument("--validation", type=float, metavar="FRACTION", default=None,
                    help="random validation poses added, as a share of the selected ones (default: 0.2, at least 30)")
     p.add_argument("--repeats", type=int, metavar="N", default=None,
-                   help="poses measured 3 times, spread over the tour, for the noise floor (default: 3 with a selection)")
+                   help=f"poses measured {REPEAT_TIMES} times back to back (each repeat after the next tour pose) for "
+                        f"the noise floor (default: {REPEAT_POSES} with a selection)")
     iso = p.add_argument_group("ISO 9283 (pose accuracy and repeatability test; `campaign iso9283 RUN` evaluates it)")
     iso.add_argument("--iso9283", action="store_true",
                      help="plan the standard's test instead: P1..P5 of the largest suitable cube, visited in cycles")
@@ -96,6 +97,12 @@ def _plan(args):
         print(f"estimated campaign {est['total_days']:.2f} days ({est['seconds_per_pose']:.1f} s a pose) "
               f"vs the paper's {est['paper']['duration_days']:.1f} days for {est['paper']['poses']:,} poses "
               f"({est['paper']['seconds_per_pose']:.1f} s a pose)")
+    dm = s.get("drift_monitor") or {}
+    if dm.get("not_clear_after_pose_ids"):
+        print(f"warning: {len(dm['not_clear_after_pose_ids'])} of the drift check's {dm['checks']} returns to the "
+              f"reference pose {dm['reference_pose_id']} are not clear by plan.motion_clearance_m (after poses "
+              f"{', '.join(map(str, dm['not_clear_after_pose_ids'][:5]))}); set run.drift_check_every in campaign.yaml "
+              "(0: none) or watch those motions")
     extra = ", validation.csv, repeats.csv" if "selection" in s else ""
     print(f"written: {args.run}/plan/poses.csv{extra}, summary.json, tour.png ({s['timing_s']['total']:.1f} s)")
     return 0
@@ -169,7 +176,7 @@ def selection_text(sel) -> str:
         + (f"{sel['selected']} poses chosen, " if sel.get("chosen", sel["selected"]) == sel["selected"] else
            f"{sel['selected']} of the {sel['chosen']} poses chosen toured, ")
         + f"{sel['validation']} random validation poses added, "
-        f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times",
+        f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times back to back (the noise floor)",
         f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position"
         + (f", {p['model_orientation_mrad']:.3f} mrad" if p.get("model_orientation_mrad") is not None
            else f" of the measured reflector{'s' if len(sel['measured']['reflectors']) > 1 else ''} (position only)")

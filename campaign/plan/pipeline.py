@@ -309,6 +309,11 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         summary["selection"]["replacement"] = {"rounds": rounds, "replaced": replaced,
                                                   "dropped_per_round": dropped_per_round, "why_short": why_short}
         summary["tour"]["repeats"] = int(np.sum(_grid_index(order_final) != order_final))
+        from campaign.plan.selection import repeats_in_tour
+
+        summary["tour"]["repeats_back_to_back"] = repeats_in_tour(order_final)
+    summary["drift_monitor"] = _drift_monitor(robot, checker, order_final, Q_final, cfg.run.drift_check_every,
+                                              max_step, mc)
     lap("outputs")
     try:
         plot_tour(out / "tour.png", robot, scene, Q_final, front_final)
@@ -364,6 +369,29 @@ def _as_toured(robot, grid, suitable, choice, selection, order_final) -> dict:
         train = np.array([where[int(b)] for b in base if int(b) in chosen], dtype=np.int64)  # repeats too
         out["predicted"] = {**choice.summary["predicted"], **predict_accuracy(info, train).as_dict(),
                             "for": "the chosen poses the tour keeps"}
+    return out
+
+
+def _drift_monitor(robot, checker, order, Q, every, max_step, clearance) -> dict:
+    """summary.json's ``drift_monitor``: when the driver re-measures the reference pose (the tour's
+    first; ``run.drift_check_every``, campaign.measure.driver.drift_check_interval) and whether its
+    motions, straight in joint space from the pose before to the reference and back to the next
+    pose, are clear by ``clearance`` (m) as the tour's are (the driver moves there directly)."""
+    from campaign.measure.driver import drift_check_interval
+
+    n = drift_check_interval(every, len(order))
+    after = np.arange(n, len(order), n) - 1 if n else np.zeros(0, dtype=int)  # stored poses - 1
+    after = after[after + 1 < len(order)]
+    out = {"every": int(n), "checks": int(len(after)), "reference_pose_id": int(order[0]) if len(order) else None}
+    if len(after):
+        ref = np.repeat(Q[:1], len(after), axis=0)
+        clear = check_segments(robot, checker, Q[after], ref, max_step, clearance) & \
+            check_segments(robot, checker, ref, Q[after + 1], max_step, clearance)
+        out["motions_clear"] = int(clear.sum())
+        out["not_clear_after_pose_ids"] = [int(order[k]) for k in after[~clear]]
+    out["text"] = ("the driver re-measures the first pose every "
+                   f"{n} stored poses for the drift (µm per hour in diagnose and the reports), moving there "
+                   "directly: its motions are checked here, not repaired" if n else "no drift checks (run.drift_check_every: 0)")
     return out
 
 

@@ -46,16 +46,11 @@ from campaign.effects.base import EffectSet, effect_context, make_effect, model_
 from campaign.errors import ConfigError
 from campaign.model.base_params import base_parameters, point_rows
 from campaign.model.kinematics import forward
+from campaign.plan.defaults import DEFAULT_SELECT, REPEAT_POSES, REPEAT_TIMES  # noqa: F401 (re-exported)
 
 #: Leica LTD800: σ per coordinate of a reflector centre (m), the simulated tracker's default too;
 #: `campaign plan` takes campaign.yaml's ``tracker: {noise_m: ...}`` instead when it is given
 TRACKER_NOISE_M = 10e-6
-#: poses of the default `campaign plan` (the short campaign for the physical model), with its
-#: validation poses and repeats: benchmarks/results/select.json on the default cell (hidden
-#: geometry + elastic ground, 10 µm noise): 120 D-optimal poses are 1.027× the full campaign's
-#: held-out error (60: 1.062×, 250: 1.022×) in 0.76 h with validation and repeats instead of 38 h
-#: (1.98 days for all 9,829 suitable poses); the model against the truth 2.5 µm mean position
-DEFAULT_SELECT = 120
 #: ridge of the information matrix before any pose is chosen, relative to the mean
 #: information of one pose per (scaled) parameter: it only orders the first few picks
 RIDGE = 1e-6
@@ -618,9 +613,6 @@ REPEAT_ID_STRIDE = 1_000_000_000
 VALIDATION_SEED = 20200101
 VALIDATION_FRACTION = 0.2
 MIN_VALIDATION = 30
-#: with a selection: this many chosen poses are measured REPEAT_TIMES times, spread over the tour
-REPEAT_POSES = 3
-REPEAT_TIMES = 3
 
 
 def base_pose_id(pose_id) -> np.ndarray:
@@ -697,23 +689,43 @@ class CampaignChoice:
         return np.concatenate([self.selected, self.validation])
 
     def with_repeats(self, order) -> np.ndarray:
-        """Tour order (pose ids) with the repeats' ids inserted, spread evenly over the tour:
-        extra measurement e of E goes after tour position ⌊(e + ½) L / E⌋, cycling over
-        the repeated poses, so the copies of one pose lie far apart in time."""
+        """Tour order (pose ids) with the repeats' ids inserted back to back, as ISO 9283
+        measures repeatability: a repeated pose p is measured again after each of the tour
+        poses that follow it, ``p, a, p', b, p'', c, ...`` (the robot moves away to a nearby
+        pose of the tour and back), so the copies of one pose lie a minute apart, not hours:
+        their differences are the tracker's noise, not the drift (the driver's drift check
+        monitors that). A pose too near the tour's end has its last repeats at the end."""
         order = np.asarray(order, dtype=np.int64)
-        reps = [int(p) for p in self.repeated]
-        extra = [(reps[e % len(reps)], 1 + e // len(reps)) for e in range(len(reps) * (self.repeat_times - 1))]
-        if not extra:
+        reps = set(int(p) for p in self.repeated)
+        if self.repeat_times < 2 or not reps:
             return order
-        L = len(order)
-        slots = {int((e + 0.5) * L / len(extra)): e for e in range(len(extra))}
-        out = []
-        for k, pid in enumerate(order):
+        out, pending = [], []  # pending: repeat ids still to measure, first in first out
+        for pid in order:
             out.append(int(pid))
-            if k in slots:
-                p, r = extra[slots[k]]
-                out.append(p + r * REPEAT_ID_STRIDE)
+            if pending:
+                out.append(pending.pop(0))
+            if int(pid) in reps:
+                pending += [int(pid) + r * REPEAT_ID_STRIDE for r in range(1, self.repeat_times)]
+        out += pending
         return np.array(out, dtype=np.int64)
+
+
+def repeats_in_tour(order) -> dict:
+    """summary.json's ``tour.repeats_back_to_back``: how the toured order (pose ids) measures the
+    repeated poses: per repeated pose its positions in the tour, and the largest number of tour
+    steps between two successive measurements of one pose (2: one other pose in between)."""
+    order = np.asarray(order, dtype=np.int64)
+    base = base_pose_id(order)
+    repeated = np.unique(base[order >= REPEAT_ID_STRIDE])
+    where = {int(p): np.flatnonzero(base == p).tolist() for p in repeated}
+    steps = [int(np.max(np.diff(w))) for w in where.values() if len(w) > 1]
+    return {"poses": len(where), "measurements": {str(p): len(w) for p, w in where.items()},
+            "tour_positions": {str(p): w for p, w in where.items()},
+            "max_steps_between": max(steps) if steps else None,
+            "text": "each repeated pose measured again after the next tour pose (p, a, p', b, p'', ...: moving away "
+                    "and back, as ISO 9283 measures repeatability): the floor from their differences is the noise, "
+                    "not the drift; every motion to and from a repeat is collision-checked with the rest of the "
+                    "tour (stage 3's motion check and repair)"}
 
 
 def _draw_validation(m, chosen, fraction, minimum, seed=VALIDATION_SEED):
@@ -812,7 +824,8 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     chosen = sel.index
     val = _draw_validation(m, chosen, opts.validation_fraction, opts.min_validation)
     n_rep = min(opts.repeat_poses, len(chosen)) if opts.repeat_times > 1 else 0
-    # repeated poses: spread over the design's choice order (first, middle, last chosen...)
+    # repeated poses: spread over the design's choice order (first, middle, last chosen...), each
+    # measured back to back (CampaignChoice.with_repeats)
     rep = chosen[np.linspace(0, len(chosen) - 1, n_rep).round().astype(int)] if n_rep else np.zeros(0, np.int64)
     t1 = time.perf_counter()
     # the repeats' extra measurements are training data too
