@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 def register(sub):
-    from campaign.cell.server import add_serve_arguments
+    from campaign.cell.arguments import add_serve_arguments
 
     s = sub.add_parser(
         "serve", help="serve a cell's controller and tracker adapters (your robot, your tracker) over the protocol",

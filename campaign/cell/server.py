@@ -28,6 +28,7 @@ from collections import OrderedDict
 import numpy as np
 
 from campaign.cell import RobotFault, _CONTEXT, _REQUEST, CellContext, close_quietly
+from campaign.cell.arguments import add_serve_arguments  # noqa: F401 (python -m campaign.cell.server)
 from campaign.errors import AuthError, CampaignError, ConfigError, PeerError, ProtocolError
 from campaign.measure import protocol as P
 from campaign.measure.auth import NONCE_BYTES, FrameAuth, is_loopback
@@ -379,31 +380,6 @@ def open_cell(controller_spec, tracker_spec, cfg, *, run_dir=None, options=None,
             close_quietly(a)
         raise
     return cell.start()
-
-
-def add_serve_arguments(p, *, run_default=None) -> None:
-    """The arguments of `campaign serve` (also `python -m campaign.cell.server`)."""
-    p.add_argument("--controller", metavar="SPEC", required=True,
-                   help="the controller adapter: sim, mujoco, FILE.py[:Class] (default class Controller), "
-                        "package.module:Class, or an entry point of group campaign.cell")
-    p.add_argument("--tracker", metavar="SPEC", required=True,
-                   help="the tracker adapter (as --controller; default class Tracker)")
-    p.add_argument("--options", metavar="FILE", default=None,
-                   help="YAML with 'controller:' and 'tracker:' sections, given to the adapters")
-    p.add_argument("--run", metavar="DIR", default=run_default,
-                   help="the run served: its robot, configuration and campaign clock; the cell's own files go "
-                        "there (RUN/sim/ for the simulator); one cell per run")
-    p.add_argument("--config", metavar="FILE", default=None,
-                   help="configuration (default: RUN/campaign.yaml, else the embedded one)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind (default: %(default)s; any other needs --token-file)")
-    p.add_argument("--controller-port", type=int, default=0, help="controller port (default: any free port)")
-    p.add_argument("--tracker-port", type=int, default=0, help="tracker port (default: any free port)")
-    p.add_argument("--token-file", metavar="FILE", default=None,
-                   help="shared secret: every frame is authenticated with it (HMAC-SHA256); required beyond "
-                        "loopback; give the same file to `campaign run --token-file`")
-    p.add_argument("--move-timeout-s", type=float, default=None,
-                   help="longest move or measurement an adapter may take (default: the run's run.move_timeout_s)")
 
 
 def served_cell_from_args(args, start_clock_s=None):
