@@ -215,6 +215,7 @@ def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_resi
     k = effect.n_params
     th0 = x0[len(x0) - k:]
     hooks = _hooks(effect)
+    one = EffectSet((effect,))  # the hooks called through the set: a broken user effect is one line
     step = lambda i: FD_STEP * np.eye(k)[i]  # noqa: E731
     if hooks == {"pose_map"}:
         r = m.base_.n_base
@@ -222,7 +223,7 @@ def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_resi
                                                         m.x_[r:], context))
 
         def mapped(th):
-            return _weighted(pose_error(effect.pose_map(th, T_cur, q, context), T_meas), lin.rows, lin.sigma)
+            return _weighted(pose_error(one.pose_map(th, T_cur, q, context), T_meas), lin.rows, lin.sigma)
 
         res = mapped(th0)
         C = np.column_stack([(mapped(th0 + step(i)) - mapped(th0 - step(i))) / (2 * FD_STEP) for i in range(k)]) \
@@ -230,12 +231,12 @@ def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_resi
         return res, C
     if hooks == {"joint_offset"}:
         D = _shared(lin, "joint_offset", lambda: _joint_columns(lin, q, T_meas, context))
-        off0 = effect.joint_offset(th0, q, context)
-        res = lin.residual if off0 is None or not np.any(off0) else weighted_residual(x0)
+        off0 = one.joint_offset(th0, q, context)
+        res = lin.residual if not np.any(off0) else weighted_residual(x0)
         rows = D.shape[0] // len(q)
         C = np.empty((len(res), k))
         for i in range(k):
-            g = (effect.joint_offset(th0 + step(i), q, context) - effect.joint_offset(th0 - step(i), q, context)) \
+            g = (one.joint_offset(th0 + step(i), q, context) - one.joint_offset(th0 - step(i), q, context)) \
                 / (2 * FD_STEP)  # (n, N): ∂Δq/∂θ_i
             C[:, i] = np.einsum("rj,rj->r", D, np.repeat(g, rows, axis=0))
         return res, C
