@@ -127,7 +127,8 @@ def main():
                   f"drift {r['drift_um_per_h']} um/h (true mean rate of the reference "
                   f"{r['reference_true_mean_rate_um_per_h']:.0f} um/h over {r['campaign_h']:.2f} h)")
     res["load_average"] = os.getloadavg()
-    (ROOT / "benchmarks" / "results" / "floor.json").write_text(json.dumps(res, indent=2))
+    name = "floor.json" if args.g == 3e-4 else f"floor_g{args.g:g}.json"  # the default case, or another warm-up
+    (ROOT / "benchmarks" / "results" / name).write_text(json.dumps(res, indent=2))
 
 
 def textwrap_sim(g):
