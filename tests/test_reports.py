@@ -77,7 +77,7 @@ def test_the_noise_floor_of_a_stated_tracker_noise_equals_the_simulated_campaign
     assert floor.mean_position_mm < 0.7 * 10e-3 * 2 * np.sqrt(2 / np.pi)
 
 
-def test_the_chart_floor_is_the_runs_stated_noise_else_the_simulated_trackers_else_none(tmp_path, robot):
+def test_the_chart_floor_is_the_texts_floor_the_stated_noise_else_none_never_the_simulators(tmp_path, robot, capsys):
     from campaign.cli import main
     from campaign.measure.csvio import write_measured_csv
     from campaign.sim.truth import make_truth, random_joint_poses, synthesize
@@ -86,19 +86,26 @@ def test_the_chart_floor_is_the_runs_stated_noise_else_the_simulated_trackers_el
     write_measured_csv(tmp_path / "m.csv", meas)
     run = tmp_path / "run"
     assert main(["import", str(tmp_path / "m.csv"), "--run", str(run)]) == 0
-    assert tracker_noise_floor(run) is None  # no repeats, no drift checks, no stated noise, not simulated
+    assert tracker_noise_floor(run) is None  # no repeats, no drift checks, no stated noise
     cfg = (run / "campaign.yaml").read_text() if (run / "campaign.yaml").is_file() else "robot: comau_racer5_080\n"
     (run / "campaign.yaml").write_text(cfg + "sim:\n  noise_m: 2.0e-05\n")
-    assert tracker_noise_floor(run) is None  # sim.noise_m says nothing about a run measured elsewhere
     (run / "sim").mkdir()
-    simulated = tracker_noise_floor(run)
-    assert simulated.source == "simulated" and "sim.noise_m" in floor_label(simulated)
-    assert simulated.mean_position_mm == pytest.approx(
-        floor_from_stated(20e-6, robot.reflector_positions_in_E).mean_position_mm, rel=1e-12)
+    assert tracker_noise_floor(run) is None  # the simulator's configured noise is no floor, sim/ or not
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann"]) == 0
+    assert "no noise floor" in capsys.readouterr().out
+    page = (run / "calibration" / "report.html").read_text()
+    assert "no noise floor" in page and "The dotted line is the tracker noise floor" not in page
     (run / "campaign.yaml").write_text(cfg + "sim:\n  noise_m: 2.0e-05\ntracker:\n  noise_m: 5.0e-06\n")
     stated = tracker_noise_floor(run)
     assert stated.source == "stated"
-    assert stated.mean_position_mm == pytest.approx(simulated.mean_position_mm / 4, rel=1e-5)
+    assert stated.mean_position_mm == pytest.approx(
+        floor_from_stated(5e-6, robot.reflector_positions_in_E).mean_position_mm, rel=1e-12)
+    assert main(["calibrate", str(run), "--no-ann"]) == 0
+    text = capsys.readouterr().out
+    page = (run / "calibration" / "report.html").read_text()
+    shown = f"{stated.mean_position_mm:.4f} mm"
+    assert shown in text and shown in page and "The dotted line is the tracker noise floor" in page
 
 
 def test_parameter_table_keeps_every_name_whole(robot):

@@ -500,15 +500,14 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if write:
         _write(result, robot, geo, version.path)
     if write and report:
-        from campaign.identify.noise_floor import tracker_noise_floor
         from campaign.identify.report import model_choice_html, write_report
 
         say("writing the report")
         shown = np.flatnonzero(usable) if at_origin else np.arange(len(poses))  # rows with an error at the origin
         xyz = poses.xyz if at_origin else np.nanmean(poses.markers, axis=1)
-        floor = tracker_noise_floor(run_dir, measured, robot)
+        # the chart's floor line is the floor the text states (result.floor_line), or none
         page = write_report(run_dir, stages, order, {k: v[shown] for k, v in residuals.items()}, poses.q[shown], xyz[shown], is_test[shown],
-                            param_text=parameter_text(model), noise_floor=floor,  # the poses read once
+                            param_text=parameter_text(model), noise_floor=floor if floor.known else None,
                             extra_html=f"<h2>Against the measurement noise</h2>"
                             f"<pre>{html.escape(result.floor_line())}</pre>" + model_choice_html(result.model_choice)
                             + (result.ann.report_html() if result.ann is not None else ""),

@@ -1,21 +1,20 @@
 """The tracker noise floor on the reports' history chart: the mean position error ‖Δt‖ (mm)
 that measurement noise alone leaves to a perfect model.
 
-The floor is campaign.measure.floor's (docs/effects.md, "The noise floor"): from repeated
-measurements of the same joints and the drift checks' re-measurements, else from the tracker
-noise the user states (``tracker: {noise_m: σ}``), carried through the rigid fit of the tool's
-reflectors. A run measured on the simulated cell (it has RUN/sim/) that gives neither falls
-back to the simulated tracker's configured noise ``sim.noise_m`` through the same fit (the
-configuration, never the simulator's truth). For the COMAU's three reflectors and σ = 10 µm
-per reflector coordinate that is 9.8 µm, not the 16 µm (σ·2√2/√π) of one measured point.
-A held-out error can only approach the floor from above: the model's estimation error adds.
+The floor is campaign.measure.floor's (docs/effects.md, "The noise floor"), the one every text
+states: from back-to-back repeated measurements of the same joints (and, as an upper bound, the
+drift checks' re-measurements), else from the tracker noise the user states
+(``tracker: {noise_m: σ}``), carried through the rigid fit of the tool's reflectors; else none.
+The simulator's configured noise (``sim.noise_m``) is never a floor: a chart and a text that
+disagree on the floor were a report contradicting itself. For the COMAU's three reflectors and
+σ = 10 µm per reflector coordinate the stated floor is 9.8 µm, not the 16 µm (σ·2√2/√π) of one
+measured point. A held-out error can only approach the floor from above: the model's
+estimation error adds.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from campaign.measure.floor import NoiseFloor, floor_from_stated, noise_floor
+from campaign.measure.floor import noise_floor
 from campaign.run import RunFolder
 
 
@@ -33,11 +32,6 @@ def tracker_noise_floor(run_dir, poses=None, robot=None):
         floor = noise_floor(run.path, poses, robot)
         if floor.known:
             return floor
-        if Path(run.sim_dir).is_dir() and run.config.sim.noise_m:
-            stated = floor_from_stated(float(run.config.sim.noise_m), robot.reflector_positions_in_E)
-            return NoiseFloor("simulated", stated.sigma_position_m, stated.mean_position_mm, 0, 0.0,
-                              f"the simulated tracker's configured noise sim.noise_m, "
-                              f"σ {run.config.sim.noise_m * 1e6:.3g} µm per reflector coordinate")
     except Exception:  # a chart's reference line is never worth failing a report for
         return None
     return None
