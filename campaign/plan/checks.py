@@ -12,8 +12,8 @@ import itertools
 
 import numpy as np
 
-from campaign.plan.geometry import (RobotSpheres, fcl_geometry, point_primitive_distance, robot_primitives, robot_spheres,
-                                    to_world)
+from campaign.plan.geometry import (RobotSpheres, fcl_geometry, hull_geometry, point_primitive_distance, robot_primitives,
+                                    robot_spheres, to_world)
 
 
 def occludes(robot, prim) -> bool:
@@ -115,6 +115,11 @@ class ClearanceChecker:
     A mesh is its triangles to FCL, which measures between surfaces: a shape wholly inside a
     closed (watertight) mesh would seem apart from it, so a pair that FCL finds clear is
     taken as touching (distance 0) when a point of one shape lies inside the other's mesh.
+
+    Before a mesh's triangles, its convex hull (a solid that contains the mesh, so its distance
+    is a lower bound of the mesh's, containment included) decides a pair in one GJK step: a
+    pair whose hulls are at least the clearance apart is clear; only the others are measured
+    on the triangles (:meth:`_clear_scene`, :meth:`_clear_self`).
     """
 
     def __init__(self, robot, scene, clearance_m):
@@ -124,6 +129,9 @@ class ClearanceChecker:
         self.prims = robot_primitives(robot)
         self.spheres: RobotSpheres = robot_spheres(robot)
         self.robot_objs = [fcl.CollisionObject(fcl_geometry(p.kind, p.size, p.mesh), fcl.Transform()) for p in self.prims]
+        # the convex hull of a mesh (the primitive itself otherwise): a lower bound in one GJK step
+        self.hull_objs = [fcl.CollisionObject(hull_geometry(p.mesh), fcl.Transform()) if p.mesh is not None else obj
+                          for p, obj in zip(self.prims, self.robot_objs)]
         self._closed = [p.mesh is not None and p.mesh.watertight for p in self.prims]
         self._world = [None] * len(self.prims)  # (R, t) of each primitive as last placed, for the inside test
         self.scene_objs = []
@@ -159,7 +167,7 @@ class ClearanceChecker:
             near = bool(need[m].all())
             for k in range(n) if near else ():
                 self._place(Re[..., k], te[..., k], (i, j))
-                if self._dist_self(i, j) >= self.clearance:
+                if self._clear_self(i, j, self.clearance):
                     near = False
                     break
             always.append(near)
@@ -175,7 +183,10 @@ class ClearanceChecker:
         for i in range(len(self.prims)) if which is None else which:
             p = self.prims[i]
             Rw, tw = R[p.frame] @ p.T[:3, :3], R[p.frame] @ p.T[:3, 3] + t[p.frame]
-            self.robot_objs[i].setTransform(fcl.Transform(Rw, tw))
+            tf = fcl.Transform(Rw, tw)
+            self.robot_objs[i].setTransform(tf)
+            if self.hull_objs[i] is not self.robot_objs[i]:
+                self.hull_objs[i].setTransform(tf)
             self._world[i] = (Rw, tw)
 
     @staticmethod
@@ -213,6 +224,20 @@ class ClearanceChecker:
                       or (self._closed[j] and self._inside(j, self._point_of(i)))):
             return 0.0
         return d
+
+    def _clear_scene(self, i, j, c) -> bool:
+        """Whether robot primitive i (placed) is at least ``c`` (m) from obstacle j: the hull
+        first, the triangles (:meth:`_dist_scene`) only when the hull is nearer than c."""
+        if self.hull_objs[i] is not self.robot_objs[i] and self._dist(self.hull_objs[i], self.scene_objs[j]) >= c:
+            return True
+        return self._dist_scene(i, j) >= c
+
+    def _clear_self(self, i, j, c) -> bool:
+        """Whether robot primitives i and j (placed) are at least ``c`` (m) apart: hulls first."""
+        a, b = self.hull_objs[i], self.hull_objs[j]
+        if (a is not self.robot_objs[i] or b is not self.robot_objs[j]) and self._dist(a, b) >= c:
+            return True
+        return self._dist_self(i, j) >= c
 
     def pair_distances(self, R, t) -> tuple:
         """Exact FCL distances (m) of every checked pair for one pose (frames R (N+2,3,3), t (N+2,3)):
@@ -321,13 +346,13 @@ class ClearanceChecker:
             which = set(scene_pairs[ms, 0]) | set(self_pairs[mo, 0]) | set(self_pairs[mo, 1])
             self._place(R[..., k], t[..., k], which)
             for i, j in scene_pairs[ms]:
-                if self._dist_scene(i, j) < c:
+                if not self._clear_scene(i, j, c):
                     ok[k] = False
                     break
             if not ok[k]:
                 continue
             for i, j in self_pairs[mo]:
-                if self._dist_self(i, j) < c:
+                if not self._clear_self(i, j, c):
                     ok[k] = False
                     break
         return ok
