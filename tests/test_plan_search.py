@@ -269,7 +269,7 @@ def test_select_replaces_the_poses_its_first_tour_dropped(tmp_path, capsys):
 
 def test_select_more_than_the_tour_can_reach_says_why_and_predicts_for_the_toured(tmp_path, capsys):
     from campaign.plan.grid import Grid
-    from campaign.plan.selection import information_model, predict_accuracy
+    from campaign.plan.selection import evaluation_sample, information_model, predict_accuracy
 
     run = _plan_ur10_select(tmp_path, "--select", "110", "--validation", "0.1", "--repeats", "0")
     poses, dropped, s, selected, validation = _toured_counts(run)
@@ -287,7 +287,8 @@ def test_select_more_than_the_tour_can_reach_says_why_and_predicts_for_the_toure
     suitable = suitable_poses(robot, load_scene(DEFAULT_SCENE).placed(robot), grid, 0.035)
     assert len(suitable) == s["suitable"]
     info = information_model(robot, grid.q(suitable), noise_m=sel["tracker_noise_m"])
-    expected = predict_accuracy(info, np.flatnonzero(np.isin(suitable, sorted(selected))))
+    train = np.flatnonzero(np.isin(suitable, sorted(selected)))
+    expected = predict_accuracy(info, train, evaluation_sample(info, train)[0])
     assert sel["predicted"]["for"] == "the chosen poses the tour keeps"
     assert sel["predicted"]["model_position_mm"] == pytest.approx(expected.model_position_mm, rel=1e-9)
     assert sel["predicted"]["heldout_position_mm"] == pytest.approx(expected.heldout_position_mm, rel=1e-9)

@@ -167,6 +167,8 @@ def _selection_options(args):
 
 def selection_text(sel) -> str:
     """What the selection chose and what it predicts, in a few lines."""
+    from campaign.plan.selection import sample_text
+
     p = sel["predicted"]
     what = (f"{sel['select']} poses" if "select" in sel else f"a {sel['budget_h']:g} h budget" if "budget_h" in sel
             else f"a target of {sel['target_mm']:g} mm")
@@ -177,7 +179,8 @@ def selection_text(sel) -> str:
            f"{sel['selected']} of the {sel['chosen']} poses chosen toured, ")
         + f"{sel['validation']} random validation poses added, "
         f"{sel['repeated_poses']} poses measured {sel['repeat_times']} times back to back (the noise floor)",
-        f"predicted over the suitable poses: model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position"
+        f"predicted over {sample_text(p['sample']) if 'sample' in p else 'the suitable poses'}: "
+        f"model vs truth {1e3 * p['model_position_mm']:.1f} µm mean position"
         + (f", {p['model_orientation_mrad']:.3f} mrad" if p.get("model_orientation_mrad") is not None
            else f" of the measured reflector{'s' if len(sel['measured']['reflectors']) > 1 else ''} (position only)")
         + f"; held-out {1e3 * p['heldout_position_mm']:.1f} µm "

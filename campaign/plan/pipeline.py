@@ -360,15 +360,18 @@ def _as_toured(robot, grid, suitable, choice, selection, order_final) -> dict:
            "validation": int(sum(int(p) in toured for p in choice.validation)),
            "repeated_poses": int(len(set(int(b) for b, p in zip(base, order_final) if b != p)))}
     if len(selected) < len(choice.selected) or out["repeated_poses"] < choice.summary["repeated_poses"]:
-        from campaign.plan.selection import information_model, predict_accuracy
+        from campaign.plan.selection import evaluation_sample, information_model, predict_accuracy, sample_text
 
         info = information_model(robot, grid.q(suitable), effects=selection.effects,
                                  noise_m=choice.summary["tracker_noise_m"])
         where = {int(g): i for i, g in enumerate(suitable)}
         chosen = set(int(p) for p in choice.selected)
         train = np.array([where[int(b)] for b in base if int(b) in chosen], dtype=np.int64)  # repeats too
-        out["predicted"] = {**choice.summary["predicted"], **predict_accuracy(info, train).as_dict(),
-                            "for": "the chosen poses the tour keeps"}
+        ev, sample = evaluation_sample(info, train)
+        kept = choice.summary["predicted"]["evaluated_over"].replace(
+            sample_text(choice.summary["predicted"]["sample"]), sample_text(sample))
+        out["predicted"] = {**choice.summary["predicted"], **predict_accuracy(info, train, ev).as_dict(),
+                            "evaluated_over": kept, "sample": sample, "for": "the chosen poses the tour keeps"}
     return out
 
 

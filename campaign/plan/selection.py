@@ -61,6 +61,13 @@ NORM_SAMPLES = 256
 #: poses per chunk of those samples (4096 × 256 × 3 doubles: 25 MB)
 NORM_CHUNK = 4096
 CRITERIA = ("D", "A", "I")
+#: the prediction's mean errors are averaged over a random sample of the suitable poses large
+#: enough that the sample's mean is within this fraction of the mean over all of them, at 95 %
+#: confidence (issue 22: ±2 %; every suitable pose took 19 s of the COMAU's default plan)
+PREDICTION_REL_HALF_WIDTH = 0.02
+#: poses of the pilot sample whose spread of per-pose errors sizes the sample
+PREDICTION_PILOT = 1000
+PREDICTION_SEED = 20260522
 
 
 @dataclass(frozen=True)
@@ -556,6 +563,44 @@ def predict_accuracy(info: Information, index, evaluate=None) -> Prediction:
     )
 
 
+def evaluation_sample(info: Information, index, *, rel: float = PREDICTION_REL_HALF_WIDTH,
+                      pilot: int = PREDICTION_PILOT, seed: int = PREDICTION_SEED):
+    """The poses (indices into ``info``'s candidates, ascending) over which the prediction of the
+    design ``index`` is averaged, and what they are (a dict for summary.json).
+
+    A random sample (fixed seed) of size ``n = (1.96 · cv / rel)²``, cv the largest coefficient
+    of variation of the per-pose expected model errors (position; orientation when measured)
+    on a pilot sample of ``pilot`` poses: the sample's mean is then within ±``rel`` of the
+    mean over every candidate at 95 % confidence. All candidates when there are no more than
+    the sample would take."""
+    m = info.n_candidates
+    everything = {"poses": int(m), "of": int(m), "relative_half_width": 0.0, "confidence": 1.0}
+    if m <= pilot:
+        return np.arange(m), everything
+    perm = np.random.default_rng(seed).permutation(m)
+    first = np.sort(perm[:pilot])
+    J = info.J[first]
+    C = J @ estimator_covariance(info, index) @ np.swapaxes(J, 1, 2)
+    if info.measured == "pose":
+        parts = [C[:, :3, :3], C[:, 3:, 3:]]
+    else:
+        parts = [np.concatenate([C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(info.n_points)])]
+    cv = max(float(np.std(e) / max(np.mean(e), 1e-300)) for e in (expected_norm(P, 64) for P in parts))
+    n = max(pilot, int(np.ceil((1.96 * cv / rel) ** 2)))
+    if n >= m:
+        return np.arange(m), everything
+    return np.sort(perm[:n]), {"poses": int(n), "of": int(m), "relative_half_width": rel, "confidence": 0.95,
+                               "pilot_coefficient_of_variation": cv, "seed": seed}
+
+
+def sample_text(sample: dict) -> str:
+    """What the prediction was averaged over, for summary.json and the printout."""
+    if sample["poses"] >= sample["of"]:
+        return f"all {sample['of']:,} suitable poses"
+    return (f"a random sample of {sample['poses']:,} of the {sample['of']:,} suitable poses (mean within "
+            f"±{100 * sample['relative_half_width']:g} % of all of them, 95 % confidence)")
+
+
 def smallest_reaching(info: Information, target_mm: float, *, criterion: str = "D", evaluate=None,
                       max_n: int | None = None):
     """The smallest greedy design whose predicted model error against the truth (mean
@@ -829,7 +874,9 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
     rep = chosen[np.linspace(0, len(chosen) - 1, n_rep).round().astype(int)] if n_rep else np.zeros(0, np.int64)
     t1 = time.perf_counter()
     # the repeats' extra measurements are training data too
-    pred = predict_accuracy(info, np.concatenate([chosen, np.repeat(rep, max(opts.repeat_times - 1, 0))]))
+    train = np.concatenate([chosen, np.repeat(rep, max(opts.repeat_times - 1, 0))])
+    ev, sample = evaluation_sample(info, train)
+    pred = predict_accuracy(info, train, ev)
     t_pred = time.perf_counter() - t1
     summary = {
         **mode, "criterion": opts.criterion, "unknowns": list(info.names), "n_unknowns": info.n_unknowns,
@@ -839,8 +886,9 @@ def choose_campaign(robot, grid, suitable, opts: SelectionOptions, *, settle_s: 
         "repeat_times": int(opts.repeat_times) if n_rep else 1,
         "log_det_information": sel.log_det, "exchanges": sel.exchanges,
         "predicted": {**pred.as_dict(),
-                      "evaluated_over": "all suitable poses" if info.measured == "pose" else
-                      "the measured reflector positions at all suitable poses (no orientation is measured)",
+                      "evaluated_over": sample_text(sample) if info.measured == "pose" else
+                      f"the measured reflector positions at {sample_text(sample)} (no orientation is measured)",
+                      "sample": sample,
                       "note": "expected mean errors of the model calibrated on the selected poses: "
                               "model_* against the truth, heldout_* against measurements (model + tracker noise)"},
         "time_s": {"information": t_info, "selection": sel.time_s, "prediction": t_pred},
