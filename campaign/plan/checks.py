@@ -104,6 +104,10 @@ def robot_line_of_sight_ok(robot, scene, P, R, t):
     return ok
 
 
+#: most exact verdicts a checker remembers (:meth:`ClearanceChecker.clear_entry_first`; about 200 B each)
+MEMO_SIZE = 1_000_000
+
+
 class ClearanceChecker:
     """Minimum distance robot–scene and between non-adjacent links, with FCL.
 
@@ -150,6 +154,10 @@ class ClearanceChecker:
                 if abs(self.prims[i].frame - self.prims[j].frame) >= 2]
         self.self_pairs, self.disabled_pairs = self._prune_always_near(cand)
         self._self_pair_index = np.array(self.self_pairs, dtype=int).reshape(-1, 2).T
+        # exact verdicts by the pose of the frames a pair depends on: a link's pose in the cell (a
+        # scene pair), the two links' relative pose (a pair of links). Poses of the grid share
+        # them where the joints beyond those links alone differ (the wrist's cells, motions of the wrist)
+        self._memo = {}
 
     def _prune_always_near(self, pairs, n=300, seed=0):
         """(pairs kept, frame pairs of those closer than the clearance at every one of ``n``
@@ -341,21 +349,46 @@ class ClearanceChecker:
         todo = np.flatnonzero(need_scene.any(axis=1) | need_self.any(axis=1))
         scene_pairs = np.array(self.scene_pairs).reshape(-1, 2)
         self_pairs = np.array(self.self_pairs).reshape(-1, 2)
+        memo = self._memo
+        if len(memo) > MEMO_SIZE:
+            memo.clear()
         for k in todo:
             ms, mo = np.flatnonzero(need_scene[k]), np.flatnonzero(need_self[k])
-            which = set(scene_pairs[ms, 0]) | set(self_pairs[mo, 0]) | set(self_pairs[mo, 1])
-            self._place(R[..., k], t[..., k], which)
+            Rk, tk = R[..., k], t[..., k]
+            placed = set()
             for i, j in scene_pairs[ms]:
-                if not self._clear_scene(i, j, c):
+                f = self.prims[i].frame
+                key = (0, i, j, c, _pose_key(Rk[f], tk[f]))
+                v = memo.get(key)
+                if v is None:
+                    if i not in placed:
+                        self._place(Rk, tk, (i,))
+                        placed.add(i)
+                    v = memo[key] = self._clear_scene(i, j, c)
+                if not v:
                     ok[k] = False
                     break
             if not ok[k]:
                 continue
             for i, j in self_pairs[mo]:
-                if not self._clear_self(i, j, c):
+                fi, fj = self.prims[i].frame, self.prims[j].frame
+                key = (1, i, j, c, _pose_key(Rk[fi].T @ Rk[fj], Rk[fi].T @ (tk[fj] - tk[fi])))
+                v = memo.get(key)
+                if v is None:
+                    new = [x for x in (i, j) if x not in placed]
+                    if new:
+                        self._place(Rk, tk, new)
+                        placed.update(new)
+                    v = memo[key] = self._clear_self(i, j, c)
+                if not v:
                     ok[k] = False
                     break
         return ok
+
+
+def _pose_key(R, t) -> bytes:
+    """A hashable key of a rigid pose (R (3, 3), t (3,)), equal for poses equal to 1e-10."""
+    return np.round(np.concatenate([R.ravel(), t]), 10).tobytes()
 
 
 class ExactChecker:
