@@ -253,7 +253,7 @@ def _toured_counts(run):
 
 
 def test_select_replaces_the_poses_its_first_tour_dropped(tmp_path, capsys):
-    run = _plan_ur10_select(tmp_path, "--select", "12", "--validation", "0.5")
+    run = _plan_ur10_select(tmp_path, "--select", "12", "--validation", "0.5", "--choose-among", "suitable")
     poses, dropped, s, selected, validation = _toured_counts(run)
     rep = s["selection"]["replacement"]
     assert rep["dropped_per_round"][0] > 0 and rep["dropped_per_round"][-1] == 0 == len(dropped) == s["tour"]["dropped"]

@@ -53,6 +53,9 @@ def register(sub):
     iso.add_argument("--compensate", metavar="CALIBRATED_RUN", default=None,
                      help="correct the test's joint commands with this calibrated run's model (the test after "
                           "calibration)")
+    p.add_argument("--choose-among", choices=("reachable", "suitable"), default="reachable",
+                   help="reachable (default): choose among the suitable poses that collision-free motions join into "
+                        "one tour; suitable: among every suitable pose, choosing again for the poses the tour drops")
     p.set_defaults(func=_plan)
 
 
@@ -64,7 +67,7 @@ def _plan(args):
     selection = _selection_options(args)
     s = plan_campaign(args.config, args.run, grid_scale=args.grid_scale, progress=not args.quiet and sys.stderr.isatty(),
                       selection=selection, all_poses=args.all_poses, robot=args.robot, tool_frame=args.tool_frame,
-                      base_frame=args.base_frame)
+                      base_frame=args.base_frame, choose_among=args.choose_among)
     rm = s["removed_by_filter"]
     est = s["estimated_campaign"]
     print(f"candidates {s['candidates']:,} (grid {' x '.join(map(str, s['grid_cells']))})")
@@ -75,6 +78,8 @@ def _plan(args):
         print(f"suitable poses {s['suitable']:,} ({100 * s['suitable_fraction']:.2f} %)")
         if s["campaign"]["mode"] == "default":
             print(f"campaign: {s['campaign']['text']}")
+        if "reachable" in s:
+            print(reachable_text(s["reachable"]))
         print(selection_text(s["selection"]))
         rep = s["selection"]["replacement"]
         if rep["rounds"] > 1 or rep["why_short"]:
@@ -163,6 +168,16 @@ def _selection_options(args):
     return SelectionOptions(n=args.select, budget_h=args.budget, target_mm=args.target_mm, effects=effects,
                             criterion=args.criterion or "D",
                             repeat_poses=REPEAT_POSES if args.repeats is None else args.repeats, **kw).check()
+
+
+def reachable_text(r) -> str:
+    """The reachable set in one line: how many suitable poses one tour can visit, and why not the others."""
+    why = "; ".join(f"{n:,} beyond {k}" for k, n in r["outside_by_barrier"].items())
+    text = (f"reachable: {r['inside']:,} of the {r['suitable']:,} suitable poses joined by collision-free motions"
+            + (f" ({r['outside']:,} outside: {why})" if r["outside"] else ""))
+    if r["chosen_among"] == "suitable":
+        text += f"; chosen among every suitable pose: {r.get('why_suitable', 'as asked')}"
+    return text
 
 
 def selection_text(sel) -> str:

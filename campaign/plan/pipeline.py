@@ -118,7 +118,7 @@ def _order_tour(robot, scene, grid, times, home, members):
 
 def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False,
                   selection=None, all_poses: bool = False, robot: str | None = None, tool_frame: str | None = None,
-                  base_frame: str | None = None) -> dict:
+                  base_frame: str | None = None, choose_among: str = "reachable") -> dict:
     """Plan a campaign; write the run's plan folder; return the summary (also in summary.json).
 
     config: a campaign.yaml path or a CampaignConfig; None: the run's own campaign.yaml when
@@ -129,7 +129,11 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     default short campaign for the physical model, ``SelectionOptions(n=DEFAULT_SELECT)`` for the
     geometry and the effects enabled in campaign.yaml (every suitable pose when there are fewer
     than it would take). all_poses: every suitable pose instead, the long campaign a neural
-    compensator needs. The selection's accuracy prediction uses campaign.yaml's
+    compensator needs. choose_among: "reachable" (default) the design chooses among the poses of
+    the largest set that collision-free motions join (campaign.plan.region; summary.json
+    ``reachable`` counts the suitable poses outside it and the joint barriers that keep them out),
+    "suitable" among every suitable pose, replacing the poses the tour drops by choosing again.
+    The selection's accuracy prediction uses campaign.yaml's
     ``tracker: {noise_m}`` when given. Refused (one line, nothing written) when the run holds
     measurements, when another process holds the run's lock, or when no pose is suitable. The
     run's campaign.yaml and plan/ are written only once the plan is made.
@@ -137,6 +141,8 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or \
             not 0 < grid_scale < float("inf"):
         raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
+    if choose_among not in ("reachable", "suitable"):
+        raise ConfigError(f"--choose-among must be reachable or suitable, got {choose_among!r}")
     if all_poses and selection is not None:
         raise ConfigError("--all plans every suitable pose: give it without --select, --budget or --target-mm")
     run = RunFolder(run_dir)
@@ -182,11 +188,11 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
         run.refuse_if_measured("planning again", advice)  # again under the lock: a driver may have stored poses
         # every file of the plan into a new version of RUN/plan, current only once whole (campaign.versioned)
         with plan_folder(run.path).new_version() as version:
-            return _plan(run, cfg, robot, scene, grid, progress, selection, mode, version)
+            return _plan(run, cfg, robot, scene, grid, progress, selection, mode, version, choose_among)
 
 
 def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progress, selection, mode,
-          version) -> dict:
+          version, choose_among="reachable") -> dict:
     t_start = time.perf_counter()
     timing = {}  # seconds per stage, wall
     clock = [t_start]
@@ -219,7 +225,11 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         selection, mode = None, "all_few"  # fewer suitable poses than the short campaign takes: all of them
     max_step = np.deg2rad(pc.motion_sample_deg)
     mc = pc.motion_clearance_m
-    candidates, rounds, replaced, why_short = suitable, 0, 0, None
+    candidates, region = suitable, None
+    if selection is not None and choose_among == "reachable":
+        candidates, region = _reachable_candidates(robot, checker, grid, suitable, selection, max_step, mc, progress)
+        lap("region")
+    pool, rounds, replaced, why_short = candidates, 0, 0, None
     unreached = np.zeros(0, dtype=np.int64)  # grid indices the tours dropped
     dropped_per_round = []
     while True:  # a chosen campaign: poses the tour drops are replaced by choosing again without them
@@ -232,6 +242,12 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
                                          tracker_s=n_reflectors * pc.tracker_time_per_reflector_s,
                                          **_selection_times(robot, scene, grid, times, home, candidates))
             except ConfigError as exc:
+                if choice is None and candidates is not suitable and region is not None:
+                    # the reachable set is too small for this choice: among every suitable pose, as chosen
+                    candidates = pool = suitable
+                    region = dataclasses.replace(region, too_few=str(exc))
+                    rounds -= 1
+                    continue
                 if choice is None:
                     raise
                 why_short = f"choosing again without the {replaced} dropped poses failed: {exc}"
@@ -265,7 +281,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         gone = np.unique(_grid_index([p for p, _ in repair.dropped]))
         replaced += len(gone)
         unreached = np.union1d(unreached, gone)
-        candidates = _nearer_toured(grid, suitable, np.unique(_grid_index(order[repair.keep])), unreached)
+        candidates = _nearer_toured(grid, pool, np.unique(_grid_index(order[repair.keep])), unreached)
     vias, dropped = repair.vias, repair.dropped
     order_final = order[repair.keep]
     Q_final = grid.q(_grid_index(order_final))
@@ -304,6 +320,10 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
 
     write_choice(out, choice, order_final)  # without a choice: no validation.csv, repeats.csv
     summary["campaign"] = _campaign_kind(mode, len(suitable), selection)
+    if region is not None:
+        summary["reachable"] = {**region.summary(), "chosen_among": "reachable" if pool is not suitable else "suitable"}
+        if region.too_few:
+            summary["reachable"]["why_suitable"] = f"too few reachable poses to choose among: {region.too_few}"
     if choice is not None:
         summary["selection"] = _as_toured(robot, grid, suitable, choice, selection, order_final)
         summary["selection"]["replacement"] = {"rounds": rounds, "replaced": replaced,
@@ -325,6 +345,23 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     atomic_write_json(out / "summary.json", summary)
     run.write_config(cfg)  # last: a plan that fails on the way leaves the run's campaign.yaml as it was
     return summary
+
+
+def _reachable_candidates(robot, checker, grid, suitable, selection, max_step, clearance, progress):
+    """(grid indices the design chooses among, the Region): the suitable poses of the set one
+    tour can visit (campaign.plan.region), among a random pool of them for a large set; every
+    suitable pose when that set cannot hold the poses ``--select`` asks for and their validation
+    poses."""
+    from campaign.plan.region import reachable_region
+
+    bar = Progress("stage 3: reachable set", None, progress, " rounds")
+    region = reachable_region(robot, checker, grid, suitable, max_step, clearance, progress=bar)
+    bar.close()
+    inside = suitable[region.pool[region.in_pool]]
+    if selection.n is not None and len(inside) < _default_size(selection):
+        why = f"{len(inside):,} reachable poses, fewer than the {_default_size(selection)} chosen and validation poses"
+        return suitable, dataclasses.replace(region, too_few=why)
+    return inside, region
 
 
 #: rounds of choosing again (:func:`_plan`) while the tour drops chosen poses
