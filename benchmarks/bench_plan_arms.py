@@ -45,7 +45,7 @@ def arm_urdf(name):
 
 
 def numpy_fk_seconds(name, chunk=100_000):
-    """Seconds of a plain numpy forward kinematics of the arm's default grid (every candidate's
+    """Wall seconds of a plain numpy forward kinematics of the arm's default grid (every candidate's
     tool pose, 4×4 products joint by joint, ``chunk`` poses at a time)."""
     from campaign.model.robot import RobotModel
     from campaign.plan.grid import Grid
@@ -94,7 +94,8 @@ def run_plan(name, all_poses, tmp):
     s = json.loads((Path(tmp) / "plan" / "summary.json").read_text())
     sel = s.get("selection", {})
     pred = sel.get("predicted", {})
-    return {"command": " ".join(cmd), "wall_s": wall, "peak_rss_mb": usage.ru_maxrss / 1024,
+    return {"command": " ".join(cmd), "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
+            "peak_rss_mb": usage.ru_maxrss / 1024,
             "candidates": s["candidates"], "suitable": s["suitable"],
             "chosen": sel.get("chosen"), "chosen_toured": sel.get("selected"),
             "toured": s["tour"]["poses"], "dropped": s["tour"]["dropped"], "vias": s["tour"]["via_poses"],
@@ -124,6 +125,7 @@ def main():
             print(f"{name}: FAILED {r['error']}")
         else:
             print(f"{name}: {r['wall_s']:.1f} s wall ({r['ratio_to_numpy_fk']:.1f}x numpy FK {fk_s:.2f} s), "
+                  f"{r['cpu_s']:.1f} s CPU, "
                   f"{r['peak_rss_mb']:.0f} MB; suitable {r['suitable']:,}, chosen {r['chosen']}, chosen toured "
                   f"{r['chosen_toured']}, toured {r['toured']}, dropped {r['dropped']}; held-out "
                   f"{r['heldout_position_mm']}", flush=True)

@@ -35,7 +35,7 @@ EDGE_CHUNK = 4096
 #: most suitable poses the region is built on (a random sample, fixed seed, of a larger set; the
 #: others are counted with the sampled pose nearest them): the design chooses among these, whose
 #: information about the model is that of the whole set within a few per cent
-POOL = 5000
+POOL = 2000
 POOL_SEED = 20260522
 
 
