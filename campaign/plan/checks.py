@@ -347,18 +347,23 @@ class ClearanceChecker:
         need_scene, need_self = need_scene.T, need_self.T
         ok = np.ones(n, dtype=bool)
         todo = np.flatnonzero(need_scene.any(axis=1) | need_self.any(axis=1))
+        if len(todo) == 0:
+            return ok
         scene_pairs = np.array(self.scene_pairs).reshape(-1, 2)
         self_pairs = np.array(self.self_pairs).reshape(-1, 2)
         memo = self._memo
         if len(memo) > MEMO_SIZE:
             memo.clear()
-        for k in todo:
-            ms, mo = np.flatnonzero(need_scene[k]), np.flatnonzero(need_self[k])
+        keys = _PoseKeys(R[..., todo], t[..., todo])
+        rows_s, cols_s = np.nonzero(need_scene[todo])
+        rows_o, cols_o = np.nonzero(need_self[todo])
+        cut_s = np.searchsorted(rows_s, np.arange(len(todo) + 1))
+        cut_o = np.searchsorted(rows_o, np.arange(len(todo) + 1))
+        for row, k in enumerate(todo):
             Rk, tk = R[..., k], t[..., k]
             placed = set()
-            for i, j in scene_pairs[ms]:
-                f = self.prims[i].frame
-                key = (0, i, j, c, _pose_key(Rk[f], tk[f]))
+            for i, j in scene_pairs[cols_s[cut_s[row]:cut_s[row + 1]]]:
+                key = (0, i, j, c, keys.frame(self.prims[i].frame, row))
                 v = memo.get(key)
                 if v is None:
                     if i not in placed:
@@ -370,9 +375,8 @@ class ClearanceChecker:
                     break
             if not ok[k]:
                 continue
-            for i, j in self_pairs[mo]:
-                fi, fj = self.prims[i].frame, self.prims[j].frame
-                key = (1, i, j, c, _pose_key(Rk[fi].T @ Rk[fj], Rk[fi].T @ (tk[fj] - tk[fi])))
+            for i, j in self_pairs[cols_o[cut_o[row]:cut_o[row + 1]]]:
+                key = (1, i, j, c, keys.relative(self.prims[i].frame, self.prims[j].frame, row))
                 v = memo.get(key)
                 if v is None:
                     new = [x for x in (i, j) if x not in placed]
@@ -386,9 +390,31 @@ class ClearanceChecker:
         return ok
 
 
-def _pose_key(R, t) -> bytes:
-    """A hashable key of a rigid pose (R (3, 3), t (3,)), equal for poses equal to 1e-10."""
-    return np.round(np.concatenate([R.ravel(), t]), 10).tobytes()
+class _PoseKeys:
+    """Hashable keys (bytes) of frame poses, equal for poses equal to 1e-10, computed for all
+    poses at once per frame (a frame's pose in F_I) or frame pair (their relative pose) when
+    first asked: frames entry-first R (K, 3, 3, n), t (K, 3, n)."""
+
+    def __init__(self, R, t):
+        self.R, self.t = R, t
+        self._frame, self._relative = {}, {}
+
+    @staticmethod
+    def _rows(R, t):
+        return np.ascontiguousarray(np.round(np.concatenate([R.reshape(9, -1), t]), 10).T)
+
+    def frame(self, f, row) -> bytes:
+        if f not in self._frame:
+            self._frame[f] = self._rows(self.R[f], self.t[f])
+        return self._frame[f][row].tobytes()
+
+    def relative(self, fi, fj, row) -> bytes:
+        if (fi, fj) not in self._relative:
+            Ri, Rj = self.R[fi], self.R[fj]
+            Rrel = np.einsum("jin,jkn->ikn", Ri, Rj)  # Riᵀ Rj
+            trel = np.einsum("jin,jn->in", Ri, self.t[fj] - self.t[fi])  # Riᵀ (tj - ti)
+            self._relative[(fi, fj)] = self._rows(Rrel, trel)
+        return self._relative[(fi, fj)][row].tobytes()
 
 
 class ExactChecker:
