@@ -104,6 +104,11 @@ def robot_line_of_sight_ok(robot, scene, P, R, t):
     return ok
 
 
+#: FCL's GJK distance between a convex hull and another shape can exceed the true distance (python-fcl
+#: 0.7, measured at random UR10 and Panda postures: by up to 1.4 % of it, 1.2 mm at 0.86 m): a hull
+#: clears a pair only when its distance less this share and this margin still reaches the clearance
+HULL_SLACK_REL = 0.05
+HULL_SLACK_M = 5e-4
 #: most exact verdicts a checker remembers (:meth:`ClearanceChecker.clear_entry_first`; about 200 B each)
 MEMO_SIZE = 1_000_000
 
@@ -236,14 +241,14 @@ class ClearanceChecker:
     def _clear_scene(self, i, j, c) -> bool:
         """Whether robot primitive i (placed) is at least ``c`` (m) from obstacle j: the hull
         first, the triangles (:meth:`_dist_scene`) only when the hull is nearer than c."""
-        if self.hull_objs[i] is not self.robot_objs[i] and self._dist(self.hull_objs[i], self.scene_objs[j]) >= c:
+        if self.hull_objs[i] is not self.robot_objs[i] and _hull_clear(self._dist(self.hull_objs[i], self.scene_objs[j]), c):
             return True
         return self._dist_scene(i, j) >= c
 
     def _clear_self(self, i, j, c) -> bool:
         """Whether robot primitives i and j (placed) are at least ``c`` (m) apart: hulls first."""
         a, b = self.hull_objs[i], self.hull_objs[j]
-        if (a is not self.robot_objs[i] or b is not self.robot_objs[j]) and self._dist(a, b) >= c:
+        if (a is not self.robot_objs[i] or b is not self.robot_objs[j]) and _hull_clear(self._dist(a, b), c):
             return True
         return self._dist_self(i, j) >= c
 
@@ -388,6 +393,11 @@ class ClearanceChecker:
                     ok[k] = False
                     break
         return ok
+
+
+def _hull_clear(d, c) -> bool:
+    """Whether a hull distance d (m) from FCL proves the clearance c (m) despite GJK's error."""
+    return d * (1.0 - HULL_SLACK_REL) - HULL_SLACK_M >= c
 
 
 class _PoseKeys:

@@ -111,6 +111,19 @@ def _axis_transforms(robot, grid: Grid, k: int):
     return Rn @ rot_z(v), None
 
 
+def _descend_level(robot, grid: Grid, R, t, k: int):
+    """Frames k+1 (rotations (M·m, 3, 3), origins (M·m, 3)) for frames k given as R (M, 3, 3),
+    t (M, 3) and each of joint k's (0-based) m axis values, the parent's rows slowest."""
+    Rk, off = _axis_transforms(robot, grid, k)  # (m, 3, 3)
+    tk = robot.t_nominal[k + 1]
+    if off is None:
+        # the origin of frame k+1 depends only on the parent; every child value shares it
+        t = np.broadcast_to((t + R @ tk)[:, None, :], (R.shape[0], Rk.shape[0], 3)).reshape(-1, 3)
+    else:
+        t = ((t + R @ tk)[:, None, :] + np.einsum("pij,mj->pmi", R, off)).reshape(-1, 3)
+    return (R[:, None] @ Rk[None]).reshape(-1, 3, 3), t
+
+
 def _descend(robot, grid: Grid, levels: int):
     """Rotations (M, 3, 3) and origins (M, 3) of frame ``levels`` for every combination of the
     first ``levels`` joints' axis values (q1 slowest), built level by level: the pose of link k
@@ -119,15 +132,29 @@ def _descend(robot, grid: Grid, levels: int):
     R = robot.R_nominal[0][None]
     t = robot.t_nominal[0][None]
     for k in range(levels):
-        Rk, off = _axis_transforms(robot, grid, k)  # (m, 3, 3)
-        tk = robot.t_nominal[k + 1]
-        if off is None:
-            # the origin of frame k+1 depends only on the parent; every child value shares it
-            t = np.broadcast_to((t + R @ tk)[:, None, :], (R.shape[0], Rk.shape[0], 3)).reshape(-1, 3)
-        else:
-            t = ((t + R @ tk)[:, None, :] + np.einsum("pij,mj->pmi", R, off)).reshape(-1, 3)
-        R = (R[:, None] @ Rk[None]).reshape(-1, 3, 3)
+        R, t = _descend_level(robot, grid, R, t, k)
     return R, t
+
+
+#: most frame poses :func:`_descend_blocks` holds at once (about 100 B each)
+DESCEND_ROWS = 1 << 18
+
+
+def _descend_blocks(robot, grid: Grid, levels: int, max_rows: int = DESCEND_ROWS):
+    """:func:`_descend` in consecutive blocks of at most ``max_rows`` poses (one block of more only
+    when a single value of the first joint spans more): yields (R, t) of frame ``levels``, in
+    order. Peak memory does not grow with the grid's size."""
+    cells = grid.cells[:levels]
+    top = 0  # the first joints built whole; each of their rows then spans prod(cells[top:]) poses
+    while top < levels and int(np.prod(cells[top:], dtype=np.int64)) > max_rows:
+        top += 1
+    R0, t0 = _descend(robot, grid, top)
+    group = max(1, max_rows // int(np.prod(cells[top:], dtype=np.int64)))
+    for s in range(0, len(R0), group):
+        R, t = R0[s : s + group], t0[s : s + group]
+        for k in range(top, levels):
+            R, t = _descend_level(robot, grid, R, t, k)
+        yield R, t
 
 
 def tool_frames(robot, grid: Grid):
@@ -153,11 +180,6 @@ def iter_tool_points(robot, grid: Grid, points_in_E, vectors_in_E, chunk: int = 
     vectors_in_E = np.asarray(vectors_in_E, dtype=float).reshape(-1, 3)
     N = robot.n_joints
     r, cN = len(points_in_E), grid.cells[N - 1]
-    R, t = _descend(robot, grid, N - 1)  # frames N-1
-    # p in F_E lies at t_N + R_{N-1} R̄_N (Z(q_N) (t̄_E + R̄_E p) + d(q_N)) in F_I; a vector v at
-    # R_{N-1} R̄_N Z(q_N) R̄_E v (Z = Rz for a revolute last joint, d = q_N e_z for a prismatic one)
-    tN = t + R @ robot.t_nominal[N]
-    M = R @ robot.R_nominal[N]  # (m, 3, 3)
     RE, tE = robot.R_nominal[N + 1], robot.t_nominal[N + 1]
     v = grid.axis_values(N - 1)
     prismatic = robot.joint_types[N - 1] == "prismatic"
@@ -168,8 +190,15 @@ def iter_tool_points(robot, grid: Grid, points_in_E, vectors_in_E, chunk: int = 
         ZP = ZP + np.einsum("i,q->iq", np.array([0.0, 0.0, 1.0]), v)[:, :, None]
     ZP = np.ascontiguousarray(ZP.reshape(3, -1))
     ZV = np.ascontiguousarray(np.einsum("qij,kj->iqk", Z, vectors_in_E @ RE.T).reshape(3, -1))
-    for s in range(0, len(M), chunk):
-        Mc, tc = M[s : s + chunk], tN[s : s + chunk]
-        P = (np.einsum("mij,jc->mci", Mc, ZP).reshape(len(Mc), cN, r, 3) + tc[:, None, None, :]).reshape(-1, r, 3)
-        V = np.ascontiguousarray(np.einsum("mij,jc->mci", Mc, ZV)).reshape(len(P), -1, 3)
-        yield s * cN, P, V
+    first = 0  # frames N-1 so far
+    for R, t in _descend_blocks(robot, grid, N - 1):  # frames N-1, block by block
+        # p in F_E lies at t_N + R_{N-1} R̄_N (Z(q_N) (t̄_E + R̄_E p) + d(q_N)) in F_I; a vector v at
+        # R_{N-1} R̄_N Z(q_N) R̄_E v (Z = Rz for a revolute last joint, d = q_N e_z for a prismatic one)
+        tN = t + R @ robot.t_nominal[N]
+        M = R @ robot.R_nominal[N]  # (m, 3, 3)
+        for s in range(0, len(M), chunk):
+            Mc, tc = M[s : s + chunk], tN[s : s + chunk]
+            P = (np.einsum("mij,jc->mci", Mc, ZP).reshape(len(Mc), cN, r, 3) + tc[:, None, None, :]).reshape(-1, r, 3)
+            V = np.ascontiguousarray(np.einsum("mij,jc->mci", Mc, ZV)).reshape(len(P), -1, 3)
+            yield (first + s) * cN, P, V
+        first += len(M)

@@ -1,0 +1,81 @@
+"""The pieces that keep `campaign plan` fast (issue 22) give the answers of the slow ways: the grid's
+frames built block by block, the convex hull's bound and the remembered verdicts, the prediction
+on a sample."""
+
+import numpy as np
+import pytest
+
+from campaign.model.robot import RobotModel
+from campaign.paths import DEFAULT_SCENE
+from campaign.plan.checks import ClearanceChecker
+from campaign.plan.geometry import nominal_frames_entry_first, robot_primitives
+from campaign.plan.grid import Grid, _descend, _descend_blocks
+from campaign.plan.scene import load_scene
+
+from fcl_reference import erd_robot
+
+
+@pytest.fixture(scope="module")
+def ur10():
+    return RobotModel.load(erd_robot("ur_description/urdf/ur10_robot.urdf"), tool_frame="tool0").with_default_reflectors()
+
+
+def test_frames_built_block_by_block_equal_the_whole_descent_for_any_block_size(ur10):
+    grid = Grid.for_robot(ur10, (5, 4, 3, 4, 3, 2))
+    R, t = _descend(ur10, grid, 5)
+    for rows in (1, 7, 50, 240, 10_000):
+        blocks = list(_descend_blocks(ur10, grid, 5, max_rows=rows))
+        assert max(len(b[0]) for b in blocks) <= max(rows, 3 * 4 * 3)  # one value of q1 spans 144 at most
+        np.testing.assert_array_equal(np.concatenate([b[0] for b in blocks]), R)
+        np.testing.assert_array_equal(np.concatenate([b[1] for b in blocks]), t)
+
+
+def test_a_mesh_hull_is_never_farther_than_the_mesh_and_the_verdicts_match_the_triangles(ur10):
+    """At random postures: each mesh pair's hull distance from FCL, less the slack allowed for GJK's
+    error, is at most its triangle distance, and the checker's verdict per posture (hulls,
+    remembered verdicts) equals the one from triangle distances alone (with the closed-mesh inside
+    test) at the clearance."""
+    from campaign.plan.checks import HULL_SLACK_M, HULL_SLACK_REL
+
+    scene = load_scene(DEFAULT_SCENE).placed(ur10)
+    checker = ClearanceChecker(ur10, scene, 0.035)
+    rng = np.random.default_rng(11)
+    q = rng.uniform(ur10.q_lower, ur10.q_upper, size=(60, ur10.n_joints))
+    q = np.concatenate([q, q[:20]])  # the same postures again: answered from memory
+    R, t = nominal_frames_entry_first(ur10, q)
+    got = checker.clear_entry_first(R, t)
+    expected = []
+    for k in range(len(q)):
+        checker._place(R[..., k], t[..., k])
+        for i, j in checker.self_pairs:
+            if checker.hull_objs[i] is not checker.robot_objs[i] and checker.hull_objs[j] is not checker.robot_objs[j]:
+                h = checker._dist(checker.hull_objs[i], checker.hull_objs[j])  # -1: in contact
+                assert max(h, 0) * (1 - HULL_SLACK_REL) - HULL_SLACK_M <= max(
+                    checker._dist(checker.robot_objs[i], checker.robot_objs[j]), 0)
+        for i, j in checker.scene_pairs:
+            if checker.hull_objs[i] is not checker.robot_objs[i]:
+                h = checker._dist(checker.hull_objs[i], checker.scene_objs[j])
+                assert max(h, 0) * (1 - HULL_SLACK_REL) - HULL_SLACK_M <= max(
+                    checker._dist(checker.robot_objs[i], checker.scene_objs[j]), 0)
+        d_scene = [checker._dist_scene(i, j) for i, j in checker.scene_pairs]
+        d_self = [checker._dist_self(i, j) for i, j in checker.self_pairs]
+        expected.append(min(d_scene + d_self) >= 0.035)
+    np.testing.assert_array_equal(got, expected)
+    assert 0 < got.sum() < len(got)
+    assert any(p.mesh is not None for p in robot_primitives(ur10))
+
+
+def test_the_prediction_on_its_sample_is_within_2_percent_of_the_prediction_over_every_pose(ur10):
+    from campaign.plan import selection as S
+
+    rng = np.random.default_rng(4)
+    q = rng.uniform(np.maximum(ur10.q_lower, -np.pi), np.minimum(ur10.q_upper, np.pi), size=(6000, ur10.n_joints))
+    info = S.information_model(ur10, q)
+    design = S.select(info, 40, exchange=False).index
+    ev, sample = S.evaluation_sample(info, design, pilot=500)
+    assert sample["of"] == 6000 and sample["poses"] == len(ev) < 6000 and sample["relative_half_width"] == 0.02
+    assert len(ev) >= (1.96 * sample["pilot_coefficient_of_variation"] / 0.02) ** 2 - 1
+    full, part = S.predict_accuracy(info, design), S.predict_accuracy(info, design, ev)
+    for key in ("model_position_mm", "model_orientation_mrad", "heldout_position_mm"):
+        assert getattr(part, key) == pytest.approx(getattr(full, key), rel=0.02), key
+    assert "random sample" in S.sample_text(sample) and "±2 %" in S.sample_text(sample)
