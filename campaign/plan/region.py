@@ -30,7 +30,7 @@ NEIGHBOURS = 6
 JOIN_TRIES = 3
 #: components (the largest first) whose closest pair to the region is also tried by via paths
 VIA_COMPONENTS = 40
-#: motions checked per batch (bounds the samples' memory)
+#: postures checked per batch (bounds the frames' memory)
 EDGE_CHUNK = 4096
 #: most suitable poses the region is built on (a random sample, fixed seed, of a larger set; the
 #: others are counted with the sampled pose nearest them): the design chooses among these, whose
@@ -79,14 +79,6 @@ def _labels(m, edges):
     return connected_components(A, directed=False)[1]
 
 
-def _check(robot, checker, Q, a, b, max_step, clearance):
-    ok = np.zeros(len(a), dtype=bool)
-    for s in range(0, len(a), EDGE_CHUNK):
-        ok[s:s + EDGE_CHUNK] = check_segments(robot, checker, Q[a[s:s + EDGE_CHUNK]], Q[b[s:s + EDGE_CHUNK]],
-                                              max_step, clearance)
-    return ok
-
-
 def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, neighbours: int = NEIGHBOURS,
                      progress=None) -> Region:
     """The :class:`Region` of the ``suitable`` grid indices (m,): motions keep ``clearance`` (m)
@@ -112,7 +104,7 @@ def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, nei
         pairs = np.unique(np.sort(np.stack([a, b], axis=1)[labels[a] != labels[b]], axis=1), axis=0)
         if len(pairs) == 0:
             continue
-        ok = _check(robot, checker, Q, pairs[:, 0], pairs[:, 1], max_step, clearance)
+        ok = check_segments(robot, checker, Q[pairs[:, 0]], Q[pairs[:, 1]], max_step, clearance)
         checked += len(pairs)
         edges.extend(pairs[ok].tolist())
         labels = _labels(m, edges)
@@ -127,7 +119,7 @@ def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, nei
             break
         sizes = np.bincount(labels)
         by_size = sorted(set(comp.tolist()), key=lambda c: (-int(sizes[c]), c))
-        ok = _check(robot, checker, Q, a, b, max_step, clearance)
+        ok = check_segments(robot, checker, Q[a], Q[b], max_step, clearance)
         checked += len(a)
         joined = set(comp[ok].tolist())
         edges.extend(np.stack([a[ok], b[ok]], axis=1).tolist())

@@ -30,8 +30,10 @@ from campaign.plan.tour import interior_samples
 LIFT_STEP = np.pi / 4
 #: most postures searched for the lifted arm (more arm joints: a coarser search is not needed)
 LIFT_MAX_CANDIDATES = 200_000
-#: motion samples checked together (bounds memory at about 2 kB a sample)
-MOTION_CHUNK = 32_768
+#: motion samples checked together (the sphere bounds of a mesh arm take about 10 kB a sample)
+MOTION_CHUNK = 8192
+#: motions whose samples are generated together (bounds the samples' memory on a long tour)
+MOTION_BLOCK = 4096
 #: every this-many-th sample of a motion is checked first (a collision usually shows there)
 COARSE_STRIDE = 8
 
@@ -49,6 +51,14 @@ def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTI
     are then left True, unchecked)."""
     ok = np.ones(len(Q_from), dtype=bool)
     if len(Q_from) == 0:
+        return ok
+    if len(Q_from) > MOTION_BLOCK:  # block by block: the same answers, bounded memory
+        for s in range(0, len(Q_from), MOTION_BLOCK):
+            ok[s : s + MOTION_BLOCK] = check_segments(robot, checker, Q_from[s : s + MOTION_BLOCK],
+                                                      Q_to[s : s + MOTION_BLOCK], max_step, clearance, chunk,
+                                                      stop_at_first=stop_at_first)
+            if stop_at_first and not ok[s : s + MOTION_BLOCK].all():
+                break
         return ok
     q, seg = interior_samples(Q_from, Q_to, max_step)
     within = np.arange(len(seg)) - np.searchsorted(seg, seg)  # sample number in its segment (seg ascends)
