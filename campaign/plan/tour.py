@@ -52,21 +52,51 @@ def nearest_neighbour(times: GridTimes, C, start: int = 0):
     return order
 
 
+#: candidates per pose that the k-d tree proposes to :func:`neighbour_lists` (their travel times decide)
+NEAR_CANDIDATES = 48
+
+
 def neighbour_lists(times: GridTimes, C, k: int = 8, block: int = 256):
-    """The k nearest poses in travel time of each pose of C (n, N), itself excluded: (n, k) indices."""
+    """The k nearest poses in travel time of each pose of C (n, N), itself excluded: (n, k) indices.
+
+    Exact, without the n × n times: a k-d tree over the cells scaled by each joint's time for one
+    cell proposes :data:`NEAR_CANDIDATES` poses (largest scaled difference); their travel times
+    pick the k nearest. The travel time is at most T only inside the box of half-widths
+    ``w_i(T)`` cells (the most cells joint i moves in T), so the proposal is complete when its
+    farthest candidate lies beyond that box's scaled half-width for T the k-th time; the poses
+    where it does not are computed against every pose (``block`` at a time)."""
+    from scipy.spatial import cKDTree
+
     n = len(C)
     k = min(k, n - 1)
     near = np.empty((n, max(k, 0)), dtype=np.int64)
     if k <= 0:
         return near
-    tables = axis_tables(times, C)
-    for s in range(0, n, block):
-        rows = np.arange(s, min(s + block, n))
-        t = tables[0][C[rows, 0]]
-        for i in range(1, len(tables)):
-            np.maximum(t, tables[i][C[rows, i]], out=t)
-        t[np.arange(len(rows)), rows] = np.inf
-        near[rows] = np.argpartition(t, k - 1, axis=1)[:, :k]
+    m = min(n - 1, max(NEAR_CANDIDATES, 4 * k))
+    unit = np.array([lut[1] if len(lut) > 1 else 1.0 for lut in times.lut])  # s per cell
+    unit = np.where(unit > 0, unit, 1.0)
+    X = C * unit
+    todo = np.arange(n)
+    if m < n - 1:
+        dist, idx = cKDTree(X).query(X, k=m + 1, p=np.inf)
+        t = times.pair(C[:, None, :], C[idx])  # (n, m + 1) s
+        t[idx == np.arange(n)[:, None]] = np.inf
+        part = np.argpartition(t, k - 1, axis=1)[:, :k]
+        near[:] = np.take_along_axis(idx, part, axis=1)
+        t_k = np.take_along_axis(t, part, axis=1).max(axis=1)
+        # the box of travel time t_k, scaled: its half-width per joint, the largest over joints
+        reach = np.max(np.stack([unit[i] * (np.searchsorted(lut, t_k, side="right") - 1)
+                                 for i, lut in enumerate(times.lut)]), axis=0)
+        todo = np.flatnonzero(~(dist[:, -1] > reach + 1e-12 * np.maximum(reach, 1.0)))
+    if len(todo):
+        tables = axis_tables(times, C)
+        for s in range(0, len(todo), block):
+            rows = todo[s : s + block]
+            t = tables[0][C[rows, 0]]
+            for i in range(1, len(tables)):
+                np.maximum(t, tables[i][C[rows, i]], out=t)
+            t[np.arange(len(rows)), rows] = np.inf
+            near[rows] = np.argpartition(t, k - 1, axis=1)[:, :k]
     return near
 
 
