@@ -79,3 +79,17 @@ def test_the_prediction_on_its_sample_is_within_2_percent_of_the_prediction_over
     for key in ("model_position_mm", "model_orientation_mrad", "heldout_position_mm"):
         assert getattr(part, key) == pytest.approx(getattr(full, key), rel=0.02), key
     assert "random sample" in S.sample_text(sample) and "±2 %" in S.sample_text(sample)
+
+
+def test_the_greedy_tour_with_neighbour_lists_is_the_greedy_tour_without(ur10):
+    from campaign.plan.timing import GridTimes
+    from campaign.plan.tour import nearest_neighbour, neighbour_lists
+
+    grid = Grid.for_robot(ur10)
+    times = GridTimes(ur10, grid)
+    rng = np.random.default_rng(8)
+    for n in (300, 3000):
+        C = grid.cell_indices(rng.choice(grid.size, n, replace=False))
+        C[1] = C[0]  # ties in travel time
+        np.testing.assert_array_equal(nearest_neighbour(times, C, 5, neighbour_lists(times, C, 8)),
+                                      nearest_neighbour(times, C, 5))

@@ -95,8 +95,8 @@ def _order_group(times, grid, members, start_cells):
         return members
     C = grid.cell_indices(members)
     start = int(np.argmin(times.from_one(start_cells, C)))
-    order = nearest_neighbour(times, C, start)
     near = neighbour_lists(times, C, 8)
+    order = nearest_neighbour(times, C, start, near)
     # 2-opt to convergence, single poses moved by Or-opt, 2-opt again (about 0.2 % shorter
     # than three 2-opt passes on the default cell, for about a second)
     order = two_opt(times, C, order, passes=20, near=near)

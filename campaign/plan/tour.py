@@ -21,11 +21,14 @@ def axis_tables(times: GridTimes, C):
     return [lut[np.abs(np.arange(len(lut))[:, None] - C[None, :, i])] for i, lut in enumerate(times.lut)]
 
 
-def nearest_neighbour(times: GridTimes, C, start: int = 0):
+def nearest_neighbour(times: GridTimes, C, start: int = 0, near=None):
     """Greedy tour over cell vectors C (n, N) from pose ``start``; returns the visiting order (n,).
 
     At each step the nearest unvisited pose in travel time (ties: the lowest index). The
-    per-joint time tables are compacted to the unvisited poses whenever half of them are gone."""
+    per-joint time tables are compacted to the unvisited poses whenever half of them are gone.
+    ``near``: :func:`neighbour_lists` (n, k), the same tour in less time: an unvisited pose of
+    the current pose's list nearer than the list's farthest is the nearest of all (every pose
+    nearer than that is in the list); only when there is none are all poses compared."""
     n = len(C)
     order = np.empty(n, dtype=np.int64)
     alive = np.arange(n)  # pose indices of the tables' columns
@@ -33,8 +36,16 @@ def nearest_neighbour(times: GridTimes, C, start: int = 0):
     visited = np.zeros(n)  # +inf on visited columns
     cur = start
     row = np.empty(n)
+    seen = bytearray(n)
+    if near is not None and near.shape[1] > 0:
+        t_near = times.pair(C[:, None, :], C[near])
+        lists = [list(zip(t, p)) for t, p in zip(t_near.tolist(), near.tolist())]
+        farthest = t_near.max(axis=1).tolist()
+    else:
+        lists = None
     for k in range(n):
         order[k] = cur
+        seen[cur] = 1
         if k == n - 1:
             break
         col = int(np.searchsorted(alive, cur))
@@ -44,6 +55,11 @@ def nearest_neighbour(times: GridTimes, C, start: int = 0):
             alive, visited = alive[keep], visited[keep]
             tables = [T[:, keep] for T in tables]
             row = np.empty(len(alive))
+        if lists is not None:
+            best = min((tj for tj in lists[cur] if not seen[tj[1]] and tj[0] < farthest[cur]), default=None)
+            if best is not None:
+                cur = int(best[1])
+                continue
         c = C[cur]
         np.add(tables[0][c[0]], visited, out=row)
         for i in range(1, len(tables)):
