@@ -93,3 +93,25 @@ def test_the_greedy_tour_with_neighbour_lists_is_the_greedy_tour_without(ur10):
         C[1] = C[0]  # ties in travel time
         np.testing.assert_array_equal(nearest_neighbour(times, C, 5, neighbour_lists(times, C, 8)),
                                       nearest_neighbour(times, C, 5))
+
+
+def test_a_mesh_read_from_the_cache_is_the_mesh_parsed_and_a_bad_cache_entry_is_parsed_again(tmp_path, monkeypatch):
+    import campaign.plan.geometry as G
+
+    path = str(erd_robot("ur_description/meshes/ur10/collision/forearm.stl").resolve())
+    monkeypatch.setenv("CAMPAIGN_CACHE_DIR", str(tmp_path))
+    G._load_mesh.cache_clear()
+    parsed = G._load_mesh(path, (1.0, 1.0, 1.0), 0)
+    assert len(list((tmp_path / "meshes").glob("*.npz"))) == 1
+    G._load_mesh.cache_clear()
+    cached = G._load_mesh(path, (1.0, 1.0, 1.0), 0)
+    for a, b in zip(parsed, cached):
+        np.testing.assert_array_equal(a, b)
+    next((tmp_path / "meshes").glob("*.npz")).write_bytes(b"not a cache entry")
+    G._load_mesh.cache_clear()
+    again = G._load_mesh(path, (1.0, 1.0, 1.0), 0)
+    np.testing.assert_array_equal(again[0], parsed[0])
+    G._load_mesh.cache_clear()
+    scaled = G._load_mesh(path, (2.0, 2.0, 2.0), 0)  # another scale: another entry
+    np.testing.assert_allclose(scaled[3], 2 * parsed[3], rtol=1e-9)
+    G._load_mesh.cache_clear()

@@ -23,6 +23,7 @@ Two representations of the same shapes:
 from __future__ import annotations
 
 import functools
+import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,15 +125,56 @@ def resolve_mesh_path(filename: str, urdf_path) -> Path:
     return Path(yourdfpy.filename_handler_magic(filename, dir=str(Path(urdf_path).parent)))
 
 
+#: bump when what :func:`_load_mesh` stores changes (the on-disk cache's entries then miss)
+MESH_CACHE_VERSION = 1
+
+
+def cache_dir() -> Path:
+    """Where derived geometry is cached across runs: ``$CAMPAIGN_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/campaign``, else ``~/.cache/campaign``."""
+    import os
+
+    if os.environ.get("CAMPAIGN_CACHE_DIR"):
+        return Path(os.environ["CAMPAIGN_CACHE_DIR"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "campaign"
+
+
 @functools.lru_cache(maxsize=64)
 def _load_mesh(path: str, scale: tuple, stamp: int):
-    """(vertices (V, 3) in the mesh file's frame, scaled; faces (F, 3); watertight) of a mesh file."""
+    """(vertices (V, 3) in the mesh's oriented bounding box's frame, centred, scaled; faces (F, 3);
+    watertight; the box's edges (3,); the transform (4, 4) from the mesh file's frame to the box's)
+    of a mesh file. Kept in :func:`cache_dir` by the hash of the file's bytes and the scale
+    (numpy's .npz, no pickle): trimesh's parsing and bounding box cost a mesh arm most of a second
+    per plan. A cache that cannot be read or written is passed by."""
+    import hashlib
+
+    data = Path(path).read_bytes()
+    key = hashlib.sha256(data + repr((tuple(float(x) for x in scale), MESH_CACHE_VERSION)).encode()).hexdigest()[:32]
+    cached = cache_dir() / "meshes" / f"{key}.npz"
+    try:
+        with np.load(cached, allow_pickle=False) as z:
+            return z["vertices"], z["faces"], bool(z["watertight"]), z["extents"], z["to_box"]
+    except (OSError, KeyError, ValueError):
+        pass
     import trimesh
 
     mesh = trimesh.load(path, force="mesh")
     v = np.asarray(mesh.vertices, dtype=float) * np.asarray(scale, dtype=float)
     f = np.asarray(mesh.faces, dtype=np.int64)
-    return v, f, bool(mesh.is_watertight)
+    watertight = bool(mesh.is_watertight)
+    if len(f) == 0 or not np.all(np.isfinite(v)):
+        return v, f, watertight, None, None
+    to_box, extents = trimesh.bounds.oriented_bounds(v)  # mesh frame -> box frame (centred)
+    v_box = v @ to_box[:3, :3].T + to_box[:3, 3]
+    extents = np.asarray(extents, dtype=float)
+    try:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cached.with_name(f"{cached.stem}.{os.getpid()}.tmp.npz")
+        np.savez(tmp, vertices=v_box, faces=f, watertight=watertight, extents=extents, to_box=to_box)
+        tmp.replace(cached)
+    except OSError:
+        pass
+    return v_box, f, watertight, extents, to_box
 
 
 def _mesh_primitive(el, T, frame, link, urdf_path, where):
@@ -149,16 +191,13 @@ def _mesh_primitive(el, T, frame, link, urdf_path, where):
         raise ConfigError(f"{where}: collision mesh '{filename}' not found (looked for {path}); the planner "
                           "cannot check geometry it cannot load")
     try:
-        v, f, watertight = _load_mesh(str(path.resolve()), scale, path.stat().st_mtime_ns)
+        v_box, f, watertight, extents, to_obb = _load_mesh(str(path.resolve()), scale, path.stat().st_mtime_ns)
     except Exception as exc:  # trimesh raises many kinds
         raise ConfigError(f"{where}: collision mesh {path} is not a readable mesh "
                           f"({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})") from None
-    if len(f) == 0 or not np.all(np.isfinite(v)):
+    if to_obb is None:
         raise ConfigError(f"{where}: collision mesh {path} is not a readable mesh (no triangles in it)")
-    import trimesh
-
-    to_obb, extents = trimesh.bounds.oriented_bounds(v)  # to_obb: mesh frame -> box frame (centred)
-    v_box = v @ to_obb[:3, :3].T + to_obb[:3, 3]
+    v_box, f = v_box.copy(), f.copy()
     extents = np.maximum(np.asarray(extents, dtype=float), MESH_MIN_EXTENT_M)
     shape = MeshShape(v_box, f, path, watertight)
     for a in (v_box, f):
