@@ -115,3 +115,19 @@ def test_a_mesh_read_from_the_cache_is_the_mesh_parsed_and_a_bad_cache_entry_is_
     scaled = G._load_mesh(path, (2.0, 2.0, 2.0), 0)  # another scale: another entry
     np.testing.assert_allclose(scaled[3], 2 * parsed[3], rtol=1e-9)
     G._load_mesh.cache_clear()
+
+
+def test_the_pairs_always_near_read_from_the_cache_are_those_found_and_a_bad_entry_is_found_again(ur10, tmp_path,
+                                                                                                   monkeypatch):
+    monkeypatch.setenv("CAMPAIGN_CACHE_DIR", str(tmp_path))
+    scene = load_scene(DEFAULT_SCENE).placed(ur10)
+    found = ClearanceChecker(ur10, scene, 0.035)
+    entries = list((tmp_path / "pairs").glob("*.json"))
+    assert len(entries) == 1 and found.disabled_pairs  # the UR10 has pairs always in contact
+    cached = ClearanceChecker(ur10, scene, 0.035)
+    assert (cached.self_pairs, cached.disabled_pairs) == (found.self_pairs, found.disabled_pairs)
+    entries[0].write_text('{"always": [true]}')
+    again = ClearanceChecker(ur10, scene, 0.035)
+    assert (again.self_pairs, again.disabled_pairs) == (found.self_pairs, found.disabled_pairs)
+    other = ClearanceChecker(ur10, scene, 0.02)  # another clearance: another entry
+    assert len(list((tmp_path / "pairs").glob("*.json"))) == 2 and other.clearance == 0.02

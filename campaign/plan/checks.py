@@ -9,6 +9,7 @@ shortcuts; the tests use it to re-check samples.
 from __future__ import annotations
 
 import itertools
+import json
 
 import numpy as np
 
@@ -170,20 +171,27 @@ class ClearanceChecker:
         is not always near without FCL; FCL decides the rest, sample by sample."""
         from campaign.plan.geometry import nominal_frames_entry_first
 
-        rng = np.random.default_rng(seed)
-        q = rng.uniform(self.robot.q_lower, self.robot.q_upper, size=(n, self.robot.n_joints))
-        Re, te = nominal_frames_entry_first(self.robot, q)
-        index = np.array(pairs, dtype=int).reshape(-1, 2).T
-        need = self._self_undecided(Re, te, index, self.clearance, self._coarse_world(Re, te))
-        always = []
-        for m, (i, j) in enumerate(pairs):
-            near = bool(need[m].all())
-            for k in range(n) if near else ():
-                self._place(Re[..., k], te[..., k], (i, j))
-                if self._clear_self(i, j, self.clearance):
-                    near = False
-                    break
-            always.append(near)
+        cached = _pairs_cache_file(self.robot, self.prims, pairs, n, seed, self.clearance)
+        try:
+            always = json.loads(cached.read_text())["always"]
+            if len(always) != len(pairs) or not all(isinstance(a, bool) for a in always):
+                raise ValueError
+        except (OSError, ValueError, KeyError, TypeError):
+            rng = np.random.default_rng(seed)
+            q = rng.uniform(self.robot.q_lower, self.robot.q_upper, size=(n, self.robot.n_joints))
+            Re, te = nominal_frames_entry_first(self.robot, q)
+            index = np.array(pairs, dtype=int).reshape(-1, 2).T
+            need = self._self_undecided(Re, te, index, self.clearance, self._coarse_world(Re, te))
+            always = []
+            for m, (i, j) in enumerate(pairs):
+                near = bool(need[m].all())
+                for k in range(n) if near else ():
+                    self._place(Re[..., k], te[..., k], (i, j))
+                    if self._clear_self(i, j, self.clearance):
+                        near = False
+                        break
+                always.append(near)
+            _write_cache(cached, json.dumps({"always": always}))
         keep = [p for p, a in zip(pairs, always) if not a]
         dropped = [(self.prims[i].frame, self.prims[j].frame) for (i, j), a in zip(pairs, always) if a]
         return keep, dropped
@@ -398,6 +406,37 @@ class ClearanceChecker:
 def _hull_clear(d, c) -> bool:
     """Whether a hull distance d (m) from FCL proves the clearance c (m) despite GJK's error."""
     return d * (1.0 - HULL_SLACK_REL) - HULL_SLACK_M >= c
+
+
+def _pairs_cache_file(robot, prims, pairs, n, seed, clearance):
+    """Where :meth:`ClearanceChecker._prune_always_near`'s answer for this robot's geometry is kept
+    (campaign.plan.geometry.cache_dir): keyed by the hash of everything it depends on (the chain's
+    nominal frames and limits, every collision shape with its mesh, the pairs, the sample, the clearance)."""
+    import hashlib
+
+    from campaign.plan.geometry import cache_dir
+
+    h = hashlib.sha256(repr((1, pairs, n, seed, float(clearance))).encode())
+    for a in (robot.q_lower, robot.q_upper, robot.R_nominal, robot.t_nominal):
+        h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    for p in prims:
+        h.update(repr((p.frame, p.kind, tuple(p.size))).encode() + np.ascontiguousarray(p.T).tobytes())
+        if p.mesh is not None:
+            h.update(np.ascontiguousarray(p.mesh.vertices).tobytes() + np.ascontiguousarray(p.mesh.faces).tobytes())
+    return cache_dir() / "pairs" / f"{h.hexdigest()[:32]}.json"
+
+
+def _write_cache(path, text):
+    """Write a cache entry atomically; a cache that cannot be written is passed by."""
+    import os
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        tmp.replace(path)
+    except OSError:
+        pass
 
 
 class _PoseKeys:
