@@ -31,10 +31,10 @@ def test_frames_built_block_by_block_equal_the_whole_descent_for_any_block_size(
 
 
 def test_a_mesh_hull_is_never_farther_than_the_mesh_and_the_verdicts_match_the_triangles(ur10):
-    """At random postures: each mesh pair's hull distance from FCL, less the slack allowed for GJK's
-    error, is at most its triangle distance, and the checker's verdict per posture (hulls,
-    remembered verdicts) equals the one from triangle distances alone (with the closed-mesh inside
-    test) at the clearance."""
+    """At random postures: each mesh pair's hull distance from FCL, and the least distance of their
+    pieces' hulls, less the slack allowed for GJK's error, is at most its triangle distance, and
+    the checker's verdict per posture (hulls, pieces, remembered verdicts) equals the one from
+    triangle distances alone (with the closed-mesh inside test) at the clearance."""
     from campaign.plan.checks import HULL_SLACK_M, HULL_SLACK_REL
 
     scene = load_scene(DEFAULT_SCENE).placed(ur10)
@@ -50,8 +50,10 @@ def test_a_mesh_hull_is_never_farther_than_the_mesh_and_the_verdicts_match_the_t
         for i, j in checker.self_pairs:
             if checker.hull_objs[i] is not checker.robot_objs[i] and checker.hull_objs[j] is not checker.robot_objs[j]:
                 h = checker._dist(checker.hull_objs[i], checker.hull_objs[j])  # -1: in contact
-                assert max(h, 0) * (1 - HULL_SLACK_REL) - HULL_SLACK_M <= max(
-                    checker._dist(checker.robot_objs[i], checker.robot_objs[j]), 0)
+                mesh = max(checker._dist(checker.robot_objs[i], checker.robot_objs[j]), 0)
+                assert max(h, 0) * (1 - HULL_SLACK_REL) - HULL_SLACK_M <= mesh
+                pieces = min(checker._dist(x, y) for x in checker.piece_objs[i] for y in checker.piece_objs[j])
+                assert max(pieces, 0) * (1 - HULL_SLACK_REL) - HULL_SLACK_M <= mesh
         for i, j in checker.scene_pairs:
             if checker.hull_objs[i] is not checker.robot_objs[i]:
                 h = checker._dist(checker.hull_objs[i], checker.scene_objs[j])

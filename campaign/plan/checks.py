@@ -142,6 +142,10 @@ class ClearanceChecker:
         # the convex hull of a mesh (the primitive itself otherwise): a lower bound in one GJK step
         self.hull_objs = [fcl.CollisionObject(hull_geometry(p.mesh), fcl.Transform()) if p.mesh is not None else obj
                           for p, obj in zip(self.prims, self.robot_objs)]
+        # then the hulls of its pieces (a mesh), which hug a long or bent link closer
+        self.piece_objs = [[fcl.CollisionObject(hull_geometry(p.mesh, k), fcl.Transform())
+                            for k in range(len(p.mesh.pieces))] if p.mesh is not None else [obj]
+                           for p, obj in zip(self.prims, self.robot_objs)]
         self._closed = [p.mesh is not None and p.mesh.watertight for p in self.prims]
         self._world = [None] * len(self.prims)  # (R, t) of each primitive as last placed, for the inside test
         self.scene_objs = []
@@ -208,6 +212,8 @@ class ClearanceChecker:
             self.robot_objs[i].setTransform(tf)
             if self.hull_objs[i] is not self.robot_objs[i]:
                 self.hull_objs[i].setTransform(tf)
+                for obj in self.piece_objs[i]:
+                    obj.setTransform(tf)
             self._world[i] = (Rw, tw)
 
     @staticmethod
@@ -249,15 +255,24 @@ class ClearanceChecker:
     def _clear_scene(self, i, j, c) -> bool:
         """Whether robot primitive i (placed) is at least ``c`` (m) from obstacle j: the hull
         first, the triangles (:meth:`_dist_scene`) only when the hull is nearer than c."""
-        if self.hull_objs[i] is not self.robot_objs[i] and _hull_clear(self._dist(self.hull_objs[i], self.scene_objs[j]), c):
-            return True
+        if self.hull_objs[i] is not self.robot_objs[i]:
+            if _hull_clear(self._dist(self.hull_objs[i], self.scene_objs[j]), c):
+                return True
+            if all(_hull_clear(self._dist(piece, self.scene_objs[j]), c) for piece in self.piece_objs[i]):
+                # the surface is at least c away; an obstacle inside the closed mesh still touches it
+                return not (self._closed[i] and self._inside(i, self.scene.obstacles[j].T_I[:3, 3]))
         return self._dist_scene(i, j) >= c
 
     def _clear_self(self, i, j, c) -> bool:
         """Whether robot primitives i and j (placed) are at least ``c`` (m) apart: hulls first."""
         a, b = self.hull_objs[i], self.hull_objs[j]
-        if (a is not self.robot_objs[i] or b is not self.robot_objs[j]) and _hull_clear(self._dist(a, b), c):
-            return True
+        if a is not self.robot_objs[i] or b is not self.robot_objs[j]:
+            if _hull_clear(self._dist(a, b), c):
+                return True
+            if all(_hull_clear(self._dist(x, y), c) for x in self.piece_objs[i] for y in self.piece_objs[j]):
+                # the surfaces are at least c apart; one inside the other's closed mesh still touches it
+                return not ((self._closed[i] and self._inside(i, self._point_of(j)))
+                            or (self._closed[j] and self._inside(j, self._point_of(i))))
         return self._dist_self(i, j) >= c
 
     def pair_distances(self, R, t) -> tuple:

@@ -40,6 +40,8 @@ SUPPORTED = ("box", "cylinder", "sphere", "capsule", "mesh")
 #: without FCL but cost more per bound
 MESH_PIECE_FRACTION = 0.5
 MESH_PIECE_MIN_M = 0.02
+#: slabs of a mesh's triangles whose convex hulls bound it after its one hull (campaign.plan.checks)
+MESH_HULL_PIECES = 4
 #: a flat mesh (an edge of its bounding box below this, m) gets this thickness for its box bound
 MESH_MIN_EXTENT_M = 1e-6
 
@@ -68,6 +70,34 @@ class MeshShape:
 
         h = trimesh.convex.convex_hull(self.vertices)
         return np.ascontiguousarray(h.vertices, dtype=float), np.ascontiguousarray(h.faces, dtype=np.int64)
+
+    @functools.cached_property
+    def pieces(self) -> tuple:
+        """Convex hulls ((h, 3) vertices, (g, 3) triangles) of :data:`MESH_HULL_PIECES` slabs of the
+        mesh's triangles along its bounding box's longest edge (by centroid): together they
+        contain its surface, hugging a long, bent link closer than its one hull."""
+        import trimesh
+
+        axis = int(np.argmax(np.ptp(self.vertices, axis=0)))
+        tri = self.vertices[self.faces]  # (F, 3, 3)
+        x = tri.mean(axis=1)[:, axis]
+        edges = np.linspace(x.min(), x.max(), MESH_HULL_PIECES + 1)
+        slab = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, MESH_HULL_PIECES - 1)
+        out = []
+        for k in range(MESH_HULL_PIECES):
+            pts = tri[slab == k].reshape(-1, 3)
+            if len(pts) == 0:
+                continue
+            try:
+                with np.errstate(all="ignore"):  # a flat slab's hull has no volume
+                    h = trimesh.convex.convex_hull(pts)
+                v, f = np.asarray(h.vertices, dtype=float), np.asarray(h.faces, dtype=np.int64)
+                if len(f) == 0:
+                    raise ValueError("flat")
+            except Exception:  # a flat or degenerate slab: the whole hull contains it
+                v, f = self.hull
+            out.append((np.ascontiguousarray(v), np.ascontiguousarray(f)))
+        return tuple(out)
 
     def contains(self, points) -> np.ndarray:
         """(n,) bool: points (n, 3) in the primitive's frame inside the closed mesh."""
@@ -275,12 +305,13 @@ def fcl_geometry(kind, size, mesh: MeshShape | None = None):
     raise ValueError(kind)
 
 
-def hull_geometry(mesh: MeshShape):
+def hull_geometry(mesh: MeshShape, piece: int | None = None):
     """The FCL convex hull of a mesh (in its bounding box's frame): a solid containing the mesh,
-    so its distance to any shape is at most the mesh's (GJK: far cheaper than the triangles)."""
+    so its distance to any shape is at most the mesh's (GJK: far cheaper than the triangles).
+    piece: the hull of that piece of the mesh instead (:attr:`MeshShape.pieces`)."""
     import fcl
 
-    v, f = mesh.hull
+    v, f = mesh.hull if piece is None else mesh.pieces[piece]
     return fcl.Convex(v, len(f), np.hstack([np.full((len(f), 1), 3), f]).ravel())
 
 
