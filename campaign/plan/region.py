@@ -63,7 +63,8 @@ class Region:
                 "outside_by_barrier": dict(self.outside), "pool": int(k), "pool_inside": int(self.in_pool.sum()),
                 "components": int(self.components), "motions_checked": int(self.motions_checked),
                 "text": ("suitable poses joined to one another by collision-free straight motions (or via paths) "
-                         "at plan.motion_clearance_m; the design chooses among the largest set"
+                         "at plan.motion_clearance_m; the design chooses among the largest set, and its "
+                         "prediction (selection.predicted) is averaged over those poses"
                          + ("" if k == m else f" of a random pool of {k:,} (each other suitable pose counted with "
                                               "the pool pose nearest it)"))}
 
