@@ -22,11 +22,12 @@ from fcl_reference import FclReference, erd_robot
 MOTION_CLEARANCE_M = 0.01
 #: the UR10 stands upright in the default cell: its z (up) along the cell's -y, a quarter turn about x
 UR10_IN_CELL = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+UR10 = "ur_description/urdf/ur10_robot.urdf"
 CELLS = [7, 9, 5, 4, 4, 4]
 
 
 def _side(q):
-    """Which range of joint 2 a joint vector lies in, between the postures that point the upper arm into the pedestal."""
+    """Which range of joint 2 a joint vector lies in (between the postures pointing the upper arm into the pedestal)."""
     return int(np.digitize(q[1], [-1.5 * np.pi, 0.5 * np.pi]))
 
 
@@ -42,7 +43,7 @@ def selected(tmp_path_factory):
         "scene": str(DEFAULT_SCENE), "plan": {"grid_cells": CELLS, "motion_sample_deg": 2.0}}))
     run = tmp / "run"
     assert main(["plan", "--config", str(tmp / "campaign.yaml"), "--run", str(run), "--quiet",
-                 "--robot", str(erd_robot("ur_description/urdf/ur10_robot.urdf")), "--tool-frame", "tool0",
+                 "--robot", str(erd_robot(UR10)), "--tool-frame", "tool0",
                  "--select", "12", "--validation", "0.5"]) == 0
     poses = [(int(p), np.array([float(v) for v in r.split(",")])) for p, r in _rows(run, "poses.csv")]
     vias = {}
@@ -73,7 +74,7 @@ def test_the_poses_outside_lie_beyond_joint_2_and_the_motion_there_collides_in_t
     from campaign.plan.region import reachable_region
 
     run, poses, _, s = selected
-    robot = RobotModel.load(erd_robot("ur_description/urdf/ur10_robot.urdf"), tool_frame="tool0").with_default_reflectors()
+    robot = RobotModel.load(erd_robot(UR10), tool_frame="tool0").with_default_reflectors()
     scene = load_scene(DEFAULT_SCENE).placed(robot)
     grid = Grid.for_robot(robot, CELLS)
     suitable = suitable_poses(robot, scene, grid, 0.035)
@@ -96,7 +97,7 @@ def test_the_poses_outside_lie_beyond_joint_2_and_the_motion_there_collides_in_t
 
 def test_every_pose_and_motion_of_the_tour_keeps_its_clearance_in_the_reference(selected):
     run, poses, vias, s = selected
-    robot = RobotModel.load(erd_robot("ur_description/urdf/ur10_robot.urdf"), tool_frame="tool0")
+    robot = RobotModel.load(erd_robot(UR10), tool_frame="tool0")
     ref = FclReference(robot, DEFAULT_SCENE, UR10_IN_CELL)
     pairs = ref.pairs(ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035))
     assert min(ref.min_clearance(q, pairs) for _, q in poses) >= 0.035

@@ -17,7 +17,8 @@ from fcl_reference import erd_robot
 
 @pytest.fixture(scope="module")
 def ur10():
-    return RobotModel.load(erd_robot("ur_description/urdf/ur10_robot.urdf"), tool_frame="tool0").with_default_reflectors()
+    urdf = erd_robot("ur_description/urdf/ur10_robot.urdf")
+    return RobotModel.load(urdf, tool_frame="tool0").with_default_reflectors()
 
 
 def test_frames_built_block_by_block_equal_the_whole_descent_for_any_block_size(ur10):

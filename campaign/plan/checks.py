@@ -13,8 +13,8 @@ import json
 
 import numpy as np
 
-from campaign.plan.geometry import (RobotSpheres, fcl_geometry, hull_geometry, point_primitive_distance, robot_primitives,
-                                    robot_spheres, to_world)
+from campaign.plan.geometry import (RobotSpheres, fcl_geometry, hull_geometry, point_primitive_distance,
+                                    robot_primitives, robot_spheres, to_world)
 
 
 def occludes(robot, prim) -> bool:
