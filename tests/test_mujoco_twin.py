@@ -172,8 +172,9 @@ def test_plan_then_run_on_the_twin_is_collision_free_and_calibrate_finds_its_sti
     from campaign.measure.driver import read_plan
 
     cfg = tmp_path / "campaign.yaml"
+    # no drift monitor (run.drift_check_every: 0): every motion the twin counts is then a motion of the tour
     cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": [9, 6, 6, 8, 4, 6], "motion_sample_deg": 2.0},
-                                   "sim": {"seed": 2, "noise_m": 1e-5}}))
+                                   "sim": {"seed": 2, "noise_m": 1e-5}, "run": {"drift_check_every": 0}}))
     run = tmp_path / "run"
     assert main(["plan", "--config", str(cfg), "--run", str(run), "--select", "40", "--quiet"]) == 0
     assert main(["run", str(run), "--cell", "mujoco", "--quiet"]) == 0
