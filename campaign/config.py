@@ -150,6 +150,10 @@ class PlanConfig:
     motion_sample_deg: float = 1.0
     settle_time_s: float = 2.0
     tracker_time_per_reflector_s: float = 5.0
+    #: the short campaign chooses poses whose reflectors lie this far inside their nests' cones
+    #: (deg): the real tool is turned by the robot's errors (Table 4's size: up to ~1.6° at the
+    #: tool), so a nest at its cone's edge in the nominal model may be past it in the cell
+    cone_margin_deg: float = 2.0
 
     @classmethod
     def parse(cls, doc: dict, where: _Where) -> "PlanConfig":
@@ -167,6 +171,8 @@ class PlanConfig:
         for key in ("clearance_m", "motion_clearance_m", "settle_time_s", "tracker_time_per_reflector_s"):
             if key in doc:
                 kw[key] = check_number(doc[key], where(key), low=0.0)
+        if "cone_margin_deg" in doc:
+            kw["cone_margin_deg"] = check_number(doc["cone_margin_deg"], where("cone_margin_deg"), low=0.0, high=45.0)
         if "motion_sample_deg" in doc:
             kw["motion_sample_deg"] = check_number(doc["motion_sample_deg"], where("motion_sample_deg"),
                                                    low=MIN_MOTION_SAMPLE_DEG, high=180.0)

@@ -37,11 +37,13 @@ def range_ok(scene, P):
     return np.all((d >= scene.min_range_m) & (d <= scene.max_range_m), axis=1)
 
 
-def cone_ok(robot, scene, P, A):
+def cone_ok(robot, scene, P, A, margin_rad: float = 0.0):
+    """(n,) bool: every reflector's beam to the tracker within its nest's half-angle less
+    ``margin_rad``; P, A (n, k, 3) reflector centres and nest axes in the cell."""
     to_tracker = scene.tracker_position - P
     to_tracker /= np.linalg.norm(to_tracker, axis=-1, keepdims=True)
     cosang = np.sum(A * to_tracker, axis=-1)
-    limits = np.cos([r.half_angle for r in robot.reflectors])
+    limits = np.cos(np.maximum(np.array([r.half_angle for r in robot.reflectors]) - margin_rad, 0.0))
     return np.all(cosang >= limits, axis=1)
 
 

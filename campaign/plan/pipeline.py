@@ -225,10 +225,12 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         selection, mode = None, "all_few"  # fewer suitable poses than the short campaign takes: all of them
     max_step = np.deg2rad(pc.motion_sample_deg)
     mc = pc.motion_clearance_m
-    candidates, region = suitable, None
+    candidates, region, margin = suitable, None, None
     if selection is not None and choose_among == "reachable":
         candidates, region = _reachable_candidates(robot, checker, grid, suitable, selection, max_step, mc, progress)
         lap("region")
+    if selection is not None and pc.cone_margin_deg > 0:
+        candidates, margin = _inside_cones(robot, scene, grid, candidates, selection, pc.cone_margin_deg)
     pool, rounds, replaced, why_short = candidates, 0, 0, None
     unreached = np.zeros(0, dtype=np.int64)  # grid indices the tours dropped
     dropped_per_round = []
@@ -320,6 +322,8 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
 
     write_choice(out, choice, order_final)  # without a choice: no validation.csv, repeats.csv
     summary["campaign"] = _campaign_kind(mode, len(suitable), selection)
+    if margin is not None:
+        summary["cone_margin"] = margin
     if region is not None:
         summary["reachable"] = {**region.summary(), "chosen_among": "reachable" if pool is not suitable else "suitable"}
         if region.too_few:
@@ -345,6 +349,32 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     atomic_write_json(out / "summary.json", summary)
     run.write_config(cfg)  # last: a plan that fails on the way leaves the run's campaign.yaml as it was
     return summary
+
+
+def _inside_cones(robot, scene, grid, candidates, selection, margin_deg):
+    """The candidates whose reflectors lie ``margin_deg`` inside their nests' cones (the design
+    chooses among them; every one of them when too few would remain), and summary.json's
+    ``cone_margin``."""
+    from campaign.model.kinematics import forward
+
+    keep = np.zeros(len(candidates), dtype=bool)
+    axes = np.array([r.axis_in_E for r in robot.reflectors])
+    for s in range(0, len(candidates), 65536):
+        T = forward(robot, grid.q(candidates[s : s + 65536]))
+        P = np.einsum("nij,rj->nri", T[:, :3, :3], robot.reflector_positions_in_E) + T[:, None, :3, 3]
+        A = np.einsum("nij,rj->nri", T[:, :3, :3], axes)
+        keep[s : s + 65536] = checks.cone_ok(robot, scene, P, A, np.deg2rad(margin_deg))
+    out = {"deg": float(margin_deg), "candidates": int(len(candidates)), "inside": int(keep.sum())}
+    # a budget or a target chooses its own size: then at least half the candidates must stay
+    needed = _default_size(selection) if selection.n is not None else max(2 * selection.min_validation,
+                                                                          len(candidates) // 2)
+    if keep.sum() < needed:
+        out["used"] = False
+        out["why_not"] = (f"only {int(keep.sum()):,} candidates lie {margin_deg:g}° inside their cones, fewer than "
+                          f"{needed}: chosen among all of them")
+        return candidates, out
+    out["used"] = True
+    return candidates[keep], out
 
 
 def _reachable_candidates(robot, checker, grid, suitable, selection, max_step, clearance, progress):
