@@ -82,7 +82,7 @@ def test_heldout_error_reaches_the_noise_floor(which, kind, tmp_path, capsys):
     assert "verdict" in doc and "ranking" in doc and "noise_floor_mm" in doc
     assert len(doc["ranking"]) >= 5  # every built-in candidate scored on this robot's data
     if not reports:
-        assert (run / "calibration" / "joints_geometric.png").is_file() and (run / "diagnose" / "report.html").is_file()
+        assert (run / "calibration" / "joints_geometric.svg").is_file() and (run / "diagnose" / "report.html").is_file()
     # the calibrated model out as a URDF, and the measured data back out as a CSV of the same kind
     assert main(["export", str(run), "--urdf", str(tmp_path / "cal.urdf"), "--csv", str(tmp_path / "back.csv")]) == 0
     back = read_measured_csv(tmp_path / "back.csv", robot,

@@ -96,6 +96,7 @@ def test_the_chart_floor_is_the_texts_floor_the_stated_noise_else_none_never_the
     assert "no noise floor" in capsys.readouterr().out
     page = (run / "calibration" / "report.html").read_text()
     assert "no noise floor" in page and "The dotted line is the tracker noise floor" not in page
+    assert "noise-floor" not in (run / "calibration" / "history.svg").read_text()  # no line in the chart either
     (run / "campaign.yaml").write_text(cfg + "sim:\n  noise_m: 2.0e-05\ntracker:\n  noise_m: 5.0e-06\n")
     stated = tracker_noise_floor(run)
     assert stated.source == "stated"
@@ -106,6 +107,27 @@ def test_the_chart_floor_is_the_texts_floor_the_stated_noise_else_none_never_the
     page = (run / "calibration" / "report.html").read_text()
     shown = f"{stated.mean_position_mm:.4f} mm"
     assert shown in text and shown in page and "The dotted line is the tracker noise floor" in page
+    value_mm, y, y_expected, legend = chart_floor(run / "calibration" / "history.svg")
+    assert value_mm == pytest.approx(stated.mean_position_mm, rel=1e-5) and y == pytest.approx(y_expected, abs=0.6)
+    assert f"tracker noise floor {floor_label(stated)}" in legend
+
+
+def chart_floor(svg_path: Path):
+    """The noise floor line of a history chart: (its value in mm, its y in px, the y where that
+    value lies on the chart's log axis (from the decade tick labels' positions), the legend's text)."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(svg_path).getroot()
+    ns = "{http://www.w3.org/2000/svg}"
+    line = [e for e in root.iter(ns + "path") if e.get("class") == "noise-floor"]
+    assert len(line) == 1
+    ticks = [(float(e.text), float(e.get("y"))) for e in root.iter(ns + "text") if e.get("class") == "ytick"]
+    assert len(ticks) >= 2
+    slope, offset = np.polyfit(np.log10([v for v, _ in ticks]), [y for _, y in ticks], 1)
+    value = float(line[0].get("data-floor-mm"))
+    y = float(line[0].get("d").split()[1].split("h")[0])
+    legend = " ".join(e.text for e in root.iter(ns + "text") if e.get("class") == "legend")
+    return value, y, slope * np.log10(value) + offset, legend
 
 
 def test_parameter_table_keeps_every_name_whole(robot):
@@ -152,15 +174,28 @@ def report_page(tmp_path_factory, robot):
                             robot.reflector_positions_in_E)
 
 
-def test_the_report_shows_every_stage_against_the_joints_the_floor_and_whole_names(report_page):
+def test_the_report_shows_every_stage_against_the_joints_the_floor_and_whole_names(report_page, robot):
     page = report_page
     html = page.read_text()
-    for stage in ("nominal", "geometric", "geometric+ground_compliance", "geometric+ground_compliance+ann"):
-        img = f"joints_{stage.replace('+', '_')}.png"
-        assert img in html and (page.parent / img).stat().st_size > 20_000
-    assert "tracker noise floor" in html and "history.png" in html
+    stages = ("nominal", "geometric", "geometric+ground_compliance", "geometric+ground_compliance+ann")
+    for stage in stages:
+        img = f"joints_{stage.replace('+', '_')}.svg"
+        assert f"<img src='{img}'>" in html and (page.parent / img).stat().st_size > 20_000
+        svg = (page.parent / img).read_text()
+        assert f"{stage}: signed error against each joint" in svg
+        for label in [f"q{j} [deg]" for j in range(1, 7)] + ["Δx [mm]", "Δz [mm]", "Δφx [mrad]", "Δφz [mrad]"]:
+            assert label in svg
+    assert "tracker noise floor" in html and "<img src='history.svg'>" in html
+    floor = floor_from_stated(10e-6, robot.reflector_positions_in_E)
+    value_mm, y, y_expected, legend = chart_floor(page.parent / "history.svg")
+    assert value_mm == pytest.approx(floor.mean_position_mm, rel=1e-5) and y == pytest.approx(y_expected, abs=0.6)
+    assert f"tracker noise floor {floor_label(floor)}" in legend
     assert "pL_I0_x - pL_01_y - 0.189 pR_01_x + pL_12_y - 0.050 pR_12_x" in html
-    assert (page.parent / "distributions.png").is_file() and (page.parent / "workspace.png").is_file()
+    dist = (page.parent / "distributions.svg").read_text()
+    assert "<img src='distributions.svg'>" in html and all(f"{s}:  mean " in dist for s in stages)
+    assert "[mm], log scale" in dist and "[mrad], log scale" in dist
+    ws = (page.parent / "workspace.svg").read_text()
+    assert "<img src='workspace.svg'>" in html and "top view" in ws and "side view" in ws and 'class="largest"' in ws
 
 
 def _browser():

@@ -1,4 +1,6 @@
-"""The calibration report: ``RUN/calibration/report.html`` with PNG plots beside it.
+"""The calibration report: ``RUN/calibration/report.html`` with SVG figures beside it
+(campaign.identify.report_figures, drawn without matplotlib); the plot_* functions here draw
+the same figures as PNGs with matplotlib for the diagnose report.
 
 Plots: error distributions of every stage as small multiples (like the paper's Figs. 3, 4,
 6, 7), the signed error components of every stage against each joint coordinate (bin means
@@ -111,51 +113,6 @@ def _which_poses(is_test):
     if is_test.sum() >= MAX_BINS * MIN_BIN_POSES:
         return is_test, f"held-out test set, {int(is_test.sum())} poses"
     return np.ones_like(is_test), f"all {len(is_test)} poses, train and test (the test set alone is too small to bin)"
-
-
-def plot_distributions(residuals: dict, is_test, out: Path) -> list:
-    """Histograms of ‖Δt‖ (mm) and ‖Δφ‖ (mrad, where measured) of every stage on the test set
-    (as the paper's Figs. 3, 4, 6, 7), one row per stage on shared log axes (small multiples:
-    identical stages cannot hide each other). Returns the file names."""
-    from campaign.identify.panels import PanelGrid
-
-    plt = _plt()
-    use = np.asarray(is_test, dtype=bool)
-    words = f"held-out test set, {int(use.sum())} poses"
-    names = list(residuals)
-    with_rot = all(orientation_measured(residuals[s]) for s in names)
-    blocks = [("position error ‖Δt‖", "mm", 0)] + ([("orientation error ‖Δφ‖", "mrad", 1)] if with_rot else [])
-    # a panel's title holds its stage and statistics on one line, or on two for long stage names
-    two_lines = max(len(s) for s in names) > 44
-    row_h = 1.6 if two_lines else 1.35
-    fig = plt.figure(figsize=(6.5 * len(blocks), 0.4 + row_h * len(names)))
-    w, h = fig.get_size_inches()
-    top = 0.55 + (0.2 if two_lines else 0.0)
-    ax = fig.add_axes((0.1 / w, 0.1 / h, 1 - 0.2 / w, 1 - (0.1 + top) / h))  # margins in inches
-    grid = PanelGrid(ax, len(names), len(blocks), gap_x=0.12, gap_y=0.55 if two_lines else 0.35)
-    for c, (label, unit, k) in enumerate(blocks):
-        vals = [_norms(residuals[s][use])[k] for s in names]
-        hi = max(np.max(v) for v in vals)
-        lo = max(min(max(np.min(v), 1e-9) for v in vals), hi * 1e-5)
-        edges = np.linspace(np.log10(lo * 0.95), np.log10(hi * 1.05), 50)  # log10 of the quantity
-        for r, (name, v) in enumerate(zip(names, vals)):
-            color = f"C{r % 10}"
-            counts, _ = np.histogram(np.log10(np.maximum(v, 1e-300)), bins=edges)
-            sx, sy = np.repeat(edges, 2)[1:-1], np.repeat(counts, 2).astype(float)  # the histogram's steps
-            grid.band(r, c, sx, np.zeros_like(sy), sy, color=color, alpha=0.45)
-            grid.line(r, c, sx, sy, color=color, linewidth=1.2)
-            mean, q90 = float(np.mean(v)), float(np.quantile(v, 0.9))
-            grid.vline(r, c, np.log10(mean), color="k", linewidth=1.0)
-            grid.vline(r, c, np.log10(q90), color="k", linewidth=1.0, linestyle="--")
-            grid.title(r, c, f"{name}:{chr(10) if two_lines else '  '}mean {mean:.3g} {unit}, q90 {q90:.3g} {unit}")
-    grid.finish(xlabels=[f"{label} [{unit}], log scale" for label, unit, _ in blocks],
-                ylabels=["poses"] * len(names), xlog=True, ylow=0.0, zero_line=False)
-    fig.suptitle(f"error distribution of each model stage ({words}); solid line: mean, dashed: 90 % quantile",
-                 fontsize=11)
-    name = "distributions.png"
-    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
-    plt.close(fig)
-    return [name]
 
 
 def plot_against_joints(q, dz, is_test, title: str, out: Path, name: str) -> str:
@@ -341,7 +298,7 @@ PAGE_STYLE = ("<style>body{font-family:sans-serif;max-width:1340px;margin:2em au
 def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is_test,
                  param_text: str = "", extra_html: str = "", noise_floor="auto", out_dir=None,
                  calibration_id: str | None = None) -> Path:
-    """Write ``RUN/calibration/report.html`` and its PNGs; return the HTML path.
+    """Write ``RUN/calibration/report.html`` and its SVG figures; return the HTML path.
 
     residuals: stage name -> Δz (n, 6) for every pose; q (n, N) rad; xyz (n, 3) m measured
     tool positions; is_test (n,) bool. noise_floor: a campaign.measure.floor.NoiseFloor, None,
@@ -354,12 +311,10 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
     is_test = np.asarray(is_test, dtype=bool)
     if isinstance(noise_floor, str) and noise_floor == "auto":
         noise_floor = tracker_noise_floor(run_dir)
-    imgs = plot_distributions(residuals, is_test, out)
+    from campaign.identify.report_figures import write_figures  # SVG, no matplotlib (issue 22)
+
     current = order[-1]
-    joint_imgs = [(s, plot_against_joints(q, residuals[s], is_test, s, out, f"joints_{s.replace('+', '_')}.png"))
-                  for s in order if s in residuals]
-    ws_img = plot_workspace(xyz, residuals[current], current, out, "workspace.png") if current in residuals else None
-    hist_img = plot_history(out / "history.json", out, noise_floor=noise_floor)
+    imgs, joint_imgs, ws_img, hist_img = write_figures(run_dir, residuals, order, q, xyz, is_test, out, noise_floor)
     table_test = format_table6(stages, order, "test")
     table_train = format_table6(stages, order, "train")
     parts = [
