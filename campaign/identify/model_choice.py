@@ -204,16 +204,17 @@ def expected_heldout_mm(model: CalibrationModel, q, context=None) -> float:
     if model.points is None:
         J = model.jacobian(q, model.predict(q, context), context)[:, :3, :]
         sig = model.row_sigma_[:3]
-        C = np.einsum("nif,fg,njg->nij", J, cov, J) + np.diag(sig ** 2)[None]
+        C = (J @ cov) @ J.transpose(0, 2, 1) + np.diag(sig ** 2)[None]  # J Σ Jᵀ + σ̂² I, (n, 3, 3)
     else:
         Jp = model.point_jacobian(q, context)  # (n, k, 3, p)
         n, k = Jp.shape[:2]
         J = Jp.reshape(n * k, 3, -1)
-        C = np.einsum("nif,fg,njg->nij", J, cov, J) + np.diag(model.row_sigma_[:3] ** 2)[None]
+        C = (J @ cov) @ J.transpose(0, 2, 1) + np.diag(model.row_sigma_[:3] ** 2)[None]
     z = np.random.default_rng(0).standard_normal((_NORM_DRAWS, 3))
     w, V = np.linalg.eigh(C)
     L = V * np.sqrt(np.clip(w, 0, None))[:, None, :]
-    norms = np.linalg.norm(np.einsum("nij,sj->nsi", L, z), axis=2).mean(axis=1)
+    e = L @ z.T  # (n, 3, draws): the draws of e at each pose (matmul: a tenth of einsum's time)
+    norms = np.sqrt(np.einsum("nid,nid->nd", e, e)).mean(axis=1)
     return 1e3 * float(norms.mean())
 
 
