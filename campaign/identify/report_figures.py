@@ -105,7 +105,7 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
     xyz = np.asarray(xyz, dtype=float)
     vmin, vmax = workspace_colour_scale(pos)
     box_w, box_h, left, top = 470.0, 400.0, 80.0, 60.0
-    svg = Svg(1200, top + box_h + 60)
+    svg = Svg(1280, top + box_h + 60)
     cells = int(np.clip(3 * np.sqrt(len(pos)), WORKSPACE_MIN_CELLS, WORKSPACE_CELLS))
     levels = viridis(np.linspace(0, 1, WORKSPACE_LEVELS))
     for v, (a, b, la, lb, view) in enumerate(((2, 0, "z_I [m]", "x_I [m]", "top view"),
@@ -121,7 +121,8 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
         level = np.minimum((t * WORKSPACE_LEVELS).astype(int), WORKSPACE_LEVELS - 1)
         for k in np.unique(level):
             sel = level == k
-            d = "".join(f"M{x0 + i * cell:.1f} {y0 + h - (j + 1) * cell:.1f}h{cell:.2f}v{cell:.2f}h{-cell:.2f}z"
+            s = cell + 0.5  # a little overlap: no seams of white between neighbouring cells
+            d = "".join(f"M{x0 + i * cell:.1f} {y0 + h - (j + 1) * cell:.1f}h{s:.2f}v{s:.2f}h{-s:.2f}z"
                         for i, j in zip(ix[sel], iy[sel]))
             svg.path(d, fill=levels[k], extra=' shape-rendering="crispEdges"')
         if len(pos):
@@ -132,7 +133,7 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
         _axis_ticks(svg, x0, y0, w, h, (ex0, ex1), (ey0, ey1), la, lb)
         svg.text(x0 + w / 2, y0 - 8, view, size=LABEL_PX, anchor="middle")
     # the colour bar: 0 to the largest error, square-root spacing, a red line at the largest
-    bx, by, bw, bh = 1080.0, top, 16.0, box_h
+    bx, by, bw, bh = left + 2 * box_w + 110 + 30, top, 16.0, box_h  # right of the side view
     edges = np.linspace(0, 1, WORKSPACE_LEVELS + 1)
     svg.add("".join(f'<rect x="{bx}" y="{by + bh * (1 - edges[k + 1]):.2f}" width="{bw}" '
                     f'height="{bh / WORKSPACE_LEVELS + 0.3:.2f}" fill="{levels[k]}"/>' for k in range(WORKSPACE_LEVELS)))
@@ -145,7 +146,7 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
     svg.path(f"M{bx} {by:.1f}h{bw}", stroke="red", width=2.5)
     svg.text(bx + bw + 62, by + bh / 2, "‖Δt‖ [mm] (0 to the largest, square-root scale)", size=LABEL_PX,
              anchor="middle", baseline="middle", rotate=-90)
-    svg.text(600, 22, f"{title}: position error over the workspace, all {len(pos)} poses "
+    svg.text(640, 22, f"{title}: position error over the workspace, all {len(pos)} poses "
              f"(red circle: the largest, {vmax:.3g} mm)", size=SUPTITLE_PX, anchor="middle")
     return svg.save(Path(out) / name)
 
