@@ -114,6 +114,35 @@ def check_names(value, where: str) -> tuple:
     return tuple(out)
 
 
+def check_hidden_effects(value, where: str) -> tuple:
+    """``sim.hidden_effects``: effect entries as :func:`check_names` takes them, each list entry
+    also a mapping ``{effect: SPEC, params: [numbers, ...]}`` (SI, the effect's parameter order).
+    Returns (specs, ((spec, params), ...) for the entries that state their parameters)."""
+    if not isinstance(value, (list, tuple)):
+        return check_names(value, where), ()
+    specs, stated = [], []
+    for i, v in enumerate(value):
+        if isinstance(v, dict):
+            extra = sorted(set(v) - {"effect", "params"})
+            if extra or "effect" not in v:
+                raise ConfigError(f"{where}[{i}]: expected {{effect: NAME, params: [...]}}, got {v!r}")
+            spec = check_str(v["effect"], f"{where}[{i}].effect")
+            params = v.get("params")
+            if params is not None:
+                if not isinstance(params, (list, tuple)) or not params:
+                    raise ConfigError(f"{where}[{i}].params: must be a list of numbers, got {params!r}")
+                params = tuple(check_number(p, f"{where}[{i}].params[{k}]") for k, p in enumerate(params))
+                stated.append((spec, params))
+            specs.append(spec)
+        elif not isinstance(v, str):
+            raise ConfigError(f"{where}[{i}]: must be a string or {{effect: NAME, params: [...]}}, got {v!r}")
+        elif v.strip():
+            specs.append(v.strip())
+    if len(set(specs)) < len(specs):
+        raise ConfigError(f"{where}: an effect is hidden twice")
+    return tuple(specs), tuple(stated)
+
+
 def parse_faults(section, where="campaign.yaml"):
     """({kind: rate per request in [0, 1]}, late_delay_s) from the ``sim.faults`` mapping."""
     section = section or {}
@@ -224,6 +253,8 @@ class SimConfig:
     hidden_effects: tuple = ("ground_compliance",)
     faults: dict = field(default_factory=dict)
     late_delay_s: float = 1.0
+    #: ((spec, params), ...): hidden parameters stated in campaign.yaml (``{effect: spec, params: [...]}``, SI)
+    hidden_params: tuple = ()
 
     @classmethod
     def parse(cls, doc: dict, where: _Where) -> "SimConfig":
@@ -235,7 +266,8 @@ class SimConfig:
         if "noise_m" in doc:
             kw["noise_m"] = check_number(doc["noise_m"], where("noise_m"), low=0.0, high=1.0)
         if "hidden_effects" in doc:
-            kw["hidden_effects"] = check_names(doc["hidden_effects"], where("hidden_effects"))
+            kw["hidden_effects"], kw["hidden_params"] = check_hidden_effects(doc["hidden_effects"],
+                                                                             where("hidden_effects"))
         if "faults" in doc:
             kw["faults"], kw["late_delay_s"] = parse_faults(doc["faults"], where.path)
         return cls(**kw)
@@ -262,7 +294,7 @@ SECTIONS = {"plan": PlanConfig, "run": RunConfig, "sim": SimConfig, "tracker": T
 SECTION_KEYS = {
     "plan": {f.name for f in fields(PlanConfig)},
     "run": {f.name for f in fields(RunConfig)},
-    "sim": {f.name for f in fields(SimConfig)} - {"late_delay_s"},
+    "sim": {f.name for f in fields(SimConfig)} - {"late_delay_s", "hidden_params"},
     "calibrate": {"effects"},
     "tracker": {f.name for f in fields(TrackerConfig)},
 }
@@ -328,6 +360,24 @@ class CampaignConfig:
             kw = {k: v if v is not None else getattr(self, k) for k, v in kw.items()}
         return replace(self, **kw)
 
+    def hidden_effects(self) -> tuple:
+        """The simulated cell's hidden effects: ((spec, params or None), ...), user effect files made
+        absolute against this file's folder; params (SI, the effect's order) as campaign.yaml states
+        them, None to draw them (campaign.sim.truth.hidden_effect_params)."""
+        from campaign.effects.base import resolve_effect_spec
+
+        stated = dict(self.sim.hidden_params)
+        return tuple((resolve_effect_spec(e, self.dir), stated.get(e)) for e in self.sim.hidden_effects)
+
+    def hidden_effects_yaml(self, absolute: bool = False) -> list:
+        """``sim.hidden_effects`` as campaign.yaml holds it (``absolute``: user files made absolute)."""
+        stated = dict(self.sim.hidden_params)
+        out = []
+        for (resolved, params), spec in zip(self.hidden_effects(), self.sim.hidden_effects):
+            name = resolved if absolute else spec
+            out.append(name if params is None else {"effect": name, "params": list(params)})
+        return out
+
     def as_yaml_dict(self, *, absolute: bool = False) -> dict:
         """The keys as campaign.yaml holds them (``absolute``: paths made absolute, for a copy
         of the file elsewhere)."""
@@ -337,7 +387,8 @@ class CampaignConfig:
         if faults.get("late") or late != 1.0:
             faults["late_delay_s"] = late
         sim["faults"] = faults
-        sim["hidden_effects"] = list(sim["hidden_effects"])
+        sim["hidden_effects"] = self.hidden_effects_yaml(absolute)
+        sim.pop("hidden_params")
         plan = asdict(self.plan)
         plan["grid_cells"] = "auto" if plan["grid_cells"] is None else list(plan["grid_cells"])
         out = {"robot": self.robot_spec if absolute else self.robot,

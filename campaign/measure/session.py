@@ -54,9 +54,10 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     measured_robot(robot)  # refused before the run is touched
     if sim:  # what the simulated cell would refuse, refused before it is started
         from campaign.effects.base import make_effect
+        from campaign.sim.truth import hidden_effect_params
 
-        for name in cfg.sim.hidden_effects:
-            make_effect(name, robot)
+        for spec, params in cfg.hidden_effects():
+            hidden_effect_params(make_effect(spec, robot), cfg.sim.seed, params)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
               verbose=verbose, plan=plan, frame=frame, key=key)
     with run.lock("run"), _no_empty_log(run):

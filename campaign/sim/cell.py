@@ -33,7 +33,7 @@ from campaign.measure.reflectors import transform_points
 from campaign.plan.scene import load_scene
 from campaign.plan.timing import rest_to_rest_time
 from campaign.run import load_robot
-from campaign.sim.truth import make_truth, write_truth
+from campaign.sim.truth import hidden_effect_params, make_truth, write_truth
 
 _KIND_CODE = {k: i + 1 for i, k in enumerate(FAULT_KINDS)}
 #: distances of the base-frame set-up points from F_I's origin along x and y (m)
@@ -50,10 +50,8 @@ class World:
                                 base_frame=cfg.base_frame).with_default_reflectors()
         self.scene = load_scene(cfg.scene_path).placed(self.robot)
         self.seed = sc.seed
-        hidden = {}
-        for name in sc.hidden_effects:
-            e = make_effect(name, self.robot)
-            hidden[name] = e.typical_params(self.seed)
+        hidden = {spec: hidden_effect_params(make_effect(spec, self.robot), self.seed, params)
+                  for spec, params in cfg.hidden_effects()}
         self.truth = make_truth(self.robot, seed=self.seed, noise_m=sc.noise_m, effects=hidden,
                                 T_LI=self.scene.T_LI)
         self.settle_s = cfg.plan.settle_time_s

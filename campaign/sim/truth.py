@@ -164,6 +164,55 @@ def make_truth(robot: RobotModel | None = None, *, seed: int | None = 0, scale: 
                       np.concatenate(thetas) if thetas else np.zeros(0))
 
 
+#: mean displacement (m) of the tool point that a hidden effect without a declared scale gets
+#: (a few tenths of a millimetre: well above the tracker's noise, small against the geometry's errors)
+DEFAULT_EFFECT_DISPLACEMENT_M = 3e-4
+
+
+def hidden_effect_params(effect, seed: int = 0, params=None) -> np.ndarray:
+    """The hidden parameter vector (SI, the effect's order) of ``effect`` in a simulated truth:
+    ``params`` when campaign.yaml states them (``{effect: SPEC, params: [...]}``), else the
+    effect's ``typical_params(seed)``, else normal draws at the scale it declares
+    (``typical_scale``: one number or one per parameter, SI), else normal draws scaled so that
+    the effect moves the tool point by DEFAULT_EFFECT_DISPLACEMENT_M on average over random
+    poses (each parameter's share by its own effect at the tool)."""
+    from campaign.errors import ConfigError
+
+    if params is not None:
+        params = np.asarray(params, dtype=float)
+        if params.shape != (effect.n_params,):
+            raise ConfigError(f"sim.hidden_effects: effect '{effect.spec}' has {effect.n_params} parameters "
+                              f"({', '.join(effect.param_names)}), the entry states {params.size}")
+        return params
+    if hasattr(effect, "typical_params"):
+        return np.asarray(effect.typical_params(seed), dtype=float).reshape(effect.n_params)
+    rng = np.random.default_rng([int(seed), 4099])
+    draw = rng.standard_normal(effect.n_params)
+    scale = getattr(effect, "typical_scale", None)
+    if scale is not None:
+        return draw * np.broadcast_to(np.asarray(scale, dtype=float), (effect.n_params,))
+    return draw * _unit_displacement_scale(effect, rng)
+
+
+def _unit_displacement_scale(effect, rng, n_poses: int = 64, step: float = 1e-6) -> np.ndarray:
+    """(p,) scale per parameter: ``step`` times the ratio of DEFAULT_EFFECT_DISPLACEMENT_M to the
+    mean tool displacement a parameter of ``step`` causes over random poses, over √p."""
+    robot = effect.robot
+    q = random_joint_poses(robot, n_poses, seed=int(rng.integers(1 << 31)))
+    es = EffectSet((effect,))
+    context = effect_context({k: np.full(n_poses, 20.0) for k in effect.context_keys},
+                             np.linspace(0.0, 3600.0, n_poses))
+    theta0 = effect.initial_params()
+    T0 = model_pose(robot, q, None, es, theta0, context)
+    out = np.empty(effect.n_params)
+    for i in range(effect.n_params):
+        th = theta0.copy()
+        th[i] += step
+        moved = np.mean(np.linalg.norm(model_pose(robot, q, None, es, th, context)[:, :3, 3] - T0[:, :3, 3], axis=1))
+        out[i] = step * DEFAULT_EFFECT_DISPLACEMENT_M / max(moved, 1e-300)
+    return out / np.sqrt(max(effect.n_params, 1))
+
+
 def random_joint_poses(robot: RobotModel, n: int, seed: int = 0, margin: float = 0.05) -> np.ndarray:
     """n joint vectors uniformly inside the joint limits (shrunk by ``margin`` rad, or by
     ``margin`` x 10 % of the range for a prismatic joint), (n, N)."""

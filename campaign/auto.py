@@ -1,0 +1,698 @@
+"""`campaign auto`: a campaign that measures until it understands the robot.
+
+The loop (DESIGN.md: plan → measure → calibrate → diagnose → decide → measure more):
+
+1. plan the short campaign when the run has none (:func:`campaign.plan.pipeline.plan_campaign`),
+   measure it, calibrate the current model, diagnose it;
+2. decide from the diagnosis (:func:`decide`, a pure function of the diagnosis, the calibration
+   and the rounds before) and do it:
+
+   * a candidate effect is significant (the verdict, or the part of an "unexplained" it
+     explains) → add it to RUN/campaign.yaml, calibrate again;
+   * at the noise floor, but the model's parameters poorly determined (the predicted mean
+     position error of the model against the truth above the target) → the next poses by the
+     plan's optimal design for the current model (:func:`campaign.plan.extend.design_poses`);
+   * "unexplained" → poses that reveal its structure: spread over the inputs it depends on
+     (:func:`campaign.plan.extend.spread_poses`), or measured poses measured again later when
+     it depends on time (:func:`campaign.plan.extend.remeasure_poses`);
+   * nothing more to learn → stop, saying which and why: at the floor; unexplained and the new
+     poses no longer change the verdict; the budget or the pose limit reached.
+
+New poses are appended to RUN/plan/poses.csv and measured by the same driver (every pose
+without a stored outcome); every calibration appends to RUN/calibration/history.json. The
+loop's state lives in RUN/auto/state.json, written atomically after every step, and each step
+is idempotent: a decision is written before it is carried out and carried out again on resume
+(an effect added twice is added once, a pose the plan holds is not appended again, the driver
+measures only poses without a stored outcome), so a killed `auto` resumes where it stopped,
+losing nothing and measuring nothing twice; every decision follows deterministically from the
+stored data.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+from campaign.errors import ConfigError, DataError, PeerError, RobotFault
+from campaign.fileio import atomic_write
+from campaign.run import RunFolder
+
+AUTO_DIR = "auto"
+STATE_FILE = "state.json"
+STATE_VERSION = 1
+#: without --max-poses: this many times the planned short campaign's poses at most
+MAX_POSES_FACTOR = 2
+#: poses per round that reveal the structure of an "unexplained" (a quarter of the default selection)
+REVEAL_POSES = 30
+#: poses per round of the optimal design at most (at least DESIGN_MIN_POSES)
+DESIGN_MAX_POSES = 60
+DESIGN_MIN_POSES = 8
+#: rounds of revealing poses for one "unexplained" at most
+REVEAL_ROUNDS = 3
+#: without --target-mm: the model's own predicted error may be this share of the noise floor (its
+#: held-out error is then about √(1 + share²) ≈ 1.1× the floor)
+TARGET_FLOOR_SHARE = 0.5
+#: the noise floor assumed for the target when the run has none (10 µm per reflector coordinate, 3 reflectors)
+DEFAULT_FLOOR_MM = 0.0099
+#: inputs of the model-free test that measuring again later reveals (not the joints)
+TIME_INPUTS = ("time_s", "temperature_c")
+
+
+@dataclass(frozen=True)
+class AutoOptions:
+    """How far `auto` may go. budget_h: campaign hours (the run's clock: motion, settle, tracker);
+    target_mm: the predicted mean position error of the model against the truth that counts as
+    well determined (None: TARGET_FLOOR_SHARE of the noise floor); max_poses: planned poses at
+    most (None: MAX_POSES_FACTOR times the short campaign's); grid_scale, select: the plan's
+    ``--grid-scale`` and ``--select`` (None: the default short campaign; 0: every suitable pose)."""
+
+    budget_h: float | None = None
+    target_mm: float | None = None
+    max_poses: int | None = None
+    grid_scale: float = 1.0
+    select: int | None = None
+
+    def check(self) -> "AutoOptions":
+        from campaign.config import check_int, check_number
+
+        if self.budget_h is not None:
+            check_number(self.budget_h, "--budget", low=0.0, low_open=True)
+        if self.target_mm is not None:
+            check_number(self.target_mm, "--target-mm", low=0.0, low_open=True)
+        if self.max_poses is not None:
+            check_int(self.max_poses, "--max-poses", low=1)
+        check_number(self.grid_scale, "--grid-scale", low=0.0, low_open=True)
+        if self.select is not None:
+            check_int(self.select, "--select", low=0)
+        return self
+
+
+@dataclass(frozen=True)
+class CellSource:
+    """Where the poses are measured: the simulated cell (``sim``), a cell from adapters
+    (``cell``: a SPEC of `campaign run --cell`), or a controller and a tracker (host, port)."""
+
+    sim: bool = False
+    cell: str | None = None
+    controller: tuple | None = None
+    tracker: tuple | None = None
+
+    def __post_init__(self):
+        given = sum([bool(self.sim), self.cell is not None, self.controller is not None])
+        if given != 1 or (self.controller is None) != (self.tracker is None):
+            raise ConfigError("give one of --sim, --cell SPEC, or --controller HOST:PORT with --tracker HOST:PORT")
+
+    def as_json(self) -> dict:
+        return {"sim": self.sim, "cell": self.cell,
+                "controller": None if self.controller is None else list(self.controller),
+                "tracker": None if self.tracker is None else list(self.tracker)}
+
+    @classmethod
+    def from_json(cls, doc) -> "CellSource":
+        return cls(bool(doc.get("sim")), doc.get("cell"),
+                   None if doc.get("controller") is None else (str(doc["controller"][0]), int(doc["controller"][1])),
+                   None if doc.get("tracker") is None else (str(doc["tracker"][0]), int(doc["tracker"][1])))
+
+    def text(self) -> str:
+        if self.sim:
+            return "--sim"
+        if self.cell is not None:
+            return f"--cell {self.cell}"
+        return f"--controller {self.controller[0]}:{self.controller[1]} --tracker {self.tracker[0]}:{self.tracker[1]}"
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What a round decided. kind: ``add_effect`` (``effect``), ``design``, ``reveal`` or
+    ``remeasure`` (``pose_ids`` to append and measure), or ``stop`` (``reason``: ``at_floor``,
+    ``unexplained``, ``no_floor``, ``budget``, ``max_poses``, ``no_poses``); text: one line."""
+
+    kind: str
+    text: str
+    effect: str | None = None
+    pose_ids: tuple = ()
+    reason: str | None = None
+
+    def as_json(self) -> dict:
+        return {**asdict(self), "pose_ids": [int(p) for p in self.pose_ids]}
+
+    @classmethod
+    def from_json(cls, doc) -> "Decision":
+        return cls(doc["kind"], doc["text"], doc.get("effect"), tuple(int(p) for p in doc.get("pose_ids", ())),
+                   doc.get("reason"))
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round's numbers: poses measured so far, planned, campaign hours, the model (its stage
+    name), the held-out (test set) mean position error and the noise floor (mm), the diagnosis's
+    verdict and the inputs its model-free test found, and the decision."""
+
+    number: int
+    poses: int
+    planned: int
+    hours: float
+    model: str
+    effects: tuple
+    heldout_mm: float
+    floor_mm: float | None
+    verdict: str | None
+    at_floor: bool | None
+    depends_on: tuple
+    signature: str | None
+    decision: Decision
+
+    @property
+    def ratio(self) -> float | None:
+        return self.heldout_mm / self.floor_mm if self.floor_mm else None
+
+    def line(self) -> str:
+        ratio = f" = {self.ratio:.2f}× the floor" if self.ratio is not None else " (no noise floor)"
+        return (f"round {self.number}: {self.poses} poses, {self.hours:.2f} h, {self.model}: held-out "
+                f"{self.heldout_mm:.4f} mm{ratio} → {self.decision.text}")
+
+    def as_json(self) -> dict:
+        out = {k: v for k, v in asdict(self).items() if k != "decision"}
+        out.update(effects=list(self.effects), depends_on=list(self.depends_on), ratio=self.ratio,
+                   decision=self.decision.as_json())
+        return out
+
+    @classmethod
+    def from_json(cls, doc) -> "Round":
+        kw = {k: doc[k] for k in ("number", "poses", "planned", "hours", "model", "heldout_mm", "floor_mm",
+                                  "verdict", "at_floor", "signature")}
+        return cls(**kw, effects=tuple(doc["effects"]), depends_on=tuple(doc["depends_on"]),
+                   decision=Decision.from_json(doc["decision"]))
+
+
+@dataclass(frozen=True)
+class AutoResult:
+    """The story: every round, the final decision (kind ``stop``) and the verdict in words."""
+
+    run_dir: Path
+    rounds: tuple
+    final: Decision
+    verdict_text: str
+    report_path: Path | None = None
+
+
+# -- the state on disk ----------------------------------------------------------------------------
+def state_path(run: RunFolder) -> Path:
+    return run.path / AUTO_DIR / STATE_FILE
+
+
+def _load_state(run: RunFolder) -> dict:
+    path = state_path(run)
+    if not path.is_file():
+        return {"version": STATE_VERSION, "cell": None, "options": {}, "plan": None, "rounds": [], "pending": None,
+                "calibrated": None, "finished": None}
+    try:
+        state = json.loads(path.read_text())
+        if state.get("version") != STATE_VERSION or not isinstance(state.get("rounds"), list):
+            raise ValueError("unknown version")
+        return state
+    except (ValueError, OSError) as exc:
+        raise DataError(f"{path}: not a state of `campaign auto` ({exc}); move it away to start the loop afresh") from None
+
+
+def _save_state(run: RunFolder, state: dict) -> None:
+    atomic_write(state_path(run), json.dumps(state, indent=2))
+
+
+# -- the loop --------------------------------------------------------------------------------------
+def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = None, *, say=None,
+         progress: bool = False, report: bool = True) -> AutoResult:
+    """Run the loop on ``run_dir`` until there is nothing more to learn (module docstring).
+
+    cell: where to measure (None: the one the run's earlier `auto` used); options: limits (None
+    fields: those stored by an earlier `auto` of this run, else the defaults); say: a callable
+    receiving the story, one line at a time (None: silent); progress: progress bars on stderr;
+    report: write the calibration report and RUN/auto/report.html at the end. Holds the run's
+    lock throughout."""
+    say = say or (lambda line: None)
+    run = RunFolder(run_dir)
+    with run.lock("auto"):
+        state = _load_state(run)
+        cell = _resolve_cell(run, state, cell)
+        opts = _resolve_options(state, options)
+        state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if state["plan"] is None:
+            _plan(run, state, opts, say, progress)
+        limits = _limits(state, opts)
+        if state["finished"] is not None:
+            if not _reopen(run, state, limits):
+                return _result(run, state, say, report=False)
+            say(f"continuing: {state['reopened']}")
+        loop = _Loop(run, state, cell, limits, say, progress)
+        loop.go()
+        return _result(run, state, say, report=report)
+
+
+def _resolve_cell(run, state, cell):
+    if cell is not None:
+        return cell
+    if state.get("cell"):
+        return CellSource.from_json(state["cell"])
+    raise ConfigError(f"{run.path}: no earlier `campaign auto` to resume: say where to measure (--sim, --cell SPEC, "
+                      "or --controller HOST:PORT --tracker HOST:PORT)")
+
+
+def _resolve_options(state, options):
+    stored = {k: v for k, v in (state.get("options") or {}).items() if k in AutoOptions.__dataclass_fields__}
+    given = {} if options is None else {k: v for k, v in asdict(options).items()
+                                       if v is not None and v != AutoOptions.__dataclass_fields__[k].default}
+    return AutoOptions(**{**stored, **given}).check()
+
+
+def _plan(run, state, opts, say, progress):
+    from campaign.plan.pipeline import plan_campaign
+    from campaign.plan.selection import SelectionOptions
+
+    if run.poses_csv.is_file() and (run.plan_dir / "summary.json").is_file() and run.has_config:
+        summary = json.loads((run.plan_dir / "summary.json").read_text())
+        say(f"plan: the run's own plan, {summary['tour']['poses']} poses")
+    else:
+        what = ("every suitable pose" if opts.select == 0 else
+                f"the {opts.select} most informative poses" if opts.select else "the default short campaign")
+        say(f"plan: {what} (as `campaign plan --run {run.path}`{'' if opts.grid_scale == 1 else f' --grid-scale {opts.grid_scale:g}'})")
+        selection = SelectionOptions(n=opts.select, effects=run.effects).check() if opts.select else None
+        summary = plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
+                                all_poses=opts.select == 0)
+    est = summary.get("estimated_campaign", {})
+    state["plan"] = {"poses": int(summary["tour"]["poses"]), "estimated_h": float(est.get("total_s", 0.0)) / 3600}
+    say(f"plan: {state['plan']['poses']} poses, estimated {state['plan']['estimated_h']:.2f} h")
+    _save_state(run, state)
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_poses: int
+    budget_h: float | None
+    target_mm: float | None
+
+
+def _limits(state, opts) -> Limits:
+    max_poses = opts.max_poses if opts.max_poses is not None else MAX_POSES_FACTOR * int(state["plan"]["poses"])
+    return Limits(max_poses, opts.budget_h, opts.target_mm)
+
+
+def _reopen(run, state, limits) -> bool:
+    """Whether a finished loop goes on: its effects were changed in campaign.yaml since (a user
+    effect added), or it stopped at a limit that is now larger."""
+    last = Round.from_json(state["rounds"][-1])
+    reason = state["finished"]["reason"]
+    why = None
+    if tuple(run.effects) != tuple(last.effects):
+        why = f"the effects in {run.config_path} changed since ({', '.join(run.effects) or 'none'})"
+    elif reason == "max_poses" and limits.max_poses > last.planned:
+        why = f"--max-poses {limits.max_poses} allows more poses"
+    elif reason == "budget" and (limits.budget_h is None or limits.budget_h > last.hours):
+        why = "the budget allows more hours"
+    if why is None:
+        return False
+    state["finished"], state["pending"], state["reopened"] = None, None, why
+    return True
+
+
+class _Loop:
+    def __init__(self, run, state, cell, limits, say, progress):
+        self.run, self.state, self.cell, self.limits, self.say, self.progress = run, state, cell, limits, say, progress
+        self._space = None
+
+    @property
+    def space(self):
+        if self._space is None:
+            from campaign.plan.extend import plan_space
+
+            self._space = plan_space(self.run)
+        return self._space
+
+    def save(self):
+        _save_state(self.run, self.state)
+
+    def go(self):
+        while True:
+            pending = self.state.get("pending")
+            if pending is not None:
+                self.execute(Decision.from_json(pending))
+                self.state["pending"] = None
+                self.save()
+            self.measure()
+            metrics = self.calibrate()
+            diagnosis = self.diagnose()
+            rnd = self.round(metrics, diagnosis)
+            self.state["rounds"].append(rnd.as_json())
+            if rnd.decision.kind == "stop":
+                self.state["finished"] = {"reason": rnd.decision.reason, "time_unix_s": time.time()}
+            else:
+                self.state["pending"] = rnd.decision.as_json()
+            self.save()
+            self.say(rnd.line())
+            if rnd.decision.kind == "stop":
+                return
+
+    # -- the steps ---------------------------------------------------------------------------
+    def execute(self, d: Decision):
+        if d.kind == "add_effect":
+            self.run.add_effects([d.effect])
+            self.say(f"  added {d.effect} to {self.run.config_path}")
+        elif d.pose_ids:
+            from campaign.plan.extend import append_tour
+
+            ext = append_tour(self.run, self.space, d.pose_ids)
+            if ext.added or ext.dropped:
+                self.say(f"  plan: {len(ext.added)} poses appended to {self.run.poses_csv}"
+                         + (f" ({ext.via_poses} via poses)" if ext.via_poses else "")
+                         + (f"; {len(ext.dropped)} dropped (no collision-free motion)" if ext.dropped else ""))
+
+    def measure(self):
+        from campaign.measure.session import measure_run
+
+        c = self.cell
+        if c.cell is not None:
+            res = _measure_with_cell(self.run, c.cell, self.progress)
+        else:
+            res = measure_run(self.run.path, sim=c.sim, controller=c.controller, tracker=c.tracker,
+                              progress=self.progress, log=lambda msg: self.say(f"  {msg}"))
+        if res.measured or res.failed:
+            self.say(f"  measured {res.measured} poses" + (f", {res.failed} failed" if res.failed else "")
+                     + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
+        if res.stopped_kind == "interrupted":
+            raise KeyboardInterrupt
+        if res.stopped_kind == "robot_fault":
+            raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, run `campaign auto "
+                             f"{self.run.path}` again to resume")
+        if res.stopped:
+            raise PeerError(f"campaign stopped: {res.stopped}; everything measured is stored, run `campaign auto "
+                            f"{self.run.path}` again to resume")
+
+    def calibrate(self) -> dict:
+        from campaign.identify.calibrate import calibrate
+
+        effects = list(self.run.effects)
+        key = {"effects": effects, "poses": self.run.stored_pose_count()}
+        metrics_path = self.run.calibration_dir / "metrics.json"
+        if self.state.get("calibrated") != key or not metrics_path.is_file():
+            calibrate(self.run.path, ann=False, report=False)
+            self.state["calibrated"] = key
+            self.save()
+        return json.loads(metrics_path.read_text())
+
+    def diagnose(self):
+        from campaign.diagnose.engine import diagnose
+        from campaign.diagnose.report import write_diagnosis
+
+        d = diagnose(self.run.path)
+        write_diagnosis(d, report=False)
+        return d
+
+    def round(self, metrics, diagnosis) -> Round:
+        model = metrics["order"][-1]
+        floor = (metrics.get("noise_floor") or {}).get("mean_position_mm")
+        sig = diagnosis.signature.text() if diagnosis.signature is not None and diagnosis.structure_significant else None
+        ids, _ = self.planned()
+        base = Round(len(self.state["rounds"]) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
+                     tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
+                     diagnosis.verdict, diagnosis.at_floor, tuple(diagnosis.depends_on), sig, Decision("stop", ""))
+        return replace(base, decision=decide(diagnosis, base, [Round.from_json(r) for r in self.state["rounds"]],
+                                             self.limits, self))
+
+    # -- what decide asks about the run --------------------------------------------------------
+    def planned(self):
+        from campaign.measure.driver import read_plan
+
+        ids, Q, _ = read_plan(self.run.path)
+        return ids, Q
+
+    def measured_count(self) -> int:
+        with self.run.store() as store:
+            return int(len(store.load_measured(include_unusable=True)))
+
+    def training(self):
+        """(pose ids, times s) of the measured training poses (not the plan's validation poses)."""
+        from campaign.identify.split import run_split
+
+        with self.run.store() as store:
+            poses = store.load_measured(include_unusable=True)
+        test = run_split(self.run.path, poses.pose_id)
+        return poses.pose_id[~test], poses.time_s[~test]
+
+    def room(self, wanted: int) -> tuple:
+        """(poses the limits allow of ``wanted``, the limit that cut them or None)."""
+        ids, _ = self.planned()
+        n = min(wanted, self.limits.max_poses - len(ids))
+        limit = "max_poses" if n < wanted else None
+        if self.limits.budget_h is not None:
+            left_h = self.limits.budget_h - self.run.clock_s() / 3600
+            by_budget = int(left_h * 3600 / self.space.seconds_per_pose)
+            if by_budget < n:
+                n, limit = by_budget, "budget"
+        return max(n, 0), limit
+
+    def design_effects(self):
+        """The current effects a plan can weigh (not those whose context is known only when measuring)."""
+        from campaign.effects.base import make_effect
+
+        robot = self.space.robot
+        return tuple(e for e in self.run.effects if not set(make_effect(e, robot).context_keys) - {"time_s"})
+
+
+# -- deciding --------------------------------------------------------------------------------------
+def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decision:
+    """The next step from a diagnosis (module docstring, 2.). ``before``: the earlier rounds;
+    ``loop`` answers what the run holds (planned poses, training poses, the room the limits leave)
+    and chooses poses. Deterministic: the same stored data give the same decision."""
+    best = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
+    if best is not None and diagnosis.verdict is not None:
+        part = "" if diagnosis.verdict == best.effect else ", which explains part of what is left"
+        return Decision("add_effect", f"add {best.effect}{part} (held-out on the folds "
+                                      f"{best.heldout_mean_position_mm_before:.4f} → "
+                                      f"{best.heldout_mean_position_mm_after:.4f} mm; {best.description})",
+                        effect=best.spec or best.effect)
+    floor_mm = rnd.floor_mm
+    target = limits.target_mm
+    if target is None:
+        target = TARGET_FLOOR_SHARE * (floor_mm if floor_mm else DEFAULT_FLOOR_MM)
+    if diagnosis.verdict is None:
+        if not diagnosis.floor.known:
+            return Decision("stop", "stop: no missing effect found, but the run has no noise floor to say how close "
+                                    "the model is to the noise", reason="no_floor")
+        return _design_or_stop(rnd, limits, loop, target, at_floor=True)
+    # "unexplained"
+    reveals = _reveal_rounds(before)
+    if diagnosis.structure_significant and diagnosis.depends_on:
+        top = diagnosis.depends_on[0]
+        last = before[-1] if before else None
+        if reveals and last is not None and last.verdict == "unexplained" and last.depends_on[:1] == (top,):
+            return Decision("stop", f"stop: unexplained, and {reveals * REVEAL_POSES if reveals else 0} poses chosen "
+                                    f"to reveal it did not change the verdict (depends on {top} first)",
+                            reason="unexplained")
+        if reveals >= REVEAL_ROUNDS:
+            return Decision("stop", f"stop: unexplained after {reveals} rounds of poses chosen to reveal it",
+                            reason="unexplained")
+        n, limit = loop.room(REVEAL_POSES)
+        if n <= 0:
+            return _limit_stop(limit, rnd)
+        ids_train, times = loop.training()
+        if top in TIME_INPUTS:
+            from campaign.plan.extend import remeasure_poses
+
+            pose_ids = remeasure_poses(loop.space, ids_train, times, n)
+            return Decision("remeasure", f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: measure "
+                                         f"{len(pose_ids)} of the oldest poses again now", pose_ids=tuple(pose_ids))
+        from campaign.plan.extend import spread_poses
+
+        inputs = [i for i in diagnosis.depends_on if i not in TIME_INPUTS]
+        sig = diagnosis.signature
+        if sig is not None and any(k != "time_s" for k in sig.growth):
+            inputs.append("gravity load")
+        ids, _ = loop.planned()
+        pose_ids = spread_poses(loop.space, ids_train, ids, inputs, n)
+        if len(pose_ids) == 0:
+            return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
+        return Decision("reveal", f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: measure "
+                                  f"{len(pose_ids)} poses spread over {', '.join(inputs)}", pose_ids=tuple(pose_ids))
+    # above the floor, and nothing says on what the rest depends
+    d = _design_or_stop(rnd, limits, loop, target, at_floor=False)
+    if d.kind != "stop" or reveals:
+        return d
+    n, limit = loop.room(REVEAL_POSES)
+    if n <= 0:
+        return _limit_stop(limit, rnd)
+    from campaign.plan.extend import spread_poses
+
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    pose_ids = spread_poses(loop.space, ids_train, ids, [f"q{j + 1}" for j in range(loop.space.robot.n_joints)], n)
+    if len(pose_ids) == 0:
+        return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
+    return Decision("reveal", f"above the floor, and no input found for it: measure {len(pose_ids)} poses spread over "
+                              "the joints", pose_ids=tuple(pose_ids))
+
+
+def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
+    from campaign.plan.extend import design_poses
+
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    n, limit = loop.room(DESIGN_MAX_POSES)
+    effects = loop.design_effects()
+    _, predicted, _ = design_poses(loop.space, ids_train, ids, effects, n_max=0)
+    what = "at the measurement noise" if at_floor else "above the floor, and nothing says why"
+    if predicted <= target:
+        if at_floor:
+            return Decision("stop", f"stop: at the measurement noise, and the model well determined (predicted "
+                                    f"error {1e3 * predicted:.1f} µm ≤ target {1e3 * target:.1f} µm)", reason="at_floor")
+        return Decision("stop", f"stop: {what}; the model is well determined (predicted error {1e3 * predicted:.1f} µm)",
+                        reason="unexplained")
+    if n < DESIGN_MIN_POSES:
+        if at_floor:
+            return Decision("stop", f"stop: at the measurement noise; the model's predicted error {1e3 * predicted:.1f} "
+                                    f"µm is above the target {1e3 * target:.1f} µm, but the "
+                                    f"{'budget' if limit == 'budget' else 'pose limit'} allows no more poses",
+                            reason="at_floor")
+        return _limit_stop(limit, rnd)
+    chosen, _, after = design_poses(loop.space, ids_train, ids, effects, n_max=n, target_mm=target,
+                                    n_min=DESIGN_MIN_POSES)
+    if len(chosen) == 0:
+        return Decision("stop", f"stop: {what}; no suitable pose is left to measure", reason="at_floor" if at_floor
+                        else "no_poses")
+    return Decision("design", f"{what}, but the model poorly determined (predicted error {1e3 * predicted:.1f} µm > "
+                              f"target {1e3 * target:.1f} µm): measure the {len(chosen)} most informative poses "
+                              f"(predicted {1e3 * after:.1f} µm)", pose_ids=tuple(int(p) for p in chosen))
+
+
+def _limit_stop(limit, rnd) -> Decision:
+    if limit == "budget":
+        return Decision("stop", f"stop: the budget is spent ({rnd.hours:.2f} h)", reason="budget")
+    return Decision("stop", f"stop: the pose limit is reached ({rnd.planned} poses planned)", reason="max_poses")
+
+
+def _reveal_rounds(before) -> int:
+    """Rounds just before this one that measured poses to reveal an "unexplained" (consecutive)."""
+    n = 0
+    for r in reversed(before):
+        if r.decision.kind not in ("reveal", "remeasure"):
+            break
+        n += 1
+    return n
+
+
+def _inputs_text(inputs) -> str:
+    inputs = ["time" if i == "time_s" else i for i in inputs]
+    return inputs[0] if len(inputs) == 1 else ", ".join(inputs[:-1]) + " and " + inputs[-1]
+
+
+# -- the end ---------------------------------------------------------------------------------------
+def verdict_text(run: RunFolder, state: dict) -> str:
+    """The final verdict and what the user can do next, in a few lines."""
+    last = Round.from_json(state["rounds"][-1])
+    reason = (state.get("finished") or {}).get("reason")
+    ratio = f"{last.ratio:.2f}× the noise floor" if last.ratio is not None else "no noise floor"
+    head = (f"{last.model} on {last.poses} poses ({last.hours:.2f} h): held-out mean {last.heldout_mm:.4f} mm = {ratio}")
+    if reason == "at_floor":
+        return (f"verdict: at the measurement noise: nothing left to find. {head}.\n"
+                f"  the model: {run.calibration_dir}/params.yaml; use it with `campaign predict {run.path}` or "
+                f"`campaign compensate {run.path}`, or export it: `campaign export {run.path} --urdf OUT.urdf`")
+    if reason == "unexplained":
+        dep = last.signature or (f"depends on {_inputs_text(last.depends_on)}" if last.depends_on else
+                                 "no input found on which it depends")
+        joints = [i for i in last.depends_on if i.startswith("q")]
+        hint = (f"an effect that depends on {_inputs_text(joints)}" if joints else
+                "an effect of time (drift, warm-up)" if set(last.depends_on) & set(TIME_INPUTS) else "an effect")
+        return (f"verdict: unexplained — systematic error remains that no candidate explains: {dep}. {head}.\n"
+                f"  next: write {hint} (docs/effects.md, 'Writing an effect'), add it to {run.config_path} "
+                f"(effects: [..., your_file.py:YourEffect]) and run `campaign auto {run.path}` again")
+    if reason in ("budget", "max_poses"):
+        what = "budget" if reason == "budget" else "pose limit"
+        return (f"verdict: stopped at the {what} with the model {last.model} ({last.verdict or 'at the floor'} in the "
+                f"last diagnosis). {head}.\n  next: run `campaign auto {run.path} "
+                f"{'--budget HOURS' if reason == 'budget' else '--max-poses N'}` with a larger limit to go on")
+    if reason == "no_floor":
+        return (f"verdict: no missing effect found. {head}.\n  next: state the tracker's noise "
+                f"(`tracker: {{noise_m: ...}}` in {run.config_path}) or measure repeats, and run auto again")
+    return f"verdict: {last.decision.text}. {head}."
+
+
+def _result(run, state, say, *, report: bool) -> AutoResult:
+    rounds = tuple(Round.from_json(r) for r in state["rounds"])
+    text = verdict_text(run, state)
+    page = None
+    if report:
+        page = write_auto_report(run, state, text)
+    say(text)
+    return AutoResult(run.path, rounds, rounds[-1].decision, text, page)
+
+
+def write_auto_report(run: RunFolder, state: dict, text: str) -> Path:
+    """RUN/calibration/report.html of the final model (calibrated again, with its report, when the
+    last round's calibration wrote none) and RUN/auto/report.html: the story, one line per round,
+    and the held-out error over the rounds against the noise floor (auto/rounds.png)."""
+    from campaign.identify.calibrate import calibrate
+
+    if not (run.calibration_dir / "report.html").is_file() or \
+            (run.calibration_dir / "report.html").stat().st_mtime < (run.calibration_dir / "metrics.json").stat().st_mtime:
+        calibrate(run.path, ann=False, report=True)
+        state["calibrated"] = {"effects": list(run.effects), "poses": run.stored_pose_count()}
+        _save_state(run, state)
+    rounds = [Round.from_json(r) for r in state["rounds"]]
+    out = run.path / AUTO_DIR
+    img = plot_rounds(rounds, out / "rounds.png")
+    parts = ["<!doctype html><meta charset='utf-8'><title>campaign auto</title>",
+             "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em}"
+             "pre{background:#f6f6f6;padding:1em;white-space:pre-wrap}img{max-width:100%}</style>",
+             f"<h1>campaign auto: {html.escape(run.path.name)}</h1>",
+             "<h2>The rounds</h2>", f"<pre>{html.escape(chr(10).join(r.line() for r in rounds))}</pre>",
+             "<h2>The verdict</h2>", f"<pre>{html.escape(text)}</pre>"]
+    if img:
+        parts += ["<h2>The error over the rounds</h2>", f"<img src='{img.name}'>"]
+    parts += ["<p>the final model's report: <a href='../calibration/report.html'>calibration/report.html</a>; "
+              "the last diagnosis: <a href='../diagnose/diagnosis.json'>diagnose/diagnosis.json</a></p>"]
+    return atomic_write(out / "report.html", "\n".join(parts))
+
+
+def plot_rounds(rounds, path: Path):
+    """The held-out mean position error after each round (log scale) with the noise floor, each
+    point labelled with the model and the poses measured; None without rounds."""
+    if not rounds:
+        return None
+    from campaign.identify.report import _plt
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    x = [r.number for r in rounds]
+    ax.plot(x, [r.heldout_mm for r in rounds], "o-", label="held-out mean ‖Δt‖ (test set)")
+    floors = [r.floor_mm for r in rounds]
+    if any(f for f in floors):
+        ax.plot(x, [f if f else float("nan") for f in floors], ":", color="C3", label="noise floor (repeats)")
+    for r in rounds:
+        ax.annotate(f"{r.model.replace('geometric', 'geo')}\n{r.poses} poses", (r.number, r.heldout_mm),
+                    textcoords="offset points", xytext=(0, 8), ha="center", fontsize=7)
+    ax.set_yscale("log")
+    ax.set_xticks(x)
+    ax.set_xlabel("round")
+    ax.set_ylabel("held-out mean ‖Δt‖ [mm]")
+    ax.set_title("campaign auto: the error over the rounds")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _measure_with_cell(run, spec, progress):
+    """Measure with a cell from adapters (`campaign run --cell SPEC`): only the simulated cell
+    until campaign.cell lands."""
+    from campaign.measure.session import measure_run
+
+    if spec != "sim":
+        raise ConfigError(f"--cell {spec}: this version of `campaign auto` measures with --cell sim only "
+                          "(or --controller HOST:PORT --tracker HOST:PORT)")
+    return measure_run(run.path, sim=True, progress=progress)
+
+
+__all__ = ["AutoOptions", "AutoResult", "CellSource", "Decision", "Round", "auto", "decide", "verdict_text"]

@@ -1,0 +1,270 @@
+"""More poses for a run that is being measured (`campaign auto`): chosen among the suitable poses
+of the run's grid that the plan does not hold yet, toured from the plan's last pose and checked
+as `campaign plan` checks its tour, then appended to RUN/plan/poses.csv (and vias.csv), where
+`campaign run` finds them as poses without a stored outcome.
+
+Three ways to choose (each deterministic: the same measured data give the same poses):
+
+* :func:`design_poses` — the same optimal design as the plan's selection
+  (:mod:`campaign.plan.selection`, D-optimal, greedy), for the current model with its effects,
+  continuing from the information of the poses already measured: the poses that teach the model
+  most given what is known.
+* :func:`spread_poses` — poses that fill the gaps of the measured ones over given inputs (joint
+  angles, or the gravity load): farthest-point sampling in those inputs scaled to their range,
+  so that a structure the model-free test found gets the evidence it needs.
+* :func:`remeasure_poses` — measured poses measured again now (repeat ids ``p + r·10⁹``): the
+  oldest first, spread over the joints, so that a dependence on time shows as the same pose
+  giving another answer later.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from campaign.errors import DataError
+from campaign.fileio import atomic_write
+from campaign.plan.selection import REPEAT_ID_STRIDE, base_pose_id
+
+#: greedy additions between two checks of the predicted model error (:func:`design_poses`)
+DESIGN_CHECK_EVERY = 4
+
+
+@dataclass(frozen=True)
+class PlanSpace:
+    """What choosing more poses for a run needs: its robot (with the reflectors it measures), its
+    cell, the grid the plan was made on and the suitable poses of that grid. Build it with
+    :func:`plan_space`."""
+
+    robot: object
+    scene: object
+    grid: object
+    suitable: np.ndarray
+    clearance_m: float
+    motion_clearance_m: float
+    motion_sample_deg: float
+    seconds_per_pose: float
+
+    @cached_property
+    def checker(self):
+        from campaign.plan.checks import ClearanceChecker
+
+        return ClearanceChecker(self.robot, self.scene, self.clearance_m)
+
+    @cached_property
+    def times(self):
+        from campaign.plan.timing import GridTimes
+
+        return GridTimes(self.robot, self.grid)
+
+
+def plan_space(run) -> PlanSpace:
+    """The :class:`PlanSpace` of a planned run (:class:`campaign.run.RunFolder`): the grid's cells
+    from RUN/plan/summary.json (the grid the plan's pose ids index), the suitable poses by the
+    plan's own filters (a second or two for the default cell)."""
+    from campaign.plan.grid import Grid
+    from campaign.plan.pipeline import suitable_poses
+
+    summary_path = run.plan_dir / "summary.json"
+    try:
+        summary = json.loads(summary_path.read_text())
+        cells = tuple(int(c) for c in summary["grid_cells"])
+    except (OSError, ValueError, KeyError, TypeError):
+        raise DataError(f"{summary_path}: missing or unreadable (plan the run with `campaign plan` first)") from None
+    cfg = run.config
+    robot = run.robot().with_default_reflectors()
+    scene = run.scene()
+    grid = Grid.for_robot(robot, cells)
+    pc = cfg.plan
+    suitable = suitable_poses(robot, scene, grid, pc.clearance_m)
+    est = summary.get("estimated_campaign", {})
+    per_pose = est.get("seconds_per_pose") or (pc.settle_time_s + len(robot.reflectors) * pc.tracker_time_per_reflector_s)
+    return PlanSpace(robot, scene, grid, suitable, pc.clearance_m, pc.motion_clearance_m, pc.motion_sample_deg,
+                     float(per_pose))
+
+
+def _free(space: PlanSpace, planned_ids) -> np.ndarray:
+    """(m,) bool over ``space.suitable``: poses the plan does not hold (in any repeat)."""
+    return ~np.isin(space.suitable, base_pose_id(planned_ids))
+
+
+def design_poses(space: PlanSpace, measured_ids, planned_ids, effects, *, n_max: int, target_mm: float | None = None,
+                 noise_m: float | None = None, n_min: int = 1):
+    """Up to ``n_max`` new poses (grid indices, in the order chosen) by greedy D-optimal design
+    for the geometry plus ``effects``, starting from the information of ``measured_ids`` (the
+    training poses measured so far; repeats count again). With ``target_mm``: stop once the
+    predicted mean position error of the model against the truth over the suitable poses is at
+    most that (after at least ``n_min`` poses). Returns (grid indices, predicted model error mm
+    before, after)."""
+    from campaign.plan.selection import TRACKER_NOISE_M, Design, information_model, predicted_model_position_mm
+
+    where = {int(g): i for i, g in enumerate(space.suitable)}
+    train = np.array([where[int(b)] for b in base_pose_id(measured_ids) if int(b) in where], dtype=np.int64)
+    info = information_model(space.robot, space.grid.q(space.suitable), effects=tuple(effects),
+                             noise_m=TRACKER_NOISE_M if noise_m is None else noise_m)
+    before = predicted_model_position_mm(info, train)
+    d = Design(info, "D")
+    for j in train:
+        d.add(int(j))
+    d.refresh()
+    free = _free(space, planned_ids)
+    chosen = []
+    after = before
+    while len(chosen) < n_max and free.any():
+        g = d.gains()
+        g[~free] = -np.inf
+        j = int(np.argmax(g))
+        d.add(j)
+        free[j] = False
+        chosen.append(j)
+        if target_mm is not None and len(chosen) >= n_min and len(chosen) % DESIGN_CHECK_EVERY == 0:
+            after = predicted_model_position_mm(info, np.concatenate([train, chosen]))
+            if after <= target_mm:
+                break
+    if chosen:
+        after = predicted_model_position_mm(info, np.concatenate([train, chosen]))
+    return space.suitable[np.array(chosen, dtype=np.int64)], before, after
+
+
+def load_features(robot, q) -> np.ndarray:
+    """The gravity load of joint vectors q (n, N): the joints' gravity torques and the size of the
+    overturning moment (n, N + 1), N·m."""
+    from campaign.effects.gravity import gravity_torques, overturning_moment
+
+    return np.concatenate([gravity_torques(robot, q), np.linalg.norm(overturning_moment(robot, q), axis=1)[:, None]],
+                          axis=1)
+
+
+def spread_poses(space: PlanSpace, measured_ids, planned_ids, inputs, n: int) -> np.ndarray:
+    """``n`` new poses (grid indices) that fill the largest gaps the measured poses leave over
+    ``inputs`` (names ``q1..qN``, and ``gravity load``): farthest-point sampling, each input
+    scaled by its range over the suitable poses, distances to the measured poses and the poses
+    chosen before."""
+    robot, grid = space.robot, space.grid
+    free = _free(space, planned_ids)
+    if not free.any() or n <= 0:
+        return np.zeros(0, dtype=np.int64)
+    Q = grid.q(space.suitable)
+    cols = []
+    for name in inputs:
+        if name.startswith("q") and name[1:].isdigit() and 1 <= int(name[1:]) <= robot.n_joints:
+            cols.append(Q[:, int(name[1:]) - 1][:, None])
+        elif name == "gravity load":
+            cols.append(load_features(robot, Q))
+    if not cols:  # no input the poses choose (time, a context column): spread over every joint
+        cols = [Q]
+    F = np.concatenate(cols, axis=1)
+    span = np.ptp(F, axis=0)
+    F = (F - F.min(axis=0)) / np.where(span > 0, span, 1.0)
+    where = {int(g): i for i, g in enumerate(space.suitable)}
+    known = [where[int(b)] for b in base_pose_id(measured_ids) if int(b) in where]
+    gap = np.full(len(F), np.inf)
+    for s in range(0, len(known), 256):
+        block = F[known[s:s + 256]]
+        gap = np.minimum(gap, np.min(np.linalg.norm(F[:, None, :] - block[None], axis=2), axis=1))
+    chosen = []
+    for _ in range(min(n, int(free.sum()))):
+        score = np.where(free, gap, -np.inf)
+        j = int(np.argmax(score))
+        chosen.append(j)
+        free[j] = False
+        gap = np.minimum(gap, np.linalg.norm(F - F[j], axis=1))
+    return space.suitable[np.array(chosen, dtype=np.int64)]
+
+
+def remeasure_poses(space: PlanSpace, measured_ids, times_s, n: int) -> np.ndarray:
+    """``n`` repeat ids (``p + r·10⁹``, r the next free repeat of p) of measured poses: among the
+    oldest half of the measured poses, those spread farthest apart over the joints."""
+    measured_ids = np.asarray(measured_ids, dtype=np.int64)
+    times_s = np.asarray(times_s, dtype=float)
+    base = base_pose_id(measured_ids)
+    first = {}
+    for pid, b, t in sorted(zip(measured_ids, base, times_s), key=lambda r: (r[2], r[0])):
+        first.setdefault(int(b), float(t))
+    oldest = sorted(first, key=lambda b: (first[b], b))[: max(n, len(first) // 2)]
+    Q = space.grid.q(np.array(oldest, dtype=np.int64))
+    span = np.ptp(space.grid.q(space.suitable), axis=0)
+    F = Q / np.where(span > 0, span, 1.0)
+    chosen, gap = [0], np.linalg.norm(F - F[0], axis=1)
+    while len(chosen) < min(n, len(oldest)):
+        j = int(np.argmax(np.where(np.isin(np.arange(len(F)), chosen), -np.inf, gap)))
+        chosen.append(j)
+        gap = np.minimum(gap, np.linalg.norm(F - F[j], axis=1))
+    repeats = {}
+    for pid in measured_ids:
+        b = int(pid % REPEAT_ID_STRIDE)
+        repeats[b] = max(repeats.get(b, 0), int(pid // REPEAT_ID_STRIDE))
+    return np.array([oldest[j] + (repeats.get(oldest[j], 0) + 1) * REPEAT_ID_STRIDE for j in chosen], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Extension:
+    """Poses appended to a plan: ``added`` pose ids in visiting order, ``dropped`` [(pose_id,
+    reason)] (no collision-free motion), ``via_poses`` inserted, ``motion_s`` of the new tour."""
+
+    added: tuple
+    dropped: tuple
+    via_poses: int
+    motion_s: float
+
+
+def append_tour(run, space: PlanSpace, pose_ids) -> Extension:
+    """Append ``pose_ids`` (grid indices, or repeat ids) to the run's plan: ordered into a short
+    tour from the plan's last pose (front-of-wall and behind-wall groups, as `campaign plan`),
+    every motion checked at the plan's motion clearance and repaired through via postures or
+    the pose dropped (campaign.plan.repair), then written to RUN/plan/vias.csv and poses.csv
+    (atomically, vias first). Ids the plan holds already are skipped, so a call repeated after
+    an interruption appends nothing twice."""
+    from campaign.measure.driver import read_plan
+    from campaign.plan.pipeline import _order_tour
+    from campaign.plan.repair import check_segments, repair_tour, tour_path
+    from campaign.plan.timing import path_time
+
+    ids, Q, _ = read_plan(run.path)
+    pose_ids = np.array([int(p) for p in pose_ids if int(p) not in set(ids.tolist())], dtype=np.int64)
+    if len(pose_ids) == 0:
+        return Extension((), (), 0, 0.0)
+    grid, robot = space.grid, space.robot
+    by_base = {}
+    for p in pose_ids:
+        by_base.setdefault(int(p % REPEAT_ID_STRIDE), []).append(int(p))
+    home = grid.cell_indices(np.array([int(ids[-1] % REPEAT_ID_STRIDE)]))[0]
+    members = np.array(sorted(by_base), dtype=np.int64)
+    ordered_base = _order_tour(robot, space.scene, grid, space.times, home, members)
+    order = np.array([p for b in ordered_base for p in by_base[int(b)]], dtype=np.int64)
+    seq = np.concatenate([[ids[-1]], order])
+    Qs = np.concatenate([Q[-1:], grid.q(base_pose_id(order))])
+    max_step = np.deg2rad(space.motion_sample_deg)
+    mc = space.motion_clearance_m
+    ok = check_segments(robot, space.checker, Qs[:-1], Qs[1:], max_step, mc)
+    repair = repair_tour(robot, space.checker, seq, Qs, ok, max_step, mc)
+    kept = repair.keep.copy()
+    kept[0] = False  # the plan's last pose: toured already
+    new_ids, new_Q = seq[kept], Qs[kept]
+    vias = {p: v for p, v in repair.vias.items() if p in set(new_ids.tolist())}
+    _append_rows(run.plan_dir, new_ids, new_Q, vias)
+    path = tour_path(seq[repair.keep], Qs[repair.keep], repair.vias)
+    return Extension(tuple(int(p) for p in new_ids), tuple(repair.dropped), int(sum(len(v) for v in vias.values())),
+                     float(path_time(robot, path)) if len(path) > 1 else 0.0)
+
+
+def _append_rows(plan_dir, ids, Q, vias) -> None:
+    """Add rows to vias.csv (those of ``ids`` replaced) and then to poses.csv."""
+    def row(pid, q):
+        return f"{int(pid)}," + ",".join(repr(float(v)) for v in q)
+
+    new = set(int(p) for p in ids)
+    vpath = plan_dir / "vias.csv"
+    N = Q.shape[1]
+    lines = vpath.read_text().splitlines() if vpath.is_file() else ["before_pose_id," + ",".join(f"q{j + 1}" for j in range(N))]
+    lines = [lines[0]] + [ln for ln in lines[1:] if ln.strip() and int(float(ln.split(",")[0])) not in new]
+    lines += [row(p, v) for p in ids for v in vias.get(int(p), [])]
+    atomic_write(vpath, "\n".join(lines) + "\n")
+    ppath = plan_dir / "poses.csv"
+    text = ppath.read_text()
+    if not text.endswith("\n"):
+        text += "\n"
+    atomic_write(ppath, text + "".join(row(p, q) + "\n" for p, q in zip(ids, Q)))
