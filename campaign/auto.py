@@ -396,9 +396,10 @@ class _Loop:
         key = {"effects": effects, "poses": self.run.stored_pose_count()}
         metrics_path = self.run.calibration_dir / "metrics.json"
         if self.state.get("calibrated") != key or not metrics_path.is_file():
-            calibrate(self.run.path, ann=False, report=False)
+            result = calibrate(self.run.path, ann=False, report=False)
             self.state["calibrated"] = key
             self.save()
+            self.say(f"  calibrate: {result.order[-1]} on {int((~result.is_test).sum())} training poses")
         return json.loads(metrics_path.read_text())
 
     def diagnose(self):
@@ -407,6 +408,9 @@ class _Loop:
 
         d = diagnose(self.run.path)
         write_diagnosis(d, report=False)
+        verdict = {None: "nothing left to find" if d.at_floor else "nothing found", "unexplained": "unexplained"}
+        self.say(f"  diagnose: {verdict.get(d.verdict, 'add ' + str(d.verdict))}"
+                 + (f" (depends on {_inputs_text(d.depends_on)})" if d.verdict == "unexplained" and d.depends_on else ""))
         return d
 
     def round(self, metrics, diagnosis) -> Round:
