@@ -59,6 +59,11 @@ TARGET_FLOOR_SHARE = 0.5
 DEFAULT_FLOOR_MM = 0.0099
 #: inputs of the model-free test that measuring again later reveals (not the joints)
 TIME_INPUTS = ("time_s", "temperature_c")
+#: a floor known to worse than this (relative, 1 σ) does not decide "at the floor" alone: FLOOR_POSES
+#: poses are measured FLOOR_TIMES times back to back first (once), for the noise itself
+FLOOR_UNCERTAINTY_MAX = 0.1
+FLOOR_POSES = 8
+FLOOR_TIMES = 4
 
 
 @dataclass(frozen=True)
@@ -126,8 +131,8 @@ class CellSource:
 
 @dataclass(frozen=True)
 class Decision:
-    """What a round decided. kind: ``add_effect`` (``effect``), ``design``, ``reveal`` or
-    ``remeasure`` (``pose_ids`` to append and measure), or ``stop`` (``reason``: ``at_floor``,
+    """What a round decided. kind: ``add_effect`` (``effect``), ``design``, ``reveal``, ``floor``
+    or ``remeasure`` (``pose_ids`` to append and measure), or ``stop`` (``reason``: ``at_floor``,
     ``unexplained``, ``no_floor``, ``budget``, ``max_poses``, ``no_poses``); text: one line."""
 
     kind: str
@@ -239,6 +244,10 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         cell = _resolve_cell(run, state, cell)
         opts = _resolve_options(state, options)
         state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if cell.sim or cell.cell == "sim":  # what the simulated cell would refuse, before anything is planned
+            from campaign.measure.session import check_simulated_cell
+
+            check_simulated_cell(run.config, run.robot())
         if state["plan"] is None:
             _plan(run, state, opts, say, progress)
         limits = _limits(state, opts)
@@ -362,7 +371,7 @@ class _Loop:
         elif d.pose_ids:
             from campaign.plan.extend import append_tour
 
-            ext = append_tour(self.run, self.space, d.pose_ids)
+            ext = append_tour(self.run, self.space, d.pose_ids, offset_repeats=d.kind == "remeasure")
             if ext.added or ext.dropped:
                 self.say(f"  plan: {len(ext.added)} poses appended to {self.run.poses_csv}"
                          + (f" ({ext.via_poses} via poses)" if ext.via_poses else "")
@@ -372,11 +381,12 @@ class _Loop:
         from campaign.measure.session import measure_run
 
         c = self.cell
+        log = lambda msg: self.say(f"  {msg}")  # noqa: E731
         if c.cell is not None:
-            res = _measure_with_cell(self.run, c.cell, self.progress)
+            res = _measure_with_cell(self.run, c.cell, self.progress, log)
         else:
             res = measure_run(self.run.path, sim=c.sim, controller=c.controller, tracker=c.tracker,
-                              progress=self.progress, log=lambda msg: self.say(f"  {msg}"))
+                              progress=self.progress, log=log)
         if res.measured or res.failed:
             self.say(f"  measured {res.measured} poses" + (f", {res.failed} failed" if res.failed else "")
                      + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
@@ -457,11 +467,12 @@ class _Loop:
         return max(n, 0), limit
 
     def design_effects(self):
-        """The current effects a plan can weigh (not those whose context is known only when measuring)."""
+        """The current effects a plan can weigh: not those of a context known only when measuring
+        (time, temperature, ...), which no pose chosen in advance informs."""
         from campaign.effects.base import make_effect
 
         robot = self.space.robot
-        return tuple(e for e in self.run.effects if not set(make_effect(e, robot).context_keys) - {"time_s"})
+        return tuple(e for e in self.run.effects if not make_effect(e, robot).context_keys)
 
 
 # -- deciding --------------------------------------------------------------------------------------
@@ -480,11 +491,12 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     target = limits.target_mm
     if target is None:
         target = TARGET_FLOOR_SHARE * (floor_mm if floor_mm else DEFAULT_FLOOR_MM)
+    floor_round = _floor_round(diagnosis, before, loop)
     if diagnosis.verdict is None:
         if not diagnosis.floor.known:
             return Decision("stop", "stop: no missing effect found, but the run has no noise floor to say how close "
                                     "the model is to the noise", reason="no_floor")
-        return _design_or_stop(rnd, limits, loop, target, at_floor=True)
+        return floor_round or _design_or_stop(rnd, limits, loop, target, at_floor=True)
     # "unexplained"
     reveals = _reveal_rounds(before)
     if diagnosis.structure_significant and diagnosis.depends_on:
@@ -520,6 +532,8 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         return Decision("reveal", f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: measure "
                                   f"{len(pose_ids)} poses spread over {', '.join(inputs)}", pose_ids=tuple(pose_ids))
     # above the floor, and nothing says on what the rest depends
+    if floor_round is not None:
+        return floor_round
     d = _design_or_stop(rnd, limits, loop, target, at_floor=False)
     if d.kind != "stop" or reveals:
         return d
@@ -535,6 +549,33 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
     return Decision("reveal", f"above the floor, and no input found for it: measure {len(pose_ids)} poses spread over "
                               "the joints", pose_ids=tuple(pose_ids))
+
+
+def _floor_round(diagnosis, before, loop) -> Decision | None:
+    """Poses measured back to back for the noise floor, when the floor is known to worse than
+    FLOOR_UNCERTAINTY_MAX: too uncertain to tell a model at the noise from one a little above it
+    (and a floor from repeats spread over the campaign holds the drift between them); once per
+    run. None otherwise, or when the limits leave no room."""
+    from campaign.plan.extend import design_poses
+    from campaign.plan.selection import REPEAT_ID_STRIDE
+
+    floor, ratio = diagnosis.floor, diagnosis.model_to_noise
+    if not floor.known or ratio is None or floor.relative_uncertainty <= FLOOR_UNCERTAINTY_MAX:
+        return None
+    if any(r.decision.kind == "floor" for r in before):
+        return None
+    n, _ = loop.room(FLOOR_POSES * FLOOR_TIMES)
+    n = min(n, loop.room(10 ** 9)[0] // 2)  # half of what the limits leave at most: the model may need the rest
+    if n < 2 * FLOOR_TIMES:
+        return None
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    chosen, _, _ = design_poses(loop.space, ids_train, ids, loop.design_effects(), n_max=n // FLOOR_TIMES)
+    pose_ids = tuple(int(p) + r * REPEAT_ID_STRIDE for p in chosen for r in range(FLOOR_TIMES))
+    return Decision("floor", f"the floor is known only to ±{100 * floor.relative_uncertainty:.0f} % "
+                             f"(held-out {ratio:.2f}× it on the folds): "
+                             f"measure {len(chosen)} informative poses {FLOOR_TIMES} times back to back, for the noise",
+                    pose_ids=pose_ids)
 
 
 def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
@@ -688,15 +729,19 @@ def plot_rounds(rounds, path: Path):
     return path
 
 
-def _measure_with_cell(run, spec, progress):
-    """Measure with a cell from adapters (`campaign run --cell SPEC`): only the simulated cell
-    until campaign.cell lands."""
+def _measure_with_cell(run, spec, progress, log):
+    """Measure with a cell served from adapters, as `campaign run RUN --cell SPEC` does (the same
+    library call); where that call does not know cells yet, ``sim`` alone (= ``--sim``)."""
+    import inspect
+
     from campaign.measure.session import measure_run
 
+    if "cell" in inspect.signature(measure_run).parameters:
+        return measure_run(run.path, cell=spec, progress=progress, log=log)
     if spec != "sim":
-        raise ConfigError(f"--cell {spec}: this version of `campaign auto` measures with --cell sim only "
+        raise ConfigError(f"--cell {spec}: this version measures with --cell sim only "
                           "(or --controller HOST:PORT --tracker HOST:PORT)")
-    return measure_run(run.path, sim=True, progress=progress)
+    return measure_run(run.path, sim=True, progress=progress, log=log)
 
 
 __all__ = ["AutoOptions", "AutoResult", "CellSource", "Decision", "Round", "auto", "decide", "verdict_text"]

@@ -10,6 +10,16 @@ from campaign.measure.driver import RunOptions, RunResult, measured_robot, read_
 from campaign.run import RunFolder
 
 
+def check_simulated_cell(cfg, robot) -> None:
+    """ConfigError (one line) for what the simulated cell of ``cfg`` would refuse: an unknown
+    hidden effect, or hidden parameters that do not fit it."""
+    from campaign.effects.base import make_effect
+    from campaign.sim.truth import hidden_effect_params
+
+    for spec, params in cfg.hidden_effects():
+        hidden_effect_params(make_effect(spec, robot), cfg.sim.seed, params)
+
+
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
                 log=None, max_poses=None, poses_csv=None, retry_failed: bool = False,
                 verbose: bool = False, frame: str = "robot", cell: str | None = None, options=None,
@@ -53,11 +63,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     robot.check_joints(plan[1], field=str(poses_csv or run.poses_csv), pose_ids=plan[0])
     measured_robot(robot)  # refused before the run is touched
     if sim:  # what the simulated cell would refuse, refused before it is started
-        from campaign.effects.base import make_effect
-        from campaign.sim.truth import hidden_effect_params
-
-        for spec, params in cfg.hidden_effects():
-            hidden_effect_params(make_effect(spec, robot), cfg.sim.seed, params)
+        check_simulated_cell(cfg, robot)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
               verbose=verbose, plan=plan, frame=frame, key=key)
     with run.lock("run"), _no_empty_log(run):

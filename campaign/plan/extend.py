@@ -25,12 +25,17 @@ from functools import cached_property
 
 import numpy as np
 
-from campaign.errors import DataError
+from campaign.errors import ConfigError, DataError
 from campaign.fileio import atomic_write
 from campaign.plan.selection import REPEAT_ID_STRIDE, base_pose_id
 
 #: greedy additions between two checks of the predicted model error (:func:`design_poses`)
 DESIGN_CHECK_EVERY = 4
+#: a pose measured again later (:func:`remeasure_poses`) is commanded this much further on its last
+#: joint per repeat (rad; 1 µrad moves the tool by a fraction of a µm, which the model accounts for,
+#: as it takes the commanded joints): the noise floor pools repeats of identical joint vectors, and
+#: two measurements hours apart would give it the drift between them, not the noise
+REMEASURE_OFFSET_RAD = 1e-6
 
 
 @dataclass(frozen=True)
@@ -99,12 +104,11 @@ def design_poses(space: PlanSpace, measured_ids, planned_ids, effects, *, n_max:
     predicted mean position error of the model against the truth over the suitable poses is at
     most that (after at least ``n_min`` poses). Returns (grid indices, predicted model error mm
     before, after)."""
-    from campaign.plan.selection import TRACKER_NOISE_M, Design, information_model, predicted_model_position_mm
+    from campaign.plan.selection import TRACKER_NOISE_M, Design, predicted_model_position_mm
 
     where = {int(g): i for i, g in enumerate(space.suitable)}
     train = np.array([where[int(b)] for b in base_pose_id(measured_ids) if int(b) in where], dtype=np.int64)
-    info = information_model(space.robot, space.grid.q(space.suitable), effects=tuple(effects),
-                             noise_m=TRACKER_NOISE_M if noise_m is None else noise_m)
+    info = _information(space, tuple(effects), TRACKER_NOISE_M if noise_m is None else noise_m)
     before = predicted_model_position_mm(info, train)
     d = Design(info, "D")
     for j in train:
@@ -127,6 +131,28 @@ def design_poses(space: PlanSpace, measured_ids, planned_ids, effects, *, n_max:
     if chosen:
         after = predicted_model_position_mm(info, np.concatenate([train, chosen]))
     return space.suitable[np.array(chosen, dtype=np.int64)], before, after
+
+
+def _information(space: PlanSpace, effects, noise_m):
+    """The plan's information model of the suitable poses for the geometry and ``effects``,
+    leaving out the effects no pose informs (of time or a measured context, which a plan cannot
+    set: the design weighs the rest)."""
+    from campaign.plan.selection import information_model
+
+    Q = space.grid.q(space.suitable)
+    try:
+        return information_model(space.robot, Q, effects=effects, noise_m=noise_m)
+    except ConfigError:
+        if not effects:
+            raise
+    kept = []
+    for e in effects:
+        try:
+            information_model(space.robot, Q[:64], effects=(e,), noise_m=noise_m)
+            kept.append(e)
+        except ConfigError:
+            continue
+    return information_model(space.robot, Q, effects=tuple(kept), noise_m=noise_m)
 
 
 def load_features(robot, q) -> np.ndarray:
@@ -177,7 +203,8 @@ def spread_poses(space: PlanSpace, measured_ids, planned_ids, inputs, n: int) ->
 
 def remeasure_poses(space: PlanSpace, measured_ids, times_s, n: int) -> np.ndarray:
     """``n`` repeat ids (``p + r·10⁹``, r the next free repeat of p) of measured poses: among the
-    oldest half of the measured poses, those spread farthest apart over the joints."""
+    oldest half of the measured poses, those spread farthest apart over the joints. Append them
+    with ``append_tour(..., offset_repeats=True)`` (REMEASURE_OFFSET_RAD)."""
     measured_ids = np.asarray(measured_ids, dtype=np.int64)
     times_s = np.asarray(times_s, dtype=float)
     base = base_pose_id(measured_ids)
@@ -211,13 +238,14 @@ class Extension:
     motion_s: float
 
 
-def append_tour(run, space: PlanSpace, pose_ids) -> Extension:
+def append_tour(run, space: PlanSpace, pose_ids, *, offset_repeats: bool = False) -> Extension:
     """Append ``pose_ids`` (grid indices, or repeat ids) to the run's plan: ordered into a short
     tour from the plan's last pose (front-of-wall and behind-wall groups, as `campaign plan`),
     every motion checked at the plan's motion clearance and repaired through via postures or
     the pose dropped (campaign.plan.repair), then written to RUN/plan/vias.csv and poses.csv
     (atomically, vias first). Ids the plan holds already are skipped, so a call repeated after
-    an interruption appends nothing twice."""
+    an interruption appends nothing twice. ``offset_repeats``: repeat ids r are commanded
+    r·REMEASURE_OFFSET_RAD further on the last joint (:func:`remeasure_poses`)."""
     from campaign.measure.driver import read_plan
     from campaign.plan.pipeline import _order_tour
     from campaign.plan.repair import check_segments, repair_tour, tour_path
@@ -243,7 +271,9 @@ def append_tour(run, space: PlanSpace, pose_ids) -> Extension:
     repair = repair_tour(robot, space.checker, seq, Qs, ok, max_step, mc)
     kept = repair.keep.copy()
     kept[0] = False  # the plan's last pose: toured already
-    new_ids, new_Q = seq[kept], Qs[kept]
+    new_ids, new_Q = seq[kept], Qs[kept].copy()
+    if offset_repeats:
+        new_Q[:, -1] += (new_ids // REPEAT_ID_STRIDE) * REMEASURE_OFFSET_RAD
     vias = {p: v for p, v in repair.vias.items() if p in set(new_ids.tolist())}
     _append_rows(run.plan_dir, new_ids, new_Q, vias)
     path = tour_path(seq[repair.keep], Qs[repair.keep], repair.vias)
