@@ -717,6 +717,9 @@ def plot_rounds(rounds, path: Path):
         ax.annotate(f"{r.model.replace('geometric', 'geo')}\n{r.poses} poses", (r.number, r.heldout_mm),
                     textcoords="offset points", xytext=(0, 8), ha="center", fontsize=7)
     ax.set_yscale("log")
+    values = [r.heldout_mm for r in rounds] + [f for f in floors if f]
+    ax.set_ylim(min(values) / 2, max(values) * 3)
+    ax.set_xlim(0.5, len(rounds) + 0.5)
     ax.set_xticks(x)
     ax.set_xlabel("round")
     ax.set_ylabel("held-out mean ‖Δt‖ [mm]")
