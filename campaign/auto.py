@@ -104,14 +104,18 @@ class CellSource:
     cell: str | None = None
     controller: tuple | None = None
     tracker: tuple | None = None
+    #: with ``cell``: the adapters' options file (`campaign run --cell SPEC --options FILE`)
+    options: str | None = None
 
     def __post_init__(self):
         given = sum([bool(self.sim), self.cell is not None, self.controller is not None])
         if given != 1 or (self.controller is None) != (self.tracker is None):
             raise ConfigError("give one of --sim, --cell SPEC, or --controller HOST:PORT with --tracker HOST:PORT")
+        if self.options is not None and self.cell is None:
+            raise ConfigError("--options goes with --cell (the adapters' options)")
 
     def as_json(self) -> dict:
-        return {"sim": self.sim, "cell": self.cell,
+        return {"sim": self.sim, "cell": self.cell, "options": self.options,
                 "controller": None if self.controller is None else list(self.controller),
                 "tracker": None if self.tracker is None else list(self.tracker)}
 
@@ -119,13 +123,14 @@ class CellSource:
     def from_json(cls, doc) -> "CellSource":
         return cls(bool(doc.get("sim")), doc.get("cell"),
                    None if doc.get("controller") is None else (str(doc["controller"][0]), int(doc["controller"][1])),
-                   None if doc.get("tracker") is None else (str(doc["tracker"][0]), int(doc["tracker"][1])))
+                   None if doc.get("tracker") is None else (str(doc["tracker"][0]), int(doc["tracker"][1])),
+                   doc.get("options"))
 
     def text(self) -> str:
         if self.sim:
             return "--sim"
         if self.cell is not None:
-            return f"--cell {self.cell}"
+            return f"--cell {self.cell}" + (f" --options {self.options}" if self.options else "")
         return f"--controller {self.controller[0]}:{self.controller[1]} --tracker {self.tracker[0]}:{self.tracker[1]}"
 
 
@@ -381,12 +386,9 @@ class _Loop:
         from campaign.measure.session import measure_run
 
         c = self.cell
-        log = lambda msg: self.say(f"  {msg}")  # noqa: E731
-        if c.cell is not None:
-            res = _measure_with_cell(self.run, c.cell, self.progress, log)
-        else:
-            res = measure_run(self.run.path, sim=c.sim, controller=c.controller, tracker=c.tracker,
-                              progress=self.progress, log=log)
+        # the library call of `campaign run RUN --sim | --cell SPEC [--options FILE] | --controller --tracker`
+        res = measure_run(self.run.path, sim=c.sim, cell=c.cell, options=c.options, controller=c.controller,
+                          tracker=c.tracker, progress=self.progress, log=lambda msg: self.say(f"  {msg}"))
         if res.measured or res.failed:
             self.say(f"  measured {res.measured} poses" + (f", {res.failed} failed" if res.failed else "")
                      + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
@@ -730,21 +732,6 @@ def plot_rounds(rounds, path: Path):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
-
-
-def _measure_with_cell(run, spec, progress, log):
-    """Measure with a cell served from adapters, as `campaign run RUN --cell SPEC` does (the same
-    library call); where that call does not know cells yet, ``sim`` alone (= ``--sim``)."""
-    import inspect
-
-    from campaign.measure.session import measure_run
-
-    if "cell" in inspect.signature(measure_run).parameters:
-        return measure_run(run.path, cell=spec, progress=progress, log=log)
-    if spec != "sim":
-        raise ConfigError(f"--cell {spec}: this version measures with --cell sim only "
-                          "(or --controller HOST:PORT --tracker HOST:PORT)")
-    return measure_run(run.path, sim=True, progress=progress, log=log)
 
 
 __all__ = ["AutoOptions", "AutoResult", "CellSource", "Decision", "Round", "auto", "decide", "verdict_text"]

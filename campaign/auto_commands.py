@@ -17,9 +17,13 @@ def register(sub):
     p.add_argument("run", metavar="RUN", help="run folder (planned by auto when it has no plan)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", action="store_true", help="measure on the simulated cell")
-    src.add_argument("--cell", metavar="SPEC", default=None, help="measure on a cell served from adapters (sim)")
+    src.add_argument("--cell", metavar="SPEC", default=None,
+                     help="measure on a cell served from adapters, as `campaign run --cell SPEC` (sim, mujoco, "
+                          "FILE.py, module or entry point; docs/cell.md)")
     src.add_argument("--controller", metavar="HOST:PORT", help="the robot controller")
     p.add_argument("--tracker", metavar="HOST:PORT", help="the laser tracker (with --controller)")
+    p.add_argument("--options", metavar="FILE", default=None,
+                   help="with --cell: the adapters' options (YAML with 'controller:' and 'tracker:' sections)")
     p.add_argument("--budget", type=float, metavar="HOURS", default=None,
                    help="campaign hours at most (the run's clock: motion, settle, tracker; default: no limit)")
     p.add_argument("--target-mm", type=float, metavar="X", default=None,
@@ -45,9 +49,11 @@ def _auto(args):
         raise ConfigError("--tracker goes with --controller")
     if args.controller and not args.tracker:
         raise ConfigError("--controller needs --tracker HOST:PORT too")
+    if args.options and not args.cell:
+        raise ConfigError("--options goes with --cell (the adapters' options)")
     cell = None
     if args.sim or args.cell or args.controller:
-        cell = CellSource(sim=args.sim, cell=args.cell,
+        cell = CellSource(sim=args.sim, cell=args.cell, options=args.options,
                           controller=_hostport(args.controller, "controller") if args.controller else None,
                           tracker=_hostport(args.tracker, "tracker") if args.tracker else None)
     options = AutoOptions(budget_h=args.budget, target_mm=args.target_mm, max_poses=args.max_poses,
