@@ -256,6 +256,8 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         if state["plan"] is None:
             _plan(run, state, opts, say, progress)
         limits = _limits(state, opts)
+        for r in state["rounds"]:  # the story so far, when resumed
+            say(Round.from_json(r).line())
         if state["finished"] is not None:
             if not _reopen(run, state, limits):
                 return _result(run, state, say, report=False)

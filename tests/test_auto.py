@@ -255,10 +255,75 @@ def test_a_finished_auto_run_again_reports_and_measures_nothing(reference, capsy
     assert main(["auto", str(run), "--no-report"]) == 0
     again = capsys.readouterr().out
     assert _measured_ids(run) == before and len(_state(run)["rounds"]) == rounds
-    assert again.strip().splitlines()[0].startswith("verdict: at the measurement noise")
+    lines = again.strip().splitlines()
+    assert [ln for ln in lines if ln.startswith("round ")] == [ln for ln in out.splitlines() if ln.startswith("round ")]
+    assert lines[-2].startswith("verdict: at the measurement noise")
 
 
 def test_auto_without_a_cell_on_a_new_run_is_one_line(tmp_path, capsys):
     assert main(["auto", str(tmp_path / "new")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "say where to measure (--sim" in err[0]
+
+
+# -- the decision, as a function ----------------------------------------------------------------------
+class _StubLoop:
+    """What decide asks of a run, without one: no room left, or room and a fixed choice of poses."""
+
+    def __init__(self, room=0):
+        self._room = room
+        self.space = None
+
+    def room(self, wanted):
+        return min(wanted, self._room), ("max_poses" if self._room < wanted else None)
+
+    def training(self):
+        return np.arange(100), np.arange(100) * 20.0
+
+    def planned(self):
+        return np.arange(130), None
+
+
+def _diagnosis(verdict, ranking=(), depends_on=(), significant=True):
+    from types import SimpleNamespace
+
+    from campaign.measure.floor import NoiseFloor
+
+    floor = NoiseFloor("repeats", np.full(3, 6e-6), 0.0099, 90, 0.05, "test")
+    return SimpleNamespace(verdict=verdict, ranking=tuple(ranking), depends_on=list(depends_on),
+                           structure_significant=significant, floor=floor, model_to_noise=3.0, signature=None,
+                           at_floor=verdict is None, expected_model_to_noise=1.0)
+
+
+def _round(decision_kind="stop", verdict="unexplained", depends_on=()):
+    from campaign.auto import Decision, Round
+
+    return Round(1, 150, 156, 0.8, "geometric", (), 0.05, 0.0099, verdict, False, tuple(depends_on), None,
+                 Decision(decision_kind, ""))
+
+
+def test_decide_adds_a_significant_candidate_by_its_spec_even_when_it_explains_only_part():
+    from types import SimpleNamespace
+
+    from campaign.auto import Limits, decide
+
+    c = SimpleNamespace(effect="runout", spec="/x/runout.py:Runout", significant=True, description="d",
+                        heldout_mean_position_mm_before=0.2, heldout_mean_position_mm_after=0.1)
+    d = decide(_diagnosis("unexplained", [c], ["q2"]), _round(), [], Limits(312, None, None), _StubLoop())
+    assert (d.kind, d.effect) == ("add_effect", "/x/runout.py:Runout") and "part" in d.text
+
+
+def test_decide_stops_unexplained_when_revealing_poses_did_not_change_the_first_input():
+    from campaign.auto import Limits, decide
+
+    before = [_round("reveal", "unexplained", ("q3", "q2"))]
+    d = decide(_diagnosis("unexplained", depends_on=["q3", "q1"]), _round(), before, Limits(312, None, None),
+               _StubLoop(room=30))
+    assert (d.kind, d.reason) == ("stop", "unexplained")
+
+
+def test_decide_stops_at_the_pose_limit_when_an_unexplained_needs_poses():
+    from campaign.auto import Limits, decide
+
+    d = decide(_diagnosis("unexplained", depends_on=["q3"]), _round(), [], Limits(130, None, None), _StubLoop(room=0))
+    assert (d.kind, d.reason) == ("stop", "max_poses")
