@@ -249,6 +249,10 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         cell = _resolve_cell(run, state, cell)
         opts = _resolve_options(state, options)
         state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if cell.cell is not None and cell.cell != "sim":  # a bad spec in one line, before anything is planned
+            from campaign.cell.launcher import cell_specs
+
+            cell_specs(cell.cell)
         if cell.sim or cell.cell == "sim":  # what the simulated cell would refuse, before anything is planned
             from campaign.measure.session import check_simulated_cell
 

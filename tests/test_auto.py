@@ -327,3 +327,11 @@ def test_decide_stops_at_the_pose_limit_when_an_unexplained_needs_poses():
 
     d = decide(_diagnosis("unexplained", depends_on=["q3"]), _round(), [], Limits(130, None, None), _StubLoop(room=0))
     assert (d.kind, d.reason) == ("stop", "max_poses")
+
+
+def test_auto_refuses_a_cell_spec_run_refuses_before_planning(tmp_path, capsys):
+    run = tmp_path / "r"
+    assert main(["auto", str(run), "--cell", "adapters.py:MyController", "--no-report", *SMALL]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cell adapters.py:MyController: --cell names a file or module" in err[0]
+    assert not run.exists()
