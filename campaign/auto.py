@@ -682,13 +682,16 @@ def _result(run, state, say, *, report: bool) -> AutoResult:
 
 def write_auto_report(run: RunFolder, state: dict, text: str) -> Path:
     """RUN/calibration/report.html of the final model (calibrated again, with its report, when the
-    last round's calibration wrote none) and RUN/auto/report.html: the story, one line per round,
-    and the held-out error over the rounds against the noise floor (auto/rounds.png)."""
+    last round's calibration wrote none; with the neural compensator after the long campaign,
+    ``--select 0``, when it has the training poses for one) and RUN/auto/report.html: the story,
+    one line per round, and the held-out error over the rounds against the noise floor
+    (auto/rounds.png)."""
     from campaign.identify.calibrate import calibrate
 
     if not (run.calibration_dir / "report.html").is_file() or \
             (run.calibration_dir / "report.html").stat().st_mtime < (run.calibration_dir / "metrics.json").stat().st_mtime:
-        calibrate(run.path, ann=False, report=True)
+        long = (state.get("options") or {}).get("select") == 0
+        calibrate(run.path, ann="auto" if long else False, report=True)
         state["calibrated"] = {"effects": list(run.effects), "poses": run.stored_pose_count()}
         _save_state(run, state)
     rounds = [Round.from_json(r) for r in state["rounds"]]
