@@ -102,7 +102,7 @@ def auto_state(run: Path) -> dict:
     return json.loads((run / "auto" / "state.json").read_text())
 
 
-def two_effects(seed: int, work: Path, fixed) -> dict:
+def two_effects(seed: int, work: Path, fixed, fixed_from=None) -> dict:
     hidden = ("ground_compliance", "joint_compliance")
     run = work / f"auto{seed}"
     write_config(run, seed, hidden)
@@ -118,6 +118,9 @@ def two_effects(seed: int, work: Path, fixed) -> dict:
     out["auto"]["done"] = bool(out["auto"]["ratio_to_true_floor"] <= 1.3 and set(hidden) <= set(effects)
                                and out["auto"]["poses"] <= 2 * state["plan"]["poses"])
     for size in fixed:
+        if fixed_from is not None:  # the fixed plans do not depend on auto: rows of an earlier run of this script
+            out[f"select_{size}"] = {**fixed_from[str(seed)][f"select_{size}"], "from_earlier_run": True}
+            continue
         r = work / f"fixed{size}_{seed}"
         write_config(r, seed, hidden)
         t0 = time.perf_counter()
@@ -153,13 +156,17 @@ def main():
     ap.add_argument("--open-seeds", type=int, default=10)
     ap.add_argument("--fixed", default="120,300,all")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "auto.json"))
+    ap.add_argument("--fixed-from", default=None, metavar="JSON",
+                    help="take the fixed plans' rows from an earlier results file (same seeds and cells)")
     args = ap.parse_args()
+    fixed_from = json.loads(Path(args.fixed_from).read_text())["two_effects"] if args.fixed_from else None
     fixed = [f for f in args.fixed.split(",") if f]
-    results = {"two_effects": {}, "open_world": {}, "load_average_start": list(os.getloadavg())}
+    results = {"two_effects": {}, "open_world": {}, "load_average_start": list(os.getloadavg()),
+               "fixed_plans_from": args.fixed_from}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for s in range(args.seeds):
-            results["two_effects"][s] = r = two_effects(s, work, fixed)
+            results["two_effects"][s] = r = two_effects(s, work, fixed, fixed_from)
             print(f"two effects seed {s}: " + "; ".join(f"{k} {v['poses']} poses {v['campaign_h']:.2f} h "
                                                         f"{v['wall_s']:.0f} s ratio {v['ratio_to_true_floor']:.2f}"
                                                         for k, v in r.items()), flush=True)

@@ -137,7 +137,8 @@ class CellSource:
 @dataclass(frozen=True)
 class Decision:
     """What a round decided. kind: ``add_effect`` (``effect``), ``design``, ``reveal``, ``floor``
-    or ``remeasure`` (``pose_ids`` to append and measure), or ``stop`` (``reason``: ``at_floor``,
+    or ``remeasure`` (``pose_ids`` to append and measure; ``reason`` ``probe`` for poses that
+    test a structure found below the detection limit at the floor), or ``stop`` (``reason``: ``at_floor``,
     ``unexplained``, ``no_floor``, ``budget``, ``max_poses``, ``no_poses``); text: one line."""
 
     kind: str
@@ -174,6 +175,8 @@ class Round:
     depends_on: tuple
     signature: str | None
     decision: Decision
+    #: the model-free test's permutation importance per input (shares), {} without the test
+    importance: dict = field(default_factory=dict)
 
     @property
     def ratio(self) -> float | None:
@@ -195,7 +198,7 @@ class Round:
         kw = {k: doc[k] for k in ("number", "poses", "planned", "hours", "model", "heldout_mm", "floor_mm",
                                   "verdict", "at_floor", "signature")}
         return cls(**kw, effects=tuple(doc["effects"]), depends_on=tuple(doc["depends_on"]),
-                   decision=Decision.from_json(doc["decision"]))
+                   decision=Decision.from_json(doc["decision"]), importance=dict(doc.get("importance") or {}))
 
 
 @dataclass(frozen=True)
@@ -436,11 +439,19 @@ class _Loop:
         floor = (metrics.get("noise_floor") or {}).get("mean_position_mm")
         sig = diagnosis.signature.text() if diagnosis.signature is not None and diagnosis.structure_significant else None
         ids, _ = self.planned()
-        base = Round(len(self.state["rounds"]) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
+        before = [Round.from_json(r) for r in self.state["rounds"]]
+        importance = {} if diagnosis.structure is None else {k: float(v) for k, v in diagnosis.structure.importance.items()}
+        depends_on = tuple(diagnosis.depends_on)
+        weak = weak_structure_inputs(diagnosis)
+        if not depends_on and weak:
+            depends_on = tuple(weak)
+            if before and before[-1].decision.reason == "probe":  # the same weak structure twice: both tests' ranking
+                both = {k: importance.get(k, 0.0) + before[-1].importance.get(k, 0.0) for k in importance}
+                depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k]) if k in weak or k in before[-1].depends_on)
+        base = Round(len(before) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
                      tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
-                     diagnosis.verdict, diagnosis.at_floor, tuple(diagnosis.depends_on), sig, Decision("stop", ""))
-        return replace(base, decision=decide(diagnosis, base, [Round.from_json(r) for r in self.state["rounds"]],
-                                             self.limits, self))
+                     diagnosis.verdict, diagnosis.at_floor, depends_on, sig, Decision("stop", ""), importance)
+        return replace(base, decision=decide(diagnosis, base, before, self.limits, self))
 
     # -- what decide asks about the run --------------------------------------------------------
     def planned(self):
@@ -504,6 +515,20 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         if not diagnosis.floor.known:
             return Decision("stop", "stop: no missing effect found, but the run has no noise floor to say how close "
                                     "the model is to the noise", reason="no_floor")
+        weak = weak_structure_inputs(diagnosis)
+        if weak and floor_round is None:
+            s = diagnosis.structure
+            what = (f"the model-free test finds {100 * s.heldout_gain:.0f} % of the held-out error on "
+                    f"{_inputs_text(list(rnd.depends_on) or weak)} (p = {s.p_value:.2g}), below what the floor's "
+                    "uncertainty lets it call significant")
+            if before and before[-1].decision.reason == "probe":
+                return Decision("stop", f"stop: unexplained — again after the poses chosen to test it, {what}",
+                                reason="unexplained")
+            n, _ = loop.room(REVEAL_POSES)
+            if n > 0:
+                d = _reveal(weak, diagnosis.signature, loop, n)
+                if d is not None:
+                    return replace(d, text=f"at the floor, but {what}: {d.text}", reason="probe")
         return floor_round or _design_or_stop(rnd, limits, loop, target, at_floor=True)
     # "unexplained"
     reveals = _reveal_rounds(before)
@@ -520,25 +545,10 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         n, limit = loop.room(REVEAL_POSES)
         if n <= 0:
             return _limit_stop(limit, rnd)
-        ids_train, times = loop.training()
-        if top in TIME_INPUTS:
-            from campaign.plan.extend import remeasure_poses
-
-            pose_ids = remeasure_poses(loop.space, ids_train, times, n)
-            return Decision("remeasure", f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: measure "
-                                         f"{len(pose_ids)} of the oldest poses again now", pose_ids=tuple(pose_ids))
-        from campaign.plan.extend import spread_poses
-
-        inputs = [i for i in diagnosis.depends_on if i not in TIME_INPUTS]
-        sig = diagnosis.signature
-        if sig is not None and any(k != "time_s" for k in sig.growth):
-            inputs.append("gravity load")
-        ids, _ = loop.planned()
-        pose_ids = spread_poses(loop.space, ids_train, ids, inputs, n)
-        if len(pose_ids) == 0:
+        d = _reveal(diagnosis.depends_on, diagnosis.signature, loop, n)
+        if d is None:
             return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
-        return Decision("reveal", f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: measure "
-                                  f"{len(pose_ids)} poses spread over {', '.join(inputs)}", pose_ids=tuple(pose_ids))
+        return replace(d, text=f"unexplained, depends on {_inputs_text(diagnosis.depends_on)}: {d.text}")
     # above the floor, and nothing says on what the rest depends
     if floor_round is not None:
         return floor_round
@@ -584,6 +594,42 @@ def _floor_round(diagnosis, before, loop) -> Decision | None:
                              f"(held-out {ratio:.2f}× it on the folds): "
                              f"measure {len(chosen)} informative poses {FLOOR_TIMES} times back to back, for the noise",
                     pose_ids=pose_ids)
+
+
+def weak_structure_inputs(diagnosis) -> list:
+    """The inputs (by permutation importance) of a structure the model-free test finds by its
+    p-value (p < ALPHA, a positive held-out gain) but does not call significant: below the
+    detection limit that the floor's uncertainty sets at the floor. Empty otherwise."""
+    from campaign.diagnose.engine import ALPHA, MIN_IMPORTANCE_SHARE
+
+    s = diagnosis.structure
+    if s is None or diagnosis.structure_significant or not (s.p_value < ALPHA and s.heldout_gain > 0):
+        return []
+    return s.depends_on(MIN_IMPORTANCE_SHARE)
+
+
+def _reveal(inputs, signature, loop, n: int) -> Decision | None:
+    """``n`` poses that reveal a structure depending on ``inputs``: measured poses again now when
+    time (or temperature) comes first, else new poses spread over the joints among the inputs (and
+    the gravity load when the signature says it grows with it). None when no pose is left."""
+    ids_train, times = loop.training()
+    if inputs and inputs[0] in TIME_INPUTS:
+        from campaign.plan.extend import remeasure_poses
+
+        pose_ids = remeasure_poses(loop.space, ids_train, times, n)
+        return Decision("remeasure", f"measure {len(pose_ids)} of the oldest poses again now",
+                        pose_ids=tuple(int(p) for p in pose_ids))
+    from campaign.plan.extend import spread_poses
+
+    chosen = [i for i in inputs if i not in TIME_INPUTS]
+    if signature is not None and any(k != "time_s" for k in signature.growth):
+        chosen.append("gravity load")
+    ids, _ = loop.planned()
+    pose_ids = spread_poses(loop.space, ids_train, ids, chosen, n)
+    if len(pose_ids) == 0:
+        return None
+    return Decision("reveal", f"measure {len(pose_ids)} poses spread over {', '.join(chosen) or 'the joints'}",
+                    pose_ids=tuple(int(p) for p in pose_ids))
 
 
 def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
