@@ -335,3 +335,17 @@ def test_auto_refuses_a_cell_spec_run_refuses_before_planning(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--cell adapters.py:MyController: --cell names a file or module" in err[0]
     assert not run.exists()
+
+
+def test_decide_calls_unexplained_a_structure_found_again_below_the_detection_limit_after_a_probe():
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from campaign.auto import Decision, Limits, decide
+
+    d = _diagnosis(None, significant=False)
+    d.structure = SimpleNamespace(p_value=1e-5, heldout_gain=0.08, importance={"q3": 0.6, "q2": 0.4},
+                                  depends_on=lambda share: ["q3", "q2"])
+    probe = replace(_round("reveal", None, ("q3",)), decision=Decision("reveal", "", reason="probe"))
+    got = decide(d, _round(verdict=None, depends_on=("q3", "q2")), [probe], Limits(312, None, None), _StubLoop(30))
+    assert (got.kind, got.reason) == ("stop", "unexplained") and "q3 and q2" in got.text
