@@ -308,24 +308,30 @@ def test_decide_adds_a_significant_candidate_by_its_spec_even_when_it_explains_o
     from campaign.auto import Limits, decide
 
     c = SimpleNamespace(effect="runout", spec="/x/runout.py:Runout", significant=True, description="d",
-                        heldout_mean_position_mm_before=0.2, heldout_mean_position_mm_after=0.1)
+                        heldout_mean_position_mm_before=0.2, heldout_mean_position_mm_after=0.1, gain=0.5)
     d = decide(_diagnosis("unexplained", [c], ["q2"]), _round(), [], Limits(312, None, None), _StubLoop())
     assert (d.kind, d.effect) == ("add_effect", "/x/runout.py:Runout") and "part" in d.text
+    # a few per cent of an unexplained error: not added (the stub has no room, so the loop stops at the limit)
+    small = SimpleNamespace(**{**c.__dict__, "heldout_mean_position_mm_after": 0.19, "gain": 0.05})
+    d = decide(_diagnosis("unexplained", [small], ["q2"]), _round(depends_on=("q2",)), [], Limits(130, None, None),
+               _StubLoop(room=0))
+    assert (d.kind, d.reason) == ("stop", "max_poses")
 
 
 def test_decide_stops_unexplained_when_revealing_poses_did_not_change_the_first_input():
     from campaign.auto import Limits, decide
 
     before = [_round("reveal", "unexplained", ("q3", "q2"))]
-    d = decide(_diagnosis("unexplained", depends_on=["q3", "q1"]), _round(), before, Limits(312, None, None),
-               _StubLoop(room=30))
+    d = decide(_diagnosis("unexplained", depends_on=["q3", "q1"]), _round(depends_on=("q3", "q1")), before,
+               Limits(312, None, None), _StubLoop(room=30))
     assert (d.kind, d.reason) == ("stop", "unexplained")
 
 
 def test_decide_stops_at_the_pose_limit_when_an_unexplained_needs_poses():
     from campaign.auto import Limits, decide
 
-    d = decide(_diagnosis("unexplained", depends_on=["q3"]), _round(), [], Limits(130, None, None), _StubLoop(room=0))
+    d = decide(_diagnosis("unexplained", depends_on=["q3"]), _round(depends_on=("q3",)), [], Limits(130, None, None),
+               _StubLoop(room=0))
     assert (d.kind, d.reason) == ("stop", "max_poses")
 
 
