@@ -448,12 +448,15 @@ class _Loop:
         before = [Round.from_json(r) for r in self.state["rounds"]]
         importance = {} if diagnosis.structure is None else {k: float(v) for k, v in diagnosis.structure.importance.items()}
         depends_on = tuple(diagnosis.depends_on)
-        weak = weak_structure_inputs(diagnosis)
+        weak = weak_structure_inputs(diagnosis) if diagnosis.verdict is None else []
         if not depends_on and weak:
             depends_on = tuple(weak)
             if before and before[-1].decision.reason == "probe":  # the same weak structure twice: both tests' ranking
                 both = {k: importance.get(k, 0.0) + before[-1].importance.get(k, 0.0) for k in importance}
                 depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k]) if k in weak or k in before[-1].depends_on)
+        if not depends_on and diagnosis.verdict == "unexplained":  # the inputs an earlier test of this model named
+            same = [r for r in before if r.effects == tuple(self.run.effects) and r.depends_on]
+            depends_on = same[-1].depends_on if same else ()
         p_time = time_change_p(self.run, diagnosis.floor) if depends_on and depends_on[0] in TIME_INPUTS else None
         if p_time is not None and p_time >= TIME_ALPHA:
             # measured again after a pause, the poses agree within the noise: time is not the cause (the tour
@@ -536,11 +539,14 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                     f"{_inputs_text(list(rnd.depends_on) or weak)} (p = {s.p_value:.2g}), below what the floor's "
                     "uncertainty lets it call significant")
             if before and before[-1].decision.reason == "probe":
-                return Decision("stop", f"stop: unexplained — again after the poses chosen to test it, {what}",
-                                reason="unexplained")
-            n, _ = loop.room(REVEAL_POSES)
-            if n > 0:
-                d = _reveal(list(rnd.depends_on) or weak, diagnosis.signature, loop, n)
+                from campaign.diagnose.engine import ALPHA
+
+                if s.p_value < ALPHA:
+                    return Decision("stop", f"stop: unexplained — again after the poses chosen to test it, {what}",
+                                    reason="unexplained")
+                # tested, and not found at diagnose's own level: the floor
+            elif loop.room(REVEAL_POSES)[0] > 0:
+                d = _reveal(list(rnd.depends_on) or weak, diagnosis.signature, loop, loop.room(REVEAL_POSES)[0])
                 if d is not None:
                     return replace(d, text=f"at the floor, but {what}: {d.text}", reason="probe")
         return floor_round or _design_or_stop(rnd, limits, loop, target, at_floor=True)
@@ -644,14 +650,19 @@ def time_change_p(run: RunFolder, floor) -> float | None:
     return float(stats.chi2.sf(float(np.sum(z ** 2)), z.size))
 
 
-def weak_structure_inputs(diagnosis) -> list:
+#: a structure the model-free test finds at the floor with p below this (and a positive gain) is
+#: tested with more poses before auto calls it the floor; after them it must reach diagnose's ALPHA
+PROBE_ALPHA = 0.1
+
+
+def weak_structure_inputs(diagnosis, alpha: float = PROBE_ALPHA) -> list:
     """The inputs (by permutation importance) of a structure the model-free test finds by its
-    p-value (p < ALPHA, a positive held-out gain) but does not call significant: below the
+    p-value (p < ``alpha``, a positive held-out gain) but does not call significant: below the
     detection limit that the floor's uncertainty sets at the floor. Empty otherwise."""
-    from campaign.diagnose.engine import ALPHA, MIN_IMPORTANCE_SHARE
+    from campaign.diagnose.engine import MIN_IMPORTANCE_SHARE
 
     s = diagnosis.structure
-    if s is None or diagnosis.structure_significant or not (s.p_value < ALPHA and s.heldout_gain > 0):
+    if s is None or diagnosis.structure_significant or not (s.p_value < alpha and s.heldout_gain > 0):
         return []
     return s.depends_on(MIN_IMPORTANCE_SHARE)
 
