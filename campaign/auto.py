@@ -234,7 +234,8 @@ def _load_state(run: RunFolder) -> dict:
             raise ValueError("unknown version")
         return state
     except (ValueError, OSError) as exc:
-        raise DataError(f"{path}: not a state of `campaign auto` ({exc}); move it away to start the loop afresh") from None
+        raise DataError(f"{path}: not a state of `campaign auto` ({exc}); move it away to start the loop "
+                        "afresh") from None
 
 
 def _save_state(run: RunFolder, state: dict) -> None:
@@ -306,7 +307,8 @@ def _plan(run, state, opts, say, progress):
     else:
         what = ("every suitable pose" if opts.select == 0 else
                 f"the {opts.select} most informative poses" if opts.select else "the default short campaign")
-        say(f"plan: {what} (as `campaign plan --run {run.path}`{'' if opts.grid_scale == 1 else f' --grid-scale {opts.grid_scale:g}'})")
+        scale = "" if opts.grid_scale == 1 else f" --grid-scale {opts.grid_scale:g}"
+        say(f"plan: {what} (as `campaign plan --run {run.path}{scale}`)")
         selection = SelectionOptions(n=opts.select, effects=run.effects).check() if opts.select else None
         summary = plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
                                 all_poses=opts.select == 0)
@@ -437,23 +439,27 @@ class _Loop:
         write_diagnosis(d, report=False)
         verdict = {None: "nothing left to find" if d.at_floor else "nothing found", "unexplained": "unexplained"}
         self.say(f"  diagnose: {verdict.get(d.verdict, 'add ' + str(d.verdict))}"
-                 + (f" (depends on {_inputs_text(d.depends_on)})" if d.verdict == "unexplained" and d.depends_on else ""))
+                 + (f" (depends on {_inputs_text(d.depends_on)})" if d.verdict == "unexplained" and d.depends_on
+                    else ""))
         return d
 
     def round(self, metrics, diagnosis) -> Round:
         model = metrics["order"][-1]
         floor = (metrics.get("noise_floor") or {}).get("mean_position_mm")
-        sig = diagnosis.signature.text() if diagnosis.signature is not None and diagnosis.structure_significant else None
+        sig = diagnosis.signature.text() if diagnosis.signature is not None and diagnosis.structure_significant \
+            else None
         ids, _ = self.planned()
         before = [Round.from_json(r) for r in self.state["rounds"]]
-        importance = {} if diagnosis.structure is None else {k: float(v) for k, v in diagnosis.structure.importance.items()}
+        importance = {} if diagnosis.structure is None else \
+            {k: float(v) for k, v in diagnosis.structure.importance.items()}
         depends_on = tuple(diagnosis.depends_on)
         weak = weak_structure_inputs(diagnosis) if diagnosis.verdict is None else []
         if not depends_on and weak:
             depends_on = tuple(weak)
             if before and before[-1].decision.reason == "probe":  # the same weak structure twice: both tests' ranking
                 both = {k: importance.get(k, 0.0) + before[-1].importance.get(k, 0.0) for k in importance}
-                depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k]) if k in weak or k in before[-1].depends_on)
+                depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k])
+                                   if k in weak or k in before[-1].depends_on)
         if not depends_on and diagnosis.verdict == "unexplained":  # the inputs an earlier test of this model named
             same = [r for r in before if r.effects == tuple(self.run.effects) and r.depends_on]
             depends_on = same[-1].depends_on if same else ()
@@ -703,12 +709,15 @@ def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
     if predicted <= target:
         if at_floor:
             return Decision("stop", f"stop: at the measurement noise, and the model well determined (predicted "
-                                    f"error {1e3 * predicted:.1f} µm ≤ target {1e3 * target:.1f} µm)", reason="at_floor")
-        return Decision("stop", f"stop: {what}; the model is well determined (predicted error {1e3 * predicted:.1f} µm)",
+                                    f"error {1e3 * predicted:.1f} µm ≤ target {1e3 * target:.1f} µm)",
+                            reason="at_floor")
+        return Decision("stop", f"stop: {what}; the model is well determined (predicted error "
+                                f"{1e3 * predicted:.1f} µm)",
                         reason="unexplained")
     if n < DESIGN_MIN_POSES:
         if at_floor:
-            return Decision("stop", f"stop: at the measurement noise; the model's predicted error {1e3 * predicted:.1f} "
+            return Decision("stop", f"stop: at the measurement noise; the model's predicted error "
+                                    f"{1e3 * predicted:.1f} "
                                     f"µm is above the target {1e3 * target:.1f} µm, but the "
                                     f"{'budget' if limit == 'budget' else 'pose limit'} allows no more poses",
                             reason="at_floor")
@@ -750,7 +759,7 @@ def verdict_text(run: RunFolder, state: dict) -> str:
     last = Round.from_json(state["rounds"][-1])
     reason = (state.get("finished") or {}).get("reason")
     ratio = f"{last.ratio:.2f}× the noise floor" if last.ratio is not None else "no noise floor"
-    head = (f"{last.model} on {last.poses} poses ({last.hours:.2f} h): held-out mean {last.heldout_mm:.4f} mm = {ratio}")
+    head = f"{last.model} on {last.poses} poses ({last.hours:.2f} h): held-out mean {last.heldout_mm:.4f} mm = {ratio}"
     if reason == "at_floor":
         return (f"verdict: at the measurement noise: nothing left to find. {head}.\n"
                 f"  the model: {run.calibration_dir}/params.yaml; use it with `campaign predict {run.path}` or "
@@ -793,8 +802,8 @@ def write_auto_report(run: RunFolder, state: dict, text: str) -> Path:
     (auto/rounds.png)."""
     from campaign.identify.calibrate import calibrate
 
-    if not (run.calibration_dir / "report.html").is_file() or \
-            (run.calibration_dir / "report.html").stat().st_mtime < (run.calibration_dir / "metrics.json").stat().st_mtime:
+    page = run.calibration_dir / "report.html"
+    if not page.is_file() or page.stat().st_mtime < (run.calibration_dir / "metrics.json").stat().st_mtime:
         long = (state.get("options") or {}).get("select") == 0
         calibrate(run.path, ann="auto" if long else False, report=True)
         state["calibrated"] = {"effects": list(run.effects), "poses": run.stored_pose_count()}

@@ -86,7 +86,8 @@ def plan_space(run) -> PlanSpace:
     pc = cfg.plan
     suitable = suitable_poses(robot, scene, grid, pc.clearance_m)
     est = summary.get("estimated_campaign", {})
-    per_pose = est.get("seconds_per_pose") or (pc.settle_time_s + len(robot.reflectors) * pc.tracker_time_per_reflector_s)
+    per_pose = est.get("seconds_per_pose") or \
+        (pc.settle_time_s + len(robot.reflectors) * pc.tracker_time_per_reflector_s)
     return PlanSpace(robot, scene, grid, suitable, pc.clearance_m, pc.motion_clearance_m, pc.motion_sample_deg,
                      float(per_pose))
 
@@ -289,7 +290,8 @@ def _append_rows(plan_dir, ids, Q, vias) -> None:
     new = set(int(p) for p in ids)
     vpath = plan_dir / "vias.csv"
     N = Q.shape[1]
-    lines = vpath.read_text().splitlines() if vpath.is_file() else ["before_pose_id," + ",".join(f"q{j + 1}" for j in range(N))]
+    header = "before_pose_id," + ",".join(f"q{j + 1}" for j in range(N))
+    lines = vpath.read_text().splitlines() if vpath.is_file() else [header]
     lines = [lines[0]] + [ln for ln in lines[1:] if ln.strip() and int(float(ln.split(",")[0])) not in new]
     lines += [row(p, v) for p in ids for v in vias.get(int(p), [])]
     atomic_write(vpath, "\n".join(lines) + "\n")
