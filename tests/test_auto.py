@@ -140,7 +140,7 @@ LOOP_ARGS = [*SMALL, "--target-mm", "0.0005", "--max-poses", "116"]
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """One uninterrupted `campaign auto RUN --sim` of the two-effect cell: (run, wall s, stdout)."""
-    run = _config(tmp_path_factory.mktemp("auto") / "ref", 5, TWO_EFFECTS)
+    run = _config(tmp_path_factory.mktemp("auto") / "ref", 3, TWO_EFFECTS)
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "campaign.cli", "auto", str(run), "--sim", "--no-report", *LOOP_ARGS],
                        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -179,7 +179,7 @@ def test_auto_killed_at_random_moments_resumes_to_the_same_model(reference, tmp_
     the same poses measured, none twice, the same effects and the same identified parameters as
     the uninterrupted run."""
     ref, wall, _ = reference
-    run = _config(tmp_path / "killed", 5, TWO_EFFECTS)
+    run = _config(tmp_path / "killed", 3, TWO_EFFECTS)
     rng = np.random.default_rng(2025)
     argv = [sys.executable, "-m", "campaign.cli", "auto", str(run), "--sim", "--no-report", *LOOP_ARGS]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
