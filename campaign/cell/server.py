@@ -426,6 +426,9 @@ def serve_until_interrupted(cell: ServedCell, *, watch_stdin: bool = False) -> i
         finally:
             cell.close()
             os._exit(0)
+    # SIGINT stops the cell even when it was started ignoring it (a job started in the background
+    # by a non-interactive shell inherits SIGINT ignored, and Python then leaves it so)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         while True:
             time.sleep(3600)
