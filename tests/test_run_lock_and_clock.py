@@ -306,3 +306,22 @@ def test_one_simulated_cell_per_run_and_a_driver_beside_it(tmp_path, runs):
         cell.wait(timeout=30)
     assert cell.returncode == 0
     assert stored_count(run) == 10
+
+
+def test_the_driver_skips_a_drift_check_whose_return_the_plan_found_not_clear(tmp_path, runs):
+    """summary.json's drift_monitor lists the poses after which the direct motions to the reference
+    pose and back are not clear; the driver skips those checks (an event says why), the others run."""
+    import json
+    import sqlite3
+
+    from campaign.cli import main
+
+    run = runs.make(n=30, run={"drift_check_every": 10})
+    ids = [int(line.split(",")[0]) for line in (run / "plan" / "poses.csv").read_text().splitlines()[1:]]
+    (run / "plan" / "summary.json").write_text(json.dumps({"drift_monitor": {"not_clear_after_pose_ids": [ids[9]]}}))
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        kinds = [k for (k,) in db.execute("SELECT kind FROM events WHERE kind LIKE 'drift_check%' ORDER BY rowid")]
+        skipped = [json.loads(d) for (d,) in db.execute("SELECT detail FROM events WHERE kind = 'drift_check_skipped'")]
+    assert kinds == ["drift_check_skipped", "drift_check"]  # after poses 10 and 20 (not after the last)
+    assert skipped[0]["after_pose_id"] == ids[9] and "not clear" in skipped[0]["why"]

@@ -349,7 +349,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
                 todo = todo[:max_poses]
             clock = store.clock_s()
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
-                           stored_before, clock, targets, aim)
+                           stored_before, clock, targets, aim,
+                           unclear_drift_returns=set() if poses_csv is not None else _unclear_drift_returns(run_dir))
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             if kind not in ("unreachable", "robot_fault"):
                 try:  # the clock after the last measurement's tracker time
@@ -390,8 +391,21 @@ def _setup(store, trk, opts, base):
     return T_LI
 
 
+def _unclear_drift_returns(run_dir) -> set:
+    """Pose ids after which the plan found the drift check's direct motions (to the reference
+    pose and on to the next pose) not clear (RUN/plan/summary.json ``drift_monitor``): the driver
+    skips those checks rather than move through a collision."""
+    import json
+
+    try:
+        doc = json.loads((Path(run_dir) / "plan" / "summary.json").read_text())
+        return {int(p) for p in (doc.get("drift_monitor") or {}).get("not_clear_after_pose_ids", [])}
+    except (OSError, ValueError, TypeError):
+        return set()
+
+
 def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before,
-          clock_start=0.0, targets=REFLECTORS, aim=None):
+          clock_start=0.0, targets=REFLECTORS, aim=None, unclear_drift_returns=frozenset()):
     bar = Progress("measuring", len(todo), progress, " poses")
     n_ok = n_fail = drift_warnings = in_a_row = 0
     clock = clock0 = clock_start
@@ -417,7 +431,13 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
                 in_a_row += 1
             n_stored = stored_before + n + 1
             every = drift_check_interval(opts.drift_check_every, len(ids))
-            if reference is not None and every and n_stored % every == 0 and n + 1 < len(todo):
+            due = reference is not None and every and n_stored % every == 0 and n + 1 < len(todo)
+            if due and pid in unclear_drift_returns:
+                store.add_event("drift_check_skipped", {"after_pose_id": pid, "why": "the plan found the motions "
+                                "to the reference pose and back not clear (summary.json drift_monitor)"},
+                                time_s=clock)
+                due = False
+            if due:
                 drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets, aim)
                 clock = max(clock, c)
                 over = drift is not None and drift * 1e3 > opts.drift_threshold_mm

@@ -106,8 +106,8 @@ def _plan(args):
     if dm.get("not_clear_after_pose_ids"):
         print(f"warning: {len(dm['not_clear_after_pose_ids'])} of the drift check's {dm['checks']} returns to the "
               f"reference pose {dm['reference_pose_id']} are not clear by plan.motion_clearance_m (after poses "
-              f"{', '.join(map(str, dm['not_clear_after_pose_ids'][:5]))}); set run.drift_check_every in campaign.yaml "
-              "(0: none) or watch those motions")
+              f"{', '.join(map(str, dm['not_clear_after_pose_ids'][:5]))}): the driver skips those checks "
+              "(run.drift_check_every in campaign.yaml sets how often it checks; 0: never)")
     extra = ", validation.csv, repeats.csv" if "selection" in s else ""
     print(f"written: {args.run}/plan/poses.csv{extra}, summary.json, tour.png ({s['timing_s']['total']:.1f} s)")
     return 0

@@ -461,7 +461,8 @@ def _drift_monitor(robot, checker, order, Q, every, max_step, clearance) -> dict
         out["not_clear_after_pose_ids"] = [int(order[k]) for k in after[~clear]]
     out["text"] = ("the driver re-measures the first pose every "
                    f"{n} stored poses for the drift (µm per hour in diagnose and the reports), moving there "
-                   "directly: its motions are checked here, not repaired" if n else "no drift checks (run.drift_check_every: 0)")
+                   "directly: its motions are checked here; the driver skips a check whose motions are not clear"
+                   if n else "no drift checks (run.drift_check_every: 0)")
     return out
 
 
