@@ -205,25 +205,13 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
     same cube. Writes RUN/plan/poses.csv, vias.csv, dropped.csv, summary.json, iso9283.json and
     the run's campaign.yaml; refused (one line, nothing written) when the run holds measurements.
     """
-    from campaign.config import CampaignConfig, load_config
-    from campaign.plan.geometry import check_plannable
-    from campaign.plan.grid import Grid, default_cells
-    from campaign.plan.pipeline import suitable_poses
     from campaign.plan import checks
-    from campaign.run import RunFolder
+    from campaign.plan.pipeline import prepare_plan, suitable_poses
 
     if isinstance(cycles, bool) or not isinstance(cycles, int) or not 2 <= cycles <= 10000:
         raise ConfigError(f"--cycles must be a whole number from 2 to 10000, got {cycles!r}")
-    if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or not 0 < grid_scale < float("inf"):
-        raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
     t0 = time.perf_counter()
-    run = RunFolder(run_dir)
-    cfg = config if isinstance(config, CampaignConfig) else load_config(config) if config is not None else run.config
-    cfg = cfg.with_robot(robot, tool_frame, base_frame)
-    run = RunFolder(run_dir, config=cfg)
-    model = run.robot().with_default_reflectors()
-    check_plannable(model)
-    scene = run.scene()
+    run, cfg, model, scene, grid, advice = prepare_plan(config, run_dir, grid_scale, robot, tool_frame, base_frame)
     calibrated = None
     if compensate is not None:
         from campaign.identify.use import CalibratedRobot
@@ -236,11 +224,6 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
             raise ConfigError(f"--compensate {compensate}: its model needs {', '.join(calibrated.context_keys)} "
                               "at every pose, which a plan cannot know")
     pc = cfg.plan
-    base_cells = pc.grid_cells if pc.grid_cells is not None else default_cells(model)
-    cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
-    grid = Grid.for_robot(model, cells)
-    advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
-    run.refuse_if_measured("planning again", advice)
     with run.lock("plan"):
         run.refuse_if_measured("planning again", advice)
         suitable = suitable_poses(model, scene, grid, pc.clearance_m, progress)

@@ -116,6 +116,43 @@ def _order_tour(robot, scene, grid, times, home, members):
     return np.concatenate([groups[first], groups["behind" if first == "front" else "front"]])
 
 
+def prepare_plan(config, run_dir, grid_scale, robot=None, tool_frame=None, base_frame=None) -> tuple:
+    """What every plan of a run starts from: (run folder, configuration, robot (with its default
+    reflectors), scene, grid, the advice for a run that holds measurements). config: a
+    campaign.yaml path, a CampaignConfig or None (the run's own, else the embedded default);
+    robot, tool_frame, base_frame override it; the configuration records the grid's cells at
+    scale 1. Refused (one line) for a bad grid scale, an unplannable robot, or a run that holds
+    measurements."""
+    if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or \
+            not 0 < grid_scale < float("inf"):
+        raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
+    run = RunFolder(run_dir)
+    if isinstance(config, CampaignConfig):
+        cfg = config
+    elif config is not None:
+        cfg = load_config(config)
+    else:
+        cfg = run.config  # the run's own, or the embedded default for a new folder
+    cfg = cfg.with_robot(robot, tool_frame, base_frame)
+    run = RunFolder(run_dir, config=cfg)
+    model = run.robot().with_default_reflectors()
+    from campaign.plan.geometry import check_plannable
+
+    check_plannable(model)
+    scene = run.scene()
+    base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(model)
+    cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
+    try:
+        grid = Grid.for_robot(model, cells)
+    except ConfigError as exc:
+        raise ConfigError(f"{cfg.path}: {exc} (with --grid-scale {grid_scale:g})") from None
+    # the run records the grid it was planned on (auto resolved), at scale 1
+    cfg = dataclasses.replace(cfg, plan=dataclasses.replace(cfg.plan, grid_cells=tuple(int(c) for c in base_cells)))
+    advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
+    run.refuse_if_measured("planning again", advice)
+    return run, cfg, model, scene, grid, advice
+
+
 def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.0, progress: bool = False,
                   selection=None, all_poses: bool = False, robot: str | None = None, tool_frame: str | None = None,
                   base_frame: str | None = None, choose_among: str = "reachable") -> dict:
@@ -138,37 +175,11 @@ def plan_campaign(config=None, run_dir="runs/default", *, grid_scale: float = 1.
     measurements, when another process holds the run's lock, or when no pose is suitable. The
     run's campaign.yaml and plan/ are written only once the plan is made.
     """
-    if isinstance(grid_scale, bool) or not isinstance(grid_scale, (int, float)) or \
-            not 0 < grid_scale < float("inf"):
-        raise ConfigError(f"--grid-scale must be a finite number > 0, got {grid_scale!r}")
     if choose_among not in ("reachable", "suitable"):
         raise ConfigError(f"--choose-among must be reachable or suitable, got {choose_among!r}")
     if all_poses and selection is not None:
         raise ConfigError("--all plans every suitable pose: give it without --select, --budget or --target-mm")
-    run = RunFolder(run_dir)
-    if isinstance(config, CampaignConfig):
-        cfg = config
-    elif config is not None:
-        cfg = load_config(config)
-    else:
-        cfg = run.config  # the run's own, or the embedded default for a new folder
-    cfg = cfg.with_robot(robot, tool_frame, base_frame)
-    run = RunFolder(run_dir, config=cfg)
-    robot = run.robot().with_default_reflectors()
-    from campaign.plan.geometry import check_plannable
-
-    check_plannable(robot)
-    scene = run.scene()
-    base_cells = cfg.plan.grid_cells if cfg.plan.grid_cells is not None else default_cells(robot)
-    cells = np.maximum(1, np.round(np.asarray(base_cells, dtype=float) * float(grid_scale))).astype(int)
-    try:
-        grid = Grid.for_robot(robot, cells)
-    except ConfigError as exc:
-        raise ConfigError(f"{cfg.path}: {exc} (with --grid-scale {grid_scale:g})") from None
-    # the run records the grid it was planned on (auto resolved), at scale 1
-    cfg = dataclasses.replace(cfg, plan=dataclasses.replace(cfg.plan, grid_cells=tuple(int(c) for c in base_cells)))
-    advice = f"plan into a new run folder (--run {Path(run_dir).name}-2)"
-    run.refuse_if_measured("planning again", advice)
+    run, cfg, robot, scene, grid, advice = prepare_plan(config, run_dir, grid_scale, robot, tool_frame, base_frame)
     from campaign.plan.selection import DEFAULT_SELECT, SelectionOptions
 
     mode = "all" if all_poses else "default" if selection is None else "selection"
@@ -358,11 +369,9 @@ def _inside_cones(robot, scene, grid, candidates, selection, margin_deg):
     from campaign.model.kinematics import forward
 
     keep = np.zeros(len(candidates), dtype=bool)
-    axes = np.array([r.axis_in_E for r in robot.reflectors])
     for s in range(0, len(candidates), 65536):
         T = forward(robot, grid.q(candidates[s : s + 65536]))
-        P = np.einsum("nij,rj->nri", T[:, :3, :3], robot.reflector_positions_in_E) + T[:, None, :3, 3]
-        A = np.einsum("nij,rj->nri", T[:, :3, :3], axes)
+        P, A = checks.reflector_geometry(robot, T[:, :3, :3], T[:, :3, 3])
         keep[s : s + 65536] = checks.cone_ok(robot, scene, P, A, np.deg2rad(margin_deg))
     out = {"deg": float(margin_deg), "candidates": int(len(candidates)), "inside": int(keep.sum())}
     # a budget or a target chooses its own size: then at least half the candidates must stay
