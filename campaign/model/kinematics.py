@@ -212,53 +212,56 @@ def error_jacobian(robot: RobotModel, q, p_e=None, T_meas=None, *, chunk: int = 
     error: if ``T_meas`` is given, ``J_l⁻¹(Δφ) ω`` (exact); without it, the spatial
     angular velocity ω itself (exact at Δφ = 0). The zero-offset columns (``pq<j>``,
     ``pd<j>``) are also ∂Δz/∂q_j. ``joint_twists`` as in :func:`forward`.
+
+    The array is a view of a parameter-major buffer (6N + 12, 6, n): each column is written in
+    contiguous runs over the poses, and taking some columns (the base parameters) copies runs.
     """
     q = _as_q(q, robot)
     p = _as_p(p_e, robot)
     n = q.shape[0]
     N = robot.n_joints
     xi = _as_twists(joint_twists, robot, n)
-    J = np.empty((n, 6, robot.n_params))
-    ex, ey, ez = np.eye(3)
+    Jp = np.zeros((robot.n_params, 6, n))
+    ey, ez = np.eye(3)[1], np.eye(3)[2]
     for s in range(0, n, chunk):
         qs = q[s : s + chunk]
         m = qs.shape[0]
+        e = s + m
         _, _, (R_after, t_after, t_pre) = _chain(robot, qs, p, None if xi is None else xi[s : s + chunk], keep=True)
         tE = t_after[:, N + 1]
-        Js = J[s : s + chunk]
         for k in range(N + 2):
+            a, b = p[6 * k + 3], p[6 * k + 4]
             if k == 0:
                 R_before = np.broadcast_to(np.eye(3), (m, 3, 3))
+                RbN = np.broadcast_to(robot.R_nominal[0], (m, 3, 3))
             else:
                 R_before = R_after[:, k - 1]
+                RbN = R_before @ robot.R_nominal[k]
             prismatic = 1 <= k <= N and robot.joint_types[k - 1] == "prismatic"
-            ok = t_pre[:, k]  # origin of frame k in F_I, before its motion
-            a, b = p[6 * k + 3], p[6 * k + 4]
-            RbN = R_before @ robot.R_nominal[k]
-            w_a = RbN @ ex
-            w_b = RbN @ (rot_x(a) @ ey)
-            w_c = RbN @ (rot_x(a) @ rot_y(b) @ ez)
-            lever = tE - ok
+            lever = (tE - t_pre[:, k]).T  # (3, m): from frame k's origin before its motion to the tool
+            w_a = RbN[:, :, 0].T
+            w_b = (RbN @ (rot_x(a) @ ey)).T
+            w_c = (RbN @ (rot_x(a) @ rot_y(b) @ ez)).T
+            Jk = Jp[6 * k : 6 * k + 6, :, s:e]
             if prismatic:
                 # translations perpendicular to the axis in the joint's nominal frame, then the
                 # rotation about the axis, a, b, and the zero offset along the axis
-                Js[:, 0:3, 6 * k : 6 * k + 2] = RbN[..., :, 0:2]
-                Js[:, 3:6, 6 * k : 6 * k + 2] = 0.0
+                Jk[0:2, 0:3] = RbN[:, :, 0:2].transpose(2, 1, 0)
+                Jk[5, 0:3] = w_c
                 cols = ((2, w_c), (3, w_a), (4, w_b))
-                Js[:, 0:3, 6 * k + 5] = np.broadcast_to(w_c, (m, 3))
-                Js[:, 3:6, 6 * k + 5] = 0.0
             else:
-                # translations: along the parent's axes
-                Js[:, 0:3, 6 * k : 6 * k + 3] = R_before
-                Js[:, 3:6, 6 * k : 6 * k + 3] = 0.0
+                Jk[0:3, 0:3] = R_before.transpose(2, 1, 0)  # translations: along the parent's axes
                 cols = ((3, w_a), (4, w_b), (5, w_c))
-            for col, w in cols:
-                w = np.broadcast_to(w, (m, 3))
-                Js[:, 0:3, 6 * k + col] = np.cross(w, lever)
-                Js[:, 3:6, 6 * k + col] = w
+            for col, w in cols:  # a rotation w about frame k's origin moves the tool by w × lever
+                Jk[col, 0] = w[1] * lever[2] - w[2] * lever[1]
+                Jk[col, 1] = w[2] * lever[0] - w[0] * lever[2]
+                Jk[col, 2] = w[0] * lever[1] - w[1] * lever[0]
+                Jk[col, 3:6] = w
         if T_meas is not None:
-            Tm = np.asarray(T_meas, dtype=float)[s : s + chunk]
-            R_model = R_after[:, N + 1]
-            dphi = matrix_to_rotvec(R_model @ np.swapaxes(Tm[:, :3, :3], -1, -2))
-            Js[:, 3:6, :] = inverse_left_jacobian(dphi) @ Js[:, 3:6, :]
-    return J
+            Tm = np.asarray(T_meas, dtype=float)[s:e]
+            dphi = matrix_to_rotvec(R_after[:, N + 1] @ np.swapaxes(Tm[:, :3, :3], -1, -2))
+            L = inverse_left_jacobian(dphi).transpose(1, 2, 0)  # (3, 3, m)
+            W = Jp[:, 3:6, s:e].copy()
+            for i in range(3):
+                Jp[:, 3 + i, s:e] = L[i, 0] * W[:, 0] + L[i, 1] * W[:, 1] + L[i, 2] * W[:, 2]
+    return Jp.transpose(2, 1, 0)
