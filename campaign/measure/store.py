@@ -270,8 +270,10 @@ class MeasurementStore:
         if not rows:
             raise DataError(f"{self.path}: no measured poses")
         pid = np.array([r[0] for r in rows], dtype=np.int64)
-        num = np.array([[np.nan if v is None else v for v in r[1:14]] for r in rows], dtype=float)
-        contexts = [json.loads(r[14]) for r in rows]
+        num = np.array([r[1:14] for r in rows], dtype=float)  # NULL (None) becomes NaN
+        texts = [r[14] for r in rows]
+        parsed = {t: json.loads(t) for t in set(texts)}  # most logs repeat a few contexts (often "{}")
+        contexts = [parsed[t] for t in texts]
         keys = sorted(set().union(*contexts))
         context = {k: np.array([c.get(k, np.nan) for c in contexts], dtype=float) for k in keys}
         q = num[:, 1:7]
