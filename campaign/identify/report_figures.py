@@ -119,12 +119,17 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
         iy, ix = np.nonzero(np.isfinite(img))
         t = np.sqrt(np.clip((img[iy, ix] - vmin) / (vmax - vmin), 0, 1))  # square-root spacing
         level = np.minimum((t * WORKSPACE_LEVELS).astype(int), WORKSPACE_LEVELS - 1)
+        # in cell units (x right, y up, y = j the middle of row j): each cell a stroke of one
+        # cell's width along its row, a little longer and wider than the cell (no seams of white
+        # between neighbours); one path per colour level
+        overlap = 1 + 0.5 / max(cell, 1e-9)
+        svg.add(f'<g transform="matrix({cell:.4f} 0 0 {-cell:.4f} {x0:.2f} {y0 + h - cell / 2:.2f})" fill="none" '
+                f'stroke-width="{overlap:.3f}" shape-rendering="crispEdges">')
         for k in np.unique(level):
             sel = level == k
-            s = cell + 0.5  # a little overlap: no seams of white between neighbouring cells
-            d = "".join(f"M{x0 + i * cell:.1f} {y0 + h - (j + 1) * cell:.1f}h{s:.2f}v{s:.2f}h{-s:.2f}z"
-                        for i, j in zip(ix[sel], iy[sel]))
-            svg.path(d, fill=levels[k], extra=' shape-rendering="crispEdges"')
+            svg.add(f'<path d="{"".join(f"M{i} {j}h{overlap:.2f}" for i, j in zip(ix[sel], iy[sel]))}" '
+                    f'stroke="{levels[k]}"/>')
+        svg.add("</g>")
         if len(pos):
             k = int(np.argmax(pos))
             cx, cy = x0 + (xyz[k, a] - ex0) * scale, y0 + h - (yb[k] - ey0) * scale

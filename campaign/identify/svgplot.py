@@ -26,6 +26,9 @@ VIRIDIS = np.array([[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [
                     [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]], dtype=float)
 FONT = "DejaVu Sans, Arial, sans-serif"
 TICK_PX, LABEL_PX, TITLE_PX, SUPTITLE_PX = 11, 13, 12, 14
+#: an x tick label this close (px) to a panel's side is written inward from its tick (else it
+#: would run into the next panel's first or last label)
+EDGE_TICK_PX = 10.0
 
 
 def colour(k: int) -> str:
@@ -149,8 +152,9 @@ class SvgPanels:
         self._items.append(("band", r, c, np.asarray(x, float), np.asarray(lo, float), np.asarray(hi, float),
                             (color, alpha)))
 
-    def line(self, r, c, x, y, *, color, width=1.2, marker=False):
-        self._items.append(("line", r, c, np.asarray(x, float), np.asarray(y, float), None, (color, width, marker)))
+    def line(self, r, c, x, y, *, color, width=1.2, marker=False, dash=None):
+        self._items.append(("line", r, c, np.asarray(x, float), np.asarray(y, float), None,
+                            (color, width, marker, dash)))
 
     def vline(self, r, c, x, *, color="#000", width=1.0, dash=None):
         self._items.append(("vline", r, c, np.asarray([x], float), None, None, (color, width, dash)))
@@ -205,9 +209,9 @@ class SvgPanels:
                 vlines.setdefault(style, []).append(f"M{float(X[0]):.1f} {y0:.1f}v{self.ph:g}")
         for (color, alpha), ds in bands.items():
             svg.path("".join(ds), fill=color, opacity=alpha)
-        for (color, width, marker), segs in lines.items():
+        for (color, width, marker, dash), segs in lines.items():
             svg.path("".join("M" + points(X, Y).replace(" ", "L") for X, Y in segs if len(X)),
-                     stroke=color, width=width, extra=' stroke-linejoin="round"')
+                     stroke=color, width=width, dash=dash, extra=' stroke-linejoin="round"')
             if marker:
                 svg.markers(np.concatenate([X for X, _ in segs]), np.concatenate([Y for _, Y in segs]), r=2.2,
                             fill=color)
@@ -216,14 +220,16 @@ class SvgPanels:
         svg.path("".join(frames), stroke="#333", width=0.9)
         for r, c, text in self._titles:
             x0, y0 = self.origin(r, c)
-            svg.text(x0, y0 - 5, text, size=TITLE_PX)
+            svg.text(x0, y0 - 5 - 1.2 * TITLE_PX * text.count("\n"), text, size=TITLE_PX)  # the last line 5 px above
         fmt_x = (lambda t: f"{10.0 ** t:.3g}") if xlog else (lambda t: f"{t:.4g}")  # noqa: E731
         r = self.rows - 1
         for c in range(self.cols):
             x0, y0 = self.origin(r, c)
             gxs, _ = px(r, c, xticks[c], 0.0)
             for t, g in zip(xticks[c], np.atleast_1d(gxs)):
-                svg.text(g, y0 + self.ph + 14, fmt_x(t), anchor="middle")
+                # a label at a panel's side stands inside the panel's width, clear of the neighbour's
+                anchor = "start" if g - x0 < EDGE_TICK_PX else "end" if x0 + self.pw - g < EDGE_TICK_PX else "middle"
+                svg.text(g + {"start": -2, "end": 2, "middle": 0}[anchor], y0 + self.ph + 14, fmt_x(t), anchor=anchor)
             if c < len(xlabels):
                 svg.text(x0 + self.pw / 2, y0 + self.ph + 36, xlabels[c], size=LABEL_PX, anchor="middle")
         for r in range(self.rows):
