@@ -829,9 +829,11 @@ def plot_rounds(rounds, path: Path):
     point labelled with the model and the poses measured; None without rounds."""
     if not rounds:
         return None
-    from campaign.identify.report import _plt
+    import matplotlib
 
-    plt = _plt()
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(9, 4.2))
     x = [r.number for r in rounds]
     ax.plot(x, [r.heldout_mm for r in rounds], "o-", label="held-out mean ‖Δt‖ (test set)")

@@ -1,6 +1,7 @@
 """diagnose's HTML report: the text box wraps instead of running off the page, the context and
-signature figures plot the signed residual components (three rows) at a size the page shows
-without shrinking their type, and the page renders in headless Chromium with its pictures."""
+signature figures plot the signed residual components (three rows, units in the labels) at a
+size the page shows without shrinking their type, the ranking's bars are the candidates' held-out
+errors, and the page renders in headless Chromium with its pictures."""
 
 import subprocess
 import sys
@@ -12,7 +13,7 @@ import yaml
 
 from campaign.cli import main
 from campaign.diagnose import diagnose
-from campaign.diagnose.report import MAX_WIDTH_IN, write_diagnosis
+from campaign.diagnose.report import MAX_WIDTH_PX, write_diagnosis
 
 SCREENSHOT = Path(__file__).resolve().parents[1] / "benchmarks" / "screenshot_reports.py"
 
@@ -30,18 +31,48 @@ def diagnosed(tmp_path_factory):
     return d, write_diagnosis(d, report=True)
 
 
-def test_the_text_box_wraps_and_the_figures_show_signed_components_at_a_readable_size(diagnosed):
-    from PIL import Image
+def svg_root(path: Path):
+    import xml.etree.ElementTree as ET
 
+    return ET.parse(path).getroot()
+
+
+def svg_texts(root) -> list:
+    return ["".join(e.itertext()) for e in root.iter("{http://www.w3.org/2000/svg}text")]
+
+
+def test_the_text_box_wraps_and_the_figures_show_signed_components_at_a_readable_size(diagnosed):
     d, page = diagnosed
     html = page.read_text()
     assert "white-space:pre-wrap" in html and "overflow-wrap:anywhere" in html
     assert d.text().splitlines()[0] in html
-    for name in ("residual_context.png", "signature.png"):
+    for name, comps in (("residual_context.svg", ("Δx", "Δy", "Δz")), ("signature.svg", ("Δx₁", "Δy₁", "Δz₁"))):
         assert f"src='{name}'" in html
-        w, h = Image.open(page.parent / name).size
-        # at most the page's width (no shrinking of the type), three component rows of ~2 in each
-        assert w <= MAX_WIDTH_IN * 100 and h >= 650, (name, w, h)
+        root = svg_root(page.parent / name)
+        w, h = float(root.get("width")), float(root.get("height"))
+        # at most the page's width (no shrinking of the type), three component rows of ~200 px each
+        assert w <= MAX_WIDTH_PX and h >= 650, (name, w, h)
+        texts = svg_texts(root)
+        assert all(f"{c} [µm]" in texts for c in comps), (name, texts)
+    context = svg_texts(svg_root(page.parent / "residual_context.svg"))
+    assert "time [h]" in context and "overturning moment |M| [N·m]" in context
+    assert any(f"bin mean of the {int(d.is_test.sum())} test poses" in t for t in context)
+
+
+def test_the_ranking_figure_has_a_bar_per_candidate_with_its_held_out_error(diagnosed):
+    d, page = diagnosed
+    root = svg_root(page.parent / "ranking.svg")
+    ns = "{http://www.w3.org/2000/svg}"
+    effects = [e.text for e in root.iter(ns + "text") if e.get("class") == "effect"]
+    values = [e.text for e in root.iter(ns + "text") if e.get("class") == "value"]
+    assert effects == [c.effect for c in d.ranking]
+    assert values == [f"{c.heldout_mean_position_mm_after:.4g} mm" for c in d.ranking]
+    bars = [float(e.get("width")) for e in root.iter(ns + "rect") if e.get("class") == "bar"]
+    after = np.array([c.heldout_mean_position_mm_after for c in d.ranking])
+    np.testing.assert_allclose(np.array(bars) / bars[0], after / after[0], rtol=1e-3)  # lengths ∝ the values
+    fills = [e.get("fill") for e in root.iter(ns + "rect") if e.get("class") == "bar"]
+    assert [f == "#2ca02c" for f in fills] == [c.significant for c in d.ranking]
+    assert any(c.significant for c in d.ranking) and not all(c.significant for c in d.ranking)
 
 
 @pytest.mark.skipif(subprocess.run([sys.executable, str(SCREENSHOT), "/nonexistent"], capture_output=True).returncode

@@ -107,4 +107,4 @@ def test_diagnose_json_has_the_contract_shape(tmp_path, robot, capsys):
     for item in out["ranking"]:
         assert {"effect", "heldout_mean_position_mm_before", "heldout_mean_position_mm_after", "significant"} <= set(item)
     assert (run / "diagnose" / "report.html").is_file()
-    assert (run / "diagnose" / "residual_joints.png").is_file()
+    assert (run / "diagnose" / "residual_joints.svg").is_file()

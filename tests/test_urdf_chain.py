@@ -58,9 +58,9 @@ def test_the_chain_reads_as_yourdfpy_reads_it(path):
                                                                          b.mimic.offset)
 
 
-def test_help_and_calibrate_import_only_what_they_use(tmp_path):
+def test_help_calibrate_and_diagnose_import_only_what_they_use(tmp_path):
     """`campaign --help` imports no numpy, scipy, torch or matplotlib; `calibrate --no-ann` no
-    torch, no yourdfpy and no matplotlib (issue 22)."""
+    torch, no yourdfpy and no matplotlib; `diagnose` (with its report) no matplotlib (issue 22)."""
     from campaign.cli import main
     from campaign.measure.csvio import write_measured_csv
     from campaign.model.robot import RobotModel
@@ -81,3 +81,8 @@ def test_help_and_calibrate_import_only_what_they_use(tmp_path):
     assert last.startswith("0 [") and "numpy" in last, last
     for module in ("torch", "yourdfpy", "matplotlib"):  # the report's figures are SVG written from numpy
         assert module not in last, last
+    out = subprocess.run([sys.executable, "-c", probe, "diagnose", str(tmp_path / "run"), "--folds", "3",
+                          "--candidates", "drift"], capture_output=True, text=True, cwd=tmp_path)
+    last = out.stdout.strip().splitlines()[-1]
+    assert last.startswith("0 [") and "matplotlib" not in last, last  # so are the diagnose report's
+    assert (tmp_path / "run" / "diagnose" / "report.html").is_file()

@@ -1,6 +1,6 @@
 """The calibration report: ``RUN/calibration/report.html`` with SVG figures beside it
-(campaign.identify.report_figures, drawn without matplotlib); the plot_* functions here draw
-the same figures as PNGs with matplotlib for the diagnose report.
+(campaign.identify.report_figures, drawn without matplotlib); here the page and the figures'
+aggregation of the data (bins, cells, history rows), which the diagnose report shares.
 
 Plots: error distributions of every stage as small multiples (like the paper's Figs. 3, 4,
 6, 7), the signed error components of every stage against each joint coordinate (bin means
@@ -18,20 +18,6 @@ import numpy as np
 
 from campaign.identify.metrics import format_table6
 from campaign.identify.noise_floor import floor_label, tracker_noise_floor
-
-
-#: PNGs written with zlib's fastest level: a third of the time of the default level for
-#: files about 1.3× as large (flat-coloured plots compress well at any level)
-PNG_FAST = {"compress_level": 1}
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _norms(dz):
@@ -115,37 +101,6 @@ def _which_poses(is_test):
     return np.ones_like(is_test), f"all {len(is_test)} poses, train and test (the test set alone is too small to bin)"
 
 
-def plot_against_joints(q, dz, is_test, title: str, out: Path, name: str) -> str:
-    """Signed error components of one stage against each joint coordinate (deg): per bin of
-    the joint, the mean (line) and the 90 % band (5 %–95 % quantiles) of Δx, Δy, Δz (mm) and,
-    where measured, Δφx, Δφy, Δφz (mrad); held-out test set (:func:`binned_quantiles`)."""
-    from campaign.identify.panels import PanelGrid
-
-    plt = _plt()
-    q = np.asarray(q, dtype=float)
-    use, words = _which_poses(is_test)
-    comps = signed_components(np.asarray(dz)[use])
-    n_joints = q.shape[1]
-    fig = plt.figure(figsize=(2.35 * n_joints + 0.6, 1.45 * len(comps) + 0.9))
-    w, h = fig.get_size_inches()
-    ax = fig.add_axes((0.1 / w, 0.1 / h, 1 - 0.2 / w, 1 - 0.5 / h))  # margins in inches
-    grid = PanelGrid(ax, len(comps), n_joints)  # one Axes: rows share y, columns share x
-    for j in range(n_joints):
-        x = np.rad2deg(q[use, j])
-        for r, (label, unit, y) in enumerate(comps):
-            b = binned_quantiles(x, y)
-            color = "C0" if unit == "mm" else "C1"
-            grid.band(r, j, b["x"], b["q05"], b["q95"], color=color, alpha=0.25)
-            grid.line(r, j, b["x"], b["mean"], color=color, marker="o", ms=2.5, linewidth=1.2)
-    grid.finish(xlabels=[f"q{j + 1} [deg]" for j in range(n_joints)],
-                ylabels=[f"{label} [{unit}]" for label, unit, _ in comps])
-    fig.suptitle(f"{title}: signed error against each joint — bin mean (line) and 90 % band "
-                 f"(5–95 % quantiles); {words}", fontsize=10)
-    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
-    plt.close(fig)
-    return name
-
-
 def workspace_colour_scale(pos_mm):
     """(vmin, vmax) mm of the workspace plot's colour scale: from 0 to the largest error."""
     pos_mm = np.asarray(pos_mm, dtype=float)
@@ -174,43 +129,6 @@ def largest_per_cell(x, y, v, cells: int = WORKSPACE_CELLS):
     return img, (x0, x0 + img.shape[1] * size, y0, y0 + img.shape[0] * size)
 
 
-def plot_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
-    """Tool positions (top view x-z and side view x-y of F_I) coloured by ‖Δt‖ (mm), all poses,
-    aggregated: each cell of a square grid (up to :data:`WORKSPACE_CELLS` along the longer side)
-    shows the largest error of its poses, so the largest errors are never hidden; the colour
-    scale runs from 0 to the largest error (square-root spacing)."""
-    plt = _plt()
-    from matplotlib.colors import PowerNorm
-
-    pos, _ = _norms(np.asarray(dz))
-    xyz = np.asarray(xyz, dtype=float)
-    top = np.argsort(pos, kind="stable")  # the largest last
-    vmin, vmax = workspace_colour_scale(pos)
-    norm = PowerNorm(0.5, vmin=vmin, vmax=vmax)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    for ax, (a, b, la, lb) in zip(axes, ((2, 0, "z_I [m]", "x_I [m]"), (2, 1, "z_I [m]", "height −y_I [m]"))):
-        yb = xyz[top, b] if b != 1 else -xyz[top, 1]
-        cells = int(np.clip(3 * np.sqrt(len(pos)), WORKSPACE_MIN_CELLS, WORKSPACE_CELLS))
-        img, extent = largest_per_cell(xyz[top, a], yb, pos[top], cells)
-        sc = ax.imshow(img, extent=extent, origin="lower", cmap="viridis", norm=norm, interpolation="nearest")
-        if len(pos):
-            k = top[-1]
-            ax.plot(xyz[k, a], xyz[k, b] if b != 1 else -xyz[k, 1], "o", ms=11, mfc="none", mec="r", mew=1.5)
-        ax.set_xlabel(la)
-        ax.set_ylabel(lb)
-    axes[0].set_title("top view", fontsize=10)
-    axes[1].set_title("side view", fontsize=10)
-    cb = fig.colorbar(sc, cax=fig.add_axes((0.89, 0.1, 0.015, 0.78)),
-                      label="‖Δt‖ [mm] (0 to the largest, square-root scale)")
-    cb.ax.axhline(vmax, color="r", linewidth=2)
-    fig.suptitle(f"{title}: position error over the workspace, all {len(pos)} poses "
-                 f"(red circle: the largest, {vmax:.3g} mm)", fontsize=11)
-    fig.subplots_adjust(left=0.06, right=0.86, bottom=0.1, top=0.88, wspace=0.22)  # fixed: one draw, not two
-    fig.savefig(out / name, dpi=100, pil_kwargs=PNG_FAST)
-    plt.close(fig)
-    return name
-
-
 #: stages that are a comparison, not a step of the model being built up
 SIDE_STAGES = ("ann",)
 
@@ -236,58 +154,6 @@ def _wrap_stage(name: str, width: int = 22) -> str:
         else:
             lines[-1] += piece
     return "\n".join(lines)
-
-
-def plot_history(history_path: Path, out: Path, name: str = "history.png", noise_floor="auto"):
-    """Held-out mean position error of the current model after each calibrate run, and per stage,
-    with the tracker noise floor as a line (``noise_floor``: a campaign.measure.floor.NoiseFloor,
-    None for none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
-    rows = history_rows(history_path)
-    if not rows:
-        return None
-    if isinstance(noise_floor, str) and noise_floor == "auto":
-        noise_floor = tracker_noise_floor(Path(history_path).parent.parent)
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(9, 4.6))
-    labels, values = [], []
-    seen = set()
-    for idx, effects, order, stages in rows:
-        for stage in order:
-            key = stage if stage not in seen else None
-            if key is None:
-                continue
-            seen.add(stage)
-            labels.append(stage)
-            values.append(stages[stage]["position_mm"]["mean"])
-    # the sequence of models a user builds up is one line; the network trained on the nominal
-    # model alone (stage "ann", the paper's comparison) is a side branch, drawn apart
-    chain = [x for x, label in enumerate(labels) if label not in SIDE_STAGES]
-    side = [x for x, label in enumerate(labels) if label in SIDE_STAGES]
-    ax.plot(chain, [values[x] for x in chain], "o-", label="model as it was built up")
-    if side:
-        ax.plot(side, [values[x] for x in side], "s", color="0.6", label="ANN on the nominal model (comparison)")
-    lo, hi = min(values), max(values)
-    if noise_floor is not None and noise_floor.mean_position_mm > 0:  # a zero floor has no place on a log axis
-        ax.axhline(noise_floor.mean_position_mm, color="C3", linestyle=":", linewidth=1.5,
-                   label=f"tracker noise floor {floor_label(noise_floor)}")
-        lo = min(lo, noise_floor.mean_position_mm)
-    ax.set_yscale("log")
-    ax.set_ylim(lo / 2.5, hi * 3.0)
-    ax.legend(fontsize=8, loc="upper right")
-    ax.set_xticks(range(len(values)), [_wrap_stage(label) for label in labels], fontsize=8)
-    ax.set_xlim(-0.5, len(values) - 0.5)
-    ax.set_ylabel("held-out mean ‖Δt‖ [mm]")
-    ax.set_title("watch the error fall: each model stage as it was added")
-    for x, v in enumerate(values):
-        ax.annotate(f"{v:.3g}", (x, v), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
-    # a fixed layout (tight_layout and a tight bounding box draw the figure twice more): room
-    # below for the stage names, wrapped on up to a few lines
-    lines = max([_wrap_stage(label).count("\n") + 1 for label in labels] + [1])
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=0.8 / w, right=1 - 0.15 / w, top=1 - 0.4 / h, bottom=(0.35 + 0.16 * lines) / h)
-    fig.savefig(out / name, dpi=110, pil_kwargs=PNG_FAST)
-    plt.close(fig)
-    return name
 
 
 PAGE_STYLE = ("<style>body{font-family:sans-serif;max-width:1340px;margin:2em auto;padding:0 1em}"

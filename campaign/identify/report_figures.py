@@ -1,8 +1,7 @@
 """The calibration report's figures as SVG files beside report.html, drawn without matplotlib
-(campaign.identify.svgplot): one function per section of the page. Same content as the PNGs of
-campaign.identify.report's plot_* functions (which the diagnose report still uses): error
-distributions per stage, signed errors against each joint per stage, the error over the
-workspace, and the history of held-out errors with the tracker noise floor.
+(campaign.identify.svgplot): one function per section of the page: error distributions per
+stage, signed errors against each joint per stage, the error over the workspace, and the history
+of held-out errors with the tracker noise floor. The diagnose report draws the last three too.
 """
 
 from __future__ import annotations
@@ -15,7 +14,8 @@ from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 from campaign.identify.report import (SIDE_STAGES, WORKSPACE_CELLS, WORKSPACE_MIN_CELLS, _norms, _which_poses,
                                       _wrap_stage, binned_quantiles, history_rows, largest_per_cell,
                                       orientation_measured, signed_components, workspace_colour_scale)
-from campaign.identify.svgplot import (LABEL_PX, SUPTITLE_PX, TICK_PX, Svg, SvgPanels, colour, nice_ticks, viridis)
+from campaign.identify.svgplot import (LABEL_PX, SUPTITLE_PX, TICK_PX, Svg, SvgPanels, colour, decade_ticks,
+                                      nice_ticks, viridis)
 
 #: colour levels of the workspace figure (one path per level)
 WORKSPACE_LEVELS = 64
@@ -191,9 +191,7 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
         return top + ph - (np.log10(np.asarray(v, dtype=float)) - ylo) / (yhi - ylo) * ph
 
     # log axis: grid and labels at the decades (2× and 5× too when fewer than two decades)
-    from campaign.identify.panels import _decades
-
-    dec = _decades(ylo, yhi)
+    dec = decade_ticks(ylo, yhi)
     gy = Y(10.0 ** dec)
     svg.segments(np.full_like(gy, left), gy, np.full_like(gy, left + pw), gy, stroke="#e0e0e0", width=0.6)
     minor = np.log10(np.outer(10.0 ** np.arange(np.floor(ylo), np.ceil(yhi) + 1), np.arange(2, 10)).ravel())

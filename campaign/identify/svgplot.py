@@ -3,8 +3,7 @@ most of `campaign calibrate`'s wall time).
 
 :class:`Svg` collects elements (paths, polylines, text) in pixel coordinates (y down) and writes
 one standalone ``.svg`` file. :class:`SvgPanels` draws small multiples (rows × cols panels, x
-shared per column, y per row, tick labels on the outer panels), like
-campaign.identify.panels.PanelGrid does in matplotlib. Only aggregated data go into a figure
+shared per column, y per row, tick labels on the outer panels). Only aggregated data go into a figure
 (histogram steps, bin means and bands, per-cell maxima grouped by colour): a figure's size does
 not grow with the number of poses.
 """
@@ -15,8 +14,6 @@ import html
 from pathlib import Path
 
 import numpy as np
-
-from campaign.identify.panels import _decades, _range
 
 #: matplotlib's default colour cycle ("C0".."C9"), so the figures keep their colours
 CYCLE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
@@ -53,6 +50,28 @@ def nice_ticks(lo: float, hi: float, n: int = 4) -> np.ndarray:
     step = next(s * mag for s in (1, 2, 2.5, 5, 10) if s * mag >= raw * (1 - 1e-9))
     t = np.arange(np.ceil(lo / step - 1e-9), np.floor(hi / step + 1e-9) + 1) * step
     return np.where(np.abs(t) < step * 1e-9, 0.0, t)
+
+
+def decade_ticks(lo, hi):
+    """Ticks (log10 values) at the decades between lo and hi, with 2× and 5× when fewer than two."""
+    d = np.arange(np.ceil(lo), np.floor(hi) + 1)
+    if len(d) < 2:
+        k = np.arange(np.floor(lo), np.ceil(hi) + 1)
+        d = np.sort(np.concatenate([k, k + np.log10(2), k + np.log10(5)]))
+        d = d[(d >= lo) & (d <= hi)]
+    return d
+
+
+def _range(values, pad=0.05):
+    v = np.concatenate([np.ravel(x) for x in values]) if values else np.zeros(0)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return -1.0, 1.0
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo <= 0:
+        w = max(abs(lo), 1e-12) * 0.1
+        return lo - w, hi + w
+    return lo - pad * (hi - lo), hi + pad * (hi - lo)
 
 
 def points(x, y) -> str:
@@ -170,7 +189,7 @@ class SvgPanels:
               for r in range(self.rows)]
         if ylow is not None:
             yr = [(float(ylow), hi) for _, hi in yr]
-        xticks = [(_decades(*xr[c]) if xlog else nice_ticks(*xr[c])) for c in range(self.cols)]
+        xticks = [(decade_ticks(*xr[c]) if xlog else nice_ticks(*xr[c])) for c in range(self.cols)]
         yticks = [nice_ticks(*yr[r]) for r in range(self.rows)]
 
         def px(r, c, x, y):
