@@ -223,3 +223,19 @@ def test_the_report_renders_in_headless_chromium_with_its_pictures(report_page, 
     assert Image.open(full).size == (1400, 6000)
     ink = [np.mean(np.asarray(Image.open(p).convert("L")) < 245) for p in (full, text_only)]
     assert ink[0] > 3 * ink[1] and ink[1] > 0.003
+
+
+def test_a_panel_title_of_several_lines_ends_above_its_panel():
+    import xml.etree.ElementTree as ET
+
+    from campaign.identify.svgplot import TITLE_PX, Svg, SvgPanels
+
+    grid = SvgPanels(2, 1, pw=300, ph=80, gy=48, top=70)
+    grid.line(1, 0, [0.0, 1.0], [0.0, 1.0], color="#000")
+    grid.title(1, 0, "a long stage name:\nmean 0.1 mm, q90 0.2 mm")
+    svg = Svg(grid.width, grid.height)
+    grid.finish(svg)
+    title = next(e for e in ET.fromstring(svg.text_svg()).iter("{http://www.w3.org/2000/svg}text")
+                 if "".join(e.itertext()).startswith("a long stage name"))
+    last_baseline = float(title.get("y")) + 1.2 * TITLE_PX  # the second line, 1.2 em below the first
+    assert last_baseline <= grid.origin(1, 0)[1] - 4
