@@ -120,3 +120,13 @@ REPEAT_CLOSE_S = 120.0
 #: Without measurement times (an imported CSV without ``time_s``), repeats at most this many
 #: rows apart count as back to back: 120 s at the default cell's ~25 s per pose.
 REPEAT_CLOSE_ROWS = 5
+
+#: the registration of an undeclared measured point (one reflector, robot.yaml names none) with the
+#: tracker's pose alternates Kabsch and a linear least-squares step for the point: it stops when the
+#: point moves less than this (far below a tracker's micrometres) ...
+POINT_REGISTRATION_STEP_TOL_M = 1e-9
+#: ... or after this many steps (a real campaign converges in under a hundred: FIGAROH's TIAGo, 82)
+POINT_REGISTRATION_MAX_STEPS = 1000
+#: the point's directions the tool's orientations determine worse than this (relative singular value
+#: of the point's 3n x 3 design) stay at the tool frame's origin (min-norm least squares)
+POINT_REGISTRATION_RCOND = 1e-6

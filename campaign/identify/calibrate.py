@@ -243,18 +243,30 @@ def distinct_poses(q) -> int:
     return int(len(np.unique(np.asarray(q), axis=0))) if len(q) else 0
 
 
-def measured_point(robot, poses):
-    """Where one-reflector data were measured in the tool frame, (3,) m: robot.yaml's single
-    reflector, else the tool frame's origin (None for other kinds)."""
-    return plausibility.measured_point(robot, poses.kind)
+def measured_point(robot, poses, train=None):
+    """Where one-reflector data were measured in the tool frame, (3,) m (None for other kinds):
+    robot.yaml's single reflector; where it names none, the point the training poses ``train``
+    (all when None) place best on the nominal model (:func:`register_measured_point`, with the
+    tracker's pose for data in its frame): a marker stuck on the hand is rarely at the tool frame's
+    origin, and the tolerance priors of the tool and the base hold around this point and this
+    registration, not around a guess centimetres off."""
+    from campaign.measure.reflectors import register_measured_point
+
+    point = plausibility.measured_point(robot, poses.kind)
+    if point is None or len(robot.reflectors) == 1:
+        return point
+    train = np.ones(len(poses), bool) if train is None else train
+    return register_measured_point(forward(robot, poses.q[train]), poses.xyz[train],
+                                   tracker=poses.frame == "tracker")[1]
 
 
-def prepare_measured(robot, poses, train):
+def prepare_measured(robot, poses, train, point=None):
     """The data as the model sees them: (poses in F_I, the robot whose tool frame is the measured
-    point, the tracker registration or None). One-reflector data measured at robot.yaml's single
-    reflector are fitted at that reflector; data in the tracker's frame are registered
-    (:func:`register_tracker`) on the ``train`` poses. Used by calibrate and diagnose alike."""
-    point = measured_point(robot, poses)
+    point, the tracker registration or None). One-reflector data are fitted at the measured point
+    (``point``, else :func:`measured_point` on the ``train`` poses); data in the tracker's frame are
+    registered (:func:`register_tracker`) on the ``train`` poses. Used by calibrate and diagnose alike."""
+    if point is None:
+        point = measured_point(robot, poses, train)
     if point is not None:
         robot = robot.with_tool_point(point)
     tracker = None
@@ -382,7 +394,11 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     check_pose_count(run_dir, robot, distinct_poses(poses.q[tr]), int(te.sum()), position_only,
                      n_effect_params=n_effect, validation=validation_file(run_dir).is_file(), points=points,
                      rows_per_pose=informative_equations(n_seen[tr]) if raw else None)
-    poses, robot, tracker = prepare_measured(robot, poses, tr)
+    point = measured_point(robot, poses, tr)
+    if point is not None and len(robot.reflectors) != 1:
+        say("one reflector, robot.yaml names none: measured at (" + ", ".join(f"{1e3 * v:.1f}" for v in point)
+            + f") mm in {robot.tool_frame}, as the training poses place it on the nominal model")
+    poses, robot, tracker = prepare_measured(robot, poses, tr, point)
     if tracker is not None:
         what = "reflectors" if raw else "poses"
         say(f"measurements in the tracker's frame: registered to the nominal model "
@@ -445,7 +461,6 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                  fixed=fix, **choice.model_kwargs()).fit(poses.q[tr], Y[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
-    point = measured_point(robot, poses)
     if tracker is not None:
         tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
     ann_skipped = ann_stages = rule = None

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from campaign.errors import DataError
-from campaign.tolerances import SETUP_POINT_MIN_SEPARATION_M
+from campaign.tolerances import (POINT_REGISTRATION_MAX_STEPS, POINT_REGISTRATION_RCOND, POINT_REGISTRATION_STEP_TOL_M,
+                                 SETUP_POINT_MIN_SEPARATION_M)
 
 
 def frame_from_setup_points(origin_L, x_point_L, y_point_L) -> np.ndarray:
@@ -135,3 +136,32 @@ def register_points(P_model, P_measured) -> np.ndarray:
     if ok.sum() < 3:
         raise DataError(f"registration to the tracker's frame needs 3 measured points, got {int(ok.sum())}")
     return kabsch(A[ok], B[ok][None])[0]
+
+
+def register_measured_point(T_model, P_measured, *, tracker: bool = True):
+    """Where an undeclared reflector sits on the tool, with the tracker's pose: (T (4, 4), p (3,))
+    minimising Σ‖T·(R_i p + t_i) − y_i‖² over the poses T_model (n, 4, 4) of the tool frame and the
+    measured points P_measured (n, 3), m (rows with a missing value are left out). ``tracker``
+    False: the points are in the model's own frame, T is the identity and p a linear least-squares
+    fit. Alternates the closed-form registration and the point's linear least squares (each step
+    lowers the sum); the point's directions the tool's orientations do not determine stay at 0."""
+    T_model = np.asarray(T_model, dtype=float)
+    Y = np.asarray(P_measured, dtype=float)
+    ok = np.isfinite(Y).all(axis=1) & np.isfinite(T_model[:, :3, 3]).all(axis=1)
+    R, t, Y = T_model[ok, :3, :3], T_model[ok, :3, 3], Y[ok]
+    if len(Y) < 3:
+        raise DataError(f"registration of the measured point needs 3 measured points, got {len(Y)}")
+    T, p = np.eye(4), np.zeros(3)
+    for _ in range(POINT_REGISTRATION_MAX_STEPS):
+        if tracker:
+            T = kabsch(np.einsum("nij,j->ni", R, p) + t, Y[None])[0]
+        A = np.einsum("ij,njk->nik", T[:3, :3], R).reshape(-1, 3)
+        b = (Y - t @ T[:3, :3].T - T[:3, 3]).reshape(-1)
+        p_new = np.linalg.lstsq(A, b, rcond=POINT_REGISTRATION_RCOND)[0]
+        step = float(np.linalg.norm(p_new - p))
+        p = p_new
+        if step < POINT_REGISTRATION_STEP_TOL_M:
+            break
+    if tracker:
+        T = kabsch(np.einsum("nij,j->ni", R, p) + t, Y[None])[0]
+    return T, p
