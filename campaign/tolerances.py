@@ -130,3 +130,9 @@ POINT_REGISTRATION_MAX_STEPS = 1000
 #: the point's directions the tool's orientations determine worse than this (relative singular value
 #: of the point's 3n x 3 design) stay at the tool frame's origin (min-norm least squares)
 POINT_REGISTRATION_RCOND = 1e-6
+#: ... and the point moves there only when it lies this many tool tolerances (robot.yaml's
+#: ``tolerances: tool_m``) from the tool frame's origin: nearer, the data are read as measured at
+#: the origin with the tool's own small error (a point moved by the other parameters' errors, a
+#: fraction of a millimetre off the last joint's axis, would make the rotation about that axis
+#: barely identifiable); FIGAROH's TIAGo marker is 110 mm away, 73 tolerances of 1.5 mm
+POINT_REGISTRATION_MIN_TOLERANCES = 10.0
