@@ -13,6 +13,7 @@ import yaml
 from campaign.cli import main
 from campaign.errors import ConfigError
 from campaign.identify.model_choice import CV_MAX_TRAIN_POSES, STRENGTHS, expected_heldout_mm, fit_model, \
+    least_restrictive_within_se, \
     loo_position_errors
 from campaign.identify.solver import CalibrationModel
 from campaign.model.kinematics import forward, pose_error
@@ -244,3 +245,23 @@ def test_map_on_the_base_parameters_agrees_with_scipy_on_the_redundant_model_see
                                        gtol=1e-15)
     assert np.max(np.abs(C @ ref.x - model.base_params_) / model.base_sigma_) < 1e-4
     np.testing.assert_allclose(model.physical_params_, ref.x, atol=1e-9)
+
+
+def test_auto_takes_the_least_restrictive_candidate_within_two_standard_errors_of_the_best():
+    """Per-pose CV errors of three candidates on 8 poses, least restrictive first: the second is
+    lower than the first on every pose, the third lower than the second on average by less than
+    two standard errors of their paired differences."""
+    first = np.full(8, 3.0)
+    second = first - np.array([0.5] * 7 + [0.3])
+    third = second - np.array([0.4, -0.2, 0.4, -0.2, 0.4, -0.2, 0.4, -0.2])
+
+    def gain_in_se(a, b):
+        d = a - b
+        return np.mean(d) / (np.std(d, ddof=1) / np.sqrt(len(d)))
+
+    assert np.mean(third) < np.mean(second) < np.mean(first)
+    assert gain_in_se(second, third) < 2 < gain_in_se(first, third)
+    assert least_restrictive_within_se([first, second, third]) == 1
+    assert least_restrictive_within_se([first, second, third], n_se=0.0) == 2
+    assert least_restrictive_within_se([first, third, second]) == 1
+    assert least_restrictive_within_se([first]) == 0
