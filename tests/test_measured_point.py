@@ -4,6 +4,7 @@ and the tolerance priors hold around them. References: the generating point and 
 (noise-free nominal data); least squares on the same data, which the registration cannot change."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -62,6 +63,14 @@ def off_point_run(tmp_path_factory, robot):
     return _campaign(tmp_path_factory.mktemp("point"), robot, POINT, "off")
 
 
+def test_import_says_where_the_marker_is_instead_of_blaming_the_joint_convention(tmp_path, robot, capsys):
+    _campaign(tmp_path, robot, POINT, "said")
+    err = capsys.readouterr().err
+    assert "[measured_point]" in err and "[nominal_residual]" not in err
+    said = re.search(r"measured at \(([-\d.]+), ([-\d.]+), ([-\d.]+)\) mm in the tool frame", err)
+    assert np.linalg.norm(np.array([float(v) for v in said.groups()]) * 1e-3 - POINT) < 3e-3
+
+
 def test_a_marker_off_the_tool_frame_is_found_and_the_fit_corrects_instead_of_reshaping(off_point_run):
     lsq, p_lsq, warned = _calibrate(off_point_run, "lsq")
     map_, p_map, _ = _calibrate(off_point_run, "map")
@@ -72,7 +81,8 @@ def test_a_marker_off_the_tool_frame_is_found_and_the_fit_corrects_instead_of_re
     assert map_ < 1.05 * lsq
 
 
-def test_data_measured_at_the_tool_frame_keep_the_origin(tmp_path, robot):
+def test_data_measured_at_the_tool_frame_keep_the_origin(tmp_path, robot, capsys):
     run = _campaign(tmp_path, robot, np.zeros(3), "origin")
+    assert "warning" not in capsys.readouterr().err
     _, point, _ = _calibrate(run, "lsq")
     np.testing.assert_array_equal(point, np.zeros(3))

@@ -32,15 +32,13 @@ from campaign.identify.split import run_split, validation_file
 from campaign.measure import plausibility
 from campaign.measure.drift import Drift, measured_drift
 from campaign.measure.floor import noise_floor, times_the_noise
-from campaign.measure.reflectors import register_measured_point, transform_points
+from campaign.measure.reflectors import transform_points
 from campaign.measure.store import open_run
 from campaign.model.kinematics import forward, pose_error
-from campaign.model.priors import robot_tolerances
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
 from campaign.identify.checks import with_checks
 from campaign.measure.importer import joint_slack
-from campaign.tolerances import POINT_REGISTRATION_MIN_TOLERANCES
 from campaign.versioned import Version, calibration_folder
 
 CALIBRATION_DIR = "calibration"
@@ -248,19 +246,17 @@ def distinct_poses(q) -> int:
 def measured_point(robot, poses, train=None):
     """Where one-reflector data were measured in the tool frame, (3,) m (None for other kinds):
     robot.yaml's single reflector; where it names none, the tool frame's origin, unless the
-    training poses ``train`` (all when None) place the point on the nominal model
-    (:func:`register_measured_point`, with the tracker's pose for data in its frame) farther than
-    POINT_REGISTRATION_MIN_TOLERANCES tool tolerances from it: a marker stuck on the hand is rarely
-    at the tool frame's origin, and the tolerance priors of the tool and the base must hold around
-    where it is, not around a guess centimetres off."""
+    training poses ``train`` (all when None) place the point on the nominal model far from it
+    (:func:`campaign.measure.plausibility.off_origin_point`, with the tracker's pose for data in
+    its frame): a marker stuck on the hand is rarely at the tool frame's origin, and the tolerance
+    priors of the tool and the base must hold around where it is, not around a guess centimetres
+    off."""
     point = plausibility.measured_point(robot, poses.kind)
-    if point is None or len(robot.reflectors) == 1:
-        return point
+    if point is None:
+        return None
     train = np.ones(len(poses), bool) if train is None else train
-    found = register_measured_point(forward(robot, poses.q[train]), poses.xyz[train],
-                                    tracker=poses.frame == "tracker")[1]
-    far = np.linalg.norm(found) > POINT_REGISTRATION_MIN_TOLERANCES * robot_tolerances(robot)["tool_m"]
-    return found if far else point
+    found = plausibility.off_origin_point(robot, poses.q[train], poses.xyz[train], poses.frame)
+    return point if found is None else found[1]
 
 
 def prepare_measured(robot, poses, train, point=None):

@@ -16,6 +16,9 @@ Checks on the data (after `import`, and again in `calibrate`), :func:`check_data
   by more than any real robot's geometric errors; ``joint_convention`` then names the usual
   controller convention (a missing J2/J3 coupling, a sign flip, a 90°/180° offset) whose
   registration fits, re-fitted here for each candidate;
+* ``measured_point`` — one-reflector data that fit the nominal model measured at a point off the
+  tool frame's origin, robot.yaml naming none (a marker stuck on the hand): said with the point,
+  which `calibrate` then fits at, instead of ``nominal_residual``;
 * ``base_frame`` — robot-frame data that fit the nominal model only after a rigid move;
 * ``rotation_reading`` / ``orientation_residual`` — the orientation columns read in another
   convention (roll-pitch-yaw, KUKA's A, B, C) agree with the nominal orientations.
@@ -36,14 +39,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.measure.reflectors import register_points, transform_points
+from campaign.measure.reflectors import register_measured_point, register_points, transform_points
 from campaign.model.kinematics import forward
+from campaign.model.priors import robot_tolerances
 from campaign.model.rotations import matrix_to_rotvec
 from campaign.tolerances import (CORRECTION_MAX_FRACTION_OF_SIZE, CORRECTION_MAX_RAD, CONVENTION_GAIN_MIN,
                                  FITTED_NOISE_BELOW_FLOOR_FACTOR, MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE,
                                  MODEL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE, NOMINAL_RESIDUAL_MAX_M,
-                                 ORIENTATION_SPREAD_MAX_RAD, PLAUSIBILITY_MAX_POSES, REFLECTOR_DISTANCE_TOL_M,
-                                 TRACKER_NOISE_MIN_M, WORKSPACE_SCALE_MAX)
+                                 ORIENTATION_SPREAD_MAX_RAD, PLAUSIBILITY_MAX_POSES, POINT_REGISTRATION_MIN_TOLERANCES,
+                                 REFLECTOR_DISTANCE_TOL_M, TRACKER_NOISE_MIN_M, WORKSPACE_SCALE_MAX)
 
 
 @dataclass(frozen=True)
@@ -292,7 +296,10 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
         return out
     rms, _ = _registered_rms(P_nom, P_meas)
     noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
-    if np.isfinite(rms) and rms > limit:
+    found = _off_point(robot, poses, q, P_meas, rms, limit)
+    if found is not None:
+        out.append(found)
+    elif np.isfinite(rms) and rms > limit:
         out.append(Finding("nominal_residual",
                            f"the nominal model and the measurements disagree by {_mm(rms)} rms after a rigid "
                            f"registration{noise}, more than a real {robot.name}'s geometric errors "
@@ -315,6 +322,41 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
     if kind == "pose" and orientation is not None and not out:  # orientations mean something once positions fit
         out += _orientation(robot, poses, idx, orientation)
     return out
+
+
+def off_origin_point(robot, q, P_measured, frame: str):
+    """Where one-reflector data were measured when robot.yaml names no reflector and the data say
+    it is not the tool frame's origin: (T (4, 4), p (3,) m) of :func:`register_measured_point` on
+    joint vectors q (n, N) and measured points P_measured (n, 3) (``frame`` "tracker": with the
+    tracker's pose), when p lies more than POINT_REGISTRATION_MIN_TOLERANCES tool tolerances
+    (robot.yaml's ``tolerances: tool_m``) from the origin; else None."""
+    if len(robot.reflectors) == 1:
+        return None
+    T, p = register_measured_point(forward(robot, q), P_measured, tracker=frame == "tracker")
+    if np.linalg.norm(p) <= POINT_REGISTRATION_MIN_TOLERANCES * robot_tolerances(robot)["tool_m"]:
+        return None
+    return T, p
+
+
+def _off_point(robot, poses, q, P_meas, rms, limit):
+    """``measured_point`` when one-reflector data miss the nominal model at the tool frame's origin
+    by more than ``limit`` but fit it at the point :func:`off_origin_point` finds."""
+    if poses.kind != "point" or not np.isfinite(rms) or rms <= limit:
+        return None
+    found = off_origin_point(robot, q, P_meas[:, 0], poses.frame)
+    if found is None:
+        return None
+    T_reg, p = found
+    P_fit = transform_points(T_reg @ forward(robot, q), np.broadcast_to(p, (len(q), 1, 3)))
+    rms_p = float(np.sqrt(np.nanmean(np.sum((P_fit - P_meas) ** 2, axis=-1))))
+    if rms_p > limit:
+        return None
+    where = ", ".join(f"{1e3 * v:.1f}" for v in p)
+    return Finding("measured_point",
+                   f"the data miss the nominal model at the tool frame's origin by {_mm(rms)} rms but fit it "
+                   f"within {_mm(rms_p)} measured at ({where}) mm in the tool frame ({robot.tool_frame}): a "
+                   "reflector off the tool frame, which calibrate finds and fits at; name it in robot.yaml's "
+                   "reflectors when it is known (docs/priors.md, \"The measured point\")")
 
 
 def _reflector_layout(markers, P_nominal):
