@@ -2,7 +2,7 @@
 against an independent fit on the same training and test poses.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/bench_real_small.py DATASET=CSV [DATASET=CSV ...]
-        [--work DIR] [--ridge 1e-3] [--out benchmarks/results/real_small.json]
+        [--work DIR] [--ridge 1e-3] [--splits 30] [--out benchmarks/results/real_small.json]
 
 DATASET is one of the presets below (the public files are not in this repository; pass their
 paths): ``tiago`` is FIGAROH's TIAGo mocap file
@@ -12,6 +12,9 @@ joints); ``ur10`` is FIGAROH's UR10 file (examples/ur10/data/calibration.csv: po
 roll-pitch-yaw of the flange). For each, as a user would: a copy with a ``pose_id`` column,
 ``campaign import`` and ``campaign calibrate RUN --no-ann --model M`` for M in lsq, map, auto;
 the test poses from metrics.json's ``test_pose_ids``; then the independent fit on the other poses.
+``--splits K``: also K random splits of the same sizes (seeded), each given to `calibrate` as the
+run's validation poses (RUN/plan/validation.csv), for lsq and auto against the independent fit:
+one split's 5-7 test poses scatter by more than the models differ.
 
 The independent fit uses none of campaign's kinematics: Pinocchio reads the URDF and computes the
 forward kinematics of a redundant model, every joint's placement perturbed by a 6-D twist
@@ -82,16 +85,26 @@ def write_with_ids(src, dst):
     return header, values
 
 
-def run_campaign(preset, csv_path, work, model):
-    run = Path(work) / f"{preset.robot}_{model}"
+def import_run(preset, csv_path, run):
     cols = [f"q{i + 1}={j}" for i, j in enumerate(preset.joints)]
     cols += [f"{a}={c}" for a, c in zip("xyz", preset.point)]
     if preset.rpy:
         cols += [f"{a}={c}" for a, c in zip(("rx", "ry", "rz"), preset.rpy)]
-    env = {**os.environ}
     subprocess.run(["campaign", "import", str(csv_path), "--run", str(run), "--robot", preset.robot,
-                    "--columns", ",".join(cols), "--quiet", *preset.import_args], check=True, env=env,
+                    "--columns", ",".join(cols), "--quiet", *preset.import_args], check=True,
                    capture_output=True, text=True)
+
+
+def run_campaign(preset, csv_path, work, model, test_ids=None):
+    """Import and calibrate with --model ``model``; ``test_ids``: the validation poses (else the
+    run's own 80/20 split). Returns (held-out figures, the test pose ids)."""
+    run = Path(work) / f"{preset.robot}_{model}"
+    run.parent.mkdir(parents=True, exist_ok=True)
+    import_run(preset, csv_path, run)
+    if test_ids is not None:
+        (run / "plan").mkdir(exist_ok=True)
+        (run / "plan" / "validation.csv").write_text("pose_id\n" + "".join(f"{i}\n" for i in test_ids))
+    env = {**os.environ}
     t0 = time.perf_counter()
     subprocess.run(["campaign", "calibrate", str(run), "--no-ann", "--no-report", "--quiet", "--model", model],
                    check=True, env=env, capture_output=True, text=True)
@@ -197,7 +210,30 @@ def evaluate(chain, p, q, y):
     return {"heldout_mean_mm": float(e.mean()), "heldout_max_mm": float(e.max())}
 
 
-def run_dataset(name, src, work, ridges):
+def random_splits(work, preset, dst, urdf, q, y, n_test, k, ridge):
+    """k random splits (seed 0) with n_test test poses: lsq and auto against the independent fit."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(k):
+        ids = sorted(int(v) for v in rng.choice(len(q), n_test, replace=False))
+        test = np.isin(np.arange(len(q)), ids)
+        row = {"test_pose_ids": ids}
+        for model in ("lsq", "auto"):
+            out, got = run_campaign(preset, dst, Path(work) / f"split{i}", model, ids)
+            assert got == ids, (got, ids)
+            row[model] = {k: out[k] for k in ("heldout_mean_mm", "heldout_max_mm", "choice", "strength")}
+        chain, p = independent_fit(urdf, preset, q, y, ~test, ridge)
+        row["independent"] = evaluate(chain, p, q[test], y[test])
+        rows.append(row)
+    ratio = np.array([r["auto"]["heldout_mean_mm"] / r["independent"]["heldout_mean_mm"] for r in rows])
+    lsq = np.array([r["lsq"]["heldout_mean_mm"] / r["independent"]["heldout_mean_mm"] for r in rows])
+    return {"splits": k, "auto_over_independent_mean": float(ratio.mean()),
+            "auto_over_independent_worst": float(ratio.max()),
+            "auto_more_than_2pct_behind": int((ratio > 1.02).sum()),
+            "lsq_over_independent_mean": float(lsq.mean()), "cases": rows}
+
+
+def run_dataset(name, src, work, ridges, splits=0):
     preset = PRESETS[name]
     dst = Path(work) / f"{name}.csv"
     header, values = write_with_ids(src, dst)
@@ -220,8 +256,11 @@ def run_dataset(name, src, work, ridges):
         chain, p = independent_fit(urdf, preset, q, y, ~test, ridge)
         indep[f"{ridge:g}"] = {**evaluate(chain, p, q[test], y[test]), **{"train_" + k[8:]: v for k, v in
                                evaluate(chain, p, q[~test], y[~test]).items()}, "fit_s": time.perf_counter() - t0}
-    return {"dataset": name, "file": str(src), "poses": len(values), "train_poses": int((~test).sum()),
-            "test_poses": int(test.sum()), "test_pose_ids": test_ids, "ours": ours, "independent": indep}
+    out = {"dataset": name, "file": str(src), "poses": len(values), "train_poses": int((~test).sum()),
+           "test_poses": int(test.sum()), "test_pose_ids": test_ids, "ours": ours, "independent": indep}
+    if splits:
+        out["random_splits"] = random_splits(work, preset, dst, urdf, q, y, int(test.sum()), splits, ridges[0])
+    return out
 
 
 def main():
@@ -229,6 +268,7 @@ def main():
     ap.add_argument("datasets", nargs="+", help="NAME=CSV, NAME one of " + ", ".join(PRESETS))
     ap.add_argument("--work", help="folder for the runs (default: a temporary one)")
     ap.add_argument("--ridge", default="1e-3", help="the independent fit's ridge weights, comma-separated")
+    ap.add_argument("--splits", type=int, default=0, help="also this many random splits (lsq, auto)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "real_small.json"))
     args = ap.parse_args()
     ridges = [float(v) for v in args.ridge.split(",")]
@@ -240,7 +280,7 @@ def main():
             if name not in PRESETS or not path:
                 sys.exit(f"{spec}: expected NAME=CSV with NAME one of {', '.join(PRESETS)}")
             (work / name).mkdir(parents=True, exist_ok=True)
-            r = run_dataset(name, path, work / name, ridges)
+            r = run_dataset(name, path, work / name, ridges, args.splits)
             results.append(r)
             for k, v in r["ours"].items():
                 print(f"{name:6s} ours {k:4s} ({v['choice']}, s={v['strength']}): mean {v['heldout_mean_mm']:.3f} max "
@@ -248,7 +288,17 @@ def main():
             for k, v in r["independent"].items():
                 print(f"{name:6s} independent ridge {k}: mean {v['heldout_mean_mm']:.3f} max {v['heldout_max_mm']:.3f} mm "
                       f"(train mean {v['train_mean_mm']:.3f})")
-    Path(args.out).write_text(json.dumps({"description": __doc__.splitlines()[0], "results": results,
+            if "random_splits" in r:
+                rs = r["random_splits"]
+                print(f"{name:6s} {rs['splits']} random splits: auto / independent mean {rs['auto_over_independent_mean']:.3f}, "
+                      f"worst {rs['auto_over_independent_worst']:.3f}, {rs['auto_more_than_2pct_behind']} more than 2 % "
+                      f"behind; lsq / independent mean {rs['lsq_over_independent_mean']:.3f}", flush=True)
+    first = f"{ridges[0]:g}"
+    headline = {f"{r['dataset']}_auto_over_independent": r["ours"]["auto"]["heldout_mean_mm"]
+                / r["independent"][first]["heldout_mean_mm"] for r in results}
+    headline.update({f"{r['dataset']}_splits_auto_over_independent_mean": r["random_splits"]["auto_over_independent_mean"]
+                     for r in results if "random_splits" in r})
+    Path(args.out).write_text(json.dumps({"description": __doc__.splitlines()[0], **headline, "results": results,
                                           "load_average": list(os.getloadavg())}, indent=2))
     print(f"written {args.out}")
 
