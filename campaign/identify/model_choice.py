@@ -47,9 +47,9 @@ CHOICE_MARGIN = 0.03
 #: ``auto`` takes the least restrictive candidate whose CV error is within this many standard errors
 #: (of the paired per-pose differences) of the lowest one. Measured on 500 fresh poses per campaign
 #: (UR10, Panda, COMAU, 20 poses within ±0.15 rad, 5 seeds each; one reflector and 6-D): with 1,
-#: a seed's held-out error was up to 5 % above least squares'; with 2, at most 0.3 %; on 30 random
-#: splits of FIGAROH's TIAGo, 2 was behind an independent fit by more than 2 % on 1 split (1 gave
-#: 6 % more on average, and 6 splits behind by 2-16 %)
+#: a seed's held-out error was up to 5 % above least squares'; with 2, at most 0.5 %; on 30 random
+#: splits of FIGAROH's TIAGo, with 2 the held-out mean was 0.993x an independent fit's on average
+#: and more than 2 % behind it on 1 split (with 1: 0.937x, but 6 splits 2-16 % behind)
 CHOICE_SE = 2.0
 
 MODELS = ("lsq", "map", "auto")
