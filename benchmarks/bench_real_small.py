@@ -210,7 +210,7 @@ def evaluate(chain, p, q, y):
     return {"heldout_mean_mm": float(e.mean()), "heldout_max_mm": float(e.max())}
 
 
-def random_splits(work, preset, dst, urdf, q, y, n_test, k, ridge):
+def random_splits(work, preset, dst, urdf, q, y, n_test, k, ridge, rot_weight_m):
     """k random splits (seed 0) with n_test test poses: lsq and auto against the independent fit."""
     rng = np.random.default_rng(0)
     rows = []
@@ -222,7 +222,7 @@ def random_splits(work, preset, dst, urdf, q, y, n_test, k, ridge):
             out, got = run_campaign(preset, dst, Path(work) / f"split{i}", model, ids)
             assert got == ids, (got, ids)
             row[model] = {k: out[k] for k in ("heldout_mean_mm", "heldout_max_mm", "choice", "strength")}
-        chain, p = independent_fit(urdf, preset, q, y, ~test, ridge)
+        chain, p = independent_fit(urdf, preset, q, y, ~test, ridge, rot_weight_m)
         row["independent"] = evaluate(chain, p, q[test], y[test])
         rows.append(row)
     ratio = np.array([r["auto"]["heldout_mean_mm"] / r["independent"]["heldout_mean_mm"] for r in rows])
@@ -233,7 +233,7 @@ def random_splits(work, preset, dst, urdf, q, y, n_test, k, ridge):
             "lsq_over_independent_mean": float(lsq.mean()), "cases": rows}
 
 
-def run_dataset(name, src, work, ridges, splits=0):
+def run_dataset(name, src, work, ridges, splits=0, rot_weight_m=0.1):
     preset = PRESETS[name]
     dst = Path(work) / f"{name}.csv"
     header, values = write_with_ids(src, dst)
@@ -253,13 +253,14 @@ def run_dataset(name, src, work, ridges, splits=0):
     indep = {}
     for ridge in ridges:
         t0 = time.perf_counter()
-        chain, p = independent_fit(urdf, preset, q, y, ~test, ridge)
+        chain, p = independent_fit(urdf, preset, q, y, ~test, ridge, rot_weight_m)
         indep[f"{ridge:g}"] = {**evaluate(chain, p, q[test], y[test]), **{"train_" + k[8:]: v for k, v in
                                evaluate(chain, p, q[~test], y[~test]).items()}, "fit_s": time.perf_counter() - t0}
     out = {"dataset": name, "file": str(src), "poses": len(values), "train_poses": int((~test).sum()),
            "test_poses": int(test.sum()), "test_pose_ids": test_ids, "ours": ours, "independent": indep}
     if splits:
-        out["random_splits"] = random_splits(work, preset, dst, urdf, q, y, int(test.sum()), splits, ridges[0])
+        out["random_splits"] = random_splits(work, preset, dst, urdf, q, y, int(test.sum()), splits, ridges[0],
+                                             rot_weight_m)
     return out
 
 
@@ -269,6 +270,8 @@ def main():
     ap.add_argument("--work", help="folder for the runs (default: a temporary one)")
     ap.add_argument("--ridge", default="1e-3", help="the independent fit's ridge weights, comma-separated")
     ap.add_argument("--splits", type=int, default=0, help="also this many random splits (lsq, auto)")
+    ap.add_argument("--rot-weight-m", type=float, default=0.1,
+                    help="6-D data: the independent fit's weight of orientation rows, m per rad")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "real_small.json"))
     args = ap.parse_args()
     ridges = [float(v) for v in args.ridge.split(",")]
@@ -280,7 +283,7 @@ def main():
             if name not in PRESETS or not path:
                 sys.exit(f"{spec}: expected NAME=CSV with NAME one of {', '.join(PRESETS)}")
             (work / name).mkdir(parents=True, exist_ok=True)
-            r = run_dataset(name, path, work / name, ridges, args.splits)
+            r = run_dataset(name, path, work / name, ridges, args.splits, args.rot_weight_m)
             results.append(r)
             for k, v in r["ours"].items():
                 print(f"{name:6s} ours {k:4s} ({v['choice']}, s={v['strength']}): mean {v['heldout_mean_mm']:.3f} max "
@@ -298,7 +301,8 @@ def main():
                 / r["independent"][first]["heldout_mean_mm"] for r in results}
     headline.update({f"{r['dataset']}_splits_auto_over_independent_mean": r["random_splits"]["auto_over_independent_mean"]
                      for r in results if "random_splits" in r})
-    Path(args.out).write_text(json.dumps({"description": __doc__.splitlines()[0], **headline, "results": results,
+    Path(args.out).write_text(json.dumps({"description": __doc__.splitlines()[0], **headline,
+                                          "rot_weight_m": args.rot_weight_m, "results": results,
                                           "load_average": list(os.getloadavg())}, indent=2))
     print(f"written {args.out}")
 
