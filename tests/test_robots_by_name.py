@@ -9,6 +9,7 @@ import pinocchio as pin
 import pytest
 
 from campaign.cli import main
+from campaign.errors import ConfigError
 from campaign.model.kinematics import forward
 from campaign.model.robot import RobotModel
 
@@ -52,3 +53,13 @@ def test_an_unknown_robot_name_points_to_campaign_robots(tmp_path, capsys):
 def test_version_is_the_installed_distribution_version():
     out = subprocess.run([sys.executable, "-m", "campaign.cli", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == f"campaign {metadata.version('campaign')}"
+
+
+def test_a_folder_without_robot_yaml_does_not_hide_a_name(tmp_path, monkeypatch):
+    erd_robot("ur_description")  # skips without the test extra
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ur3").mkdir()  # the run folder of `campaign plan --run ur3 --robot ur3`
+    assert RobotModel.load("ur3").urdf_path.name == "ur3_robot.urdf"
+    (tmp_path / "ur3" / "robot.yaml").write_text("not: a robot\n")  # a robot.yaml folder is the user's robot
+    with pytest.raises(ConfigError, match="robot.yaml"):
+        RobotModel.load("ur3")

@@ -412,11 +412,14 @@ def _row_label(i: int, pose_ids=None, lines=None) -> str:
 # -- resolution of the spec ----------------------------------------------------------------
 def _named_example(spec):
     """(URDF path, tool frame, base frame) when ``spec`` names one of example-robot-data's robots
-    (and no file, folder or embedded model of that name exists); None otherwise."""
+    (and no file, robot.yaml folder or embedded model of that name exists: a folder without a
+    robot.yaml, such as the run folder `campaign plan --run ur3 --robot ur3` made, does not hide
+    the name); None otherwise."""
     from campaign.model import catalog
 
     text = str(spec)
-    if "/" in text or Path(text).exists() or (ROBOT_MODELS / text).is_dir():
+    here = Path(text)
+    if "/" in text or here.is_file() or (here / "robot.yaml").is_file() or (ROBOT_MODELS / text).is_dir():
         return None
     known = catalog.lookup(text)
     if known is None:
