@@ -50,6 +50,10 @@ class FclReference:
                 shape = fcl.Box(*(2 * np.asarray(g.geometry.halfSide)))
             elif kind == "Cylinder":
                 shape = fcl.Cylinder(g.geometry.radius, 2 * g.geometry.halfLength)
+            elif kind == "Sphere":
+                shape = fcl.Sphere(g.geometry.radius)
+            elif kind == "Capsule":
+                shape = fcl.Capsule(g.geometry.radius, 2 * g.geometry.halfLength)
             else:
                 m = trimesh.load(g.meshPath, force="mesh")
                 shape = fcl.BVHModel()

@@ -134,3 +134,36 @@ def test_the_pairs_always_near_read_from_the_cache_are_those_found_and_a_bad_ent
     assert (again.self_pairs, again.disabled_pairs) == (found.self_pairs, found.disabled_pairs)
     other = ClearanceChecker(ur10, scene, 0.02)  # another clearance: another entry
     assert len(list((tmp_path / "pairs").glob("*.json"))) == 2 and other.clearance == 0.02
+
+
+def test_the_frame_spheres_decide_what_the_primitive_spheres_did_and_clear_no_pair_the_reference_finds_near():
+    """TIAGo: 41 meshes on the gripper's frame. The frame level (one sphere per frame around its
+    primitives, pairs of two frames decided together) leaves undecided exactly the pairs the
+    primitive spheres left without it; a pair it clears is at least the clearance apart in the
+    Pinocchio + FCL reference."""
+    from fcl_reference import FclReference
+
+    robot = RobotModel.load(erd_robot("tiago_description/robots/tiago.urdf"), tool_frame="arm_tool_link",
+                            base_frame="base_footprint")
+    checker = ClearanceChecker(robot, load_scene(DEFAULT_SCENE).placed(robot), 0.035)
+    q = np.random.default_rng(3).uniform(robot.q_lower, robot.q_upper, size=(300, robot.n_joints))
+    R, t = nominal_frames_entry_first(robot, q)
+    need_scene, need_self = checker.undecided_pairs(R, t, 0.035)
+    frame_radius = checker._frame_radius
+    checker._frame_radius = np.full_like(frame_radius, np.inf)  # every frame pair undecided: no frame level
+    try:
+        without_scene, without_self = checker.undecided_pairs(R, t, 0.035)
+    finally:
+        checker._frame_radius = frame_radius
+    np.testing.assert_array_equal(need_self, without_self)
+    np.testing.assert_array_equal(need_scene, without_scene)
+    ref = FclReference(robot, DEFAULT_SCENE, np.eye(4))  # pairs of links: where the robot stands does not matter
+    pairs = ref.pairs(checker)
+    rng = np.random.default_rng(4)
+    nearest = np.inf
+    for k in rng.choice(len(q), 6, replace=False):
+        ref.place(q[k])
+        for m in rng.choice(np.flatnonzero(~need_self[:, k]), 60, replace=False):
+            nearest = min(nearest, ref.dist(ref.objs[pairs[m][0]], ref.objs[pairs[m][1]]))
+    assert 0.035 <= nearest < 0.5
+    assert len(checker.prims) > 60 and 0 < need_self.mean() < 0.05

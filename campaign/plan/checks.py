@@ -13,8 +13,8 @@ import json
 
 import numpy as np
 
-from campaign.plan.geometry import (RobotSpheres, fcl_geometry, hull_geometry, point_primitive_distance,
-                                    robot_primitives, robot_spheres, to_world)
+from campaign.plan.geometry import (RobotSpheres, fcl_geometry, frame_spheres, hull_geometry,
+                                    point_primitive_distance, robot_primitives, robot_spheres, to_world)
 
 
 def occludes(robot, prim) -> bool:
@@ -112,6 +112,8 @@ def robot_line_of_sight_ok(robot, scene, P, R, t):
 #: clears a pair only when its distance less this share and this margin still reaches the clearance
 HULL_SLACK_REL = 0.05
 HULL_SLACK_M = 5e-4
+#: most (pair, pose) entries of the primitive-sphere level computed at once (about 60 B each)
+SPHERE_LEVEL_ENTRIES = 1 << 19
 #: most exact verdicts a checker remembers (:meth:`ClearanceChecker.clear_entry_first`; about 200 B each)
 MEMO_SIZE = 1_000_000
 
@@ -155,6 +157,7 @@ class ClearanceChecker:
             self.scene_objs.append(fcl.CollisionObject(fcl_geometry(obs.kind, obs.size),
                                                        fcl.Transform(obs.T_I[:3, :3], obs.T_I[:3, 3])))
         self.scene_pairs = [(i, j) for i, p in enumerate(self.prims) if p.frame >= 1 for j in range(len(self.scene_objs))]
+        self._frame_centre, self._frame_radius = frame_spheres(self.spheres, robot.n_joints + 2)
         self._sphere_centre = [self.spheres.centre[self.spheres.primitive == i] for i in range(len(self.prims))]
         self._sphere_radius = [self.spheres.radius[self.spheres.primitive == i] for i in range(len(self.prims))]
         # per obstacle: the columns of its pairs in scene_pairs, and their robot primitives
@@ -300,13 +303,32 @@ class ClearanceChecker:
 
     def _self_undecided(self, R, t, index, c, Cw):
         """(len(pairs), n) bool for the primitive pairs ``index`` (2, m): True where the sphere
-        bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`."""
+        bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`.
+        Three levels: one sphere per frame around its primitives (the pairs of two frames are
+        decided together: a gripper of 41 meshes against the body), one per primitive where that
+        fails, each primitive's sphere set against the other's shape where that fails too."""
         S = self.spheres
         I, J = index
-        diff = Cw[:, I] - Cw[:, J]
-        d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-        need_self = d - (S.coarse_radius[I] + S.coarse_radius[J])[:, None] < c
-        for m, (i, j) in enumerate(zip(I, J)):
+        n = R.shape[-1]
+        need_self = np.zeros((len(I), n), dtype=bool)
+        if len(I) == 0:
+            return need_self
+        fI, fJ = S.coarse_frame[I], S.coarse_frame[J]
+        frame_pairs, group = np.unique(np.stack([fI, fJ], axis=1).reshape(-1, 2), axis=0, return_inverse=True)
+        for g, (a, b) in enumerate(frame_pairs):
+            ca, cb = (sum(R[f, :, j] * self._frame_centre[f, j] for j in range(3)) + t[f] for f in (a, b))
+            diff = ca - cb
+            d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+            cols = np.flatnonzero(d - (self._frame_radius[a] + self._frame_radius[b]) < c)
+            members = np.flatnonzero(group.reshape(-1) == g)
+            block = max(1, SPHERE_LEVEL_ENTRIES // len(members))  # bounded memory for many pairs and poses
+            for s in range(0, len(cols), block):
+                cs = cols[s : s + block]
+                diff = Cw[:, I[members][:, None], cs] - Cw[:, J[members][:, None], cs]
+                d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+                need_self[np.ix_(members, cs)] = d - (S.coarse_radius[I[members]] + S.coarse_radius[J[members]])[:, None] < c
+        for m in np.flatnonzero(need_self.any(axis=1)):
+            i, j = I[m], J[m]
             cols = np.flatnonzero(need_self[m])
             # i's spheres against j's shape, then j's spheres against i's shape where still undecided
             for a, b in ((i, j), (j, i)):
@@ -339,10 +361,9 @@ class ClearanceChecker:
             d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
             need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
         # fine level, only for the poses (columns) that the coarse level could not decide
-        for m, (i, j) in enumerate(self.scene_pairs):
+        for m in np.flatnonzero(need_scene.any(axis=1)):
+            i, j = self.scene_pairs[m]
             cols = np.flatnonzero(need_scene[m])
-            if len(cols) == 0:
-                continue
             f, obs = self.prims[i].frame, self.scene.obstacles[j]
             W = to_world(R[f][..., cols], t[f][:, cols], self._sphere_centre[i])
             d = point_primitive_distance(W, obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])

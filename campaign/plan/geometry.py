@@ -419,6 +419,19 @@ def robot_spheres(robot) -> RobotSpheres:
                         np.array(cc), np.array(cr), np.array(cf))
 
 
+def frame_spheres(spheres: RobotSpheres, n_frames: int):
+    """One sphere per frame enclosing the coarse spheres of every primitive on it: centres
+    (n_frames, 3) m in their frames, radii (n_frames,) m; a frame without primitives has radius
+    -inf (no pair involves it)."""
+    centre, radius = np.zeros((n_frames, 3)), np.full(n_frames, -np.inf)
+    for f in np.unique(spheres.coarse_frame):
+        on = spheres.coarse_frame == f
+        c, r = spheres.coarse_centre[on], spheres.coarse_radius[on]
+        centre[f] = 0.5 * (np.min(c - r[:, None], axis=0) + np.max(c + r[:, None], axis=0))
+        radius[f] = np.max(np.linalg.norm(c - centre[f], axis=1) + r)
+    return centre, radius
+
+
 def nominal_frames_entry_first(robot, q):
     """Frames 0..N+1 of the nominal model for joint vectors q (n, N), rad or m, entry-first:
     R (N+2, 3, 3, n), t (N+2, 3, n), m, so that each matrix entry over all poses is contiguous.
