@@ -100,7 +100,7 @@ class FclReference:
         for obj, M in zip(self.objs, self.gdata.oMg):
             T = self.T_cell_root @ M.homogeneous
             obj.setTransform(self.fcl.Transform(T[:3, :3], T[:3, 3]))
-        return self.T_cell_root @ self.data.oMf[self.model.getFrameId(self.robot.tool_frame)].homogeneous
+        return self.T_cell_root @ self.data.oMf[self.model.getFrameId(self.robot.tool_frame, self.pin.BODY)].homogeneous
 
     def dist(self, a, b) -> float:
         return self.fcl.distance(a, b, self.fcl.DistanceRequest(), self.fcl.DistanceResult())

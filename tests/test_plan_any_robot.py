@@ -18,6 +18,7 @@ from campaign.errors import ConfigError
 from campaign.model.kinematics import frames
 from campaign.model.robot import RobotModel
 from campaign.paths import DEFAULT_SCENE
+from campaign.plan import checks
 from campaign.plan.checks import ClearanceChecker
 from campaign.plan.geometry import nominal_frames_entry_first, robot_primitives
 from campaign.plan.grid import DEFAULT_GRID_SIZE, PAPER_CELLS, Grid, default_cells, iter_tool_points, tool_frames
@@ -491,3 +492,25 @@ def test_campaign_sim_serves_the_robot_the_run_records_and_refuses_another(tmp_p
         poses = store.load_measured()
     _, ids, _ = _read_poses(run)
     assert len(poses) == len(ids) and poses.q.shape[1] == 7
+
+
+def test_beams_the_link_boxes_stop_are_decided_on_the_shapes_as_the_reference_sees_them():
+    """The SO-ARM100 with its tool frame at the wrist: the wrist's bounding box holds a reflector
+    of the default triad in every pose, its mesh does not. Poses the boxes reject are decided on
+    the links' shapes: those accepted so are visible in the Pinocchio + FCL reference, those still
+    rejected are not."""
+    robot = RobotModel.load(erd_robot("so_arm_description/urdf/so100.urdf"), tool_frame="gripper").with_default_reflectors()
+    scene = load_scene(DEFAULT_SCENE).placed(robot)
+    q = np.random.default_rng(8).uniform(robot.q_lower, robot.q_upper, size=(20_000, robot.n_joints))
+    R, t = frames(robot, q)
+    E = robot.n_joints + 1
+    P, A = checks.reflector_geometry(robot, R[:, E], t[:, E])
+    seen = checks.range_ok(scene, P) & checks.cone_ok(robot, scene, P, A) & checks.scene_line_of_sight_ok(scene, P)
+    boxed = checks.robot_line_of_sight_ok(robot, scene, P, R, t)
+    assert seen.sum() > 500 and not (seen & boxed).any()  # the boxes alone leave nothing
+    k = np.random.default_rng(9).choice(np.flatnonzero(seen), 80, replace=False)
+    decided = ClearanceChecker(robot, scene, CLEARANCE_M).beams_clear(R[k], t[k], P[k])
+    ref = _reference(robot)
+    visible = np.array([ref.visible(qk, robot.reflectors) for qk in q[k]])
+    np.testing.assert_array_equal(decided, visible)
+    assert 5 <= decided.sum() < len(k)

@@ -98,7 +98,11 @@ class _Feasibility:
         P, A = checks.reflector_geometry(robot, R[:, E], t[:, E])
         ok &= checks.range_ok(self.scene, P) & checks.cone_ok(robot, self.scene, P, A)
         ok &= checks.scene_line_of_sight_ok(self.scene, P)
-        ok &= checks.robot_line_of_sight_ok(robot, self.scene, P, R, t)
+        los = checks.robot_line_of_sight_ok(robot, self.scene, P, R, t)
+        stopped = ok & ~los  # by a link's box: decided on the link's shape, as the plan's filter does
+        if stopped.any():
+            los[stopped] = self.checker.beams_clear(R[stopped], t[stopped], P[stopped])
+        ok &= los
         idx = np.flatnonzero(ok)
         if len(idx):
             ok[idx] = self.checker.clear(R[idx], t[idx], self.clearance)

@@ -90,12 +90,12 @@ def scene_line_of_sight_ok(scene, P):
     return ok
 
 
-def robot_line_of_sight_ok(robot, scene, P, R, t):
-    """No robot link (:func:`occludes`) within the beam radius of a beam. P (n, k, 3) reflector
-    centres; R, t: frames (n, N+2, ...). Conservative."""
+def robot_beam_hits(robot, scene, P, R, t):
+    """The beams each robot link (:func:`occludes`) may block, by its bounding box widened by the
+    beam radius: yields (primitive index, (n, k) bool). P (n, k, 3) reflector centres; R, t:
+    frames (n, N+2, ...). Conservative: a beam it does not flag is clear of that link."""
     o = scene.tracker_position
-    ok = np.ones(len(P), dtype=bool)
-    for prim in robot_primitives(robot):
+    for i, prim in enumerate(robot_primitives(robot)):
         if not occludes(robot, prim):
             continue
         half = 0.5 * _box_of(prim.kind, prim.size) + scene.beam_radius_m
@@ -103,7 +103,16 @@ def robot_line_of_sight_ok(robot, scene, P, R, t):
         cw = np.einsum("nij,j->ni", R[:, prim.frame], prim.T[:3, 3]) + t[:, prim.frame]
         p0 = np.einsum("nri,nij->nrj", P - cw[:, None, :], Rw)
         p1 = np.einsum("ni,nij->nj", o - cw, Rw)[:, None, :].repeat(P.shape[1], axis=1)
-        ok &= ~np.any(_segment_hits_box(p0, p1, half), axis=1)
+        yield i, _segment_hits_box(p0, p1, half)
+
+
+def robot_line_of_sight_ok(robot, scene, P, R, t):
+    """No robot link (:func:`occludes`) within the beam radius of a beam, by the links' bounding
+    boxes (:func:`robot_beam_hits`). P (n, k, 3) reflector centres; R, t: frames (n, N+2, ...).
+    Conservative: :meth:`ClearanceChecker.beams_clear` decides what it rejects on the shapes."""
+    ok = np.ones(len(P), dtype=bool)
+    for _, hits in robot_beam_hits(robot, scene, P, R, t):
+        ok &= ~np.any(hits, axis=1)
     return ok
 
 
@@ -280,6 +289,33 @@ class ClearanceChecker:
                             or (self._closed[j] and self._inside(j, self._point_of(i))))
         return self._dist_self(i, j) >= c
 
+    def beams_clear(self, R, t, P) -> np.ndarray:
+        """(n,) bool: every beam of each pose clear of the robot's links (:func:`occludes`) on
+        their shapes: the bounding boxes (:func:`robot_beam_hits`) flag what may block, FCL
+        decides it (a mesh's convex hull first, then its triangles; a beam starting inside a
+        mesh crosses its surface). For the poses :func:`robot_line_of_sight_ok` rejects, whose
+        bounding boxes stop a beam the link itself may leave free (a small arm: the wrist's box
+        holds the reflectors, its mesh does not). R, t: frames (n, N+2, ...); P (n, k, 3)."""
+        import fcl
+
+        o, radius = self.scene.tracker_position, self.scene.beam_radius_m
+        flagged = {}  # pose -> [(primitive, reflector)] whose box stops the beam
+        for i, hits in robot_beam_hits(self.robot, self.scene, P, R, t):
+            for k, r in zip(*np.nonzero(hits)):
+                flagged.setdefault(int(k), []).append((i, int(r)))
+        ok = np.ones(len(P), dtype=bool)
+        for k, pairs in flagged.items():
+            beams = {}
+            self._place(R[k], t[k], sorted({i for i, _ in pairs}))
+            for i, r in pairs:
+                beam = beams.get(r) or beams.setdefault(r, _beam_object(fcl, P[k, r], o, radius))
+                if self.hull_objs[i] is not self.robot_objs[i] and _hull_clear(self._dist(beam, self.hull_objs[i]), 0.0):
+                    continue
+                if fcl.collide(beam, self.robot_objs[i], fcl.CollisionRequest(), fcl.CollisionResult()) > 0:
+                    ok[k] = False
+                    break
+        return ok
+
     def pair_distances(self, R, t) -> tuple:
         """Exact FCL distances (m) of every checked pair for one pose (frames R (N+2,3,3), t (N+2,3)):
         ``(robot-scene (len(scene_pairs),), robot-robot (len(self_pairs),))``."""
@@ -441,6 +477,17 @@ class ClearanceChecker:
         return ok
 
 
+def _beam_object(fcl, p, o, radius):
+    """The beam from reflector centre p (3,) to the tracker o (3,) as an FCL capsule of ``radius`` (m)."""
+    to = o - p
+    d = float(np.linalg.norm(to))
+    z = to / d
+    x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    return fcl.CollisionObject(fcl.Capsule(radius, d), fcl.Transform(np.stack([x, np.cross(z, x), z], axis=1),
+                                                                      p + 0.5 * to))
+
+
 def _hull_clear(d, c) -> bool:
     """Whether a hull distance d (m) from FCL proves the clearance c (m) despite GJK's error."""
     return d * (1.0 - HULL_SLACK_REL) - HULL_SLACK_M >= c
@@ -522,14 +569,7 @@ class ExactChecker:
         others = list(self.clearance.scene_objs) + [obj for obj, p in zip(self.clearance.robot_objs, self.clearance.prims)
                                                    if occludes(self.robot, p)]
         for p in P:
-            axis = o - p
-            length = np.linalg.norm(axis)
-            z = axis / length
-            x = np.cross(z, [1.0, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1.0, 0])
-            x /= np.linalg.norm(x)
-            Rb = np.stack([x, np.cross(z, x), z], axis=1)
-            beam = fcl.CollisionObject(fcl.Capsule(self.scene.beam_radius_m, length),
-                                       fcl.Transform(Rb, p + 0.5 * axis))
+            beam = _beam_object(fcl, p, o, self.scene.beam_radius_m)
             for obj in others:
                 res = fcl.DistanceResult()
                 if fcl.distance(beam, obj, fcl.DistanceRequest(), res) <= 0.0:

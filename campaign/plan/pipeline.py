@@ -76,6 +76,8 @@ def _filter_grid(robot, scene, grid, clearance, progress):
         R, t = frames(robot, grid.q(sub))
         P, _ = checks.reflector_geometry(robot, R[:, E], t[:, E])
         ok = checks.robot_line_of_sight_ok(robot, scene, P, R, t)
+        if not ok.all():  # the links' boxes are conservative: what they stop is decided on the shapes
+            ok[~ok] = checker.beams_clear(R[~ok], t[~ok], P[~ok])
         removed["line_of_sight_robot"] += int((~ok).sum())
         sub, R, t = sub[ok], R[ok], t[ok]
         ok = checker.clear(R, t)
