@@ -514,3 +514,22 @@ def test_beams_the_link_boxes_stop_are_decided_on_the_shapes_as_the_reference_se
     visible = np.array([ref.visible(qk, robot.reflectors) for qk in q[k]])
     np.testing.assert_array_equal(decided, visible)
     assert 5 <= decided.sum() < len(k)
+
+
+def test_no_suitable_pose_says_in_one_line_which_link_hides_the_reflectors_and_what_to_change(tmp_path, capsys):
+    """TALOS's arm with its tool frame at the last joint: the forearm's mesh hides a reflector of
+    the default triad in every pose the tracker could see (the reference sees none either)."""
+    urdf = erd_robot("talos_data/robots/talos_left_arm.urdf")
+    assert main(["plan", "--robot", str(urdf), "--tool-frame", "arm_left_7_link", "--grid-scale", "0.3",
+                 "--run", str(tmp_path / "run"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no suitable pose among" in err
+    assert "link 'arm_left_5_link' hides reflector" in err and "--tool-frame" in err and "robot.yaml" in err
+    robot = RobotModel.load(urdf, tool_frame="arm_left_7_link").with_default_reflectors()
+    ref = FclReference(robot, DEFAULT_SCENE, load_scene(DEFAULT_SCENE).placed(robot).T_cell_I)
+    scene = load_scene(DEFAULT_SCENE).placed(robot)
+    q = np.random.default_rng(2).uniform(robot.q_lower, robot.q_upper, size=(5000, robot.n_joints))
+    R, t = frames(robot, q)
+    P, A = checks.reflector_geometry(robot, R[:, -1], t[:, -1])
+    seen = q[checks.range_ok(scene, P) & checks.cone_ok(robot, scene, P, A) & checks.scene_line_of_sight_ok(scene, P)]
+    assert len(seen) >= 60 and not any(ref.visible(qk, robot.reflectors) for qk in seen[:60])

@@ -296,6 +296,11 @@ class ClearanceChecker:
         mesh crosses its surface). For the poses :func:`robot_line_of_sight_ok` rejects, whose
         bounding boxes stop a beam the link itself may leave free (a small arm: the wrist's box
         holds the reflectors, its mesh does not). R, t: frames (n, N+2, ...); P (n, k, 3)."""
+        return np.array([b is None for b in self.beam_blockers(R, t, P)], dtype=bool)
+
+    def beam_blockers(self, R, t, P) -> list:
+        """Per pose, the first (primitive index, reflector index) whose beam the primitive's shape
+        blocks, or None (see :meth:`beams_clear`)."""
         import fcl
 
         o, radius = self.scene.tracker_position, self.scene.beam_radius_m
@@ -303,7 +308,7 @@ class ClearanceChecker:
         for i, hits in robot_beam_hits(self.robot, self.scene, P, R, t):
             for k, r in zip(*np.nonzero(hits)):
                 flagged.setdefault(int(k), []).append((i, int(r)))
-        ok = np.ones(len(P), dtype=bool)
+        out = [None] * len(P)
         for k, pairs in flagged.items():
             beams = {}
             self._place(R[k], t[k], sorted({i for i, _ in pairs}))
@@ -312,9 +317,9 @@ class ClearanceChecker:
                 if self.hull_objs[i] is not self.robot_objs[i] and _hull_clear(self._dist(beam, self.hull_objs[i]), 0.0):
                     continue
                 if fcl.collide(beam, self.robot_objs[i], fcl.CollisionRequest(), fcl.CollisionResult()) > 0:
-                    ok[k] = False
+                    out[k] = (i, r)
                     break
-        return ok
+        return out
 
     def pair_distances(self, R, t) -> tuple:
         """Exact FCL distances (m) of every checked pair for one pose (frames R (N+2,3,3), t (N+2,3)):
@@ -475,6 +480,62 @@ class ClearanceChecker:
                     ok[k] = False
                     break
         return ok
+
+
+#: poses of the last filter's rejects examined to say why no pose is suitable (:func:`why_no_pose`)
+WHY_SAMPLE = 40
+
+
+def why_no_pose(robot, scene, grid, checker, removed, hidden, near, seed=0) -> str:
+    """Why no candidate of ``grid`` is suitable, and what to change, in one sentence: from the
+    last filter that removed any (``removed``: counts by filter, in order); for a link hiding
+    the reflectors (``hidden``: grid indices) or poses too near (``near``), the link or pair
+    found most often on a random sample of :data:`WHY_SAMPLE` of them."""
+    from campaign.model.kinematics import frames
+
+    last = [f for f, n in removed.items() if n > 0][-1]
+    tool = f"the tool frame '{robot.tool_frame}'"
+    if last == "tracker_range":
+        return (f"every reflector lies outside the tracker's range ({scene.min_range_m:g}-{scene.max_range_m:g} m) "
+                "in every pose: move the tracker within reach (the scene's tracker.position_m)")
+    if last == "reflector_cone":
+        deg = ", ".join(sorted({f"{np.degrees(r.half_angle):g}°" for r in robot.reflectors}))
+        return (f"no pose turns every reflector's nest to within its half-angle ({deg}) of the tracker: check the "
+                f"reflectors' axes (robot.yaml; without reflectors there, +z of {tool}) and the tracker's place")
+    if last == "line_of_sight_scene":
+        return "every beam to the tracker crosses an obstacle of the scene: move the tracker or the obstacles"
+    rng = np.random.default_rng(seed)
+    rows = hidden if last == "line_of_sight_robot" else near
+    sample = np.sort(rng.choice(rows, min(WHY_SAMPLE, len(rows)), replace=False))
+    R, t = frames(robot, grid.q(sample))
+    found = {}
+    if last == "line_of_sight_robot":
+        E = robot.n_joints + 1
+        P, _ = reflector_geometry(robot, R[:, E], t[:, E])
+        for b in checker.beam_blockers(R, t, P):
+            if b is not None:
+                found[b] = found.get(b, 0) + 1
+        (i, r), n = max(found.items(), key=lambda kv: kv[1]) if found else ((0, 0), 0)
+        ref = robot.reflectors[r]
+        where = ", ".join(f"{v:g}" for v in np.round(ref.position_in_E, 4))
+        return (f"a link of the robot hides a reflector in each of the {len(hidden):,} poses the tracker could see "
+                f"(in {n} of {len(sample)} sampled: link '{checker.prims[i].link}' hides reflector {ref.name} at "
+                f"({where}) m in {tool}): the reflectors sit too near the arm; name a tool frame at the tip of the "
+                "tool (--tool-frame) or the reflectors where they are mounted (robot.yaml, docs/robot_yaml.md)")
+    names = [o.name for o in scene.obstacles]
+    for k in range(len(sample)):
+        d_scene, d_self = checker.pair_distances(R[k], t[k])
+        pairs = {("obstacle", checker.prims[i].link, names[j]) for (i, j), d in zip(checker.scene_pairs, d_scene)
+                 if d < checker.clearance}
+        pairs |= {("link", checker.prims[i].link, checker.prims[j].link)
+                  for (i, j), d in zip(checker.self_pairs, d_self) if d < checker.clearance}
+        for p in pairs:
+            found[p] = found.get(p, 0) + 1
+    (kind, a, b), n = max(found.items(), key=lambda kv: kv[1])
+    change = ("place the robot elsewhere in the cell (--base-frame, the scene's robot_base) or move the obstacle"
+              if kind == "obstacle" else "a smaller plan.clearance_m, or a collision model that is not padded")
+    return (f"each of the {len(near):,} poses the tracker sees is nearer than plan.clearance_m = {checker.clearance:g} m "
+            f"to the cell or to the robot itself (in {n} of {len(sample)} sampled: link '{a}' to {kind} '{b}'): {change}")
 
 
 def _beam_object(fcl, p, o, radius):

@@ -45,7 +45,8 @@ PAPER_DURATION_S = 3.5 * 86400.0
 
 
 def _filter_grid(robot, scene, grid, clearance, progress):
-    """Stage 2 over the whole grid; returns (suitable candidate indices, counts)."""
+    """Stage 2 over the whole grid; returns (suitable candidate indices, counts, the clearance
+    checker); ``counts["why_none"]``, when no candidate is suitable, says why in a sentence."""
     counts = {"candidates": grid.size}
     bar = Progress("stage 1-2: tool poses", grid.size, progress, " poses")
     survivors = []
@@ -71,6 +72,7 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     idx = np.concatenate(cand_after_visibility)
     checker = checks.ClearanceChecker(robot, scene, clearance)
     bar = Progress("stage 2: LOS + FCL", len(idx), progress, " poses")
+    hidden, near = [], []  # candidates seen by the tracker that a link hides, that are too near
     for s in range(0, len(idx), 4096):
         sub = idx[s : s + 4096]
         R, t = frames(robot, grid.q(sub))
@@ -79,9 +81,11 @@ def _filter_grid(robot, scene, grid, clearance, progress):
         if not ok.all():  # the links' boxes are conservative: what they stop is decided on the shapes
             ok[~ok] = checker.beams_clear(R[~ok], t[~ok], P[~ok])
         removed["line_of_sight_robot"] += int((~ok).sum())
+        hidden.append(sub[~ok])
         sub, R, t = sub[ok], R[ok], t[ok]
         ok = checker.clear(R, t)
         removed["clearance_fcl"] += int((~ok).sum())
+        near.append(sub[~ok])
         survivors.append(sub[ok])
         bar.update(min(4096, len(idx) - s))
     bar.close()
@@ -89,6 +93,10 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     counts["removed_by_filter"] = removed
     counts["filter_order"] = list(removed)
     counts["suitable"] = int(len(suitable))
+    if len(suitable) == 0:
+        counts["why_none"] = checks.why_no_pose(robot, scene, grid, checker, removed,
+                                                np.concatenate(hidden or [np.zeros(0, np.int64)]),
+                                                np.concatenate(near or [np.zeros(0, np.int64)]))
     return suitable, counts, checker
 
 
@@ -223,11 +231,8 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
 
     suitable, counts, checker = _filter_grid(robot, scene, grid, pc.clearance_m, progress)
     if len(suitable) == 0:
-        rm = counts["removed_by_filter"]
-        worst = max(rm, key=rm.get)
-        raise PlanError(f"{cfg.path}: no suitable pose among {grid.size:,} candidates (most removed by "
-                        f"{worst}: {rm[worst]:,}); check plan.clearance_m ({pc.clearance_m:g} m), plan.grid_cells "
-                        f"and the scene {cfg.scene_path}")
+        raise PlanError(f"{cfg.path}: no suitable pose among {grid.size:,} candidates for {robot.name} in the scene "
+                        f"{cfg.scene_path}: {counts['why_none']}")
     lap("filters")
 
     # stage 3: groups, order, check
