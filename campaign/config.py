@@ -355,7 +355,11 @@ class CampaignConfig:
             return self
         kw = {"tool_frame": tool_frame, "base_frame": base_frame}
         if robot is not None:
-            kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() else str(robot)
+            from campaign.model.robot import names_example_robot
+
+            # a path is made absolute; a name stays a name (a run folder named like it does not hide it)
+            kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() and not names_example_robot(robot) \
+                else str(robot)
         else:
             kw = {k: v if v is not None else getattr(self, k) for k, v in kw.items()}
         return replace(self, **kw)

@@ -9,6 +9,8 @@ import pinocchio as pin
 import pytest
 
 from campaign.cli import main
+from campaign.config import load_config
+from campaign.paths import DEFAULT_CONFIG
 from campaign.errors import ConfigError
 from campaign.model.kinematics import forward
 from campaign.model.robot import RobotModel
@@ -60,6 +62,7 @@ def test_a_folder_without_robot_yaml_does_not_hide_a_name(tmp_path, monkeypatch)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "ur3").mkdir()  # the run folder of `campaign plan --run ur3 --robot ur3`
     assert RobotModel.load("ur3").urdf_path.name == "ur3_robot.urdf"
+    assert load_config(DEFAULT_CONFIG).with_robot("ur3").robot == "ur3"  # what campaign.yaml records
     (tmp_path / "ur3" / "robot.yaml").write_text("not: a robot\n")  # a robot.yaml folder is the user's robot
     with pytest.raises(ConfigError, match="robot.yaml"):
         RobotModel.load("ur3")

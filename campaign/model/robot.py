@@ -410,20 +410,27 @@ def _row_label(i: int, pose_ids=None, lines=None) -> str:
 
 
 # -- resolution of the spec ----------------------------------------------------------------
-def _named_example(spec):
-    """(URDF path, tool frame, base frame) when ``spec`` names one of example-robot-data's robots
-    (and no file, robot.yaml folder or embedded model of that name exists: a folder without a
-    robot.yaml, such as the run folder `campaign plan --run ur3 --robot ur3` made, does not hide
-    the name); None otherwise."""
+def names_example_robot(spec) -> bool:
+    """Whether ``spec`` names one of example-robot-data's robots: a name of the catalog that no
+    file, robot.yaml folder or embedded model of that name hides (a folder without a robot.yaml,
+    such as the run folder `campaign plan --run ur3 --robot ur3` made, does not hide it)."""
     from campaign.model import catalog
 
     text = str(spec)
     here = Path(text)
     if "/" in text or here.is_file() or (here / "robot.yaml").is_file() or (ROBOT_MODELS / text).is_dir():
+        return False
+    return catalog.lookup(text) is not None
+
+
+def _named_example(spec):
+    """(URDF path, tool frame, base frame) when ``spec`` names one of example-robot-data's robots
+    (:func:`names_example_robot`); None otherwise."""
+    from campaign.model import catalog
+
+    if not names_example_robot(spec):
         return None
-    known = catalog.lookup(text)
-    if known is None:
-        return None
+    known = catalog.lookup(str(spec))
     path = catalog.urdf_of(known)
     if path is None or not path.is_file():
         raise ConfigError(f"robot '{spec}' is one of example-robot-data's robots, which is not installed "
