@@ -533,3 +533,20 @@ def test_no_suitable_pose_says_in_one_line_which_link_hides_the_reflectors_and_w
     P, A = checks.reflector_geometry(robot, R[:, -1], t[:, -1])
     seen = q[checks.range_ok(scene, P) & checks.cone_ok(robot, scene, P, A) & checks.scene_line_of_sight_ok(scene, P)]
     assert len(seen) >= 60 and not any(ref.visible(qk, robot.reflectors) for qk in seen[:60])
+
+
+def test_when_the_link_boxes_leave_too_few_poses_the_plan_decides_their_beams_on_the_shapes():
+    """The SO-ARM100 above: its links' boxes hide every pose; the filter then decides the beams they
+    stopped on the shapes and says so; the poses it keeps are visible and clear in the reference."""
+    from campaign.plan.pipeline import _filter_grid
+
+    robot = RobotModel.load(erd_robot("so_arm_description/urdf/so100.urdf"), tool_frame="gripper").with_default_reflectors()
+    grid = Grid.for_robot(robot, (8, 7, 7, 7, 10))
+    suitable, counts, checker = _filter_grid(robot, load_scene(DEFAULT_SCENE).placed(robot), grid, CLEARANCE_M, False)
+    exact = counts["line_of_sight_exact"]
+    assert 0 < exact["seen"] < exact["poses"] and "left 0 suitable poses" in exact["why"]
+    assert len(suitable) >= 20 and counts["suitable"] == len(suitable)
+    ref = _reference(robot)
+    pairs = ref.pairs(checker)
+    for q in grid.q(np.random.default_rng(1).choice(suitable, 20, replace=False)):
+        assert ref.visible(q, robot.reflectors) and ref.min_clearance(q, pairs) >= CLEARANCE_M

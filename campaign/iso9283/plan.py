@@ -99,7 +99,7 @@ class _Feasibility:
         ok &= checks.range_ok(self.scene, P) & checks.cone_ok(robot, self.scene, P, A)
         ok &= checks.scene_line_of_sight_ok(self.scene, P)
         los = checks.robot_line_of_sight_ok(robot, self.scene, P, R, t)
-        stopped = ok & ~los  # by a link's box: decided on the link's shape, as the plan's filter does
+        stopped = ok & ~los  # by a link's box, which is conservative: decided on the link's shape
         if stopped.any():
             los[stopped] = self.checker.beams_clear(R[stopped], t[stopped], P[stopped])
         ok &= los

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 
 import numpy as np
 
@@ -92,8 +93,9 @@ def scene_line_of_sight_ok(scene, P):
 
 def robot_beam_hits(robot, scene, P, R, t):
     """The beams each robot link (:func:`occludes`) may block, by its bounding box widened by the
-    beam radius: yields (primitive index, (n, k) bool). P (n, k, 3) reflector centres; R, t:
-    frames (n, N+2, ...). Conservative: a beam it does not flag is clear of that link."""
+    beam radius: yields (primitive index, (n, k) bool, the beams' ends (reflector, tracker) in the
+    primitive's frame (n, k, 3) each). P (n, k, 3) reflector centres; R, t: frames (n, N+2, ...).
+    Conservative: a beam it does not flag is clear of that link."""
     o = scene.tracker_position
     for i, prim in enumerate(robot_primitives(robot)):
         if not occludes(robot, prim):
@@ -103,7 +105,7 @@ def robot_beam_hits(robot, scene, P, R, t):
         cw = np.einsum("nij,j->ni", R[:, prim.frame], prim.T[:3, 3]) + t[:, prim.frame]
         p0 = np.einsum("nri,nij->nrj", P - cw[:, None, :], Rw)
         p1 = np.einsum("ni,nij->nj", o - cw, Rw)[:, None, :].repeat(P.shape[1], axis=1)
-        yield i, _segment_hits_box(p0, p1, half)
+        yield i, _segment_hits_box(p0, p1, half), p0, p1
 
 
 def robot_line_of_sight_ok(robot, scene, P, R, t):
@@ -111,7 +113,7 @@ def robot_line_of_sight_ok(robot, scene, P, R, t):
     boxes (:func:`robot_beam_hits`). P (n, k, 3) reflector centres; R, t: frames (n, N+2, ...).
     Conservative: :meth:`ClearanceChecker.beams_clear` decides what it rejects on the shapes."""
     ok = np.ones(len(P), dtype=bool)
-    for _, hits in robot_beam_hits(robot, scene, P, R, t):
+    for _, hits, _, _ in robot_beam_hits(robot, scene, P, R, t):
         ok &= ~np.any(hits, axis=1)
     return ok
 
@@ -304,22 +306,36 @@ class ClearanceChecker:
         import fcl
 
         o, radius = self.scene.tracker_position, self.scene.beam_radius_m
-        flagged = {}  # pose -> [(primitive, reflector)] whose box stops the beam
-        for i, hits in robot_beam_hits(self.robot, self.scene, P, R, t):
-            for k, r in zip(*np.nonzero(hits)):
-                flagged.setdefault(int(k), []).append((i, int(r)))
+        flagged = {}  # pose -> [(primitive, reflector)] whose box, spheres and hull may stop the beam
+        for i, hits, p0, p1 in robot_beam_hits(self.robot, self.scene, P, R, t):
+            k, r = np.nonzero(hits)
+            if len(k) == 0:
+                continue
+            near = ~self._spheres_clear_beams(i, R[k], t[k], P[k, r], o, radius)
+            if self.prims[i].mesh is not None and near.any():
+                near[near] = segments_meet_hull(self.prims[i].mesh, p0[k[near], r[near]], p1[k[near], r[near]], radius)
+            for kk, rr in zip(k[near], r[near]):
+                flagged.setdefault(int(kk), []).append((i, int(rr)))
         out = [None] * len(P)
         for k, pairs in flagged.items():
             beams = {}
             self._place(R[k], t[k], sorted({i for i, _ in pairs}))
             for i, r in pairs:
                 beam = beams.get(r) or beams.setdefault(r, _beam_object(fcl, P[k, r], o, radius))
-                if self.hull_objs[i] is not self.robot_objs[i] and _hull_clear(self._dist(beam, self.hull_objs[i]), 0.0):
-                    continue
                 if fcl.collide(beam, self.robot_objs[i], fcl.CollisionRequest(), fcl.CollisionResult()) > 0:
                     out[k] = (i, r)
                     break
         return out
+
+    def _spheres_clear_beams(self, i, R, t, p, o, radius) -> np.ndarray:
+        """(m,) bool: the beam from p[m] (3,) to the tracker o (3,), ``radius`` wide, misses every
+        sphere enclosing robot primitive i (so the primitive too) with frames R (m, N+2, 3, 3), t (m, N+2, 3)."""
+        f = self.prims[i].frame
+        C = np.einsum("mij,sj->msi", R[:, f], self._sphere_centre[i]) + t[:, f][:, None, :]  # (m, S, 3)
+        d = o - p
+        u = np.clip(np.einsum("msi,mi->ms", C - p[:, None, :], d) / np.einsum("mi,mi->m", d, d)[:, None], 0.0, 1.0)
+        gap = np.linalg.norm(C - p[:, None, :] - u[..., None] * d[:, None, :], axis=-1)
+        return np.all(gap > self._sphere_radius[i] + radius, axis=1)
 
     def pair_distances(self, R, t) -> tuple:
         """Exact FCL distances (m) of every checked pair for one pose (frames R (N+2,3,3), t (N+2,3)):
@@ -482,6 +498,11 @@ class ClearanceChecker:
         return ok
 
 
+#: when the links' bounding boxes leave fewer suitable poses than this, the beams they stop are
+#: decided on the links' shapes (:meth:`ClearanceChecker.beams_clear`: several seconds for a big
+#: arm's tens of thousands of poses, so only when the boxes leave too few to choose a campaign
+#: among: a small arm whose wrist's box holds the reflectors)
+EXACT_SIGHT_BELOW = 2000
 #: poses of the last filter's rejects examined to say why no pose is suitable (:func:`why_no_pose`)
 WHY_SAMPLE = 40
 
@@ -538,15 +559,42 @@ def why_no_pose(robot, scene, grid, checker, removed, hidden, near, seed=0) -> s
             f"to the cell or to the robot itself (in {n} of {len(sample)} sampled: link '{a}' to {kind} '{b}'): {change}")
 
 
+#: beams checked against a hull's planes at once (bounds the (beams, planes) arrays)
+HULL_BEAM_CHUNK = 2048
+
+
+def segments_meet_hull(mesh, a, b, radius) -> np.ndarray:
+    """(m,) bool: whether the segment a[m]→b[m] (m, 3), in the mesh's frame, meets its convex hull
+    widened by ``radius`` (m): each hull plane moved out by the radius, the segment clipped by
+    every half-space (Liang-Barsky). The widened planes hold the hull's points within the radius,
+    so False proves a capsule of that radius about the segment clear of the mesh."""
+    normals, offsets = mesh.hull_planes
+    out = np.zeros(len(a), dtype=bool)
+    for s in range(0, len(a), HULL_BEAM_CHUNK):
+        p, d = a[s : s + HULL_BEAM_CHUNK], b[s : s + HULL_BEAM_CHUNK] - a[s : s + HULL_BEAM_CHUNK]
+        room = offsets + radius - p @ normals.T  # (m, F): how far inside each plane the start lies
+        rate = d @ normals.T  # its change along the segment
+        with np.errstate(divide="ignore", invalid="ignore"):
+            at = room / rate
+        enter = np.max(np.where(rate < 0, at, -np.inf), axis=1, initial=0.0)
+        leave = np.min(np.where(rate > 0, at, np.inf), axis=1, initial=1.0)
+        parallel_out = np.any((rate == 0) & (room < 0), axis=1)
+        out[s : s + HULL_BEAM_CHUNK] = (enter <= leave) & ~parallel_out
+    return out
+
+
 def _beam_object(fcl, p, o, radius):
     """The beam from reflector centre p (3,) to the tracker o (3,) as an FCL capsule of ``radius`` (m)."""
     to = o - p
-    d = float(np.linalg.norm(to))
-    z = to / d
-    x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    return fcl.CollisionObject(fcl.Capsule(radius, d), fcl.Transform(np.stack([x, np.cross(z, x), z], axis=1),
-                                                                      p + 0.5 * to))
+    d = math.sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2])
+    z0, z1, z2 = to[0] / d, to[1] / d, to[2] / d
+    # x ⟂ z: z × e_x, or z × e_y when z is near e_x; y = z × x (scalars: numpy's cross is slow for one vector)
+    x0, x1, x2 = (0.0, z2, -z1) if abs(z0) < 0.9 else (-z2, 0.0, z0)
+    n = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    x0, x1, x2 = x0 / n, x1 / n, x2 / n
+    y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0
+    frame = np.array([[x0, y0, z0], [x1, y1, z1], [x2, y2, z2]])
+    return fcl.CollisionObject(fcl.Capsule(radius, d), fcl.Transform(frame, p + 0.5 * to))
 
 
 def _hull_clear(d, c) -> bool:

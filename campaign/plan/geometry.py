@@ -72,6 +72,17 @@ class MeshShape:
         return np.ascontiguousarray(h.vertices, dtype=float), np.ascontiguousarray(h.faces, dtype=np.int64)
 
     @functools.cached_property
+    def hull_planes(self) -> tuple:
+        """The convex hull as half-spaces n·x <= d: outward unit normals (g, 3) and offsets (g,) m."""
+        v, f = self.hull
+        n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        length = np.linalg.norm(n, axis=1)
+        keep = length > 1e-12 * max(1.0, float(np.max(length, initial=0.0)))  # no slivers
+        n, f = n[keep] / length[keep, None], f[keep]
+        n *= np.where(np.einsum("gi,gi->g", n, v[f[:, 0]] - v.mean(axis=0)) < 0, -1.0, 1.0)[:, None]  # outward
+        return n, np.einsum("gi,gi->g", n, v[f[:, 0]])
+
+    @functools.cached_property
     def pieces(self) -> tuple:
         """Convex hulls ((h, 3) vertices, (g, 3) triangles) of :data:`MESH_HULL_PIECES` slabs of the
         mesh's triangles along its bounding box's longest edge (by centroid): together they

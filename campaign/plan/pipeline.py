@@ -72,32 +72,63 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     idx = np.concatenate(cand_after_visibility)
     checker = checks.ClearanceChecker(robot, scene, clearance)
     bar = Progress("stage 2: LOS + FCL", len(idx), progress, " poses")
-    hidden, near = [], []  # candidates seen by the tracker that a link hides, that are too near
-    for s in range(0, len(idx), 4096):
-        sub = idx[s : s + 4096]
-        R, t = frames(robot, grid.q(sub))
-        P, _ = checks.reflector_geometry(robot, R[:, E], t[:, E])
-        ok = checks.robot_line_of_sight_ok(robot, scene, P, R, t)
-        if not ok.all():  # the links' boxes are conservative: what they stop is decided on the shapes
-            ok[~ok] = checker.beams_clear(R[~ok], t[~ok], P[~ok])
-        removed["line_of_sight_robot"] += int((~ok).sum())
-        hidden.append(sub[~ok])
-        sub, R, t = sub[ok], R[ok], t[ok]
-        ok = checker.clear(R, t)
-        removed["clearance_fcl"] += int((~ok).sum())
-        near.append(sub[~ok])
-        survivors.append(sub[ok])
-        bar.update(min(4096, len(idx) - s))
+    survivors, hidden, near = _sight_and_clearance(robot, grid, checker, idx, removed, bar=bar)
     bar.close()
-    suitable = np.concatenate(survivors) if survivors else np.zeros(0, dtype=np.int64)
+    if len(survivors) < checks.EXACT_SIGHT_BELOW and len(hidden):
+        # the links' boxes left too few: the beams they stop are decided on the links' shapes
+        seen = _seen_on_shapes(robot, grid, checker, hidden)
+        removed["line_of_sight_robot"] -= len(seen)
+        more, _, more_near = _sight_and_clearance(robot, grid, checker, seen, removed, sight=False)
+        counts["line_of_sight_exact"] = {"poses": int(len(hidden)), "seen": int(len(seen)),
+                                         "why": f"the links' bounding boxes left {len(survivors):,} suitable poses, "
+                                                f"fewer than {checks.EXACT_SIGHT_BELOW:,}"}
+        hidden = np.setdiff1d(hidden, seen)
+        survivors, near = np.sort(np.concatenate([survivors, more])), np.concatenate([near, more_near])
+    suitable = survivors
     counts["removed_by_filter"] = removed
     counts["filter_order"] = list(removed)
     counts["suitable"] = int(len(suitable))
     if len(suitable) == 0:
-        counts["why_none"] = checks.why_no_pose(robot, scene, grid, checker, removed,
-                                                np.concatenate(hidden or [np.zeros(0, np.int64)]),
-                                                np.concatenate(near or [np.zeros(0, np.int64)]))
+        counts["why_none"] = checks.why_no_pose(robot, scene, grid, checker, removed, hidden, near)
     return suitable, counts, checker
+
+
+def _sight_and_clearance(robot, grid, checker, idx, removed, *, sight=True, bar=None, block=4096):
+    """The second part of stage 2 for the candidates ``idx`` (grid indices the tracker sees past
+    the scene): the robot's links out of the beams, by their bounding boxes, then the clearance
+    (``sight`` False: the clearance alone). Returns (suitable, hidden by a link, too near) grid
+    indices; adds to ``removed`` what each filter removed."""
+    E = robot.n_joints + 1  # the tool frame's index in kinematics.frames
+    out = {"ok": [], "hidden": [], "near": []}
+    for s in range(0, len(idx), block):
+        sub = idx[s : s + block]
+        R, t = frames(robot, grid.q(sub))
+        if sight:
+            P, _ = checks.reflector_geometry(robot, R[:, E], t[:, E])
+            ok = checks.robot_line_of_sight_ok(robot, checker.scene, P, R, t)
+            removed["line_of_sight_robot"] += int((~ok).sum())
+            out["hidden"].append(sub[~ok])
+            sub, R, t = sub[ok], R[ok], t[ok]
+        ok = checker.clear(R, t)
+        removed["clearance_fcl"] += int((~ok).sum())
+        out["near"].append(sub[~ok])
+        out["ok"].append(sub[ok])
+        if bar is not None:
+            bar.update(min(block, len(idx) - s))
+    return tuple(np.concatenate(out[k]) if out[k] else np.zeros(0, dtype=np.int64) for k in ("ok", "hidden", "near"))
+
+
+def _seen_on_shapes(robot, grid, checker, idx, block=4096):
+    """The grid indices of ``idx`` whose beams miss the robot's links on their shapes
+    (:meth:`~campaign.plan.checks.ClearanceChecker.beams_clear`)."""
+    E = robot.n_joints + 1
+    seen = []
+    for s in range(0, len(idx), block):
+        sub = idx[s : s + block]
+        R, t = frames(robot, grid.q(sub))
+        P, _ = checks.reflector_geometry(robot, R[:, E], t[:, E])
+        seen.append(sub[checker.beams_clear(R, t, P)])
+    return np.concatenate(seen) if seen else np.zeros(0, dtype=np.int64)
 
 
 def _order_group(times, grid, members, start_cells):
@@ -321,6 +352,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         "candidates": counts["candidates"],
         "removed_by_filter": counts["removed_by_filter"], "filter_order": counts["filter_order"],
         "suitable": counts["suitable"], "suitable_fraction": counts["suitable"] / counts["candidates"],
+        **({"line_of_sight_exact": counts["line_of_sight_exact"]} if "line_of_sight_exact" in counts else {}),
         "groups": {"front_of_wall": int(front_final.sum()), "behind_wall": int((~front_final).sum())},
         "tour": {"poses": n, "via_poses": int(sum(len(v) for v in vias.values())), "dropped": len(dropped),
                  "path_search": {"motions": repair.searched, "checks": repair.search_checks},
