@@ -37,6 +37,8 @@ from campaign.model.rotations import urdf_rpy
 SUPPORTED = ("box", "cylinder", "sphere", "capsule", "mesh")
 #: a mesh's surface is cut into cubes of its oriented bounding box's smallest edge times this
 #: (at least MESH_PIECE_MIN_M), one enclosing sphere per cube: smaller spheres decide more pairs
+#: a point farther than this outside a convex hull's plane is outside the hull (the planes' round-off), m
+HULL_PLANE_TOLERANCE_M = 1e-7
 #: without FCL but cost more per bound
 MESH_PIECE_FRACTION = 0.5
 MESH_PIECE_MIN_M = 0.02
@@ -112,9 +114,15 @@ class MeshShape:
 
     def contains(self, points) -> np.ndarray:
         """(n,) bool: points (n, 3) in the primitive's frame inside the closed mesh."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        out = np.zeros(len(points), dtype=bool)
         if not self.watertight:
-            return np.zeros(len(points), dtype=bool)
-        return np.asarray(self.trimesh.contains(np.asarray(points, dtype=float).reshape(-1, 3)), dtype=bool)
+            return out
+        normals, offsets = self.hull_planes
+        maybe = np.all(points @ normals.T <= offsets + HULL_PLANE_TOLERANCE_M, axis=1)  # outside the hull: outside
+        if maybe.any():
+            out[maybe] = np.asarray(self.trimesh.contains(points[maybe]), dtype=bool)
+        return out
 
 
 @dataclass(frozen=True)
