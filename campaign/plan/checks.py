@@ -361,9 +361,10 @@ class ClearanceChecker:
     def _self_undecided(self, R, t, index, c, Cw):
         """(len(pairs), n) bool for the primitive pairs ``index`` (2, m): True where the sphere
         bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`.
-        Three levels: one sphere per frame around its primitives (the pairs of two frames are
-        decided together: a gripper of 41 meshes against the body), one per primitive where that
-        fails, each primitive's sphere set against the other's shape where that fails too."""
+        Levels: one sphere per frame around its primitives (the pairs of two frames are decided
+        together: a gripper of 41 meshes against the body); where that fails, each primitive's
+        sphere against the other frame's sphere, then against the other primitive's sphere; each
+        primitive's sphere set against the other's shape where that fails too."""
         S = self.spheres
         I, J = index
         n = R.shape[-1]
@@ -372,18 +373,27 @@ class ClearanceChecker:
             return need_self
         fI, fJ = S.coarse_frame[I], S.coarse_frame[J]
         frame_pairs, group = np.unique(np.stack([fI, fJ], axis=1).reshape(-1, 2), axis=0, return_inverse=True)
+        def gap(A, B):  # centre distances of (3, ...) arrays
+            diff = A - B
+            return np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
+
         for g, (a, b) in enumerate(frame_pairs):
             ca, cb = (sum(R[f, :, j] * self._frame_centre[f, j] for j in range(3)) + t[f] for f in (a, b))
-            diff = ca - cb
-            d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-            cols = np.flatnonzero(d - (self._frame_radius[a] + self._frame_radius[b]) < c)
+            cols = np.flatnonzero(gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c)
             members = np.flatnonzero(group.reshape(-1) == g)
+            Ia, Jb = I[members], J[members]  # the pairs' primitives on frames a and b
+            ua, in_a = np.unique(Ia, return_inverse=True)
+            ub, in_b = np.unique(Jb, return_inverse=True)
             block = max(1, SPHERE_LEVEL_ENTRIES // len(members))  # bounded memory for many pairs and poses
             for s in range(0, len(cols), block):
                 cs = cols[s : s + block]
-                diff = Cw[:, I[members][:, None], cs] - Cw[:, J[members][:, None], cs]
-                d = np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
-                need_self[np.ix_(members, cs)] = d - (S.coarse_radius[I[members]] + S.coarse_radius[J[members]])[:, None] < c
+                # each primitive against the other frame's sphere: a pair is near only if both are
+                near_a = gap(Cw[:, ua[:, None], cs], cb[:, None, cs]) - S.coarse_radius[ua][:, None] < c + self._frame_radius[b]
+                near_b = gap(Cw[:, ub[:, None], cs], ca[:, None, cs]) - S.coarse_radius[ub][:, None] < c + self._frame_radius[a]
+                m, k = np.nonzero(near_a[in_a.reshape(-1)] & near_b[in_b.reshape(-1)])
+                d = gap(Cw[:, Ia[m], cs[k]], Cw[:, Jb[m], cs[k]])
+                near = d - (S.coarse_radius[Ia[m]] + S.coarse_radius[Jb[m]]) < c
+                need_self[members[m[near]], cs[k[near]]] = True
         for m in np.flatnonzero(need_self.any(axis=1)):
             i, j = I[m], J[m]
             cols = np.flatnonzero(need_self[m])
