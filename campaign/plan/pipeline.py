@@ -49,12 +49,10 @@ def _filter_grid(robot, scene, grid, clearance, progress):
     checker); ``counts["why_none"]``, when no candidate is suitable, says why in a sentence."""
     counts = {"candidates": grid.size}
     bar = Progress("stage 1-2: tool poses", grid.size, progress, " poses")
-    survivors = []
     removed = {"tracker_range": 0, "reflector_cone": 0, "line_of_sight_scene": 0, "line_of_sight_robot": 0,
                "clearance_fcl": 0}
     cand_after_visibility = []
     axes = np.array([r.axis_in_E for r in robot.reflectors])
-    E = robot.n_joints + 1  # the tool frame's index in kinematics.frames
     for s, P, A in iter_tool_points(robot, grid, robot.reflector_positions_in_E, axes):
         block = len(P)
         idx = np.arange(s, s + block)
