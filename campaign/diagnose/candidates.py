@@ -153,6 +153,8 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
         lam = 0.0
         for n_steps in range(1, MAX_STEPS + 1):
             g = np.concatenate([Jf.T @ res, Cf.T @ res])
+            if _converged(H, g, cost):
+                break
             accepted = False
             for _ in range(12):
                 try:
@@ -177,6 +179,19 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
                 break
     names = tuple(f"{effect.name}.{effect.param_names[i]}" for i in absorbed_c)
     return CandidateFit(dz(x, q_out, T_out, context_out), names, x[u:].copy(), n_steps)
+
+
+def _converged(H, g, cost) -> bool:
+    """Whether the Gauss-Newton step of the linear model (H = JᵀJ, g = Jᵀr at weighted cost
+    ``cost``) would end the iteration by the solver's own tests: its predicted decrease of the
+    cost, gᵀH⁻¹g, below IDENT_COST_RTOL of the cost, or the step below IDENT_STEP_TOL. Tested
+    before the step is evaluated: at the optimum (the second step of nearly every fold) a step
+    of round-off size would cost a model evaluation, and up to 12 when round-off makes it fail."""
+    try:
+        step = np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return False
+    return float(g @ step) < IDENT_COST_RTOL * cost or float(np.max(np.abs(step))) < IDENT_STEP_TOL
 
 
 def _hooks(effect) -> set:
