@@ -38,7 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from campaign.effects.base import Effect, EffectSet, has_twist, model_pose
-from campaign.model.kinematics import pose_error
+from campaign.identify.solver import step_converged
+from campaign.model.kinematics import error_jacobian, pose_error
 from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STEP_TOL
 
 #: central-difference step of a candidate's parameters, in the parameter's unit (the solver's)
@@ -87,10 +88,11 @@ def linearise(model, q, T_meas, context) -> FoldLinearisation:
     kept = getattr(model, "jacobian_at_fit_", None)  # the fit's own, at the optimum on these poses
     if kept is not None and model.points is None and kept.shape[:2] == (len(q), rows.stop):
         Jfull = kept[:, rows, :] / sigma[None, :, None]
+        residual = _weighted(model.residual_at_fit_, rows, sigma)
     else:
         Jfull = model.jacobian(q, T_meas, context)[:, rows, :] / sigma[None, :, None]
+        residual = _weighted(model.residuals(q, T_meas, context), rows, sigma)
     J = Jfull.reshape(-1, Jfull.shape[2])
-    residual = _weighted(model.residuals(q, T_meas, context), rows, sigma)
     norms = np.linalg.norm(J, axis=0)
     Q, R = np.linalg.qr(J / np.where(norms > 0, norms, 1.0))
     r = model.base_.n_base
@@ -153,7 +155,7 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
         lam = 0.0
         for n_steps in range(1, MAX_STEPS + 1):
             g = np.concatenate([Jf.T @ res, Cf.T @ res])
-            if _converged(H, g, cost):
+            if step_converged(H, g, cost):
                 break
             accepted = False
             for _ in range(12):
@@ -179,19 +181,6 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
                 break
     names = tuple(f"{effect.name}.{effect.param_names[i]}" for i in absorbed_c)
     return CandidateFit(dz(x, q_out, T_out, context_out), names, x[u:].copy(), n_steps)
-
-
-def _converged(H, g, cost) -> bool:
-    """Whether the Gauss-Newton step of the linear model (H = JᵀJ, g = Jᵀr at weighted cost
-    ``cost``) would end the iteration by the solver's own tests: its predicted decrease of the
-    cost, gᵀH⁻¹g, below IDENT_COST_RTOL of the cost, or the step below IDENT_STEP_TOL. Tested
-    before the step is evaluated: at the optimum (the second step of nearly every fold) a step
-    of round-off size would cost a model evaluation, and up to 12 when round-off makes it fail."""
-    try:
-        step = np.linalg.solve(H, g)
-    except np.linalg.LinAlgError:
-        return False
-    return float(g @ step) < IDENT_COST_RTOL * cost or float(np.max(np.abs(step))) < IDENT_STEP_TOL
 
 
 def _hooks(effect) -> set:
@@ -267,10 +256,15 @@ def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_resi
 
 def _joint_columns(lin: FoldLinearisation, q, T_meas, context) -> np.ndarray:
     """(n·rows, N): the weighted residual's derivative in an offset of each joint, at the
-    current model's optimum (central differences, FD_STEP rad or m)."""
+    current model's optimum: for the geometric model the analytic columns of its joint offsets
+    (one Jacobian instead of 2N evaluations of the model), with effects central differences
+    (FD_STEP rad or m)."""
     m = lin.model
     r = m.base_.n_base
     p_e = m.base_.expand(m.x_[:r])
+    if not m.effect_set_.effects:  # the geometric model: its error Jacobian's joint-offset columns
+        D = error_jacobian(m.robot, q, p_e, T_meas)[:, lin.rows, list(m.robot.joint_offset_index)]
+        return (D / lin.sigma[None, :, None]).reshape(-1, q.shape[1])
     cols = []
     for j in range(q.shape[1]):
         es = EffectSet((*m.effect_set_.effects, _JointShift(m.robot, j)))

@@ -396,7 +396,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         dz = m.residuals(q_out, T_out, ctx_out)
         before[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
         dz_before[fold == k] = dz[:, :3]
-        fit_res[k] = m.residuals(q_fit, T_fit, ctx_fit)[:, :3]
+        fit_res[k] = m.residual_at_fit_[:, :3]  # m.residuals(q_fit, T_fit, ctx_fit), kept by the fit
         fold_models[k] = m
         J = m.jacobian(q_out, T_out, ctx_out)[:, :3, :]
         C = m.covariance_ / max(m.variance_factor_, 1e-300)  # the covariance of the fit's own weights

@@ -37,6 +37,19 @@ from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STE
 _FD_STEP = 1e-6
 
 
+def step_converged(H, g, cost) -> bool:
+    """Whether the Gauss-Newton step of the linear model (H = JᵀJ, g = Jᵀr, at the weighted cost
+    ``cost``) would end the iteration by its own tests: its predicted decrease of the cost, gᵀH⁻¹g,
+    below IDENT_COST_RTOL of the cost, or the step below IDENT_STEP_TOL. Tested before the step
+    is taken: at the optimum (a fit started at another's, the last steps of any fit) such a step
+    costs a model evaluation and a Jacobian, and a series of them when round-off rejects it."""
+    try:
+        step = np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return False
+    return float(g @ step) < IDENT_COST_RTOL * cost or float(np.max(np.abs(step), initial=0.0)) < IDENT_STEP_TOL
+
+
 class CalibrationModel:
     """Kinematic model with geometric base parameters and optional physical effects.
 
@@ -275,7 +288,6 @@ class CalibrationModel:
         n_iter = 0
         for outer in range(3 if self.estimate_noise else 1):
             for n_iter_inner in range(self.max_iter):
-                n_iter += 1
                 J = jacobian(x)[:, :, free] / sig[None, :, None]
                 J2 = J.reshape(-1, len(free))
                 g = J2.T @ (res / sig).reshape(-1)
@@ -283,6 +295,9 @@ class CalibrationModel:
                 if map_fit:
                     g = g + pf @ (x[free] - mu_f)
                     H = H + pf
+                if step_converged(H, g, cost):
+                    break
+                n_iter += 1
                 step_ok = False
                 for _ in range(20):
                     A = H + lam * np.diag(np.diag(H))
@@ -332,6 +347,9 @@ class CalibrationModel:
         #: self.jacobian(q, T_meas, context) gives there, kept for who needs it again
         #: (campaign.diagnose: the candidates' linearisation, the fold fits' start)
         self.jacobian_at_fit_ = J_final
+        #: the residual (n, rows) of Δz at the fitted values on the fitting poses (with points,
+        #: the points' rows, zero where missed): what self.residuals(q, T_meas, context) gives there
+        self.residual_at_fit_ = res
         J = J_final[:, :, free] / sig[None, :, None]
         J2 = J.reshape(-1, len(free))
         H = J2.T @ J2
