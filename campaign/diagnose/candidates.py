@@ -140,7 +140,7 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
     norms = np.linalg.norm(C, axis=0)
     Cn = C / np.where(norms > 0, norms, 1.0)
     Cp = Cn - lin.Q @ (lin.Q.T @ Cn)
-    d = np.abs(np.diag(np.linalg.qr(Cp)[1])) if k else np.zeros(0)
+    d = np.abs(np.diag(np.linalg.qr(Cp, mode="r"))) if k else np.zeros(0)
     absorbed_c = [i for i in range(k) if d[i] < ABSORBED_RTOL * lin.ref_diag or norms[i] == 0]
     free_c = np.array([i for i in range(k) if i not in absorbed_c], dtype=int)
     x = x0

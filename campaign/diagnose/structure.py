@@ -48,14 +48,12 @@ def _loo_path(Phi, Y):
     s2, V = s2[keep], V[:, keep]
     U = (Phi @ V) / np.sqrt(s2)
     UY = U.T @ Y
-    U2 = U ** 2
     alphas = ALPHAS * (s2.mean() if s2.size else 1.0)
-    scores = np.empty(len(alphas))
-    for i, a in enumerate(alphas):
-        f = s2 / (s2 + a)
-        res = Y - U @ (f[:, None] * UY)
-        h = np.minimum(U2 @ f, 0.99)
-        scores[i] = float(np.mean((res / (1.0 - h)[:, None]) ** 2))
+    F = s2[:, None] / (s2[:, None] + alphas)  # (D', a): the shrinkage of each α, all at once
+    fitted = U @ (F[:, :, None] * UY[:, None, :]).reshape(len(s2), -1)  # (n, a·m)
+    res = Y[:, None, :] - fitted.reshape(len(Y), len(alphas), -1)
+    h = np.minimum((U ** 2) @ F, 0.99)  # (n, a)
+    scores = np.mean((res / (1.0 - h)[:, :, None]) ** 2, axis=(0, 2))
     return scores, alphas
 
 
@@ -81,11 +79,14 @@ class FourierRidge:
         return np.sqrt(2.0 / self.n_features_) * np.cos(Z @ self.omega_ + self.phase_)
 
     def _score(self, Xs, Y, active, ell):
+        """LOO mean squared error and α of the best α; then the centred features (n, D) and their
+        mean (D,), which the final fit reuses when these inputs and this length scale win."""
         Phi = self._features(Xs, active, ell)
-        Phi = Phi - Phi.mean(axis=0)
+        mean = Phi.mean(axis=0)
+        Phi = Phi - mean
         scores, alphas = _loo_path(Phi, Y)
         i = int(np.argmin(scores))
-        return scores[i], alphas[i]
+        return scores[i], alphas[i], (Phi, mean)
 
     def fit(self, X, Y):
         """X (n, d) inputs, Y (n, m) targets; returns self."""
@@ -107,7 +108,7 @@ class FourierRidge:
         Yc = Y - self.y_mean_
         active = sd > 0
         best = min(((self._score(Xs, Yc, active, ell), ell) for ell in self.length_scales), key=lambda t: t[0][0])
-        (score, alpha), ell = best
+        (score, alpha, feats), ell = best
         if self.ard and active.sum() > 1:
             # one backward pass: score the model without each input; drop every input whose
             # removal does not worsen the score, or, if dropping them together does, the best one
@@ -116,26 +117,24 @@ class FourierRidge:
                 a = active.copy()
                 a[j] = False
                 trials.append((self._score(Xs, Yc, a, ell), j))
-            useless = [j for (g_j, _), j in trials if g_j <= score * (1 + ARD_TOLERANCE)]
+            useless = [j for (g_j, _, _), j in trials if g_j <= score * (1 + ARD_TOLERANCE)]
             if useless:
                 a = active.copy()
                 a[useless] = False
                 if not a.any():
                     a[max(trials, key=lambda t: t[0][0])[1]] = True
-                score_all, alpha_all = self._score(Xs, Yc, a, ell)
+                score_all, alpha_all, feats_all = self._score(Xs, Yc, a, ell)
                 if score_all <= score * (1 + ARD_TOLERANCE):
-                    active, score, alpha = a, score_all, alpha_all
+                    active, score, alpha, feats = a, score_all, alpha_all, feats_all
                 else:
-                    (g_j, a_j), j = min(trials, key=lambda t: t[0][0])
+                    (g_j, a_j, feats_j), j = min(trials, key=lambda t: t[0][0])
                     active[j] = False
-                    score, alpha = g_j, a_j
+                    score, alpha, feats = g_j, a_j, feats_j
         self.active_ = active
         self.length_scale_ = float(ell)
         self.alpha_ = float(alpha)
         self.loo_mse_ = float(score)
-        Phi = self._features(Xs, active, ell)
-        self.phi_mean_ = Phi.mean(axis=0)
-        Phi = Phi - self.phi_mean_
+        Phi, self.phi_mean_ = feats  # the winner's features, centred
         A = Phi.T @ Phi + alpha * np.eye(self.n_features_)
         self.weights_ = np.linalg.solve(A, Phi.T @ Yc)
         return self

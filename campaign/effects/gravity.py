@@ -17,7 +17,11 @@ from collections import OrderedDict
 import numpy as np
 
 _CACHE: OrderedDict = OrderedDict()
-_CACHE_SIZE = 8
+#: arrays of loads kept: diagnose scores each candidate on every fold, and its fitting and
+#: held-out poses are 2 × 5 joint arrays per load (torques, centre of mass) besides the full
+#: set's; with 8 the folds evicted each other and every load effect computed them again
+#: (about 0.4 MB each on 9,000 poses)
+_CACHE_SIZE = 32
 
 
 def _key(robot, q, what):
