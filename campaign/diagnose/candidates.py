@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
 from campaign.effects.base import Effect, EffectSet, has_twist, model_pose
 from campaign.identify.solver import step_converged
@@ -59,7 +60,8 @@ class FoldLinearisation:
     unknowns; residual: (n·rows,) weighted residual at the optimum; Q: (n·rows, u) orthonormal
     basis of J's normalised columns (the QR behind ``absorbed``); ref_diag: the largest QR
     diagonal of the base columns; free: indices of the current unknowns that are fitted (not
-    absorbed); H: JᵀJ over those.
+    absorbed); H: JᵀJ over those; J_free: (n·rows, len(free)) their columns of J (J itself when
+    none is absorbed), which every candidate's step takes.
     """
 
     model: object
@@ -71,6 +73,7 @@ class FoldLinearisation:
     ref_diag: float
     free: np.ndarray
     H: np.ndarray = field(repr=False)
+    J_free: np.ndarray = field(repr=False)
     #: what every candidate of the fold shares, computed on first use (:func:`_shared`)
     shared: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -94,13 +97,13 @@ def linearise(model, q, T_meas, context) -> FoldLinearisation:
         residual = _weighted(model.residuals(q, T_meas, context), rows, sigma)
     J = Jfull.reshape(-1, Jfull.shape[2])
     norms = np.linalg.norm(J, axis=0)
-    Q, R = np.linalg.qr(J / np.where(norms > 0, norms, 1.0))
+    Q, R = scipy.linalg.qr(J / np.where(norms > 0, norms, 1.0), mode="economic", check_finite=False)
     r = model.base_.n_base
     d = np.abs(np.diag(R))
     ref = float(d[:r].max() if r else d.max())
     free = np.array([i for i in range(J.shape[1]) if i not in set(model.absorbed_)], dtype=int)
-    Jf = J[:, free]
-    return FoldLinearisation(model, rows, sigma, J, residual, Q, ref, free, Jf.T @ Jf)
+    Jf = J if len(free) == J.shape[1] else J[:, free]
+    return FoldLinearisation(model, rows, sigma, J, residual, Q, ref, free, Jf.T @ Jf, Jf)
 
 
 @dataclass(frozen=True)
@@ -146,7 +149,7 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
     x = x0
     n_steps = 0
     if len(free_c):
-        Jf = lin.J[:, lin.free]
+        Jf = lin.J_free
         Cf = C[:, free_c]
         cross = Jf.T @ Cf
         H = np.block([[lin.H, cross], [cross.T, Cf.T @ Cf]])
@@ -257,13 +260,15 @@ def _start(lin: FoldLinearisation, effect, x0, q, T_meas, context, weighted_resi
 def _joint_columns(lin: FoldLinearisation, q, T_meas, context) -> np.ndarray:
     """(n·rows, N): the weighted residual's derivative in an offset of each joint, at the
     current model's optimum: for the geometric model the analytic columns of its joint offsets
-    (one Jacobian instead of 2N evaluations of the model), with effects central differences
-    (FD_STEP rad or m)."""
+    (those of the fit's last Jacobian, instead of 2N evaluations of the model), with effects
+    central differences (FD_STEP rad or m)."""
     m = lin.model
     r = m.base_.n_base
     p_e = m.base_.expand(m.x_[:r])
     if not m.effect_set_.effects:  # the geometric model: its error Jacobian's joint-offset columns
-        D = error_jacobian(m.robot, q, p_e, T_meas)[:, lin.rows, list(m.robot.joint_offset_index)]
+        D = getattr(m, "joint_jacobian_at_fit_", None)  # the fit's own, at the optimum on these poses
+        if D is None or D.shape[:2] != (len(q), lin.rows.stop):
+            D = error_jacobian(m.robot, q, p_e, T_meas)[:, lin.rows, list(m.robot.joint_offset_index)]
         return (D / lin.sigma[None, :, None]).reshape(-1, q.shape[1])
     cols = []
     for j in range(q.shape[1]):

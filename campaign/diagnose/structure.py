@@ -222,8 +222,12 @@ def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_s
             perm_pred = np.zeros_like(r)
             for k, m in models.items():
                 out = np.flatnonzero(fold == k)
+                perm = rng.permutation(len(out))
+                if not m.active_[j]:  # a model without input j predicts the same (its features zero it)
+                    perm_pred[out] = pred[out]
+                    continue
                 Xp = X[out].copy()
-                Xp[:, j] = Xp[rng.permutation(len(out)), j]
+                Xp[:, j] = Xp[perm, j]
                 perm_pred[out] = m.predict(Xp)
             errs.append(np.linalg.norm(r - perm_pred, axis=1).mean() * 1e3)
         lost[j] = np.mean(errs) - after.mean()

@@ -103,11 +103,17 @@ class CalibrationModel:
     def _model_T(self, q, p_e, theta, context):
         return model_pose(self.robot, q, p_e, self.effect_set_, theta, context)
 
-    def _jacobian(self, q, p_e, theta, context, T_meas):
-        """Columns for the base parameters and every effect parameter: (n, 6, r + k)."""
+    def _jacobian(self, q, p_e, theta, context, T_meas, *, joints=False):
+        """Columns for the base parameters and every effect parameter: (n, 6, r + k). With
+        ``joints``, also the derivative (n, 6, N) in an offset of each joint for the geometric
+        model (the error Jacobian's joint-offset columns; None with effects)."""
         es = self.effect_set_
         if not es.effects:
-            return error_jacobian(self.robot, q, p_e, T_meas)[:, :, self._geometric_columns()]
+            J = error_jacobian(self.robot, q, p_e, T_meas)
+            cols = J[:, :, self._geometric_columns()]
+            return (cols, J[:, :, list(self.robot.joint_offset_index)]) if joints else cols
+        if joints:
+            return self._jacobian(q, p_e, theta, context, T_meas), None
         qq = q + es.joint_offset(theta, q, context)
         xi = es.joint_twist(theta, q, context)  # the chain with any joint twists
         T_chain = chain_pose(self.robot, q, p_e, es, theta, context)
@@ -250,6 +256,7 @@ class CalibrationModel:
             return pose_error(self._model_T(q, p_e, th, context), T_meas)[:, rows]
 
         last = {}  # the Jacobian at the last point asked for: the start's is the first step's too
+        # (and the derivative in the joint offsets there, for diagnose's candidates)
         if init_jacobian is not None and P is None:
             last.update(x=x.copy(), J=np.asarray(init_jacobian, dtype=float)[:, rows, :])
 
@@ -260,7 +267,9 @@ class CalibrationModel:
                 J = self._point_jacobian(q, *unpack(x), context)
                 J = J.reshape(len(q), -1, J.shape[-1]) * mask[:, :, None]
             else:
-                J = self._jacobian(q, *unpack(x), context, T_meas)[:, rows, :]
+                J, J_q = self._jacobian(q, *unpack(x), context, T_meas, joints=True)
+                J = J[:, rows, :]
+                last["J_q"] = None if J_q is None else J_q[:, rows, :]
             last.update(x=x.copy(), J=J)
             return J
 
@@ -347,6 +356,9 @@ class CalibrationModel:
         #: self.jacobian(q, T_meas, context) gives there, kept for who needs it again
         #: (campaign.diagnose: the candidates' linearisation, the fold fits' start)
         self.jacobian_at_fit_ = J_final
+        #: the geometric model's derivative (n, rows, N) of Δz in an offset of each joint there (the
+        #: error Jacobian's joint-offset columns; None with effects, points, or a fit that took no step)
+        self.joint_jacobian_at_fit_ = last.get("J_q")
         #: the residual (n, rows) of Δz at the fitted values on the fitting poses (with points,
         #: the points' rows, zero where missed): what self.residuals(q, T_meas, context) gives there
         self.residual_at_fit_ = res
