@@ -37,6 +37,14 @@ from campaign.tolerances import BASE_PARAM_RANK_RTOL, IDENT_COST_RTOL, IDENT_STE
 _FD_STEP = 1e-6
 
 
+def _normal_equations(J, r):
+    """(JᵀJ, Jᵀr) for a whitened Jacobian J (n, m, f) and residual r (n, m), summed over the
+    parameter-major layout the error Jacobian has (its transpose (f, m, n) is contiguous): no
+    (n·m, f) copy, which costs more than the products themselves."""
+    Jt = J.transpose(2, 1, 0).reshape(J.shape[2], -1)
+    return Jt @ Jt.T, Jt @ r.T.reshape(-1)
+
+
 def step_converged(H, g, cost) -> bool:
     """Whether the Gauss-Newton step of the linear model (H = JᵀJ, g = Jᵀr, at the weighted cost
     ``cost``) would end the iteration by its own tests: its predicted decrease of the cost, gᵀH⁻¹g,
@@ -274,12 +282,14 @@ class CalibrationModel:
             return J
 
         # identifiability of the combined regressor at the start point
-        J0 = jacobian(x) / sig[None, :, None]
         r_base = self.base_.n_base
         base_cols = list(self.base_.independent) + list(range(r, n_unknown)) if redundant else list(range(n_unknown))
         # the analysis on the base columns (and effects); unknowns' indices of absorbed effects
-        J0b = J0[:, :, base_cols] if redundant else J0
-        self.absorbed_ = [i + r - r_base for i in self._absorbed(J0b.reshape(-1, r_base + k), r_base)]
+        self.absorbed_ = []
+        if k:  # without effects there is nothing to absorb
+            J0 = jacobian(x) / sig[None, :, None]
+            J0b = J0[:, :, base_cols] if redundant else J0
+            self.absorbed_ = [i + r - r_base for i in self._absorbed(J0b.reshape(-1, r_base + k), r_base)]
         out = set(self.absorbed_) | set(np.flatnonzero(held).tolist())
         free = np.array([i for i in range(n_unknown) if i not in out], dtype=int)
         # the prior's precision on the free unknowns (zeros for least squares), scaled by s
@@ -298,9 +308,7 @@ class CalibrationModel:
         for outer in range(3 if self.estimate_noise else 1):
             for n_iter_inner in range(self.max_iter):
                 J = jacobian(x)[:, :, free] / sig[None, :, None]
-                J2 = J.reshape(-1, len(free))
-                g = J2.T @ (res / sig).reshape(-1)
-                H = J2.T @ J2
+                H, g = _normal_equations(J, res / sig)
                 if map_fit:
                     g = g + pf @ (x[free] - mu_f)
                     H = H + pf
@@ -363,8 +371,7 @@ class CalibrationModel:
         #: the points' rows, zero where missed): what self.residuals(q, T_meas, context) gives there
         self.residual_at_fit_ = res
         J = J_final[:, :, free] / sig[None, :, None]
-        J2 = J.reshape(-1, len(free))
-        H = J2.T @ J2
+        H, _ = _normal_equations(J, res / sig)
         n_eff = self._effective_unknowns(J, pf) if map_fit else len(free)
         dof = max(n_rows - n_eff, 1)
         s2 = (cost - prior_cost(x)) / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
