@@ -46,7 +46,8 @@ def _loo_path(Phi, Y):
     s2, V = np.linalg.eigh(G)
     keep = s2 > max(s2.max(), 1e-300) * 1e-10
     s2, V = s2[keep], V[:, keep]
-    U = (Phi @ V) / np.sqrt(s2)
+    U = Phi @ V
+    U /= np.sqrt(s2)
     UY = U.T @ Y
     alphas = ALPHAS * (s2.mean() if s2.size else 1.0)
     F = s2[:, None] / (s2[:, None] + alphas)  # (D', a): the shrinkage of each α, all at once
@@ -76,14 +77,18 @@ class FourierRidge:
 
     def _features(self, Xs, active, ell):
         Z = (Xs * active) / ell
-        return np.sqrt(2.0 / self.n_features_) * np.cos(Z @ self.omega_ + self.phase_)
+        A = Z @ self.omega_
+        A += self.phase_
+        np.cos(A, out=A)  # in place: the cosine of n × D values is the cost here, not a copy more
+        A *= np.sqrt(2.0 / self.n_features_)
+        return A
 
     def _score(self, Xs, Y, active, ell):
         """LOO mean squared error and α of the best α; then the centred features (n, D) and their
         mean (D,), which the final fit reuses when these inputs and this length scale win."""
         Phi = self._features(Xs, active, ell)
         mean = Phi.mean(axis=0)
-        Phi = Phi - mean
+        Phi -= mean
         scores, alphas = _loo_path(Phi, Y)
         i = int(np.argmin(scores))
         return scores[i], alphas[i], (Phi, mean)
