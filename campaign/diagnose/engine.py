@@ -300,13 +300,19 @@ def regressor_inputs(q, context) -> tuple:
     return np.stack(cols, axis=1), tuple(names)
 
 
-def residual_in_joint1_frame(robot, q, dt):
-    """Position residuals dt (n, 3) resolved in the frame after joint 1 (nominal), so that an
-    effect inside the arm does not appear to depend on q1 merely because the arm turns."""
+def joint1_rotation(robot, q):
+    """The rotation (n, 3, 3) of the frame after joint 1 (nominal model) at poses q (n, N)."""
     from campaign.model.kinematics import frames
 
     R, _ = frames(robot, q)
-    R1 = R[:, robot.joint_frame_index[0]]
+    return R[:, robot.joint_frame_index[0]]
+
+
+def residual_in_joint1_frame(robot, q, dt, R1=None):
+    """Position residuals dt (n, 3) resolved in the frame after joint 1 (nominal), so that an
+    effect inside the arm does not appear to depend on q1 merely because the arm turns;
+    R1: :func:`joint1_rotation` at q, when the caller has it."""
+    R1 = joint1_rotation(robot, q) if R1 is None else R1
     return np.einsum("nji,nj->ni", R1, dt)
 
 
@@ -423,6 +429,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
             detection = max(MIN_RELATIVE_GAIN, 1.0 - 1.0 / threshold)
 
     X, input_names = regressor_inputs(poses.q[tr], ctx_tr)
+    R1 = joint1_rotation(robot, poses.q[tr])  # each training pose's, for the held-out and the fold fits' residuals
+    r_out = residual_in_joint1_frame(robot, poses.q[tr], dz_before, R1)
     struct = None
     struct_sig = False
     if structure:
@@ -430,8 +438,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
 
         say("model-free structure test (flexible regressor on the same folds)")
         q_tr = poses.q[tr]
-        r_out = residual_in_joint1_frame(robot, q_tr, dz_before)
-        r_fit = {k: residual_in_joint1_frame(robot, q_tr[fold != k], fit_res[k]) for k in fit_res}
+        r_fit = {k: residual_in_joint1_frame(robot, q_tr[fold != k], fit_res[k], R1[fold != k]) for k in fit_res}
         struct = structure_test(X, input_names, fold, r_fit, r_out)
         struct_sig = bool(struct.p_value < ALPHA and struct.heldout_gain >= detection)
         if struct_sig and at_floor:  # structure the model-free test finds is above the noise, whatever the ratio
@@ -505,5 +512,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     residuals = full.residuals(poses.q, poses.T_IE, context)
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
-                     residual_in_joint1_frame(robot, poses.q[tr], dz_before), rule, tuple(skipped), expected,
+                     r_out, rule, tuple(skipped), expected,
                      fold_pose_ids(poses.pose_id[tr], fold, folds), measured_drift(run_dir, poses, floor))
