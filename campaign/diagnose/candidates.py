@@ -14,15 +14,18 @@ current point, so a step costs one evaluation of the model instead of a new Jaco
 effects are small (µm to mm on a metre-sized arm), the problem is nearly linear and the
 iteration converges to the joint least-squares optimum up to a term of the order of the
 Jacobian's change times the residual (noise); tests/test_diagnose_candidates.py checks the
-held-out errors against a full :class:`~campaign.identify.solver.CalibrationModel` refit.
+held-out errors against a full :class:`~campaign.identify.solver.CalibrationModel` refit. As the
+solver, it stops before a step whose predicted decrease of the cost is below its tolerance
+(:func:`~campaign.identify.solver.step_converged`): at the optimum such a step is round-off.
 
 The candidate's columns share the fold's work where its hooks allow (exactly the same
 derivatives, computed once per fold instead of once per candidate): an effect with only a
 ``pose_map`` maps the current model's poses at x̂, computed once per fold, so its central
 differences cost no kinematics; an effect with only a ``joint_offset`` Δq(θ) moves the pose
 as an offset of the joints does, so its columns are Σ_j ∂r/∂Δq_j · ∂Δq_j/∂θ, the first factor
-central differences of the model in one joint offset at a time (2N evaluations of the model per
-fold, shared by every such candidate), the second of the effect's own hook. Other effects
+computed once per fold and shared by every such candidate (for the geometric model the joint-offset
+columns of the fold fit's last Jacobian; with effects in the model central differences in one joint
+offset at a time, 2N evaluations of the model), the second of the effect's own hook. Other effects
 (twists, several hooks) take central differences of the whole model.
 
 Which candidate parameters the current unknowns already span (*absorbed*, held at zero) is
