@@ -118,11 +118,15 @@ class FourierRidge:
             # one backward pass: score the model without each input; drop every input whose
             # removal does not worsen the score, or, if dropping them together does, the best one
             trials = []
+            best_trial = None  # (score, α, features, j) of the best trial: only its features are kept
             for j in np.flatnonzero(active):
                 a = active.copy()
                 a[j] = False
-                trials.append((self._score(Xs, Yc, a, ell), j))
-            useless = [j for (g_j, _, _), j in trials if g_j <= score * (1 + ARD_TOLERANCE)]
+                g_j, a_j, feats_j = self._score(Xs, Yc, a, ell)
+                trials.append(((g_j, a_j), j))
+                if best_trial is None or g_j < best_trial[0]:
+                    best_trial = (g_j, a_j, feats_j, j)
+            useless = [j for (g_j, _), j in trials if g_j <= score * (1 + ARD_TOLERANCE)]
             if useless:
                 a = active.copy()
                 a[useless] = False
@@ -132,7 +136,7 @@ class FourierRidge:
                 if score_all <= score * (1 + ARD_TOLERANCE):
                     active, score, alpha, feats = a, score_all, alpha_all, feats_all
                 else:
-                    (g_j, a_j, feats_j), j = min(trials, key=lambda t: t[0][0])
+                    g_j, a_j, feats_j, j = best_trial  # the first of the lowest, as min() takes
                     active[j] = False
                     score, alpha, feats = g_j, a_j, feats_j
         self.active_ = active
