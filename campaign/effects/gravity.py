@@ -6,7 +6,8 @@ The public interface (docs/effects.md, "Gravity loads"): :func:`gravity_torques`
 F_I, gravity as the robot model states it (robot.yaml ``gravity_m_s2``, default −z of F_I).
 
 The solver evaluates effect hooks many times on the same joint array (finite differences
-in the effect parameters), so the loads are cached by a digest of the array's bytes.
+in the effect parameters), so the loads are cached by a digest of the array's bytes, and per
+joint vector for arrays that share poses (diagnose's folds).
 """
 
 from __future__ import annotations
@@ -29,12 +30,29 @@ def _key(robot, q, what):
     return (robot.name, str(robot.urdf_path), what, q.shape, hashlib.blake2b(q.tobytes(), digest_size=16).digest())
 
 
+#: joint vectors whose loads are known, by (robot, load) and the vector's bytes, at most this many
+#: a load: diagnose's folds are subsets of one set of poses, each computed once
+_ROWS: dict = {}
+_ROWS_SIZE = 200_000
+
+
 def _cached(robot, q, what, compute):
+    """``compute(q)`` for a joint array q (n, N): an array seen before from the cache, else the
+    rows seen before from theirs and only the others computed (compute is per pose)."""
     key = _key(robot, q, what)
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    value = compute()
+    q = np.ascontiguousarray(q, dtype=float)
+    rows = _ROWS.setdefault(key[:3], {})
+    names = [row.tobytes() for row in q]
+    missing = [i for i, name in enumerate(names) if name not in rows]
+    if len(rows) + len(missing) > _ROWS_SIZE:
+        rows.clear()
+        missing = list(range(len(q)))
+    if missing:
+        rows.update(zip((names[i] for i in missing), compute(q[missing])))
+    value = np.array([rows[name] for name in names]) if len(q) else compute(q)
     value.setflags(write=False)
     _CACHE[key] = value
     if len(_CACHE) > _CACHE_SIZE:
@@ -53,7 +71,7 @@ def gravity_torques(robot, q) -> np.ndarray:
     """Joint torques τ (n, 6) N·m that hold the arm against gravity (Pinocchio, URDF inertias)."""
     import pinocchio as pin
 
-    def compute():
+    def compute(q):
         model = robot.pinocchio_model
         data = model.createData()
         qq = _pin_q(robot, q)
@@ -66,7 +84,7 @@ def weight_and_com(robot, q):
     """Moving mass (kg, :func:`moving_mass`) and its centre of mass in F_I, (n, 3) m."""
     import pinocchio as pin
 
-    def compute():
+    def compute(q):
         model = robot.pinocchio_model
         data = model.createData()
         com = []
