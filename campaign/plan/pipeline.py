@@ -380,6 +380,13 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         summary["selection"] = _as_toured(robot, grid, suitable, choice, selection, order_final)
         summary["selection"]["replacement"] = {"rounds": rounds, "replaced": replaced,
                                                   "dropped_per_round": dropped_per_round, "why_short": why_short}
+        pred = summary["selection"]["predicted"]
+        if "sample" in pred and pred["sample"]["of"] < len(suitable):  # say that the pool is not every suitable pose
+            from campaign.plan.selection import sample_text
+
+            before = sample_text(pred["sample"])
+            pred["sample"] = {**pred["sample"], "suitable": int(len(suitable))}
+            pred["evaluated_over"] = pred["evaluated_over"].replace(before, sample_text(pred["sample"]))
         summary["tour"]["repeats"] = int(np.sum(_grid_index(order_final) != order_final))
         from campaign.plan.selection import repeats_in_tour
 

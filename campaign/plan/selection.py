@@ -595,9 +595,14 @@ def evaluation_sample(info: Information, index, *, rel: float = PREDICTION_REL_H
 
 def sample_text(sample: dict) -> str:
     """What the prediction was averaged over, for summary.json and the printout."""
+    among = sample.get("suitable", 0)
+    if among > sample["of"]:  # the design chose among a pool of the suitable poses (campaign.plan.region)
+        pool = f"{sample['of']:,} candidate poses drawn at random from the {among:,} suitable"
+    else:
+        pool = f"{sample['of']:,} suitable poses"
     if sample["poses"] >= sample["of"]:
-        return f"all {sample['of']:,} suitable poses"
-    return (f"a random sample of {sample['poses']:,} of the {sample['of']:,} suitable poses (mean within "
+        return f"all {pool}"
+    return (f"a random sample of {sample['poses']:,} of the {pool} (mean within "
             f"±{100 * sample['relative_half_width']:g} % of all of them, 95 % confidence)")
 
 
