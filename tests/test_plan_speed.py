@@ -184,3 +184,47 @@ def test_inside_a_closed_mesh_by_its_hull_first_is_inside_by_the_rays_alone():
         np.testing.assert_array_equal(got, p.mesh.trimesh.contains(pts))
         inside += got.sum()
     assert inside > 50
+
+
+def test_a_pairs_distance_changes_along_a_motion_by_at_most_its_speed_in_the_reference():
+    """TIAGo (a prismatic torso, 41 meshes on the gripper): along straight joint motions, the
+    distance of a link to an obstacle and of two links, in the Pinocchio + FCL reference, moves
+    from its value at either end pose by at most the pair's speed (campaign.plan.repair.pair_speeds)
+    times the motion's parameter from that end; a pair no joint of the motion moves keeps it."""
+    from fcl_reference import FclReference
+
+    from campaign.plan.repair import pair_speeds
+
+    robot = RobotModel.load(erd_robot("tiago_description/robots/tiago.urdf"), tool_frame="arm_tool_link",
+                            base_frame="base_footprint")
+    scene = load_scene(DEFAULT_SCENE).placed(robot)
+    checker = ClearanceChecker(robot, scene, 0.035)
+    ref = FclReference(robot, DEFAULT_SCENE, scene.T_cell_I)
+    index = ref.index_of(checker.prims)
+    rng = np.random.default_rng(5)
+    s = np.linspace(0.0, 1.0, 9)
+    slack, compared, kept = [], 0, 0
+    for motion in range(4):
+        qa = rng.uniform(robot.q_lower, robot.q_upper)
+        qb = np.clip(qa + rng.uniform(-0.6, 0.6, robot.n_joints), robot.q_lower, robot.q_upper)
+        if motion == 3:
+            qb[:-2] = qa[:-2]  # the wrist alone: the pairs before it do not move against each other
+        scene_speed, self_speed = (v[..., 0] for v in pair_speeds(robot, (qb - qa)[None]))
+        scene_pairs = [checker.scene_pairs[m] for m in rng.choice(len(checker.scene_pairs), 20, replace=False)]
+        self_pairs = [checker.self_pairs[m] for m in rng.choice(len(checker.self_pairs), 40, replace=False)]
+        d = np.empty((len(s), len(scene_pairs) + len(self_pairs)))
+        for k, sk in enumerate(s):
+            ref.place(qa + sk * (qb - qa))
+            d[k] = [ref.dist(ref.objs[index[i]], ref.obstacles[j]) for i, j in scene_pairs] + \
+                   [ref.dist(ref.objs[index[i]], ref.objs[index[j]]) for i, j in self_pairs]
+        speed = np.array([scene_speed[checker.prims[i].frame] for i, _ in scene_pairs] +
+                         [self_speed[checker.prims[i].frame, checker.prims[j].frame] for i, j in self_pairs])
+        apart = np.all(d > 0, axis=0)  # FCL's distance of shapes that overlap is not their depth
+        for end, u in ((0, s), (-1, 1.0 - s)):
+            slack.append((speed * u[:, None] - np.abs(d - d[end]))[:, apart])
+        compared += int(apart.sum())
+        still = apart & (speed == 0)
+        kept += int(still.sum())
+        np.testing.assert_allclose(d[:, still], np.broadcast_to(d[0, still], d[:, still].shape), atol=1e-9)
+    assert np.concatenate([x.ravel() for x in slack]).min() >= -1e-9
+    assert compared >= 150 and kept >= 5

@@ -168,6 +168,7 @@ class ClearanceChecker:
             self.scene_objs.append(fcl.CollisionObject(fcl_geometry(obs.kind, obs.size),
                                                        fcl.Transform(obs.T_I[:3, :3], obs.T_I[:3, 3])))
         self.scene_pairs = [(i, j) for i, p in enumerate(self.prims) if p.frame >= 1 for j in range(len(self.scene_objs))]
+        self._scene_pair_frame = np.array([self.prims[i].frame for i, _ in self.scene_pairs], dtype=int)
         self._frame_centre, self._frame_radius = frame_spheres(self.spheres, robot.n_joints + 2)
         self._sphere_centre = [self.spheres.centre[self.spheres.primitive == i] for i in range(len(self.prims))]
         self._sphere_radius = [self.spheres.radius[self.spheres.primitive == i] for i in range(len(self.prims))]
@@ -358,9 +359,10 @@ class ClearanceChecker:
         return np.stack([sum(R[f, :, j] * cc[j] for j in range(3)) + t[f]
                          for f, cc in zip(S.coarse_frame, S.coarse_centre)], axis=1)
 
-    def _self_undecided(self, R, t, index, c, Cw):
+    def _self_undecided(self, R, t, index, c, Cw, known_self=None):
         """(len(pairs), n) bool for the primitive pairs ``index`` (2, m): True where the sphere
-        bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`.
+        bounds cannot show the pair farther apart than ``c`` (m); see :meth:`undecided_pairs`
+        (``known_self``: the frame pairs known clear, skipped).
         Levels: one sphere per frame around its primitives (the pairs of two frames are decided
         together: a gripper of 41 meshes against the body); where that fails, each primitive's
         sphere against the other frame's sphere, then against the other primitive's sphere; each
@@ -379,7 +381,10 @@ class ClearanceChecker:
 
         for g, (a, b) in enumerate(frame_pairs):
             ca, cb = (sum(R[f, :, j] * self._frame_centre[f, j] for j in range(3)) + t[f] for f in (a, b))
-            cols = np.flatnonzero(gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c)
+            near_frames = gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c
+            if known_self is not None:
+                near_frames &= ~known_self[a, b]
+            cols = np.flatnonzero(near_frames)
             members = np.flatnonzero(group.reshape(-1) == g)
             Ia, Jb = I[members], J[members]  # the pairs' primitives on frames a and b
             ua, in_a = np.unique(Ia, return_inverse=True)
@@ -406,9 +411,13 @@ class ClearanceChecker:
                 cols = cols[lb < c]
         return need_self
 
-    def undecided_pairs(self, R, t, clearance):
+    def undecided_pairs(self, R, t, clearance, known_clear=None):
         """Which pairs the sphere bounds cannot clear, for poses with frames given entry-first:
         R (N+2, 3, 3, n), t (N+2, 3, n) (see :func:`~campaign.plan.geometry.nominal_frames_entry_first`).
+        ``known_clear``: None, or ``(scene (N+2, n), self (N+2, N+2, n))`` bool, the frames whose
+        pairs with the scene, and the pairs of frames, already known to be at least ``clearance``
+        apart at each pose (:func:`campaign.plan.repair.check_segments`: the motion's end poses
+        bound them); their pairs are not undecided.
 
         Returns ``(need_scene (len(scene_pairs), n), need_self (len(self_pairs), n))``, bool:
         True where the lower bound on that pair's distance is below ``clearance`` (m); False
@@ -427,6 +436,8 @@ class ClearanceChecker:
             prims = self._scene_pair_prims[j]
             d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
             need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
+        if known_clear is not None:
+            need_scene &= ~known_clear[0][self._scene_pair_frame]
         # fine level, only for the poses (columns) that the coarse level could not decide
         for m in np.flatnonzero(need_scene.any(axis=1)):
             i, j = self.scene_pairs[m]
@@ -435,7 +446,8 @@ class ClearanceChecker:
             W = to_world(R[f][..., cols], t[f][:, cols], self._sphere_centre[i])
             d = point_primitive_distance(W, obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
             need_scene[m, cols] = np.min(d - self._sphere_radius[i][:, None], axis=0) < c
-        need_self = self._self_undecided(R, t, self._self_pair_index, c, Cw)
+        need_self = self._self_undecided(R, t, self._self_pair_index, c, Cw,
+                                         None if known_clear is None else known_clear[1])
         return need_scene, need_self
 
     def _spheres_to_primitive(self, R, t, cols, a, b):
@@ -457,11 +469,12 @@ class ClearanceChecker:
         return self.clear_entry_first(np.ascontiguousarray(np.moveaxis(R, 0, -1)),
                                       np.ascontiguousarray(np.moveaxis(t, 0, -1)), clearance)
 
-    def clear_entry_first(self, R, t, clearance=None) -> np.ndarray:
-        """:meth:`clear` for frames given entry-first: R (N+2, 3, 3, n), t (N+2, 3, n)."""
+    def clear_entry_first(self, R, t, clearance=None, known_clear=None) -> np.ndarray:
+        """:meth:`clear` for frames given entry-first: R (N+2, 3, 3, n), t (N+2, 3, n);
+        ``known_clear``: the pairs already known clear (:meth:`undecided_pairs`)."""
         c = self.clearance if clearance is None else float(clearance)
         n = R.shape[-1]
-        need_scene, need_self = self.undecided_pairs(R, t, c)
+        need_scene, need_self = self.undecided_pairs(R, t, c, known_clear)
         need_scene, need_self = need_scene.T, need_self.T
         ok = np.ones(n, dtype=bool)
         todo = np.flatnonzero(need_scene.any(axis=1) | need_self.any(axis=1))

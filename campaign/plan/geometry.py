@@ -532,3 +532,35 @@ def point_primitive_distance(points, kind, size, R, c):
         d = points - c[:, None, :] if points.ndim == 3 else points - c
         local = [d[0] * R[0, k] + d[1] * R[1, k] + d[2] * R[2, k] for k in range(3)]
     return local_point_distance(local, kind, size)
+
+
+@functools.lru_cache(maxsize=8)
+def joint_reach(robot) -> np.ndarray:
+    """(N, N+2) m: an upper bound, over every configuration within the joint limits, on the
+    distance from joint k's axis to any point of the collision shapes on frame f (0 where frame
+    f does not move with joint k, or carries no shape); for a prismatic joint k, 1 where frame f
+    moves with it. So a point of frame f moves at most ``sum_k |dq_k| reach[k, f]`` (m) along a
+    straight joint motion dq (N,) (rad, m): the frames' chain of offsets from joint k's frame to
+    f (a prismatic joint in between adds its largest extension) plus the farthest point of f's
+    enclosing spheres from its origin (:func:`motion_displacement`)."""
+    N, K = robot.n_joints, robot.n_joints + 2
+    S = robot_spheres(robot)
+    rho = np.full(K, -np.inf)  # farthest shape point of each frame from its origin, m
+    for f in np.unique(S.frame):
+        on = S.frame == f
+        rho[f] = np.max(np.linalg.norm(S.centre[on], axis=1) + S.radius[on])
+    step = np.linalg.norm(np.asarray(robot.t_nominal, dtype=float), axis=1)  # |t̄_l|, frame l-1 to l
+    extension = np.maximum(np.abs(robot.q_lower), np.abs(robot.q_upper))
+    step[1 : N + 1] += np.where(robot.prismatic, extension, 0.0)
+    reach = np.zeros((N, K))
+    for k in range(1, N + 1):  # joint k turns frames k..N+1 about an axis through frame k's origin
+        for f in range(k, K):
+            if np.isfinite(rho[f]):
+                reach[k - 1, f] = 1.0 if robot.prismatic[k - 1] else step[k + 1 : f + 1].sum() + rho[f]
+    return reach
+
+
+def motion_displacement(robot, dQ) -> np.ndarray:
+    """(N+2, m) m: how far any point of each frame's collision shapes moves (at most) along each
+    straight joint motion dQ (m, N) (rad, m; :func:`joint_reach`)."""
+    return joint_reach(robot).T @ np.abs(np.asarray(dQ, dtype=float)).T

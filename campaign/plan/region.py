@@ -81,10 +81,12 @@ def _labels(m, edges):
 
 
 def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, neighbours: int = NEIGHBOURS,
-                     progress=None) -> Region:
+                     progress=None, pose_clearance=None) -> Region:
     """The :class:`Region` of the ``suitable`` grid indices (m,): motions keep ``clearance`` (m)
     at samples ``max_step`` (rad) apart; the checker as the filters'. ``progress``: a
-    :class:`campaign.progress.Progress` or None."""
+    :class:`campaign.progress.Progress` or None. ``pose_clearance``: the clearance (m) the
+    suitable poses keep (the filters'), which bounds the motions near them
+    (:func:`campaign.plan.repair.check_segments`' ``ends_clearance``)."""
     from scipy.spatial import cKDTree
 
     suitable = np.asarray(suitable, dtype=np.int64)
@@ -105,7 +107,8 @@ def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, nei
         pairs = np.unique(np.sort(np.stack([a, b], axis=1)[labels[a] != labels[b]], axis=1), axis=0)
         if len(pairs) == 0:
             continue
-        ok = check_segments(robot, checker, Q[pairs[:, 0]], Q[pairs[:, 1]], max_step, clearance)
+        ok = check_segments(robot, checker, Q[pairs[:, 0]], Q[pairs[:, 1]], max_step, clearance,
+                            ends_clearance=pose_clearance)
         checked += len(pairs)
         edges.extend(pairs[ok].tolist())
         labels = _labels(m, edges)
@@ -120,7 +123,7 @@ def reachable_region(robot, checker, grid, suitable, max_step, clearance, *, nei
             break
         sizes = np.bincount(labels)
         by_size = sorted(set(comp.tolist()), key=lambda c: (-int(sizes[c]), c))
-        ok = check_segments(robot, checker, Q[a], Q[b], max_step, clearance)
+        ok = check_segments(robot, checker, Q[a], Q[b], max_step, clearance, ends_clearance=pose_clearance)
         checked += len(a)
         joined = set(comp[ok].tolist())
         edges.extend(np.stack([a[ok], b[ok]], axis=1).tolist())

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.plan.geometry import nominal_frames_entry_first
-from campaign.plan.tour import interior_samples
+from campaign.plan.geometry import joint_reach, nominal_frames_entry_first
+from campaign.plan.tour import interior_samples, segment_sample_counts
 
 #: the lifted arm's joints take multiples of this (rad)
 LIFT_STEP = np.pi / 4
@@ -38,9 +38,15 @@ MOTION_BLOCK = 4096
 COARSE_STRIDE = 8
 
 
-def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK, *, stop_at_first=False):
+def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTION_CHUNK, *, stop_at_first=False,
+                   ends_clearance=None):
     """(m,) bool: each straight joint-space motion Q_from[i]→Q_to[i] (m, N) clear by
     ``clearance`` (m) at every sample ≤ ``max_step`` (rad) of joint motion apart.
+
+    ``ends_clearance``: None, or a clearance (m) that every end pose is known to keep for every
+    checked pair (the suitable poses: the pose clearance). A pair is then not checked at the
+    samples where the end poses bound it (:func:`ends_known_clear`): a pair of links that the
+    motion does not move against each other, or a sample near enough to an end pose.
 
     The end poses themselves are not re-checked here (they passed the pose filter at the
     stricter pose clearance); all inner samples of all segments are generated at once and
@@ -56,23 +62,60 @@ def check_segments(robot, checker, Q_from, Q_to, max_step, clearance, chunk=MOTI
         for s in range(0, len(Q_from), MOTION_BLOCK):
             ok[s : s + MOTION_BLOCK] = check_segments(robot, checker, Q_from[s : s + MOTION_BLOCK],
                                                       Q_to[s : s + MOTION_BLOCK], max_step, clearance, chunk,
-                                                      stop_at_first=stop_at_first)
+                                                      stop_at_first=stop_at_first, ends_clearance=ends_clearance)
             if stop_at_first and not ok[s : s + MOTION_BLOCK].all():
                 break
         return ok
     q, seg = interior_samples(Q_from, Q_to, max_step)
     within = np.arange(len(seg)) - np.searchsorted(seg, seg)  # sample number in its segment (seg ascends)
     coarse = within % COARSE_STRIDE == 0
+    speeds = None
+    if ends_clearance is not None and ends_clearance >= clearance:
+        speeds = pair_speeds(robot, np.asarray(Q_to, dtype=float) - np.asarray(Q_from, dtype=float))
+        steps = segment_sample_counts(Q_from, Q_to, max_step)
     for first in (True, False):
         todo = np.flatnonzero(coarse if first else ~coarse & ok[seg])
         for s in range(0, len(todo), chunk):
             idx = todo[s : s + chunk]
             R, t = nominal_frames_entry_first(robot, q[idx])
-            good = checker.clear_entry_first(R, t, clearance)
+            known = None
+            if speeds is not None:
+                g = seg[idx]
+                known = ends_known_clear(speeds, g, (within[idx] + 1) / steps[g], ends_clearance - clearance)
+            good = checker.clear_entry_first(R, t, clearance, known)
             ok[seg[idx][~good]] = False
             if stop_at_first and not good.all():
                 return ok
     return ok
+
+
+def pair_speeds(robot, dQ):
+    """How fast the checked pairs can approach along straight joint motions dQ (m, N) (rad, m),
+    in m per unit of the motion's parameter s ∈ [0, 1] (:func:`~campaign.plan.geometry.joint_reach`):
+    ``(scene (N+2, m), self (N+2, N+2, m))``; a frame f against the fixed scene: the joints
+    1..f move it; frames a < b against each other: only the joints a+1..b move b relative to a."""
+    reach = joint_reach(robot)  # (N, K)
+    N, K = reach.shape
+    # cum[j, f]: the speed joints 1..j give to frame f's points, for each motion
+    cum = np.zeros((N + 1, K, len(dQ)))
+    np.cumsum(reach[:, :, None] * np.abs(np.asarray(dQ, dtype=float)).T[:, None, :], axis=0, out=cum[1:])
+    joints_to = np.minimum(np.arange(K), N)  # joints that move frame f: 1..min(f, N)
+    scene = cum[joints_to, np.arange(K)]  # (K, m)
+    a, b = np.meshgrid(np.arange(K), np.arange(K), indexing="ij")
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    pair = cum[joints_to[hi], hi] - cum[joints_to[lo], hi]  # (K, K, m), symmetric
+    return scene, pair
+
+
+def ends_known_clear(speeds, segment, s, margin):
+    """Which frames' pairs the end poses prove clear at motion samples: ``(scene (N+2, M),
+    self (N+2, N+2, M))`` bool for samples at parameter s (M,) ∈ (0, 1) of motions ``segment``
+    (M,) (indices into :func:`pair_speeds`' motions), when every end pose keeps ``margin`` (m)
+    more than the clearance checked: a pair's distance changes by at most its speed times the
+    parameter's distance to the nearer end pose."""
+    scene, pair = speeds
+    u = np.minimum(s, 1.0 - s)
+    return scene[:, segment] * u <= margin, pair[:, :, segment] * u <= margin
 
 
 @dataclass(frozen=True)

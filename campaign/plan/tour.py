@@ -9,6 +9,8 @@ compare with Ruckig's own trajectory).
 
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 
 from campaign.plan.timing import GridTimes
@@ -122,9 +124,10 @@ def _pair_time_function(times: GridTimes, C):
     cells = C.tolist()
     luts = [lut.tolist() for lut in times.lut]
     if len(luts) != 6:
-        def pair_time(a, b):
-            ca, cb = cells[a], cells[b]
-            return max(lut[abs(x - y)] for lut, x, y in zip(luts, ca, cb))
+        lookup, sub = list.__getitem__, operator.sub
+
+        def pair_time(a, b):  # the lookups in C's map loops, no generator frames
+            return max(map(lookup, luts, map(abs, map(sub, cells[a], cells[b]))))
 
         return pair_time
     l0, l1, l2, l3, l4, l5 = luts
