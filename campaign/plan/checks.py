@@ -380,21 +380,24 @@ class ClearanceChecker:
             return np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
 
         for g, (a, b) in enumerate(frame_pairs):
-            ca, cb = (sum(R[f, :, j] * self._frame_centre[f, j] for j in range(3)) + t[f] for f in (a, b))
-            near_frames = gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c
-            if known_self is not None:
-                near_frames &= ~known_self[a, b]
-            cols = np.flatnonzero(near_frames)
+            poses = slice(None) if known_self is None else np.flatnonzero(~known_self[a, b])  # not known clear
+            ca, cb = (sum(R[f, :, j][:, poses] * self._frame_centre[f, j] for j in range(3)) + t[f][:, poses]
+                      for f in (a, b))
+            near_frames = np.flatnonzero(gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c)
+            if len(near_frames) == 0:
+                continue
+            ca, cb = ca[:, near_frames], cb[:, near_frames]
+            cols = near_frames if known_self is None else poses[near_frames]
             members = np.flatnonzero(group.reshape(-1) == g)
             Ia, Jb = I[members], J[members]  # the pairs' primitives on frames a and b
             ua, in_a = np.unique(Ia, return_inverse=True)
             ub, in_b = np.unique(Jb, return_inverse=True)
             block = max(1, SPHERE_LEVEL_ENTRIES // len(members))  # bounded memory for many pairs and poses
             for s in range(0, len(cols), block):
-                cs = cols[s : s + block]
+                cs, ls = cols[s : s + block], slice(s, s + block)  # poses, and their columns of ca, cb
                 # each primitive against the other frame's sphere: a pair is near only if both are
-                near_a = gap(Cw[:, ua[:, None], cs], cb[:, None, cs]) - S.coarse_radius[ua][:, None] < c + self._frame_radius[b]
-                near_b = gap(Cw[:, ub[:, None], cs], ca[:, None, cs]) - S.coarse_radius[ub][:, None] < c + self._frame_radius[a]
+                near_a = gap(Cw[:, ua[:, None], cs], cb[:, None, ls]) - S.coarse_radius[ua][:, None] < c + self._frame_radius[b]
+                near_b = gap(Cw[:, ub[:, None], cs], ca[:, None, ls]) - S.coarse_radius[ub][:, None] < c + self._frame_radius[a]
                 m, k = np.nonzero(near_a[in_a.reshape(-1)] & near_b[in_b.reshape(-1)])
                 d = gap(Cw[:, Ia[m], cs[k]], Cw[:, Jb[m], cs[k]])
                 near = d - (S.coarse_radius[Ia[m]] + S.coarse_radius[Jb[m]]) < c
@@ -434,10 +437,13 @@ class ClearanceChecker:
         need_scene = np.zeros((len(self.scene_pairs), n), dtype=bool)
         for j, obs in enumerate(self.scene.obstacles):
             prims = self._scene_pair_prims[j]
-            d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
-            need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
-        if known_clear is not None:
-            need_scene &= ~known_clear[0][self._scene_pair_frame]
+            if known_clear is None:
+                d = point_primitive_distance(Cw[:, prims], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
+                need_scene[self._scene_pair_columns[j]] = d - S.coarse_radius[prims, None] < c
+                continue
+            r, k = np.nonzero(~known_clear[0][self.spheres.coarse_frame[prims]])  # only where not known clear
+            d = point_primitive_distance(Cw[:, prims[r], k], obs.kind, obs.size, obs.T_I[:3, :3], obs.T_I[:3, 3])
+            need_scene[self._scene_pair_columns[j][r], k] = d - S.coarse_radius[prims[r]] < c
         # fine level, only for the poses (columns) that the coarse level could not decide
         for m in np.flatnonzero(need_scene.any(axis=1)):
             i, j = self.scene_pairs[m]
