@@ -379,10 +379,11 @@ class ClearanceChecker:
             diff = A - B
             return np.sqrt(diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2])
 
+        centre = {f: sum(R[f, :, j] * self._frame_centre[f, j] for j in range(3)) + t[f]
+                  for f in np.unique(frame_pairs)}  # each frame's sphere centre (3, n) in F_I
         for g, (a, b) in enumerate(frame_pairs):
             poses = slice(None) if known_self is None else np.flatnonzero(~known_self[a, b])  # not known clear
-            ca, cb = (sum(R[f, :, j][:, poses] * self._frame_centre[f, j] for j in range(3)) + t[f][:, poses]
-                      for f in (a, b))
+            ca, cb = centre[a][:, poses], centre[b][:, poses]
             near_frames = np.flatnonzero(gap(ca, cb) - (self._frame_radius[a] + self._frame_radius[b]) < c)
             if len(near_frames) == 0:
                 continue

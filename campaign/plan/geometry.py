@@ -542,7 +542,9 @@ def joint_reach(robot) -> np.ndarray:
     moves with it. So a point of frame f moves at most ``sum_k |dq_k| reach[k, f]`` (m) along a
     straight joint motion dq (N,) (rad, m): the frames' chain of offsets from joint k's frame to
     f (a prismatic joint in between adds its largest extension) plus the farthest point of f's
-    enclosing spheres from its origin (:func:`motion_displacement`)."""
+    enclosing spheres from its origin; for the shapes that joint k turns rigidly (frame k, and
+    frame N+1 with joint N), their enclosing spheres' farthest point from the axis
+    (:func:`motion_displacement`)."""
     N, K = robot.n_joints, robot.n_joints + 2
     S = robot_spheres(robot)
     rho = np.full(K, -np.inf)  # farthest shape point of each frame from its origin, m
@@ -557,6 +559,16 @@ def joint_reach(robot) -> np.ndarray:
         for f in range(k, K):
             if np.isfinite(rho[f]):
                 reach[k - 1, f] = 1.0 if robot.prismatic[k - 1] else step[k + 1 : f + 1].sum() + rho[f]
+    # the shapes joint k turns with no joint between (frame k; frame N+1 with joint N): their
+    # distance from the axis itself (the z axis of frame k), a wrist's roll moves the hand little
+    for k, f in [(k, k) for k in range(1, N + 1)] + [(N, N + 1)]:
+        on = S.frame == f
+        if robot.prismatic[k - 1] or not on.any():
+            continue
+        c = S.centre[on]
+        if f == N + 1:  # in frame N
+            c = c @ np.asarray(robot.R_nominal[N + 1], dtype=float).T + np.asarray(robot.t_nominal[N + 1], dtype=float)
+        reach[k - 1, f] = np.max(np.hypot(c[:, 0], c[:, 1]) + S.radius[on])
     return reach
 
 
