@@ -8,7 +8,7 @@ import pytest
 from campaign.model.robot import RobotModel
 from campaign.paths import DEFAULT_SCENE
 from campaign.plan.checks import ClearanceChecker
-from campaign.plan.geometry import nominal_frames_entry_first, robot_primitives
+from campaign.plan.geometry import nominal_frames, nominal_frames_entry_first, robot_primitives
 from campaign.plan.grid import Grid, _descend, _descend_blocks
 from campaign.plan.scene import load_scene
 
@@ -228,3 +228,25 @@ def test_a_pairs_distance_changes_along_a_motion_by_at_most_its_speed_in_the_ref
         np.testing.assert_allclose(d[:, still], np.broadcast_to(d[0, still], d[:, still].shape), atol=1e-9)
     assert np.concatenate([x.ravel() for x in slack]).min() >= -1e-9
     assert compared >= 150 and kept >= 5
+
+
+def test_the_motion_check_with_the_end_poses_bound_gives_the_verdicts_of_the_check_without(ur10):
+    """Motions between poses clear by the pose clearance (35 mm), checked at 10 mm: the pairs the
+    end poses bound are skipped, the verdicts are those of checking every pair at every sample
+    (colliding motions among them)."""
+    from campaign.plan.repair import check_segments
+
+    scene = load_scene(DEFAULT_SCENE).placed(ur10)
+    checker = ClearanceChecker(ur10, scene, 0.035)
+    q = np.random.default_rng(6).uniform(ur10.q_lower, ur10.q_upper, size=(400, ur10.n_joints))
+    q = q[checker.clear(*nominal_frames(ur10, q))][:80]
+    near = np.clip(q + np.random.default_rng(7).uniform(-0.3, 0.3, q.shape), ur10.q_lower, ur10.q_upper)
+    near = near[checker.clear(*nominal_frames(ur10, near))]
+    Q_from = np.concatenate([q[:40], near[: len(near) // 2]])
+    Q_to = np.concatenate([q[40:80], q[: len(near) // 2]])
+    step = np.deg2rad(1.0)
+    bounded = check_segments(ur10, checker, Q_from, Q_to, step, 0.01, ends_clearance=0.035)
+    checker._memo.clear()
+    plain = check_segments(ur10, checker, Q_from, Q_to, step, 0.01)
+    np.testing.assert_array_equal(bounded, plain)
+    assert 5 <= (~plain).sum() <= len(plain) - 5
