@@ -328,7 +328,8 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
         bar.update(len(new_order))
         bar.close()
         lap("motion_check")
-        order, repair = new_order, repair_largest(robot, checker, new_order, Q, ok, max_step, mc)
+        order, repair = new_order, repair_largest(robot, checker, new_order, Q, ok, max_step, mc,
+                                                  ends_clearance=pc.clearance_m)
         lap("repair")
         if selection is None:
             break
@@ -404,7 +405,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
 
         summary["tour"]["repeats_back_to_back"] = repeats_in_tour(order_final)
     summary["drift_monitor"] = _drift_monitor(robot, checker, order_final, Q_final, cfg.run.drift_check_every,
-                                              max_step, mc)
+                                              max_step, mc, pose_clearance=pc.clearance_m)
     lap("outputs")
     try:
         plot_tour(out / "tour.png", robot, scene, Q_final, front_final)
@@ -508,11 +509,12 @@ def _as_toured(robot, grid, suitable, choice, selection, order_final) -> dict:
     return out
 
 
-def _drift_monitor(robot, checker, order, Q, every, max_step, clearance) -> dict:
+def _drift_monitor(robot, checker, order, Q, every, max_step, clearance, pose_clearance=None) -> dict:
     """summary.json's ``drift_monitor``: when the driver re-measures the reference pose (the tour's
     first; ``run.drift_check_every``, campaign.measure.driver.drift_check_interval) and whether its
     motions, straight in joint space from the pose before to the reference and back to the next
-    pose, are clear by ``clearance`` (m) as the tour's are (the driver moves there directly)."""
+    pose, are clear by ``clearance`` (m) as the tour's are (the driver moves there directly);
+    ``pose_clearance``: the clearance (m) the tour's poses keep (check_segments' ends_clearance)."""
     from campaign.measure.driver import drift_check_interval
 
     n = drift_check_interval(every, len(order))
@@ -521,8 +523,8 @@ def _drift_monitor(robot, checker, order, Q, every, max_step, clearance) -> dict
     out = {"every": int(n), "checks": int(len(after)), "reference_pose_id": int(order[0]) if len(order) else None}
     if len(after):
         ref = np.repeat(Q[:1], len(after), axis=0)
-        clear = check_segments(robot, checker, Q[after], ref, max_step, clearance) & \
-            check_segments(robot, checker, ref, Q[after + 1], max_step, clearance)
+        clear = check_segments(robot, checker, Q[after], ref, max_step, clearance, ends_clearance=pose_clearance) & \
+            check_segments(robot, checker, ref, Q[after + 1], max_step, clearance, ends_clearance=pose_clearance)
         out["motions_clear"] = int(clear.sum())
         out["not_clear_after_pose_ids"] = [int(order[k]) for k in after[~clear]]
     out["text"] = ("the driver re-measures the first pose every "

@@ -337,14 +337,15 @@ class PathFinder:
 JOIN_TRIES = 3
 
 
-def _joined(finder, Q, unreached, k):
+def _joined(finder, Q, unreached, k, ends_clearance=None):
     """The first of the :data:`JOIN_TRIES` poses ``unreached`` (indices into Q) nearest to pose k
-    that the straight motion, the lifted arm or a structured path joins to it, or None."""
+    that the straight motion, the lifted arm or a structured path joins to it, or None
+    (``ends_clearance``: as :func:`check_segments`', which the poses of Q keep)."""
     if len(unreached) == 0:
         return None
     near = unreached[np.argsort(np.max(np.abs(Q[unreached] - Q[k]), axis=1), kind="stable")[:JOIN_TRIES]]
     straight = check_segments(finder.robot, finder.checker, Q[near], np.repeat(Q[k][None], len(near), axis=0),
-                              finder.max_step, finder.clearance)
+                              finder.max_step, finder.clearance, ends_clearance=ends_clearance)
     if straight.any():
         return int(near[np.argmax(straight)])
     for x in near:
@@ -353,14 +354,15 @@ def _joined(finder, Q, unreached, k):
     return None
 
 
-def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=None) -> Repair:
+def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=None, ends_clearance=None) -> Repair:
     """Repair the tour ``order`` (n,) pose ids with joint vectors Q (n, N) rad, whose motions
     ``ok`` (n - 1,) bool say which straight motions keep ``clearance`` (m) at samples
     ``max_step`` (rad) apart (:func:`check_segments`).
 
     One pass along the tour: each pose is reached from the last pose kept before it, by the
     straight motion when it keeps the clearance (known from ``ok`` when that previous pose is
-    the tour's own, checked afresh after a drop), else through via postures (:class:`PathFinder`:
+    the tour's own, checked afresh after a drop; ``ends_clearance``: as :func:`check_segments`',
+    a clearance that every pose of Q keeps), else through via postures (:class:`PathFinder`:
     the lifted arm, structured vias, a path search of at most ``budget`` checked steps, default
     campaign.plan.pathsearch.BUDGET, seeded by the two pose ids), else the pose is dropped. A
     pose that a clear path without search joins to a pose dropped before is dropped without a
@@ -380,14 +382,15 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
         # a clear path from a pose that no search reached: a path here would reach it too
         found, joined = None, k - 1 if unreached[k - 1] and ok[k - 1] else None
         if joined is None and prev != k - 1 and \
-                check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance)[0]:
+                check_segments(robot, checker, Q[prev][None], Q[k][None], max_step, clearance,
+                               ends_clearance=ends_clearance)[0]:
             prev = k
             continue
         seed = (int(order[prev]), int(order[k]))
         if joined is None:
             found = finder.vias(Q[prev], Q[k], seed, search=False)
         if found is None and joined is None:
-            joined = _joined(finder, Q, np.flatnonzero(unreached[:k]), k)
+            joined = _joined(finder, Q, np.flatnonzero(unreached[:k]), k, ends_clearance)
             if joined is None:
                 found = finder.search(Q[prev], Q[k], seed)
         if found is not None:
@@ -412,7 +415,8 @@ def repair_tour(robot, checker, order, Q, ok, max_step, clearance, *, budget=Non
 MAX_PASSES = 3
 
 
-def repair_largest(robot, checker, order, Q, ok, max_step, clearance, *, budget=None) -> Repair:
+def repair_largest(robot, checker, order, Q, ok, max_step, clearance, *, budget=None,
+                   ends_clearance=None) -> Repair:
     """:func:`repair_tour`, then again over the poses it dropped (in tour order, from the first of
     them), up to :data:`MAX_PASSES` passes while the poses left could outnumber the most kept:
     the pass that keeps the most poses is the tour (ties: the earlier pass). No motion joins a
@@ -422,9 +426,9 @@ def repair_largest(robot, checker, order, Q, ok, max_step, clearance, *, budget=
     rest, passes = np.arange(len(order)), []
     for _ in range(MAX_PASSES):
         sub_ok = ok if len(passes) == 0 else check_segments(robot, checker, Q[rest[:-1]], Q[rest[1:]], max_step,
-                                                            clearance)
+                                                            clearance, ends_clearance=ends_clearance)
         passes.append((rest, repair_tour(robot, checker, order[rest], Q[rest], sub_ok, max_step, clearance,
-                                         budget=budget)))
+                                         budget=budget, ends_clearance=ends_clearance)))
         most = max(int(r.keep.sum()) for _, r in passes)
         rest = rest[~passes[-1][1].keep]
         if len(rest) <= most:
