@@ -541,8 +541,9 @@ def joint_reach(robot) -> np.ndarray:
     f does not move with joint k, or carries no shape); for a prismatic joint k, 1 where frame f
     moves with it. So a point of frame f moves at most ``sum_k |dq_k| reach[k, f]`` (m) along a
     straight joint motion dq (N,) (rad, m): the frames' chain of offsets from joint k's frame to
-    f (a prismatic joint in between adds its largest extension) plus the farthest point of f's
-    enclosing spheres from its origin; for the shapes that joint k turns rigidly (frame k, and
+    f (a prismatic joint in between adds its largest extension; of the first offset, in frame k,
+    only its part across joint k's axis) plus the farthest point of f's enclosing spheres from its
+    origin; for the shapes that joint k turns rigidly (frame k, and
     frame N+1 with joint N), their enclosing spheres' farthest point from the axis
     (:func:`motion_displacement`)."""
     N, K = robot.n_joints, robot.n_joints + 2
@@ -554,11 +555,15 @@ def joint_reach(robot) -> np.ndarray:
     step = np.linalg.norm(np.asarray(robot.t_nominal, dtype=float), axis=1)  # |t̄_l|, frame l-1 to l
     extension = np.maximum(np.abs(robot.q_lower), np.abs(robot.q_upper))
     step[1 : N + 1] += np.where(robot.prismatic, extension, 0.0)
+    # the first offset beyond joint k, in frame k: only its part across the axis (z) moves
+    across = np.hypot(*np.asarray(robot.t_nominal, dtype=float)[:, :2].T) + (step - np.linalg.norm(
+        np.asarray(robot.t_nominal, dtype=float), axis=1))
     reach = np.zeros((N, K))
     for k in range(1, N + 1):  # joint k turns frames k..N+1 about an axis through frame k's origin
         for f in range(k, K):
             if np.isfinite(rho[f]):
-                reach[k - 1, f] = 1.0 if robot.prismatic[k - 1] else step[k + 1 : f + 1].sum() + rho[f]
+                reach[k - 1, f] = 1.0 if robot.prismatic[k - 1] else \
+                    (across[k + 1] + step[k + 2 : f + 1].sum() if f > k else 0.0) + rho[f]
     # the shapes joint k turns with no joint between (frame k; frame N+1 with joint N): their
     # distance from the axis itself (the z axis of frame k), a wrist's roll moves the hand little
     for k, f in [(k, k) for k in range(1, N + 1)] + [(N, N + 1)]:
