@@ -250,3 +250,30 @@ def test_the_motion_check_with_the_end_poses_bound_gives_the_verdicts_of_the_che
     plain = check_segments(ur10, checker, Q_from, Q_to, step, 0.01)
     np.testing.assert_array_equal(bounded, plain)
     assert 5 <= (~plain).sum() <= len(plain) - 5
+
+
+def test_inside_a_closed_mesh_by_the_cells_of_a_point_far_from_its_surface_is_inside_by_its_rays(ur10):
+    """A point known to keep a distance from a closed mesh's surface is inside it as its cell's
+    centre is (cells of half that distance, remembered): for points at least that far from the
+    surface (trimesh's distance to the nearest point), the answer of the rays cast from the point
+    itself; points of nearby poses share cells."""
+    checker = ClearanceChecker(ur10, load_scene(DEFAULT_SCENE).placed(ur10), 0.035)
+    closed = [i for i, p in enumerate(checker.prims) if p.mesh is not None and p.mesh.watertight]
+    R, t = nominal_frames(ur10, np.zeros((1, ur10.n_joints)))
+    checker._place(R[0], t[0])
+    rng = np.random.default_rng(8)
+    compared = inside = 0
+    for i in closed[:3]:
+        p = checker.prims[i]
+        local = rng.uniform(-0.6, 0.6, size=(400, 3)) * np.asarray(p.size)
+        local = np.concatenate([local, local + rng.uniform(-1e-3, 1e-3, local.shape)])  # nearby poses' points
+        far_by = np.abs(p.mesh.trimesh.nearest.signed_distance(local))
+        Rw, tw = checker._world[i]
+        for apart in (0.01, 0.035):
+            far = far_by >= apart
+            got = [checker._inside(i, Rw @ x + tw, apart) for x in local[far]]
+            np.testing.assert_array_equal(got, p.mesh.contains(local[far]))
+            compared += int(far.sum())
+            inside += int(np.sum(got))
+    assert compared >= 1000 and inside >= 100
+    assert len(checker._inside_cells) < 0.75 * compared

@@ -185,6 +185,7 @@ class ClearanceChecker:
         # scene pair), the two links' relative pose (a pair of links). Poses of the grid share
         # them where the joints beyond those links alone differ (the wrist's cells, motions of the wrist)
         self._memo = {}
+        self._inside_cells = {}  # (primitive, cell edge, cell) -> inside its closed mesh (:meth:`_inside`)
 
     def _prune_always_near(self, pairs, n=300, seed=0):
         """(pairs kept, frame pairs of those closer than the clearance at every one of ``n``
@@ -240,13 +241,27 @@ class ClearanceChecker:
         res = fcl.DistanceResult()
         return fcl.distance(a, b, fcl.DistanceRequest(), res)
 
-    def _inside(self, i, point) -> bool:
-        """Whether a point (3,) in F_I lies inside robot primitive i's closed mesh (as placed)."""
+    def _inside(self, i, point, apart=0.0) -> bool:
+        """Whether a point (3,) in F_I lies inside robot primitive i's closed mesh (as placed).
+        ``apart``: a distance (m) the point is known to keep from the mesh's surface; then the
+        answer is the centre's of the point's cell of a grid of edge ``apart / 2`` in the mesh's
+        frame (the segment to it, shorter than ``apart``, cannot cross the surface), remembered
+        per cell: the points of nearby poses share it."""
         Rw, tw = self._world[i]
         local = (np.asarray(point) - tw) @ Rw
         if np.any(np.abs(local) > 0.5 * np.asarray(self.prims[i].size)):
             return False
-        return bool(self.prims[i].mesh.contains(local[None])[0])
+        if apart <= 0:
+            return bool(self.prims[i].mesh.contains(local[None])[0])
+        edge = 0.5 * apart
+        cell = np.floor(local / edge)
+        key = (i, edge, cell.tobytes())
+        v = self._inside_cells.get(key)
+        if v is None:
+            if len(self._inside_cells) > MEMO_SIZE:
+                self._inside_cells.clear()
+            v = self._inside_cells[key] = bool(self.prims[i].mesh.contains(((cell + 0.5) * edge)[None])[0])
+        return v
 
     def _point_of(self, i):
         """A point (3,) in F_I of robot primitive i as placed (a mesh: a vertex; else its centre)."""
@@ -277,7 +292,7 @@ class ClearanceChecker:
                 return True
             if all(_hull_clear(self._dist(piece, self.scene_objs[j]), c) for piece in self.piece_objs[i]):
                 # the surface is at least c away; an obstacle inside the closed mesh still touches it
-                return not (self._closed[i] and self._inside(i, self.scene.obstacles[j].T_I[:3, 3]))
+                return not (self._closed[i] and self._inside(i, self.scene.obstacles[j].T_I[:3, 3], c))
         return self._dist_scene(i, j) >= c
 
     def _clear_self(self, i, j, c) -> bool:
@@ -288,8 +303,8 @@ class ClearanceChecker:
                 return True
             if all(_hull_clear(self._dist(x, y), c) for x in self.piece_objs[i] for y in self.piece_objs[j]):
                 # the surfaces are at least c apart; one inside the other's closed mesh still touches it
-                return not ((self._closed[i] and self._inside(i, self._point_of(j)))
-                            or (self._closed[j] and self._inside(j, self._point_of(i))))
+                return not ((self._closed[i] and self._inside(i, self._point_of(j), c))
+                            or (self._closed[j] and self._inside(j, self._point_of(i), c)))
         return self._dist_self(i, j) >= c
 
     def beams_clear(self, R, t, P) -> np.ndarray:
