@@ -552,12 +552,12 @@ def joint_reach(robot) -> np.ndarray:
     for f in np.unique(S.frame):
         on = S.frame == f
         rho[f] = np.max(np.linalg.norm(S.centre[on], axis=1) + S.radius[on])
-    step = np.linalg.norm(np.asarray(robot.t_nominal, dtype=float), axis=1)  # |t̄_l|, frame l-1 to l
-    extension = np.maximum(np.abs(robot.q_lower), np.abs(robot.q_upper))
-    step[1 : N + 1] += np.where(robot.prismatic, extension, 0.0)
+    t_bar = np.asarray(robot.t_nominal, dtype=float)  # t̄_l: frame l-1 to l
+    extension = np.zeros(K)  # a prismatic joint's largest extension adds to its frame's offset
+    extension[1 : N + 1] = np.where(robot.prismatic, np.maximum(np.abs(robot.q_lower), np.abs(robot.q_upper)), 0.0)
+    step = np.linalg.norm(t_bar, axis=1) + extension
     # the first offset beyond joint k, in frame k: only its part across the axis (z) moves
-    across = np.hypot(*np.asarray(robot.t_nominal, dtype=float)[:, :2].T) + (step - np.linalg.norm(
-        np.asarray(robot.t_nominal, dtype=float), axis=1))
+    across = np.hypot(t_bar[:, 0], t_bar[:, 1]) + extension
     reach = np.zeros((N, K))
     for k in range(1, N + 1):  # joint k turns frames k..N+1 about an axis through frame k's origin
         for f in range(k, K):
