@@ -24,7 +24,7 @@ COMMAND_MODULES = (
     "campaign.cell.commands",
     "campaign.diagnose.commands",
     "campaign.iso9283.commands",
-    "campaign.auto_commands",
+    "campaign.auto.commands",
 )
 
 

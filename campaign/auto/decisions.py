@@ -1,0 +1,272 @@
+"""The decisions of `campaign auto`: :func:`decide`, a pure function of the diagnosis, the round
+and the rounds before, and the poses each decision measures."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from campaign.auto.state import Decision, Limits, Round
+from campaign.run import RunFolder
+
+#: poses per round that reveal the structure of an "unexplained" (a quarter of the default selection)
+REVEAL_POSES = 30
+#: poses per round of the optimal design at most (at least DESIGN_MIN_POSES)
+DESIGN_MAX_POSES = 60
+DESIGN_MIN_POSES = 8
+#: rounds of revealing poses for one "unexplained" at most
+REVEAL_ROUNDS = 3
+#: without --target-mm: the model's own predicted error may be this share of the noise floor (its
+#: held-out error is then about √(1 + share²) ≈ 1.1× the floor)
+TARGET_FLOOR_SHARE = 0.5
+#: the noise floor assumed for the target when the run has none (10 µm per reflector coordinate, 3 reflectors)
+DEFAULT_FLOOR_MM = 0.0099
+#: inputs of the model-free test that measuring again later reveals (not the joints)
+TIME_INPUTS = ("time_s", "temperature_c")
+#: a candidate that explains only part of an "unexplained" is added when it takes at least this share
+#: of the held-out error away (on the folds): a few per cent are as often a wrong effect fitting a
+#: little of a missing one (cyclic for a bearing run-out), which then stays in the model
+MIN_PARTIAL_GAIN = 0.10
+#: a floor known to worse than this (relative, 1 σ) does not decide "at the floor" alone: FLOOR_POSES
+#: poses are measured FLOOR_TIMES times back to back first (once), for the noise itself
+FLOOR_UNCERTAINTY_MAX = 0.1
+FLOOR_POSES = 8
+FLOOR_TIMES = 4
+
+
+def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decision:
+    """The next step from a diagnosis (module docstring, 2.). ``before``: the earlier rounds;
+    ``loop`` answers what the run holds (planned poses, training poses, the room the limits leave)
+    and chooses poses. Deterministic: the same stored data give the same decision."""
+    best = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
+    if best is not None and diagnosis.verdict == "unexplained" and best.gain < MIN_PARTIAL_GAIN:
+        best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
+    if best is not None and diagnosis.verdict is not None:
+        part = "" if diagnosis.verdict == best.effect else ", which explains part of what is left"
+        return Decision("add_effect", f"add {best.effect}{part} (held-out on the folds "
+                                      f"{best.heldout_mean_position_mm_before:.4f} → "
+                                      f"{best.heldout_mean_position_mm_after:.4f} mm; {best.description})",
+                        effect=best.spec or best.effect)
+    floor_mm = rnd.floor_mm
+    target = limits.target_mm
+    if target is None:
+        target = TARGET_FLOOR_SHARE * (floor_mm if floor_mm else DEFAULT_FLOOR_MM)
+    floor_round = _floor_round(diagnosis, before, loop)
+    if diagnosis.verdict is None:
+        if not diagnosis.floor.known:
+            return Decision("stop", "stop: no missing effect found, but the run has no noise floor to say how close "
+                                    "the model is to the noise", reason="no_floor")
+        weak = weak_structure_inputs(diagnosis)
+        if weak and floor_round is None:
+            s = diagnosis.structure
+            what = (f"the model-free test finds {100 * s.heldout_gain:.0f} % of the held-out error on "
+                    f"{inputs_text(list(rnd.depends_on) or weak)} (p = {s.p_value:.2g}), below what the floor's "
+                    "uncertainty lets it call significant")
+            if before and before[-1].decision.reason == "probe":
+                from campaign.diagnose.engine import ALPHA
+
+                if s.p_value < ALPHA:
+                    return Decision("stop", f"stop: unexplained — again after the poses chosen to test it, {what}",
+                                    reason="unexplained")
+                # tested, and not found at diagnose's own level: the floor
+            elif loop.room(REVEAL_POSES)[0] > 0:
+                d = _reveal(list(rnd.depends_on) or weak, diagnosis.signature, loop, loop.room(REVEAL_POSES)[0])
+                if d is not None:
+                    return replace(d, text=f"at the floor, but {what}: {d.text}", reason="probe")
+        return floor_round or _design_or_stop(rnd, limits, loop, target, at_floor=True)
+    # "unexplained"
+    reveals = _reveal_rounds(before)
+    if diagnosis.structure_significant and rnd.depends_on:
+        top = rnd.depends_on[0]
+        last = before[-1] if before else None
+        if reveals and last is not None and last.verdict == "unexplained" and last.depends_on[:1] == (top,):
+            return Decision("stop", f"stop: unexplained, and {reveals * REVEAL_POSES if reveals else 0} poses chosen "
+                                    f"to reveal it did not change the verdict (depends on {top} first)",
+                            reason="unexplained")
+        if reveals >= REVEAL_ROUNDS:
+            return Decision("stop", f"stop: unexplained after {reveals} rounds of poses chosen to reveal it",
+                            reason="unexplained")
+        n, limit = loop.room(REVEAL_POSES)
+        if n <= 0:
+            return _limit_stop(limit, rnd)
+        d = _reveal(list(rnd.depends_on), diagnosis.signature, loop, n)
+        if d is None:
+            return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
+        return replace(d, text=f"unexplained, depends on {inputs_text(rnd.depends_on)}: {d.text}")
+    # above the floor, and nothing says on what the rest depends
+    if floor_round is not None:
+        return floor_round
+    d = _design_or_stop(rnd, limits, loop, target, at_floor=False)
+    if d.kind != "stop" or reveals:
+        return d
+    n, limit = loop.room(REVEAL_POSES)
+    if n <= 0:
+        return _limit_stop(limit, rnd)
+    from campaign.plan.extend import spread_poses
+
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    pose_ids = spread_poses(loop.space, ids_train, ids, [f"q{j + 1}" for j in range(loop.space.robot.n_joints)], n)
+    if len(pose_ids) == 0:
+        return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
+    return Decision("reveal", f"above the floor, and no input found for it: measure {len(pose_ids)} poses spread over "
+                              "the joints", pose_ids=tuple(pose_ids))
+
+
+def _floor_round(diagnosis, before, loop) -> Decision | None:
+    """Poses measured back to back for the noise floor, when the floor is known to worse than
+    FLOOR_UNCERTAINTY_MAX: too uncertain to tell a model at the noise from one a little above it
+    (and a floor from repeats spread over the campaign holds the drift between them); once per
+    run. None otherwise, or when the limits leave no room."""
+    from campaign.plan.extend import design_poses
+    from campaign.plan.selection import REPEAT_ID_STRIDE
+
+    floor, ratio = diagnosis.floor, diagnosis.model_to_noise
+    if not floor.known or ratio is None or floor.relative_uncertainty <= FLOOR_UNCERTAINTY_MAX:
+        return None
+    if any(r.decision.kind == "floor" for r in before):
+        return None
+    n, _ = loop.room(FLOOR_POSES * FLOOR_TIMES)
+    n = min(n, loop.room(10 ** 9)[0] // 2)  # half of what the limits leave at most: the model may need the rest
+    if n < 2 * FLOOR_TIMES:
+        return None
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    chosen, _, _ = design_poses(loop.space, ids_train, ids, loop.design_effects(), n_max=n // FLOOR_TIMES)
+    pose_ids = tuple(int(p) + r * REPEAT_ID_STRIDE for p in chosen for r in range(FLOOR_TIMES))
+    return Decision("floor", f"the floor is known only to ±{100 * floor.relative_uncertainty:.0f} % "
+                             f"(held-out {ratio:.2f}× it on the folds): "
+                             f"measure {len(chosen)} informative poses {FLOOR_TIMES} times back to back, for the noise",
+                    pose_ids=pose_ids)
+
+
+#: significance of the change of poses measured again after a pause (:func:`time_change_p`)
+TIME_ALPHA = 0.01
+
+
+def time_change_p(run: RunFolder, floor) -> float | None:
+    """p-value of "the poses measured again later (remeasure rounds: the same joints but for
+    1 µrad) moved by no more than the noise": the differences d of their measured positions from
+    their first measurement against the floor's σ per coordinate, Σ (d / (√2 σ))² ~ χ²(3n). None
+    without such pairs or without a floor."""
+    from scipy import stats
+
+    from campaign.plan.extend import REMEASURE_OFFSET_RAD
+    from campaign.plan.selection import REPEAT_ID_STRIDE
+
+    if not floor.known or floor.sigma_position_m is None or not np.all(np.asarray(floor.sigma_position_m) > 0):
+        return None
+    with run.store() as store:
+        poses = store.load_measured()
+    first = {int(p): k for k, p in enumerate(poses.pose_id) if p < REPEAT_ID_STRIDE}
+    z = []
+    for k, pid in enumerate(poses.pose_id):
+        b, r = int(pid % REPEAT_ID_STRIDE), int(pid // REPEAT_ID_STRIDE)
+        if r == 0 or b not in first:
+            continue
+        dq = poses.q[k] - poses.q[first[b]]
+        if not (np.all(np.abs(dq[:-1]) == 0) and abs(abs(dq[-1]) - r * REMEASURE_OFFSET_RAD) < 1e-9):
+            continue  # a repeat for the floor (identical joints), not a pose measured again later
+        z.append((poses.xyz[k] - poses.xyz[first[b]]) / (np.sqrt(2.0) * np.asarray(floor.sigma_position_m)))
+    if not z:
+        return None
+    z = np.asarray(z)
+    return float(stats.chi2.sf(float(np.sum(z ** 2)), z.size))
+
+
+#: a structure the model-free test finds at the floor with p below this (and a positive gain) is
+#: tested with more poses before auto calls it the floor; after them it must reach diagnose's ALPHA
+PROBE_ALPHA = 0.1
+
+
+def weak_structure_inputs(diagnosis, alpha: float = PROBE_ALPHA) -> list:
+    """The inputs (by permutation importance) of a structure the model-free test finds by its
+    p-value (p < ``alpha``, a positive held-out gain) but does not call significant: below the
+    detection limit that the floor's uncertainty sets at the floor. Empty otherwise."""
+    from campaign.diagnose.engine import MIN_IMPORTANCE_SHARE
+
+    s = diagnosis.structure
+    if s is None or diagnosis.structure_significant or not (s.p_value < alpha and s.heldout_gain > 0):
+        return []
+    return s.depends_on(MIN_IMPORTANCE_SHARE)
+
+
+def _reveal(inputs, signature, loop, n: int) -> Decision | None:
+    """``n`` poses that reveal a structure depending on ``inputs``: measured poses again now when
+    time (or temperature) comes first, else new poses spread over the joints among the inputs (and
+    the gravity load when the signature says it grows with it). None when no pose is left."""
+    ids_train, times = loop.training()
+    if inputs and inputs[0] in TIME_INPUTS:
+        from campaign.plan.extend import remeasure_poses
+
+        pose_ids = remeasure_poses(loop.space, ids_train, times, n)
+        return Decision("remeasure", f"measure {len(pose_ids)} of the oldest poses again now",
+                        pose_ids=tuple(int(p) for p in pose_ids))
+    from campaign.plan.extend import spread_poses
+
+    chosen = [i for i in inputs if i not in TIME_INPUTS]
+    if signature is not None and any(k != "time_s" for k in signature.growth):
+        chosen.append("gravity load")
+    ids, _ = loop.planned()
+    pose_ids = spread_poses(loop.space, ids_train, ids, chosen, n)
+    if len(pose_ids) == 0:
+        return None
+    return Decision("reveal", f"measure {len(pose_ids)} poses spread over {', '.join(chosen) or 'the joints'}",
+                    pose_ids=tuple(int(p) for p in pose_ids))
+
+
+def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
+    from campaign.plan.extend import design_poses
+
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    n, limit = loop.room(DESIGN_MAX_POSES)
+    effects = loop.design_effects()
+    _, predicted, _ = design_poses(loop.space, ids_train, ids, effects, n_max=0)
+    what = "at the measurement noise" if at_floor else "above the floor, and nothing says why"
+    if predicted <= target:
+        if at_floor:
+            return Decision("stop", f"stop: at the measurement noise, and the model well determined (predicted "
+                                    f"error {1e3 * predicted:.1f} µm ≤ target {1e3 * target:.1f} µm)",
+                            reason="at_floor")
+        return Decision("stop", f"stop: {what}; the model is well determined (predicted error "
+                                f"{1e3 * predicted:.1f} µm)",
+                        reason="unexplained")
+    if n < DESIGN_MIN_POSES:
+        if at_floor:
+            return Decision("stop", f"stop: at the measurement noise; the model's predicted error "
+                                    f"{1e3 * predicted:.1f} "
+                                    f"µm is above the target {1e3 * target:.1f} µm, but the "
+                                    f"{'budget' if limit == 'budget' else 'pose limit'} allows no more poses",
+                            reason="at_floor")
+        return _limit_stop(limit, rnd)
+    chosen, _, after = design_poses(loop.space, ids_train, ids, effects, n_max=n, target_mm=target,
+                                    n_min=DESIGN_MIN_POSES)
+    if len(chosen) == 0:
+        return Decision("stop", f"stop: {what}; no suitable pose is left to measure", reason="at_floor" if at_floor
+                        else "no_poses")
+    return Decision("design", f"{what}, but the model poorly determined (predicted error {1e3 * predicted:.1f} µm > "
+                              f"target {1e3 * target:.1f} µm): measure the {len(chosen)} most informative poses "
+                              f"(predicted {1e3 * after:.1f} µm)", pose_ids=tuple(int(p) for p in chosen))
+
+
+def _limit_stop(limit, rnd) -> Decision:
+    if limit == "budget":
+        return Decision("stop", f"stop: the budget is spent ({rnd.hours:.2f} h)", reason="budget")
+    return Decision("stop", f"stop: the pose limit is reached ({rnd.planned} poses planned)", reason="max_poses")
+
+
+def _reveal_rounds(before) -> int:
+    """Rounds just before this one that measured poses to reveal an "unexplained" (consecutive)."""
+    n = 0
+    for r in reversed(before):
+        if r.decision.kind not in ("reveal", "remeasure"):
+            break
+        n += 1
+    return n
+
+
+def inputs_text(inputs) -> str:
+    inputs = ["time" if i == "time_s" else i for i in inputs]
+    return inputs[0] if len(inputs) == 1 else ", ".join(inputs[:-1]) + " and " + inputs[-1]

@@ -1,0 +1,281 @@
+"""The loop of `campaign auto` (:mod:`campaign.auto`): plan, then measure → calibrate → diagnose →
+decide → carry the decision out, until a decision says stop."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, replace
+
+from campaign.auto.decisions import TIME_ALPHA, TIME_INPUTS, decide, inputs_text, time_change_p, weak_structure_inputs
+from campaign.auto.report import result
+from campaign.auto.state import (MAX_POSES_FACTOR, AutoOptions, AutoResult, CellSource, Decision, Limits, Round,
+                                 load_state, save_state)
+from campaign.errors import ConfigError, PeerError, RobotFault
+from campaign.run import RunFolder
+
+
+# -- the loop --------------------------------------------------------------------------------------
+def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = None, *, say=None,
+         progress: bool = False, report: bool = True) -> AutoResult:
+    """Run the loop on ``run_dir`` until there is nothing more to learn (module docstring).
+
+    cell: where to measure (None: the one the run's earlier `auto` used); options: limits (None
+    fields: those stored by an earlier `auto` of this run, else the defaults); say: a callable
+    receiving the story, one line at a time (None: silent); progress: progress bars on stderr;
+    report: write the calibration report and RUN/auto/report.html at the end. Holds the run's
+    lock throughout."""
+    say = say or (lambda line: None)
+    run = RunFolder(run_dir)
+    with run.lock("auto"):
+        state = load_state(run)
+        cell = _resolve_cell(run, state, cell)
+        opts = _resolve_options(state, options)
+        state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if cell.cell is not None and cell.cell != "sim":  # a bad spec in one line, before anything is planned
+            from campaign.cell.launcher import cell_specs
+
+            cell_specs(cell.cell)
+        if cell.sim or cell.cell == "sim":  # what the simulated cell would refuse, before anything is planned
+            from campaign.measure.session import check_simulated_cell
+
+            check_simulated_cell(run.config, run.robot())
+        if state["plan"] is None:
+            _plan(run, state, opts, say, progress)
+        limits = _limits(state, opts)
+        for r in state["rounds"]:  # the story so far, when resumed
+            say(Round.from_json(r).line())
+        if state["finished"] is not None:
+            if not _reopen(run, state, limits):
+                return result(run, state, say, report=False)
+            say(f"continuing: {state['reopened']}")
+        loop = _Loop(run, state, cell, limits, say, progress)
+        loop.go()
+        return result(run, state, say, report=report)
+
+
+def _resolve_cell(run, state, cell):
+    if cell is not None:
+        return cell
+    if state.get("cell"):
+        return CellSource.from_json(state["cell"])
+    raise ConfigError(f"{run.path}: no earlier `campaign auto` to resume: say where to measure (--sim, --cell SPEC, "
+                      "or --controller HOST:PORT --tracker HOST:PORT)")
+
+
+def _resolve_options(state, options):
+    stored = {k: v for k, v in (state.get("options") or {}).items() if k in AutoOptions.__dataclass_fields__}
+    given = {} if options is None else {k: v for k, v in asdict(options).items()
+                                       if v is not None and v != AutoOptions.__dataclass_fields__[k].default}
+    return AutoOptions(**{**stored, **given}).check()
+
+
+def _plan(run, state, opts, say, progress):
+    from campaign.plan.pipeline import plan_campaign
+    from campaign.plan.selection import SelectionOptions
+
+    if run.poses_csv.is_file() and (run.plan_dir / "summary.json").is_file() and run.has_config:
+        summary = json.loads((run.plan_dir / "summary.json").read_text())
+        say(f"plan: the run's own plan, {summary['tour']['poses']} poses")
+    else:
+        what = ("every suitable pose" if opts.select == 0 else
+                f"the {opts.select} most informative poses" if opts.select else "the default short campaign")
+        scale = "" if opts.grid_scale == 1 else f" --grid-scale {opts.grid_scale:g}"
+        say(f"plan: {what} (as `campaign plan --run {run.path}{scale}`)")
+        selection = SelectionOptions(n=opts.select, effects=run.effects).check() if opts.select else None
+        summary = plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
+                                all_poses=opts.select == 0)
+    est = summary.get("estimated_campaign", {})
+    state["plan"] = {"poses": int(summary["tour"]["poses"]), "estimated_h": float(est.get("total_s", 0.0)) / 3600}
+    say(f"plan: {state['plan']['poses']} poses, estimated {state['plan']['estimated_h']:.2f} h")
+    save_state(run, state)
+
+
+def _limits(state, opts) -> Limits:
+    max_poses = opts.max_poses if opts.max_poses is not None else MAX_POSES_FACTOR * int(state["plan"]["poses"])
+    return Limits(max_poses, opts.budget_h, opts.target_mm)
+
+
+def _reopen(run, state, limits) -> bool:
+    """Whether a finished loop goes on: its effects were changed in campaign.yaml since (a user
+    effect added), or it stopped at a limit that is now larger."""
+    last = Round.from_json(state["rounds"][-1])
+    reason = state["finished"]["reason"]
+    why = None
+    if tuple(run.effects) != tuple(last.effects):
+        why = f"the effects in {run.config_path} changed since ({', '.join(run.effects) or 'none'})"
+    elif reason == "max_poses" and limits.max_poses > last.planned:
+        why = f"--max-poses {limits.max_poses} allows more poses"
+    elif reason == "budget" and (limits.budget_h is None or limits.budget_h > last.hours):
+        why = "the budget allows more hours"
+    if why is None:
+        return False
+    state["finished"], state["pending"], state["reopened"] = None, None, why
+    return True
+
+
+class _Loop:
+    def __init__(self, run, state, cell, limits, say, progress):
+        self.run, self.state, self.cell, self.limits, self.say, self.progress = run, state, cell, limits, say, progress
+        self._space = None
+
+    @property
+    def space(self):
+        if self._space is None:
+            from campaign.plan.extend import plan_space
+
+            self._space = plan_space(self.run)
+        return self._space
+
+    def save(self):
+        save_state(self.run, self.state)
+
+    def go(self):
+        while True:
+            pending = self.state.get("pending")
+            if pending is not None:
+                self.execute(Decision.from_json(pending))
+                self.state["pending"] = None
+                self.save()
+            self.measure()
+            metrics = self.calibrate()
+            diagnosis = self.diagnose()
+            rnd = self.round(metrics, diagnosis)
+            self.state["rounds"].append(rnd.as_json())
+            if rnd.decision.kind == "stop":
+                self.state["finished"] = {"reason": rnd.decision.reason, "time_unix_s": time.time()}
+            else:
+                self.state["pending"] = rnd.decision.as_json()
+            self.save()
+            self.say(rnd.line())
+            if rnd.decision.kind == "stop":
+                return
+
+    # -- the steps ---------------------------------------------------------------------------
+    def execute(self, d: Decision):
+        if d.kind == "add_effect":
+            self.run.add_effects([d.effect])
+            self.say(f"  added {d.effect} to {self.run.config_path}")
+        elif d.pose_ids:
+            from campaign.plan.extend import append_tour
+
+            ext = append_tour(self.run, self.space, d.pose_ids, offset_repeats=d.kind == "remeasure")
+            if ext.added or ext.dropped:
+                self.say(f"  plan: {len(ext.added)} poses appended to {self.run.poses_csv}"
+                         + (f" ({ext.via_poses} via poses)" if ext.via_poses else "")
+                         + (f"; {len(ext.dropped)} dropped (no collision-free motion)" if ext.dropped else ""))
+
+    def measure(self):
+        from campaign.measure.session import measure_run
+
+        c = self.cell
+        # the library call of `campaign run RUN --sim | --cell SPEC [--options FILE] | --controller --tracker`
+        res = measure_run(self.run.path, sim=c.sim, cell=c.cell, options=c.options, controller=c.controller,
+                          tracker=c.tracker, progress=self.progress, log=lambda msg: self.say(f"  {msg}"))
+        if res.measured or res.failed:
+            self.say(f"  measured {res.measured} poses" + (f", {res.failed} failed" if res.failed else "")
+                     + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
+        if res.stopped_kind == "interrupted":
+            raise KeyboardInterrupt
+        if res.stopped_kind == "robot_fault":
+            raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, run `campaign auto "
+                             f"{self.run.path}` again to resume")
+        if res.stopped:
+            raise PeerError(f"campaign stopped: {res.stopped}; everything measured is stored, run `campaign auto "
+                            f"{self.run.path}` again to resume")
+
+    def calibrate(self) -> dict:
+        from campaign.identify.calibrate import calibrate
+
+        effects = list(self.run.effects)
+        key = {"effects": effects, "poses": self.run.stored_pose_count()}
+        metrics_path = self.run.calibration_dir / "metrics.json"
+        if self.state.get("calibrated") != key or not metrics_path.is_file():
+            result = calibrate(self.run.path, ann=False, report=False)
+            self.state["calibrated"] = key
+            self.save()
+            self.say(f"  calibrate: {result.order[-1]} on {int((~result.is_test).sum())} training poses")
+        return json.loads(metrics_path.read_text())
+
+    def diagnose(self):
+        from campaign.diagnose.engine import diagnose
+        from campaign.diagnose.report import write_diagnosis
+
+        d = diagnose(self.run.path)
+        write_diagnosis(d, report=False)
+        verdict = {None: "nothing left to find" if d.at_floor else "nothing found", "unexplained": "unexplained"}
+        self.say(f"  diagnose: {verdict.get(d.verdict, 'add ' + str(d.verdict))}"
+                 + (f" (depends on {inputs_text(d.depends_on)})" if d.verdict == "unexplained" and d.depends_on
+                    else ""))
+        return d
+
+    def round(self, metrics, diagnosis) -> Round:
+        model = metrics["order"][-1]
+        floor = (metrics.get("noise_floor") or {}).get("mean_position_mm")
+        sig = diagnosis.signature.text() if diagnosis.signature is not None and diagnosis.structure_significant \
+            else None
+        ids, _ = self.planned()
+        before = [Round.from_json(r) for r in self.state["rounds"]]
+        importance = {} if diagnosis.structure is None else \
+            {k: float(v) for k, v in diagnosis.structure.importance.items()}
+        depends_on = tuple(diagnosis.depends_on)
+        weak = weak_structure_inputs(diagnosis) if diagnosis.verdict is None else []
+        if not depends_on and weak:
+            depends_on = tuple(weak)
+            if before and before[-1].decision.reason == "probe":  # the same weak structure twice: both tests' ranking
+                both = {k: importance.get(k, 0.0) + before[-1].importance.get(k, 0.0) for k in importance}
+                depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k])
+                                   if k in weak or k in before[-1].depends_on)
+        if not depends_on and diagnosis.verdict == "unexplained":  # the inputs an earlier test of this model named
+            same = [r for r in before if r.effects == tuple(self.run.effects) and r.depends_on]
+            depends_on = same[-1].depends_on if same else ()
+        p_time = time_change_p(self.run, diagnosis.floor) if depends_on and depends_on[0] in TIME_INPUTS else None
+        if p_time is not None and p_time >= TIME_ALPHA:
+            # measured again after a pause, the poses agree within the noise: time is not the cause (the tour
+            # orders poses, so time stands in for the joints the tour sweeps); the joints it depends on remain
+            depends_on = tuple(i for i in depends_on if i not in TIME_INPUTS)
+            sig = None
+        base = Round(len(before) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
+                     tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
+                     diagnosis.verdict, diagnosis.at_floor, depends_on, sig, Decision("stop", ""), importance)
+        return replace(base, decision=decide(diagnosis, base, before, self.limits, self))
+
+    # -- what decide asks about the run --------------------------------------------------------
+    def planned(self):
+        from campaign.measure.driver import read_plan
+
+        ids, Q, _ = read_plan(self.run.path)
+        return ids, Q
+
+    def measured_count(self) -> int:
+        with self.run.store() as store:
+            return int(len(store.load_measured(include_unusable=True)))
+
+    def training(self):
+        """(pose ids, times s) of the measured training poses (not the plan's validation poses)."""
+        from campaign.identify.split import run_split
+
+        with self.run.store() as store:
+            poses = store.load_measured(include_unusable=True)
+        test = run_split(self.run.path, poses.pose_id)
+        return poses.pose_id[~test], poses.time_s[~test]
+
+    def room(self, wanted: int) -> tuple:
+        """(poses the limits allow of ``wanted``, the limit that cut them or None)."""
+        ids, _ = self.planned()
+        n = min(wanted, self.limits.max_poses - len(ids))
+        limit = "max_poses" if n < wanted else None
+        if self.limits.budget_h is not None:
+            left_h = self.limits.budget_h - self.run.clock_s() / 3600
+            by_budget = int(left_h * 3600 / self.space.seconds_per_pose)
+            if by_budget < n:
+                n, limit = by_budget, "budget"
+        return max(n, 0), limit
+
+    def design_effects(self):
+        """The current effects a plan can weigh: not those of a context known only when measuring
+        (time, temperature, ...), which no pose chosen in advance informs."""
+        from campaign.effects.base import make_effect
+
+        robot = self.space.robot
+        return tuple(e for e in self.run.effects if not make_effect(e, robot).context_keys)
