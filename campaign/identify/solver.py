@@ -23,6 +23,8 @@ so a pose with one or two reflectors seen still contributes.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from campaign.effects.base import EffectSet, chain_pose, make_effect, model_pose
@@ -56,6 +58,238 @@ def step_converged(H, g, cost) -> bool:
     except np.linalg.LinAlgError:
         return False
     return float(g @ step) < IDENT_COST_RTOL * cost or float(np.max(np.abs(step), initial=0.0)) < IDENT_STEP_TOL
+
+
+@dataclass(frozen=True)
+class Unknowns:
+    """The fit's unknowns: r geometric (base parameters, or every error parameter for a MAP fit on
+    the redundant model) then k effect parameters, by name."""
+
+    r: int
+    k: int
+    map_fit: bool
+    redundant: bool
+    names: tuple
+
+    def base_columns(self, base) -> list:
+        """Indices of the base parameters' columns (and the effects') among the unknowns."""
+        if self.redundant:
+            return list(base.independent) + list(range(self.r, self.r + self.k))
+        return list(range(self.r + self.k))
+
+
+@dataclass(frozen=True)
+class RowLayout:
+    """The rows fitted a pose: ``rows`` (a slice of Δz's 6) for poses, None for points; ``mask``
+    (n, m) 1 where measured; ``sigma`` (m,) the starting noise of each row (m or rad); ``blocks``
+    the rows sharing a noise (variance components); ``measured`` (n, m) the points' positions."""
+
+    rows: slice | None
+    mask: np.ndarray
+    sigma: np.ndarray
+    blocks: list
+    measured: np.ndarray | None
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.mask.sum())
+
+
+class FitProblem:
+    """The fit's residual (n, m) and Jacobian (n, m, r + k) as functions of the unknowns x on fixed
+    poses. The Jacobian at the last point asked for is kept (the start's is the first step's too),
+    with the derivative in the joint offsets there (for diagnose's candidates)."""
+
+    def __init__(self, model, q, T_meas, context, layout: RowLayout, r: int):
+        self.model, self.q, self.T_meas, self.context, self.layout, self.r = model, q, T_meas, context, layout, r
+        self._last = {}
+
+    def unpack(self, x):
+        """(the 6N + 12 error parameters, the effect parameters) of the unknowns x."""
+        p_e = np.zeros(self.model.robot.n_params)
+        p_e[self.model.cols_] = x[:self.r]
+        return p_e, x[self.r:]
+
+    def seed(self, x, J):
+        """Take J as the Jacobian at x (another fit's, at the same values)."""
+        self._last.update(x=x.copy(), J=J)
+
+    def residual(self, x) -> np.ndarray:
+        m, lay = self.model, self.layout
+        p_e, th = self.unpack(x)
+        if lay.rows is None:
+            return (m._model_points(self.q, p_e, th, self.context).reshape(len(self.q), -1) - lay.measured) * lay.mask
+        return pose_error(m._model_T(self.q, p_e, th, self.context), self.T_meas)[:, lay.rows]
+
+    def jacobian(self, x) -> np.ndarray:
+        last, lay = self._last, self.layout
+        if last.get("x") is not None and np.array_equal(last["x"], x):
+            return last["J"]
+        if lay.rows is None:
+            J = self.model._point_jacobian(self.q, *self.unpack(x), self.context)
+            J = J.reshape(len(self.q), -1, J.shape[-1]) * lay.mask[:, :, None]
+        else:
+            J, J_q = self.model._jacobian(self.q, *self.unpack(x), self.context, self.T_meas, joints=True)
+            J = J[:, lay.rows, :]
+            last["J_q"] = None if J_q is None else J_q[:, lay.rows, :]
+        last.update(x=x.copy(), J=J)
+        return J
+
+    @property
+    def joint_jacobian(self):
+        """The derivative (n, m, N) in the joint offsets at the last Jacobian computed here (None
+        with effects, points, or none computed)."""
+        return self._last.get("J_q")
+
+
+@dataclass(frozen=True)
+class _PriorTerm:
+    """The prior on the free unknowns: precision (f, f) (zeros for least squares), mean (f,)."""
+
+    precision: np.ndarray
+    mean: np.ndarray
+    active: bool
+    free: np.ndarray
+
+    def cost(self, x) -> float:
+        d = x[self.free] - self.mean
+        return float(d @ self.precision @ d) if self.active else 0.0
+
+
+@dataclass(frozen=True)
+class FitState:
+    """Where the iteration ended: unknowns x, residual (n, m), weighted cost, rows' noise σ (m,),
+    the cost after every step, the steps taken."""
+
+    x: np.ndarray
+    residual: np.ndarray
+    cost: float
+    sigma: np.ndarray
+    history: list
+    n_iter: int
+
+
+def levenberg_marquardt(problem, x, res, cost, sig, free, prior, *, max_iter):
+    """Levenberg-Marquardt steps (eq. 19 with damping) on the free unknowns at fixed row noise σ,
+    from x with its residual and cost: (x, residual, cost, costs after each step, steps)."""
+    lam = 1e-6
+    history, n_iter = [], 0
+    for _ in range(max_iter):
+        J = problem.jacobian(x)[:, :, free] / sig[None, :, None]
+        H, g = _normal_equations(J, res / sig)
+        if prior.active:
+            g = g + prior.precision @ (x[free] - prior.mean)
+            H = H + prior.precision
+        if step_converged(H, g, cost):
+            break
+        n_iter += 1
+        step_ok = False
+        for _ in range(20):
+            A = H + lam * np.diag(np.diag(H))
+            try:
+                dx = -np.linalg.solve(A, g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            x_new = x.copy()
+            x_new[free] += dx
+            res_new = problem.residual(x_new)
+            cost_new = float(np.sum((res_new / sig) ** 2)) + prior.cost(x_new)
+            if cost_new <= cost:
+                step_ok = True
+                break
+            lam *= 10
+        if not step_ok:
+            break
+        rel = (cost - cost_new) / max(cost, 1e-300)
+        x, res, cost = x_new, res_new, cost_new
+        lam = max(lam / 10, 1e-12)
+        history.append(cost)
+        if np.max(np.abs(dx)) < IDENT_STEP_TOL or rel < IDENT_COST_RTOL:
+            break
+    return x, res, cost, history, n_iter
+
+
+def variance_components(res, sig, layout: RowLayout, dof) -> np.ndarray:
+    """Each block's noise (m,) re-estimated from its residuals res (n, m), each block given its
+    share of the dof degrees of freedom."""
+    new_sig = sig.copy()
+    share = dof / layout.n_rows
+    for cols in layout.blocks:
+        new_sig[cols] = np.sqrt(np.sum(res[:, cols] ** 2) / (layout.mask[:, cols].sum() * share))
+    return np.maximum(new_sig, 1e-12)
+
+
+def iterate(problem, x, free, prior, layout: RowLayout, *, max_iter, estimate_noise, effective_unknowns) -> FitState:
+    """Levenberg-Marquardt from x, alternating (with ``estimate_noise``, at most 3 rounds) with the
+    rows' noise re-estimated from the residuals until it changes by less than 5 %."""
+    sig = layout.sigma
+    res = problem.residual(x)
+    cost = float(np.sum((res / sig) ** 2)) + prior.cost(x)
+    history = [cost]
+    n_iter = 0
+    for _ in range(3 if estimate_noise else 1):
+        x, res, cost, steps, n = levenberg_marquardt(problem, x, res, cost, sig, free, prior, max_iter=max_iter)
+        history += steps
+        n_iter += n
+        if not estimate_noise:
+            break
+        n_eff = (effective_unknowns(problem.jacobian(x)[:, :, free] / sig[None, :, None], prior.precision)
+                 if prior.active else len(free))
+        new_sig = variance_components(res, sig, layout, max(layout.n_rows - n_eff, 1))
+        if np.allclose(new_sig, sig, rtol=0.05):
+            sig = new_sig
+            break
+        sig = new_sig
+        cost = float(np.sum((res / sig) ** 2)) + prior.cost(x)
+        history.append(cost)
+    return FitState(x=x, residual=res, cost=cost, sigma=sig, history=history, n_iter=n_iter)
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """The linearisation at the fit: ``jacobian`` (n, m, r + k) not whitened, ``whitened_jacobian``
+    (n, m, f) of the free unknowns, ``covariance`` (r + k, r + k) (zero rows for the held),
+    ``variance_factor`` (cost / dof), ``n_effective`` unknowns, ``singular_values`` of the
+    column-scaled regressor of the base parameters (and effects), largest first."""
+
+    jacobian: np.ndarray
+    whitened_jacobian: np.ndarray
+    covariance: np.ndarray
+    variance_factor: float
+    n_effective: float
+    singular_values: np.ndarray
+
+
+def posterior(problem, fit: FitState, free, prior, layout: RowLayout, unknowns, *, effective_unknowns) -> Posterior:
+    """The covariance of the unknowns at the fit: least squares (JᵀJ)⁺ s², or MAP (JᵀJ / s² + P)⁺,
+    with s² the a posteriori variance factor; and the conditioning of the base parameters' columns."""
+    x, sig = fit.x, fit.sigma
+    J_final = problem.jacobian(x)
+    J = J_final[:, :, free] / sig[None, :, None]
+    H, _ = _normal_equations(J, fit.residual / sig)
+    n_eff = effective_unknowns(J, prior.precision) if prior.active else len(free)
+    dof = max(layout.n_rows - n_eff, 1)
+    s2 = (fit.cost - prior.cost(x)) / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
+    if prior.active:  # the posterior: the data's information (at the fit's variance factor) plus the prior's
+        cov_free = np.linalg.pinv(H / s2 + prior.precision, hermitian=True)
+    else:
+        cov_free = np.linalg.pinv(H) * s2
+    n_unknown = unknowns.r + unknowns.k
+    cov = np.zeros((n_unknown, n_unknown))
+    cov[np.ix_(free, free)] = cov_free
+    # condition number of the column-scaled regressor of the base parameters (and effects)
+    if unknowns.redundant:
+        free_set = set(free.tolist())
+        base_cols = unknowns.base_columns(problem.model.base_)
+        Jb = (J_final / sig[None, :, None])[:, :, [i for i in base_cols if i in free_set]]
+        H_b = Jb.reshape(-1, Jb.shape[2]).T @ Jb.reshape(-1, Jb.shape[2])
+    else:
+        H_b = H
+    d = np.sqrt(np.clip(np.diag(H_b), 1e-300, None))
+    ev = np.clip(np.linalg.eigvalsh(H_b / np.outer(d, d)), 0.0, None)
+    return Posterior(jacobian=J_final, whitened_jacobian=J, covariance=cov, variance_factor=float(s2),
+                     n_effective=float(n_eff), singular_values=np.sqrt(ev[::-1]))
 
 
 class CalibrationModel:
@@ -201,7 +435,34 @@ class CalibrationModel:
         unknowns not named start at 0 (the paper's start point). init_jacobian: optional
         (n, 6, r + k) Jacobian of Δz at the start values on these poses, when the caller has it
         (another fit's ``jacobian_at_fit_`` rows at the values ``init`` gives): not computed again.
+
+        The steps, each a method a test can call: :meth:`check_data`, :meth:`choose_unknowns`,
+        :meth:`row_layout`, :meth:`start_values`, :class:`FitProblem`, :meth:`free_unknowns`,
+        :func:`levenberg_marquardt` with :func:`variance_components`, :func:`posterior`.
         """
+        q, T_meas, context = self.check_data(q, T_meas, context)
+        unknowns = self.choose_unknowns(base)
+        layout = self.row_layout(q, T_meas)
+        if layout.n_rows < self.base_.n_base + unknowns.k:  # the redundant model's extras are the prior's to fix
+            raise IdentificationError(f"{len(q)} poses give {layout.n_rows} equations for "
+                                      f"{self.base_.n_base + unknowns.k} unknowns")
+        x, mu, held = self.start_values(unknowns, init)
+        problem = FitProblem(self, q, T_meas, context, layout, unknowns.r)
+        if init_jacobian is not None and layout.rows is not None:
+            problem.seed(x, np.asarray(init_jacobian, dtype=float)[:, layout.rows, :])
+        free = self.free_unknowns(problem, x, held, unknowns, layout.sigma)
+        prior = _PriorTerm(self._prior_precision(free, unknowns.r, unknowns.redundant) if unknowns.map_fit
+                           else np.zeros((len(free), len(free))), mu[free], unknowns.map_fit, free)
+        fit = iterate(problem, x, free, prior, layout, max_iter=self.max_iter, estimate_noise=self.estimate_noise,
+                      effective_unknowns=self._effective_unknowns)
+        post = posterior(problem, fit, free, prior, layout, unknowns, effective_unknowns=self._effective_unknowns)
+        self._store(problem, fit, post, free, prior, held, unknowns, layout)
+        return self
+
+    def check_data(self, q, T_meas, context):
+        """(q (n, N), T_meas (n, 4, 4) or measured points (n, k, 3), context {name: (n,)}) as float
+        arrays, checked against the robot, the ``points`` and the effects' context; sets
+        ``effect_set_``."""
         q = np.asarray(q, dtype=float)
         T_meas = np.asarray(T_meas, dtype=float)
         N = self.robot.n_joints
@@ -214,189 +475,84 @@ class CalibrationModel:
         context = {k: np.asarray(v, dtype=float) for k, v in (context or {}).items()}
         self.effect_set_ = self._effect_set()
         self.effect_set_.check_context(context, len(q))
+        return q, T_meas, context
+
+    def choose_unknowns(self, base=None) -> "Unknowns":
+        """The unknowns: the base parameters (``base``, or computed for the robot and the rows
+        fitted) or, for a MAP fit on the redundant model, every error parameter; then the effects'.
+        Sets ``base_``, ``cols_`` (the geometric unknowns' indices among the error parameters) and
+        ``prior_``."""
+        P = self._points()
         if P is None:
             self.base_ = base or base_parameters(self.robot, position_only=self.position_only)
         else:
             self.base_ = base or base_parameters(self.robot, position_only=True, points=P)
         map_fit = self.prior is not None
         redundant = map_fit and self.physical
-        # the geometric unknowns: the base parameters, or every physical one (MAP, redundant model)
         self.cols_ = list(range(self.robot.n_params)) if redundant else list(self.base_.independent)
-        r = len(self.cols_)
-        k = self.effect_set_.n_params
-        n_unknown = r + k
+        names = (tuple(self.robot.param_names) if redundant else self.base_.names) + self.effect_set_.param_names
+        self.prior_ = self._resolve_prior() if map_fit else None
+        return Unknowns(r=len(self.cols_), k=self.effect_set_.n_params, map_fit=map_fit, redundant=redundant,
+                        names=names)
+
+    def row_layout(self, q, T_meas) -> "RowLayout":
+        """The rows fitted and their starting noise: Δz's 3 or 6 components a pose, or 3 a seen point
+        (a missed reflector: zero rows, weight 0, never NaN in the solver)."""
+        P = self._points()
         if P is None:
             rows = self._rows()
             mask = np.ones((len(q), rows.stop))
             sig = np.array([self.sigma_position_m] * 3 + [self.sigma_orientation_rad] * 3)[rows]
             blocks = [np.arange(3)] + ([] if self.position_only else [np.arange(3, 6)])
-        else:
-            # a missed reflector: zero rows (weight 0), never NaN in the solver
-            mask = np.repeat(np.isfinite(T_meas).all(axis=2).astype(float), 3, axis=1)
-            Y = np.nan_to_num(T_meas).reshape(len(q), -1)
-            sig = np.full(3 * len(P), self.sigma_position_m)
-            blocks = [np.arange(3 * len(P))]
-        n_rows = int(mask.sum())
-        n_needed = self.base_.n_base + k  # the redundant model's extra unknowns are the prior's to fix
-        if n_rows < n_needed:
-            raise IdentificationError(f"{len(q)} poses give {n_rows} equations for {n_needed} unknowns")
+            return RowLayout(rows=rows, mask=mask, sigma=sig, blocks=blocks, measured=None)
+        mask = np.repeat(np.isfinite(T_meas).all(axis=2).astype(float), 3, axis=1)
+        return RowLayout(rows=None, mask=mask, sigma=np.full(3 * len(P), self.sigma_position_m),
+                         blocks=[np.arange(3 * len(P))], measured=np.nan_to_num(T_meas).reshape(len(q), -1))
 
-        x = np.zeros(n_unknown)
+    def start_values(self, unknowns, init=None):
+        """(x (r + k,), μ (r + k,), held (r + k,) bool): the start (0, the effects' initial values, or
+        ``init`` by name; held unknowns at their held value), the prior's mean and which are held."""
+        r = unknowns.r
+        x = np.zeros(unknowns.r + unknowns.k)
         x[r:] = self.effect_set_.initial_params()
-        names = (tuple(self.robot.param_names) if redundant else self.base_.names) + self.effect_set_.param_names
         if init:
-            for i, name in enumerate(names):
+            for i, name in enumerate(unknowns.names):
                 if name in init:
                     x[i] = init[name]
-        self.prior_ = self._resolve_prior() if map_fit else None
-        mu, held = self._prior_and_held(x, r, redundant)
+        mu, held = self._prior_and_held(x, r, unknowns.redundant)
         x[held] = mu[held]
+        return x, mu, held
 
-        def unpack(x):
-            p_e = np.zeros(self.robot.n_params)
-            p_e[self.cols_] = x[:r]
-            return p_e, x[r:]
-
-        def residual(x):
-            p_e, th = unpack(x)
-            if P is not None:
-                return (self._model_points(q, p_e, th, context).reshape(len(q), -1) - Y) * mask
-            return pose_error(self._model_T(q, p_e, th, context), T_meas)[:, rows]
-
-        last = {}  # the Jacobian at the last point asked for: the start's is the first step's too
-        # (and the derivative in the joint offsets there, for diagnose's candidates)
-        if init_jacobian is not None and P is None:
-            last.update(x=x.copy(), J=np.asarray(init_jacobian, dtype=float)[:, rows, :])
-
-        def jacobian(x):
-            if last.get("x") is not None and np.array_equal(last["x"], x):
-                return last["J"]
-            if P is not None:
-                J = self._point_jacobian(q, *unpack(x), context)
-                J = J.reshape(len(q), -1, J.shape[-1]) * mask[:, :, None]
-            else:
-                J, J_q = self._jacobian(q, *unpack(x), context, T_meas, joints=True)
-                J = J[:, rows, :]
-                last["J_q"] = None if J_q is None else J_q[:, rows, :]
-            last.update(x=x.copy(), J=J)
-            return J
-
-        # identifiability of the combined regressor at the start point
+    def free_unknowns(self, problem, x, held, unknowns, sig) -> np.ndarray:
+        """Indices of the unknowns fitted: all but the held and the effect parameters the base
+        columns already span at the start point (those in ``absorbed_``, held at their start)."""
+        r, k = unknowns.r, unknowns.k
         r_base = self.base_.n_base
-        base_cols = list(self.base_.independent) + list(range(r, n_unknown)) if redundant else list(range(n_unknown))
-        # the analysis on the base columns (and effects); unknowns' indices of absorbed effects
         self.absorbed_ = []
         if k:  # without effects there is nothing to absorb
-            J0 = jacobian(x) / sig[None, :, None]
-            J0b = J0[:, :, base_cols] if redundant else J0
+            J0 = problem.jacobian(x) / sig[None, :, None]
+            J0b = J0[:, :, unknowns.base_columns(self.base_)] if unknowns.redundant else J0
             self.absorbed_ = [i + r - r_base for i in self._absorbed(J0b.reshape(-1, r_base + k), r_base)]
         out = set(self.absorbed_) | set(np.flatnonzero(held).tolist())
-        free = np.array([i for i in range(n_unknown) if i not in out], dtype=int)
-        # the prior's precision on the free unknowns (zeros for least squares), scaled by s
-        pf = self._prior_precision(free, r, redundant) if map_fit else np.zeros((len(free), len(free)))
-        mu_f = mu[free]
+        return np.array([i for i in range(r + k) if i not in out], dtype=int)
 
-        def prior_cost(x):
-            d = x[free] - mu_f
-            return float(d @ pf @ d) if map_fit else 0.0
-
-        lam = 1e-6
-        res = residual(x)
-        cost = float(np.sum((res / sig) ** 2)) + prior_cost(x)
-        history = [cost]
-        n_iter = 0
-        for outer in range(3 if self.estimate_noise else 1):
-            for n_iter_inner in range(self.max_iter):
-                J = jacobian(x)[:, :, free] / sig[None, :, None]
-                H, g = _normal_equations(J, res / sig)
-                if map_fit:
-                    g = g + pf @ (x[free] - mu_f)
-                    H = H + pf
-                if step_converged(H, g, cost):
-                    break
-                n_iter += 1
-                step_ok = False
-                for _ in range(20):
-                    A = H + lam * np.diag(np.diag(H))
-                    try:
-                        dx = -np.linalg.solve(A, g)
-                    except np.linalg.LinAlgError:
-                        lam *= 10
-                        continue
-                    x_new = x.copy()
-                    x_new[free] += dx
-                    res_new = residual(x_new)
-                    cost_new = float(np.sum((res_new / sig) ** 2)) + prior_cost(x_new)
-                    if cost_new <= cost:
-                        step_ok = True
-                        break
-                    lam *= 10
-                if not step_ok:
-                    break
-                rel = (cost - cost_new) / max(cost, 1e-300)
-                x, res, cost = x_new, res_new, cost_new
-                lam = max(lam / 10, 1e-12)
-                history.append(cost)
-                if np.max(np.abs(dx)) < IDENT_STEP_TOL or rel < IDENT_COST_RTOL:
-                    break
-            if not self.estimate_noise:
-                break
-            # variance components: re-estimate each block's noise from its residuals, giving
-            # each block its share of the degrees of freedom
-            dof = max(n_rows - (self._effective_unknowns(jacobian(x)[:, :, free] / sig[None, :, None], pf)
-                                if map_fit else len(free)), 1)
-            new_sig = sig.copy()
-            share = dof / n_rows
-            for cols in blocks:
-                new_sig[cols] = np.sqrt(np.sum(res[:, cols] ** 2) / (mask[:, cols].sum() * share))
-            new_sig = np.maximum(new_sig, 1e-12)
-            if np.allclose(new_sig, sig, rtol=0.05):
-                sig = new_sig
-                break
-            sig = new_sig
-            cost = float(np.sum((res / sig) ** 2)) + prior_cost(x)
-            history.append(cost)
-            lam = 1e-6
-
-        J_final = jacobian(x)
+    def _store(self, problem, fit, post, free, prior, held, unknowns, layout):
+        """The learned attributes (ending in ``_``) from the fit and its posterior."""
+        x, r, names = fit.x, unknowns.r, unknowns.names
+        cov = post.covariance
         #: the Jacobian (n, rows, r + k) of Δz at the fitted values on the fitting poses, not
         #: whitened, every unknown (rows: 3 or 6 of Δz; with points, the points' rows): what
         #: self.jacobian(q, T_meas, context) gives there, kept for who needs it again
         #: (campaign.diagnose: the candidates' linearisation, the fold fits' start)
-        self.jacobian_at_fit_ = J_final
+        self.jacobian_at_fit_ = post.jacobian
         #: the geometric model's derivative (n, rows, N) of Δz in an offset of each joint there (the
         #: error Jacobian's joint-offset columns; None with effects, points, or a fit that took no step)
-        self.joint_jacobian_at_fit_ = last.get("J_q")
+        self.joint_jacobian_at_fit_ = problem.joint_jacobian
         #: the residual (n, rows) of Δz at the fitted values on the fitting poses (with points,
         #: the points' rows, zero where missed): what self.residuals(q, T_meas, context) gives there
-        self.residual_at_fit_ = res
-        J = J_final[:, :, free] / sig[None, :, None]
-        H, _ = _normal_equations(J, res / sig)
-        n_eff = self._effective_unknowns(J, pf) if map_fit else len(free)
-        dof = max(n_rows - n_eff, 1)
-        s2 = (cost - prior_cost(x)) / dof  # a posteriori variance factor (≈ 1 when the noise model holds)
-        if map_fit:  # the posterior: the data's information (at the fit's variance factor) plus the prior's
-            cov_free = np.linalg.pinv(H / s2 + pf, hermitian=True)
-        else:
-            cov_free = np.linalg.pinv(H) * s2
-        cov = np.zeros((n_unknown, n_unknown))
-        cov[np.ix_(free, free)] = cov_free
-        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            corr = cov / np.outer(sd, sd)
-        corr[~np.isfinite(corr)] = 0.0
-        # condition number of the column-scaled regressor of the base parameters (and effects)
-        if redundant:
-            Jb = (jacobian(x) / sig[None, :, None])[:, :, [i for i in base_cols if i in set(free.tolist())]]
-            H_b = Jb.reshape(-1, Jb.shape[2]).T @ Jb.reshape(-1, Jb.shape[2])
-        else:
-            H_b = H
-        d = np.sqrt(np.clip(np.diag(H_b), 1e-300, None))
-        ev = np.clip(np.linalg.eigvalsh(H_b / np.outer(d, d)), 0.0, None)
-        svals = np.sqrt(ev[::-1])
-
+        self.residual_at_fit_ = fit.residual
         self.x_ = x
-        self.params_ = unpack(x)[0]
+        self.params_ = problem.unpack(x)[0]
         # the base parameters the estimate stands for (first order), with their covariance
         C_cols = self.base_.combination[:, self.cols_]
         self.base_params_ = C_cols @ x[:r]
@@ -405,13 +561,13 @@ class CalibrationModel:
         self.effect_params_ = x[r:].copy()
         self.covariance_ = cov
         #: "lsq" (least squares) or "map" (with the prior)
-        self.kind_ = "map" if map_fit else "lsq"
+        self.kind_ = "map" if unknowns.map_fit else "lsq"
         #: the held unknowns: name -> value (SI)
         self.held_ = {names[i]: float(x[i]) for i in np.flatnonzero(held)}
         #: the effective number of unknowns the data determine (tr H (H + P)⁻¹; the free count for lsq)
-        self.n_effective_ = float(n_eff)
+        self.n_effective_ = float(post.n_effective)
         # the physical parameters the estimate stands for (the prior's split), with their covariance
-        if redundant:
+        if unknowns.redundant:
             self.physical_params_, self.physical_covariance_ = self.params_.copy(), cov[:r, :r].copy()
         else:
             self.physical_params_, self.physical_covariance_ = self.base_prior_.physical(self.base_params_,
@@ -419,32 +575,38 @@ class CalibrationModel:
         #: the last linearisation, for closed-form leave-one-out (campaign.identify.model_choice):
         #: whitened Jacobian (n, m, f) of the free unknowns ``free_``, whitened residuals (n, m), the
         #: prior's precision on them (f, f) and the rows' noise σ (m,)
-        self.fit_jacobian_, self.fit_residual_ = J, res / sig
-        self.free_, self.fit_prior_precision_, self.row_sigma_ = free, pf, sig
-        self.fit_prior_mean_ = mu_f
+        self.fit_jacobian_, self.fit_residual_ = post.whitened_jacobian, fit.residual / fit.sigma
+        self.free_, self.fit_prior_precision_, self.row_sigma_ = free, prior.precision, fit.sigma
+        self.fit_prior_mean_ = prior.mean
         #: the a posteriori variance factor in covariance_ (cost / degrees of freedom; ≈ 1 when
         #: the row weights are the noise): covariance_ / variance_factor_ is the weights' own
-        self.variance_factor_ = float(s2)
+        self.variance_factor_ = float(post.variance_factor)
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         self.sigma_ = sd
         self.base_sigma_ = np.sqrt(np.clip(np.diag(self.base_covariance_), 0, None))
         self.effect_sigma_ = sd[r:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = cov / np.outer(sd, sd)
+        corr[~np.isfinite(corr)] = 0.0
         self.correlation_ = corr
+        svals = post.singular_values
         self.condition_number_ = float(svals[0] / svals[-1]) if svals[-1] > 0 else float("inf")
+        sig = fit.sigma
         self.noise_sigma_ = {"position_m": float(sig[0]),
-                             "orientation_rad": float(sig[3]) if P is None and not self.position_only else None}
+                             "orientation_rad": float(sig[3]) if layout.rows is not None and not self.position_only
+                             else None}
         #: equations used (rows with a measured value; with points: 3 per seen reflector)
-        self.n_equations_ = n_rows
-        self.n_iter_ = n_iter
-        self.cost_history_ = history
+        self.n_equations_ = layout.n_rows
+        self.n_iter_ = fit.n_iter
+        self.cost_history_ = fit.history
         self.unknown_names_ = names
-        self.unknown_units_ = (tuple(self.robot.param_units) if redundant else self.base_.units) + \
+        self.unknown_units_ = (tuple(self.robot.param_units) if unknowns.redundant else self.base_.units) + \
             self.effect_set_.param_units
         self.values_ = dict(zip(self.unknown_names_, (float(v) for v in x)))
-        iu = np.triu_indices(n_unknown, 1)
+        iu = np.triu_indices(len(x), 1)
         strong = np.abs(corr[iu]) > STRONG_CORRELATION
         self.correlated_pairs_ = [(self.unknown_names_[i], self.unknown_names_[j], float(corr[i, j]))
                                   for i, j in zip(iu[0][strong], iu[1][strong])]
-        return self
 
     def _resolve_prior(self):
         """The prior: ``prior`` itself, or ``"tolerances"``: the robot's (robot.yaml) and the effects'."""
