@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "campaign.diagnose.commands",
     "campaign.iso9283.commands",
     "campaign.auto.commands",
+    "campaign.program.commands",
 )
 
 

@@ -1,0 +1,33 @@
+"""The ``csv`` program: one row per stop, ``stop,pose_id,kind,dwell_s,j1..jN`` with the joints in
+the controller's convention (rad, m), for controllers and tools that import a joint table.
+(RUN/program/stops.csv, written beside every program, holds the same stops in the model's
+convention, q1..qN.)"""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import numpy as np
+
+EXTENSION = ".csv"
+UNITS = "rad"
+
+
+def render(inp) -> list:
+    N = inp.q_controller.shape[1]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["stop", "pose_id", "kind", "dwell_s", *(f"j{j}" for j in range(1, N + 1))])
+    for s, q in zip(inp.stops, inp.q_controller):
+        w.writerow([s.stop, s.pose_id, s.kind, repr(float(s.dwell_s)), *(repr(float(v)) for v in q)])
+    return [(inp.name.lower() + EXTENSION, buf.getvalue())]
+
+
+def read_joints(files) -> np.ndarray:
+    """The joint targets of a csv program (n, N), controller convention, rad/m."""
+    text = files[0][1] if isinstance(files, list) else files
+    rows = list(csv.reader(io.StringIO(text)))
+    head = rows[0]
+    cols = [i for i, h in enumerate(head) if h.startswith("j") and h[1:].isdigit()]
+    return np.array([[float(r[i]) for i in cols] for r in rows[1:] if r], dtype=float)
