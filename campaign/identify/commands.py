@@ -9,7 +9,7 @@ import sys
 def register(sub):
     p = sub.add_parser("import", help="turn a measured-pose CSV into a run folder")
     p.add_argument("csv", metavar="CSV",
-                   help="measured-pose CSV (pose_id[,time_s],q1..qN, then x,y,z[,rx,ry,rz] or m1_x..mk_z[,extra...])")
+                   help="measured-pose CSV ([pose_id,][time_s,]q1..qN, then x,y,z[,rx,ry,rz] or m1_x..mk_z[,extra...])")
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
     p.add_argument("--robot", default=None,
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
@@ -112,6 +112,8 @@ def register(sub):
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written (default: rad)")
+    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
+                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
     p.set_defaults(func=_predict)
 
     p = sub.add_parser("compensate",
@@ -125,6 +127,8 @@ def register(sub):
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written, dq included (default: rad)")
+    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
+                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
     p.set_defaults(func=_compensate)
 
 
@@ -152,6 +156,8 @@ def _import(args):
         raise
     bar.close()
     print(f"imported {res.n_poses} poses into {args.run}/measurements.sqlite")
+    if res.numbered:
+        print(res.numbered)
     if res.past_limits:
         print(res.past_limits)
     print_warnings(res.warnings)
@@ -309,7 +315,8 @@ def _predict(args):
     from campaign.identify.use import CalibratedRobot, predict_rows, read_joint_csv, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
-    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
+                                         columns=args.columns)
     header, rows = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:
@@ -321,7 +328,8 @@ def _compensate(args):
     from campaign.identify.use import CalibratedRobot, compensate_rows, read_joint_csv, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
-    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit)
+    pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
+                                         columns=args.columns)
     header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:

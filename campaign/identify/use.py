@@ -199,17 +199,23 @@ def joint_scale(robot: RobotModel, angle_unit: str = "rad") -> np.ndarray:
     return np.where(robot.prismatic | (angle_unit == "rad"), 1.0, np.pi / 180.0)
 
 
-def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad") -> tuple:
+def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad", columns=None) -> tuple:
     """Joint coordinates (and the context columns an effect needs) from a CSV.
 
     Header: ``q1..qN`` (rad, or deg with ``angle_unit``; m for prismatic joints; in the
     controller's convention, converted by robot.yaml's ``controller``), optionally ``pose_id``
-    and any context columns (``time_s``, ``temperature_c``, ...). Returns (pose_id (n,),
-    q (n, N) model, rad and m, context dict).
+    and any context columns (``time_s``, ``temperature_c``, ...). columns: the file's own
+    names (``--columns`` text or {column in the file: name used}; default robot.yaml's
+    ``columns:``), as `import` reads them; a mapped measurement column may be absent.
+    Returns (pose_id (n,), q (n, N) model, rad and m, context dict).
     """
+    from campaign.measure.csvio import not_joint_name
+    from campaign.measure.importer import column_mapping
+
     cols = joint_columns(robot.n_joints)
     scale = joint_scale(robot, angle_unit)
-    header, col, lines = read_numeric_table(path, cols)
+    header, col, lines = read_numeric_table(path, cols, rename=column_mapping(robot, columns),
+                                            rename_optional=not_joint_name)
     missing = [k for k in context_keys if k not in col]
     if missing:
         raise DataError(f"{path}: the calibrated model needs the column(s) {', '.join(missing)} "

@@ -1,10 +1,11 @@
 """The measured-pose CSV (DESIGN.md): read with validation (streamed, bounded memory), write.
 
-Header ``pose_id[,time_s],q1..qN`` and the measurement columns, whose kind the header tells:
+Header ``[pose_id,][time_s,]q1..qN`` and the measurement columns, whose kind the header tells:
 ``x,y,z,rx,ry,rz`` (6-D: the origin of the tool frame in m and the rotation vector of its
 orientation in rad), ``x,y,z`` (one reflector), or ``m1_x,m1_y,m1_z,...,mk_z`` (raw reflector
 centres, m; an empty cell where the tracker missed one). q as commanded (rad, m for prismatic
-joints). Frame: the robot's base (or the tracker's, ``--frame tracker``). ``--angle-unit deg`` and
+joints). Without ``pose_id`` the rows are numbered 0..n-1 in file order (and import says so).
+Frame: the robot's base (or the tracker's, ``--frame tracker``). ``--angle-unit deg`` and
 ``--length-unit mm`` convert on reading. Extra named numeric columns are kept as context.
 Real files as they come (docs/csv_import.md): orientation as roll-pitch-yaw, KUKA's A, B, C or
 quaternions (``--rotation``), another delimiter (``--delimiter``), other column names
@@ -97,19 +98,58 @@ def _check_first_line(path, line: str, delimiter: str, header_given: bool = Fals
                         "--header pose_id,q1,... (docs/csv_import.md)")
 
 
-def _rename_header(path, header, rename) -> list:
-    """Header with ``rename`` ({name in the file: name used here}) applied; each must exist."""
+def _rename_header(path, header, rename, optional=None) -> list:
+    """Header with ``rename`` ({name in the file: name used here}) applied; each must exist,
+    except those mapped to a name the header already has (a file written by campaign itself) or
+    for which ``optional`` (a callable) is true."""
     if not rename:
         return header
-    missing = [src for src in rename if src not in header]
+    missing = [src for src, name in rename.items()
+               if src not in header and name not in header and not (optional and optional(name))]
     if missing:
         raise DataError(f"{path}: --columns names column(s) {', '.join(missing)}, which the header does not have "
                         f"(it has {', '.join(header)})")
     return [rename.get(h, h) for h in header]
 
 
+def missing_columns(path, missing, header) -> DataError:
+    """The error of required columns the header lacks: their names, and the ``--columns`` that
+    maps a near-miss in the header (``Q1``, ``q_1``, ``X``)."""
+    hint = near_miss_hint(missing, header) or (f" (a file naming them otherwise: --columns {missing[0]}=COLUMN,... "
+                                               "or robot.yaml's columns:; docs/csv_import.md)")
+    return DataError(f"{path}: missing column(s) {', '.join(missing)} in the header{hint}")
+
+
+def near_miss_hint(wanted, header) -> str:
+    """`` (the file's own names: --columns q1=Q1,...)`` for the wanted names that a column of the
+    header nearly spells (case, underscores, a close spelling); empty when none does."""
+    import difflib
+
+    left = [h for h in header if h not in _SPELLED]
+    folded = {h.lower().replace("_", "").replace(" ", ""): h for h in left}
+    near = []
+    for m in wanted:
+        close = difflib.get_close_matches(m.lower(), [h.lower() for h in left], 1, 0.6)
+        hit = folded.get(m.lower().replace("_", "")) or next((h for h in left if close and h.lower() == close[0]), None)
+        if hit is not None:
+            near.append(f"{m}={hit}")
+    return (f" (the file's own names: --columns {','.join(near)}, or robot.yaml's columns:; docs/csv_import.md)"
+            if near else "")
+
+
+#: the names the measured-pose CSV spells itself (never a near-miss of another)
+_SPELLED = {"pose_id", "time_s", "x", "y", "z", "rx", "ry", "rz", "a", "b", "c", "qw", "qx", "qy", "qz"}
+
+
+def not_joint_name(name: str) -> bool:
+    """True for a measured-pose CSV's names other than the joints' (pose id, time, measurement
+    columns): what a file of joint coordinates may lack though robot.yaml maps it."""
+    return name in _SPELLED or _may_be_empty(name)
+
+
 def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None,
-                        delimiter: str | None = None, rename=None, names=None):
+                        delimiter: str | None = None, rename=None, names=None, expected: str | None = None,
+                        rename_optional=None):
     """Stream a CSV of numbers with a header, ``chunk_rows`` rows at a time.
 
     Yields (header, values (m, columns) float64, source line numbers (m,), 1-based). ``required``
@@ -117,7 +157,10 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
     (a callable on the column name) is true, where an empty cell is NaN. ``progress``: called
     with the bytes read so far. delimiter: ``--delimiter``'s name (default comma; ``space``:
     any run of blanks). rename: {column in the file: name used} (``--columns``). names: the
-    columns of a file without a header line (``--header``). A file without a header, or
+    columns of a file without a header line (``--header``); expected: the header an empty file
+    is told to have (default: the required columns); rename_optional: a callable, true for the
+    names used whose mapped column may be absent (robot.yaml's measurement columns in a file of
+    joints: :func:`not_joint_name`). A file without a header, or
     separated by another delimiter than asked, is one line naming it. Every error names the
     file, and where it applies the line and column.
     """
@@ -133,11 +176,11 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
             _check_first_line(path, first_raw.strip("\r\n"), ch, header_given=names is not None)
             first = next(reader, None) if names is None else list(names)
             if first is None:
-                raise DataError(f"{path}: empty file (expected header {','.join(required)})")
-            header = _rename_header(path, [h.strip() for h in first], rename)
+                raise DataError(f"{path}: empty file (expected header {expected or ','.join(required)})")
+            header = _rename_header(path, [h.strip() for h in first], rename, rename_optional)
             missing = [c for c in required if c not in header]
             if missing:
-                raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
+                raise missing_columns(path, missing, header)
             if len(set(header)) != len(header):
                 dup = sorted({h for h in header if header.count(h) > 1})
                 raise DataError(f"{path}: duplicate column(s) {', '.join(dup)}")
@@ -187,15 +230,16 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
             raise DataError(f"{path}: line {reader.line_num}: not valid CSV ({exc})") from None
 
 
-def read_numeric_table(path, required, *, may_be_empty=None, delimiter: str | None = None, rename=None) -> tuple:
+def read_numeric_table(path, required, *, may_be_empty=None, delimiter: str | None = None, rename=None,
+                       rename_optional=None) -> tuple:
     """Read a whole CSV of numbers with a header; every cell finite.
 
     Returns (header, {column: values (n,)}, source line numbers (n,), 1-based). ``required``
     columns must be present; every error names the file, and where it applies the line and
-    column. delimiter, rename: as :func:`iter_numeric_chunks`.
+    column. delimiter, rename, rename_optional: as :func:`iter_numeric_chunks`.
     """
     chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty, delimiter=delimiter,
-                                      rename=rename))
+                                      rename=rename, rename_optional=rename_optional))
     header = chunks[0][0]
     values = np.concatenate([c[1] for c in chunks])
     lines = np.concatenate([c[2] for c in chunks])
@@ -258,6 +302,7 @@ class CsvLayout:
     context: tuple  # other columns
     has_time: bool
     rotation: str = "rotvec"  # how a 6-D CSV writes the orientation (ROTATIONS)
+    has_pose_id: bool = True  # False: the rows are numbered 0..n-1 in file order (as predict numbers them)
 
     @property
     def rotation_columns(self) -> tuple:
@@ -292,9 +337,9 @@ def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> 
     extra = sorted(set(qs) - set(joints), key=lambda h: int(h[1:]))
     if extra:
         raise DataError(f"{path}: column {extra[0]}: the robot has {N} joints (q1..q{N})")
-    missing = [c for c in ("pose_id", *joints) if c not in hs]
+    missing = [c for c in joints if c not in hs]
     if missing:
-        raise DataError(f"{path}: missing column(s) {', '.join(missing)} in the header")
+        raise missing_columns(path, missing, header)
     rot_cols = ROTATIONS[rotation][0]
     if {"x", "y", "z", *rot_cols} <= hs:
         kind, k = "pose", 0
@@ -314,11 +359,13 @@ def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> 
                             f"{','.join(rot_cols)} go together)")
         kind, k = "point", 0
     else:
+        hint = near_miss_hint([c for c in ("x", "y", "z") if c not in hs], header)
         raise DataError(f"{path}: no measurement columns: expected x,y,z,rx,ry,rz (6-D), x,y,z (one reflector) "
-                        "or m1_x,m1_y,m1_z,... (raw reflectors)")
+                        f"or m1_x,m1_y,m1_z,... (raw reflectors){hint}")
     layout = CsvLayout(kind, joints, k, (), "time_s" in hs, rotation)
     known = {"pose_id", "time_s", *joints, *layout.measure_columns}
-    return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs, rotation)
+    return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs, rotation,
+                     "pose_id" in hs)
 
 
 def parse_columns(text) -> dict:
@@ -405,9 +452,12 @@ def _marker_positions(path, layout, robot, options):
     return np.asarray(P, dtype=float)
 
 
-def _convert(path, layout, header, values, lines, robot, options, P_nom):
-    """One chunk of rows to SI arrays, validated. Returns a dict of arrays."""
+def _convert(path, layout, header, values, lines, robot, options, P_nom, first_row: int = 0):
+    """One chunk of rows to SI arrays, validated. Returns a dict of arrays. first_row: how many
+    data rows came before this chunk (the pose ids of a file without ``pose_id``)."""
     col = {h: values[:, j] for j, h in enumerate(header)}
+    if not layout.has_pose_id:
+        col["pose_id"] = np.arange(first_row, first_row + len(values), dtype=float)
 
     def fail(mask, name, what, v=None):
         k = int(np.argmax(mask))
@@ -594,13 +644,22 @@ class CsvReading:
     marker_positions: np.ndarray | None
     past_limits: PastLimits | None
     chunks: object
+    n_rows: int = 0
+
+    @property
+    def numbered(self) -> str | None:
+        """The sentence saying the rows were numbered (a file without ``pose_id``), or None."""
+        if self.layout.has_pose_id:
+            return None
+        return (f"no pose_id column: the {self.n_rows} rows are numbered 0..{self.n_rows - 1} in file order "
+                "as pose_id")
 
     def __iter__(self):  # (layout, marker positions, chunks), as before
         return iter((self.layout, self.marker_positions, self.chunks))
 
 
-def _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom):
-    c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
+def _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom, first_row=0):
+    c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom, first_row)
     return c, MeasuredPoses.from_vectors(c["pose_id"], c["time_s"], c["q"], c["xyz"], c["rotvec"], c["context"],
                                          kind=layout.kind, frame=options.frame, markers=c["markers"],
                                          marker_positions=P_nom)
@@ -621,15 +680,17 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
             progress(min(1.0, 0.5 * half + 0.5 * offset / size))
 
     read = dict(may_be_empty=_may_be_empty, chunk_rows=chunk_rows, delimiter=options.delimiter,
-                rename=options.columns, names=options.header)
+                rename=options.columns, names=options.header, expected=expected_header(robot, options))
     it = iter_numeric_chunks(path, (), progress=lambda b: report(b, 0), **read)
     header, values, lines = next(it)
     layout = csv_layout(path, header, robot.n_joints if robot is not None else None, options.rotation)
     P_nom = _marker_positions(path, layout, robot, options)
     ids, id_lines = [], []
     past = None
+    rows = 0
     for hdr, vals, lns in _chain_first((header, values, lines), it):
-        c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom)
+        c = _convert(path, layout, hdr, vals, lns, robot, options, P_nom, rows)
+        rows += len(vals)
         ids.append(c["pose_id"])
         id_lines.append(lns)
         if c["past_limits"] is not None:
@@ -647,11 +708,21 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
     del pid, lines_all, order
 
     def chunks():
+        done = 0
         for hdr, vals, lns in iter_numeric_chunks(path, (), progress=lambda b: report(b, 1), **read):
-            yield _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom)[1]
+            yield _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom, done)[1]
+            done += len(vals)
         report(size, 1)
 
-    return CsvReading(layout, P_nom, past, chunks())
+    return CsvReading(layout, P_nom, past, chunks(), rows)
+
+
+def expected_header(robot=None, options: ImportOptions | None = None) -> str:
+    """The header a measured-pose CSV has, in words (for an empty file's error)."""
+    N = robot.n_joints if robot is not None else 6
+    rot = ",".join(ROTATIONS[(options or ImportOptions()).rotation][0])
+    return (f"[pose_id,][time_s,]q1,...,q{N}, then x,y,z,{rot} (6-D), x,y,z (one reflector) or m1_x,m1_y,m1_z,... "
+            "(raw reflectors)")
 
 
 def read_check_sample(path, robot, options: ImportOptions | None = None, *, rows: int = 2000) -> tuple:

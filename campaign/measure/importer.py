@@ -20,6 +20,7 @@ class ImportResult:
     warnings: tuple = ()
     past_limits: str | None = None
     robot: str = ""
+    numbered: str | None = None  # a file without pose_id: the sentence saying its rows were numbered
 
     def __int__(self):
         return self.n_poses
@@ -66,8 +67,7 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
     options = options or ImportOptions()
     if markers_file is not None:
         options = replace(options, markers=read_markers_file(markers_file))
-    if not options.columns:
-        options = replace(options, columns=robot_yaml_columns(model))
+    options = replace(options, columns=column_mapping(model, options.columns))
     reading = iter_measured_chunks(csv_path, model, options, progress=progress)
     warnings = import_warnings(csv_path, model, options)
     if strict and warnings:
@@ -80,11 +80,12 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
                                    "angle_unit": options.angle_unit, "length_unit": options.length_unit,
                                    "rotation": options.rotation, "limit_slack_rad": options.limit_slack_rad,
                                    "limit_slack_m": options.limit_slack_m, "past_limits": past,
+                                   "pose_ids": "file" if reading.numbered is None else "numbered",
                                    "warnings": [w.as_json() for w in warnings]},
                            robot=model)
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
-    return ImportResult(n, tuple(warnings), past, model.name)
+    return ImportResult(n, tuple(warnings), past, model.name, reading.numbered)
 
 
 def import_warnings(csv_path, robot, options) -> list:
@@ -101,6 +102,17 @@ def import_warnings(csv_path, robot, options) -> list:
         scales = (1.0, 3.141592653589793 / 180) if options.angle_unit == "rad" else (1.0,)
         orientation = (orient, ROTATIONS[options.rotation][0], options.rotation, rotation_readings_table(), scales)
     return check_data(checked, sample, orientation=orientation)
+
+
+def column_mapping(robot, columns=None) -> dict:
+    """The file's column names as {column in the file: name used}: ``columns`` (``--columns``
+    text or a parsed mapping) when given, else robot.yaml's ``columns:``. import, predict and
+    compensate read their CSVs through it."""
+    from campaign.measure.csvio import parse_columns
+
+    if not columns:
+        return robot_yaml_columns(robot)
+    return dict(columns) if isinstance(columns, dict) else parse_columns(columns)
 
 
 def robot_yaml_columns(robot) -> dict:
