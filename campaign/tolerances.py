@@ -136,3 +136,40 @@ POINT_REGISTRATION_RCOND = 1e-6
 #: fraction of a millimetre off the last joint's axis, would make the rotation about that axis
 #: barely identifiable); FIGAROH's TIAGo marker is 110 mm away, 73 tolerances of 1.5 mm
 POINT_REGISTRATION_MIN_TOLERANCES = 10.0
+
+# -- a tracker's log matched to a program's stops (campaign.program.stream) ------------------------
+#: length of a block of samples whose stillness is decided at once (s): short against a stop's
+#: dwell (seconds), long enough for a robust spread (5 to 50 samples at 10 to 1,000 Hz)
+STREAM_BLOCK_S = 0.2
+#: the still blocks' spread is the log's noise: this quantile of all blocks' spreads is taken as
+#: a still block's (a calibration campaign dwells far more than a tenth of its time)
+STREAM_NOISE_QUANTILE = 0.1
+#: a block is still when its robust spread is below this many times the noise σ (a still block's
+#: spread scatters by ~30 % about its mean; a tool creeping more than a few σ per block is moving)
+STREAM_STILL_FACTOR = 5.0
+#: the noise σ is never taken below this (m): a noise-free log rounded to 1 µm still has a level
+STREAM_MIN_NOISE_M = 1e-6
+#: a still block continues a window when its median is within this many still thresholds of the
+#: window's first block of that reflector (the block median's scatter is far below one)
+STREAM_SAME_PLACE_FACTOR = 3.0
+#: a window survives this many moving blocks (a reflector change, a burst of spikes) ...
+STREAM_SWITCH_BLOCKS = 2
+#: ... and a gap this long (s) when the next block is another reflector (a tracker moves its beam
+#: between reflectors in about a second)
+STREAM_SWITCH_S = 2.0
+#: a time step longer than this many blocks' time inside a block makes the block a gap, not still
+STREAM_GAP_BLOCKS = 3.0
+#: a log is one record per stable point when most successive records of one reflector are further
+#: apart than this (m): a continuous log at 10 Hz moves less between most samples (it dwells)
+STREAM_POINT_STEP_M = 0.5e-3
+#: samples kept of one open window (a long pause is thinned by two: its median is the same)
+STREAM_WINDOW_MAX_SAMPLES = 200_000
+#: the distance between two stops' tool points predicted by the nominal model and the distance
+#: between their windows differ by the model's error: a few mm plus a share of the distance
+#: (the geometric errors of an uncalibrated arm, Table 4's magnitudes)
+STREAM_DISTANCE_TOL_M = 3e-3
+STREAM_DISTANCE_TOL_REL = 0.01
+#: stops skipped between two matched windows are bounded by the dwell they need: their dwells
+#: sum to at most this factor of the time between the windows plus STREAM_DWELL_SLACK_S
+STREAM_DWELL_FACTOR = 1.5
+STREAM_DWELL_SLACK_S = 2.0

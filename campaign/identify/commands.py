@@ -7,9 +7,15 @@ import sys
 
 
 def register(sub):
-    p = sub.add_parser("import", help="turn a measured-pose CSV into a run folder")
-    p.add_argument("csv", metavar="CSV",
+    p = sub.add_parser("import", help="turn a measured-pose CSV, or a tracker's log matched to the program's stops, "
+                                      "into a run folder")
+    p.add_argument("csv", metavar="CSV", nargs="?",
                    help="measured-pose CSV ([pose_id,][time_s,]q1..qN, then x,y,z[,rx,ry,rz] or m1_x..mk_z[,extra...])")
+    p.add_argument("--stream", metavar="LOG", default=None,
+                   help="instead of CSV: a laser tracker's log (time_s or ISO 8601 time/timestamp, x, y, z, optional "
+                        "target naming the reflector), continuous or one record per stable point, matched to "
+                        "RUN/program/stops.csv (`campaign program RUN --format csv`); writes RUN/import/stream_match.csv. "
+                        "A second log continues where the first ended")
     p.add_argument("--run", required=True, metavar="DIR", help="run folder to create (must not hold measurements)")
     p.add_argument("--robot", default=None,
                    help="robot: name, URDF or robot.yaml (default: the one the run records, else comau_racer5_080)")
@@ -133,6 +139,8 @@ def register(sub):
 
 
 def _import(args):
+    if args.stream is not None or args.csv is None:
+        return _import_stream(args)
     from campaign.measure.importer import import_run
 
     from campaign.measure.csvio import ImportOptions
@@ -161,6 +169,35 @@ def _import(args):
     if res.past_limits:
         print(res.past_limits)
     print_warnings(res.warnings)
+    return 0
+
+
+def _import_stream(args):
+    from campaign.errors import ConfigError
+    from campaign.measure.csvio import parse_columns
+    from campaign.progress import Progress
+    from campaign.program.stream import import_stream
+
+    if args.stream is None:
+        raise ConfigError("give a measured-pose CSV, or --stream LOG (a tracker's log)")
+    if args.csv is not None:
+        raise ConfigError(f"give either a measured-pose CSV ({args.csv}) or --stream LOG, not both")
+    given = [flag for flag, v in (("--robot", args.robot), ("--tool-frame", args.tool_frame),
+                                  ("--base-frame", args.base_frame), ("--markers", args.markers),
+                                  ("--header", args.header), ("--delimiter", args.delimiter)) if v is not None]
+    given += [flag for flag, v in (("--angle-unit", args.angle_unit != "rad"), ("--rotation", args.rotation != "rotvec"),
+                                   ("--limit-slack", args.limit_slack != 0), ("--strict", args.strict)) if v]
+    if given:
+        raise ConfigError(f"{', '.join(given)}: not with --stream (the run's robot and RUN/program/stops.csv say "
+                          "what was measured)")
+    bar = Progress("import --stream", total=1000, enabled=not args.quiet and sys.stderr.isatty(), unit="‰")
+    try:
+        res = import_stream(args.stream, args.run, length_unit=args.length_unit, frame=args.frame,
+                            columns=parse_columns(args.columns), progress=lambda f: bar.update(int(1000 * f) - bar.done))
+    finally:
+        bar.close()
+    print(res.summary(args.stream, args.run))
+    print(f"written: {res.match_csv}")
     return 0
 
 

@@ -1,0 +1,173 @@
+"""Still windows aligned to a program's stops, in order, on what no frame or clock changes.
+
+The distance between two stops' tool points, predicted by the nominal model, is compared with the
+distance between their windows' positions (a rigid motion keeps distances: the tracker's frame
+does not matter), and the stops skipped between two windows must have had time for their dwells
+(only time differences are used: the clock's offset does not matter). A dynamic programme over the
+windows in time order finds the monotone matching of highest score:
+
+* each matched window gains ALIGN_GAIN;
+* each pair of successive matches pays half the squared distance residual in tolerances
+  (STREAM_DISTANCE_TOL_M + STREAM_DISTANCE_TOL_REL · distance), at most ALIGN_PAIR_CAP;
+* a stop without a window (a lost beam: skipped, the next window is not shifted onto it) pays
+  ALIGN_SKIP_STOP, a window without a stop (an unplanned pause: rejected) ALIGN_REJECT_WINDOW.
+
+The chain starts at the first stop not yet imported (skipping stops costs the same there) and may
+end anywhere (a log that ends halfway). A beam of ALIGN_BEAM states per window bounds the work.
+A match is kept only when a neighbouring match in the chain confirms it (its distance residual
+within ALIGN_CONFIRM tolerances): no isolated guess is stored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from campaign.tolerances import (STREAM_DISTANCE_TOL_M, STREAM_DISTANCE_TOL_REL, STREAM_DWELL_FACTOR,
+                                 STREAM_DWELL_SLACK_S)
+
+ALIGN_GAIN = 4.0
+ALIGN_SKIP_STOP = 1.5
+ALIGN_REJECT_WINDOW = 1.0
+#: a wrong pair costs far more than a match gains: a chain never buys a match with a bad distance
+ALIGN_PAIR_CAP = 60.0
+#: a pair of windows with no reflector in common says nothing: this cost
+ALIGN_PAIR_UNKNOWN = 1.0
+ALIGN_BEAM = 24
+#: predecessors looked at directly (older ones through the best of them)
+ALIGN_LOOKBACK = 6
+#: stops skipped between two successive matches at most (the dwell bound is usually tighter)
+ALIGN_MAX_JUMP = 2000
+#: windows at the start that may begin the chain (before them: a set-up, a warm-up)
+ALIGN_START_WINDOWS = 400
+ALIGN_CONFIRM = 3.0
+
+
+@dataclass(frozen=True)
+class Match:
+    """Window ``window`` matched to stop ``stop``; ``residual``: its distance residual to the
+    previous and the next match in tolerances (NaN where none), ``confirmed`` when one is small."""
+
+    window: int
+    stop: int
+    residual_prev: float
+    residual_next: float
+    confirmed: bool
+
+
+def _common(a: dict, b: dict):
+    for c in sorted(a):
+        if c in b:
+            return c
+    return None
+
+
+def pair_residual(wa, wb, P, ja, jb) -> np.ndarray:
+    """Distance residuals in tolerances between windows wa, wb matched to stops ja, jb (arrays).
+    NaN when the windows have no reflector in common."""
+    c = _common(wa.position, wb.position)
+    if c is None:
+        return np.full(np.broadcast(ja, jb).shape, np.nan)
+    d_obs = float(np.linalg.norm(wb.position[c] - wa.position[c]))
+    d_pred = np.linalg.norm(P[jb, c] - P[ja, c], axis=-1)
+    return (d_obs - d_pred) / (STREAM_DISTANCE_TOL_M + STREAM_DISTANCE_TOL_REL * d_pred)
+
+
+def _pair_cost(r):
+    cost = 0.5 * np.minimum(r * r, ALIGN_PAIR_CAP)
+    return np.where(np.isnan(r), ALIGN_PAIR_UNKNOWN, cost)
+
+
+def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = None) -> list:
+    """The matches of ``windows`` (campaign.program.stream.windows.Window, time order) to stops
+    ``first_stop``.. whose nominal points per reflector code are P (n, k, 3) m and dwells
+    ``dwell_s`` (n,) s; a list of :class:`Match` in order. ``t_start``: the log's first time (s)."""
+    m, n = len(windows), len(P)
+    if m == 0 or first_stop >= n:
+        return []
+    C = np.concatenate([[0.0], np.cumsum(np.asarray(dwell_s, dtype=float))])  # dwell of the stops before k
+    t_start = windows[0].t0 if t_start is None else t_start
+    states = []  # per window: (J, S, back window, back state)
+    old = None  # the best state of windows beyond the lookback: (S + reject · i, i, k)
+
+    def reach(j_prev_next, dt):
+        """The last stop reachable: stops j_prev_next..j-1 skipped need their dwell in dt."""
+        budget = C[j_prev_next] + max(dt, 0.0) * STREAM_DWELL_FACTOR + STREAM_DWELL_SLACK_S
+        hi = np.searchsorted(C, budget, side="right") - 1  # C[hi] <= budget: stops < hi fit
+        return np.minimum(np.minimum(hi, j_prev_next + ALIGN_MAX_JUMP), n - 1)
+
+    for i, w in enumerate(windows):
+        cJ, cS, cB, cK = [], [], [], []
+        if i < ALIGN_START_WINDOWS:
+            hi = int(reach(np.int64(first_stop), w.t0 - t_start))
+            J = np.arange(first_stop, hi + 1)
+            cJ.append(J)
+            cS.append(ALIGN_GAIN - ALIGN_REJECT_WINDOW * i - ALIGN_SKIP_STOP * (J - first_stop))
+            cB.append(np.full(len(J), -1))
+            cK.append(np.full(len(J), -1))
+        preds = [(ip, None) for ip in range(max(0, i - ALIGN_LOOKBACK), i)]
+        if old is not None:
+            preds.append((old[1], old[2]))
+        for ip, only in preds:
+            Jp, Sp, _, _ = states[ip]
+            if len(Jp) == 0:
+                continue
+            ks = np.arange(len(Jp)) if only is None else np.array([only])
+            Jp, Sp = Jp[ks], Sp[ks]
+            hi = reach(Jp + 1, w.t0 - windows[ip].t1)
+            cnt = np.maximum(hi - Jp, 0)
+            if cnt.sum() == 0:
+                continue
+            rep = np.repeat(np.arange(len(Jp)), cnt)
+            J = Jp[rep] + 1 + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+            r = pair_residual(windows[ip], w, P, Jp[rep], J)
+            S = Sp[rep] + ALIGN_GAIN - ALIGN_SKIP_STOP * (J - Jp[rep] - 1) \
+                - ALIGN_REJECT_WINDOW * (i - ip - 1) - _pair_cost(r)
+            cJ.append(J)
+            cS.append(S)
+            cB.append(np.full(len(J), ip))
+            cK.append(ks[rep])
+        if not cJ:
+            states.append((np.zeros(0, int), np.zeros(0), np.zeros(0, int), np.zeros(0, int)))
+        else:
+            J, S, Bk, K = (np.concatenate(a) for a in (cJ, cS, cB, cK))
+            order = np.lexsort((-S, J))
+            first = np.ones(len(order), bool)
+            first[1:] = J[order][1:] != J[order][:-1]
+            keep = order[first]
+            keep = keep[np.argsort(-S[keep], kind="stable")[:ALIGN_BEAM]]
+            states.append((J[keep], S[keep], Bk[keep], K[keep]))
+        leaving = i - ALIGN_LOOKBACK
+        if leaving >= 0 and len(states[leaving][0]):
+            k = int(np.argmax(states[leaving][1]))
+            v = states[leaving][1][k] + ALIGN_REJECT_WINDOW * leaving
+            if old is None or v > old[0]:
+                old = (v, leaving, k)
+    best, at = -np.inf, None
+    for i, (J, S, _, _) in enumerate(states):
+        if len(J):
+            k = int(np.argmax(S))
+            v = S[k] - ALIGN_REJECT_WINDOW * (m - 1 - i)
+            if v > best:
+                best, at = v, (i, k)
+    chain = []
+    while at is not None and at[0] >= 0:
+        i, k = at
+        J, _, Bk, K = states[i]
+        chain.append((i, int(J[k])))
+        at = (int(Bk[k]), int(K[k])) if Bk[k] >= 0 else None
+    chain.reverse()
+    return _confirm(chain, windows, P)
+
+
+def _confirm(chain, windows, P) -> list:
+    out = []
+    res = [float(pair_residual(windows[a[0]], windows[b[0]], P, np.int64(a[1]), np.int64(b[1])))
+           for a, b in zip(chain[:-1], chain[1:])]
+    for k, (i, j) in enumerate(chain):
+        rp = res[k - 1] if k > 0 else np.nan
+        rn = res[k] if k < len(res) else np.nan
+        ok = any(np.isfinite(r) and abs(r) <= ALIGN_CONFIRM for r in (rp, rn))
+        out.append(Match(i, j, rp, rn, bool(ok)))
+    return out

@@ -1,0 +1,278 @@
+"""`campaign import --stream LOG --run RUN`: a tracker's log matched to RUN's program stops and
+stored in the run's measurement log as `campaign run` stores a campaign.
+
+The stops are RUN/program/stops.csv (`campaign program RUN --format csv`). The log is read in
+blocks (campaign.program.stream.logread), its still windows found as it is read
+(campaign.program.stream.windows), aligned to the measured stops (campaign.program.stream.align);
+each confirmed window becomes a measured pose (reflectors by name in the log's frame, the pose by
+Kabsch for three or more, like campaign.measure.driver), a drift stop a ``drift_check`` event, a
+stop without a window a failed pose. RUN/import/stream_match.csv lists every stop up to the log's
+end and every rejected window. A second log continues at the first stop the first did not reach.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import DataError
+
+MATCH_FILE = "stream_match.csv"
+MATCH_HEADER = ("stop", "pose_id", "kind", "window_start_s", "window_end_s", "samples", "spread_mm", "status", "log")
+#: meta key of the log: where the next log continues, and the logs imported
+META_KEY = "stream_import"
+
+
+@dataclass(frozen=True)
+class StreamResult:
+    """What an import of a log did: stops matched / skipped / unconfirmed, windows rejected, poses
+    stored (measured, failed), drift checks, the log's samples, rate (Hz) and noise (m), and the
+    next stop a further log starts at."""
+
+    matched: int
+    skipped: int
+    unconfirmed: int
+    rejected: int
+    measured: int
+    failed: int
+    drift_checks: int
+    samples: int
+    rate_hz: float
+    noise_m: float
+    next_stop: int
+    n_stops: int
+    point_mode: bool
+    match_csv: Path
+
+    def summary(self, log, run) -> str:
+        found = self.matched + self.skipped + self.unconfirmed
+        mode = "one record per stable point" if self.point_mode else \
+            f"{self.rate_hz:.0f} Hz, noise {self.noise_m * 1e6:.1f} µm"
+        return (f"{log}: matched {self.matched} of {found} stops reached ({self.skipped} without a still window, "
+                f"{self.unconfirmed} unconfirmed), {self.rejected} windows rejected; {self.samples:,} samples "
+                f"({mode}); stored {self.measured} measured and {self.failed} failed poses, {self.drift_checks} "
+                f"drift checks in {run}/measurements.sqlite; next stop {self.next_stop} of {self.n_stops}")
+
+
+def nominal_points(robot, stops, codes_in_E) -> np.ndarray:
+    """(n, k, 3) m: the nominal positions in F_I of the points ``codes_in_E`` (k, 3) in the tool
+    frame at each stop."""
+    from campaign.model.kinematics import forward
+    from campaign.program.stops import stops_array
+
+    T = forward(robot, stops_array(stops))
+    P = np.asarray(codes_in_E, dtype=float)
+    return np.einsum("nij,kj->nki", T[:, :3, :3], P) + T[:, None, :3, 3]
+
+
+def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot", columns=None,
+                  progress=None) -> StreamResult:
+    """Match the tracker log ``log`` to RUN's stops and store the result (module docstring).
+
+    length_unit: "m" or "mm" of the log's x, y, z; frame: "robot" (the log is in the robot's base
+    frame) or "tracker" (in the tracker's: calibrate identifies the tracker's pose); columns:
+    {column in the file: name used}; progress: callable receiving the fraction read (0..1)."""
+    from campaign.measure.driver import measured_robot
+    from campaign.measure.plausibility import measured_point
+    from campaign.program.stops import read_stops_csv, stops_path
+    from campaign.program.stream.align import align
+    from campaign.program.stream.logread import iter_log, read_layout
+    from campaign.program.stream.windows import WindowFinder
+    from campaign.run import RunFolder
+
+    if frame not in ("robot", "tracker"):
+        raise DataError(f"--frame must be robot or tracker, got {frame!r}")
+    run = RunFolder(run_dir)
+    if not run.path.is_dir():
+        raise DataError(f"{run.path}: no such run folder")
+    stops = read_stops_csv(stops_path(run.path))
+    robot = measured_robot(run.robot())
+    if len(stops[0].q) != robot.n_joints:
+        raise DataError(f"{stops_path(run.path)}: {len(stops[0].q)} joints, the run's robot {robot.name} "
+                        f"has {robot.n_joints}")
+    names = tuple(r.name for r in robot.reflectors)
+    layout = read_layout(log, length_unit=length_unit, columns=columns, targets=names)
+    state = _previous(run, frame, layout)
+    first_stop = int(state.get("next_stop", 0))
+
+    finder = WindowFinder()
+    for chunk in iter_log(layout, progress=progress):
+        finder.feed(chunk)
+    windows = finder.finish()
+    if finder.samples == 0:
+        raise DataError(f"{layout.path}: no measured rows (every x, y, z empty)")
+
+    if layout.target_col is not None:
+        P_E = robot.reflector_positions_in_E
+        kind = "pose" if len(names) >= 3 else "markers" if len(names) == 2 else "point"
+    else:
+        P_E = measured_point(robot, "point")[None]
+        kind, names = "point", (names[0] if len(names) == 1 else "tool",)
+    measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
+    mstops = [stops[k] for k in measured_idx]
+    P = nominal_points(robot, mstops, P_E)
+    dwell = np.array([s.dwell_s for s in mstops])
+    first_m = int(np.searchsorted(measured_idx, first_stop))
+    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first)
+
+    rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
+                                      finder, first_m, state)
+    last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
+    next_stop = max(first_stop, int(last) + 1)
+    result = _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot)
+    n_match = sum(1 for r in rows if r[7] == "matched")
+    return StreamResult(n_match, sum(1 for r in rows if r[7] == "skipped"),
+                        sum(1 for r in rows if r[7] in ("unconfirmed", "incomplete")),
+                        sum(1 for r in rows if r[7] == "rejected"),
+                        sum(1 for r in records if r.status == "measured"),
+                        sum(1 for r in records if r.status == "failed"), len(events), finder.samples,
+                        1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
+                        next_stop, len(stops), bool(finder.point_mode), result)
+
+
+def _previous(run, frame, layout) -> dict:
+    """What earlier stream imports into this run recorded (empty for a new run); refuses a run
+    whose log holds measurements of another kind or frame."""
+    from campaign.measure.store import MeasurementStore
+
+    if not run.measurements_path.is_file():
+        return {}
+    with MeasurementStore(run.measurements_path, create=False) as store:
+        state = store.get_meta(META_KEY)
+        recorded_frame = store.get_meta("frame", "robot")
+    if state is None:
+        raise DataError(f"{run.path}: already holds measurements that no stream import stored; import the log "
+                        "into a new run folder (with its plan and program)")
+    if recorded_frame != frame:
+        raise DataError(f"{run.path}: the earlier logs were in the {recorded_frame}'s frame; import {layout.path} "
+                        f"with --frame {recorded_frame}")
+    return state
+
+
+def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout, finder, first_m, state):
+    """(stream_match rows, PoseRecords, drift events) of the stops from ``first_m`` (index among
+    the measured stops) to the last one matched."""
+    from campaign.measure.driver import _derive
+    from campaign.measure.store import PoseRecord
+
+    by_stop = {m.stop: m for m in matches}
+    matched_windows = {m.window for m in matches}
+    last = max(by_stop, default=first_m - 1)
+    log_name = str(layout.path.name)
+    clock0 = float(state.get("clock_s", 0.0))
+    t_first = finder.t_first
+    rows, records, events = [], [], []
+    seq0 = int(state.get("seq", 0))
+    refs = {int(k): v for k, v in (state.get("drift_reference") or {}).items()}
+    eye = np.eye(4)
+    for mi in range(first_m, last + 1):
+        s = stops[measured_idx[mi]]
+        m = by_stop.get(mi)
+        w = windows[m.window] if m is not None else None
+        status, reason = "matched", None
+        if m is None:
+            status, reason = "skipped", f"no still window in {log_name} (a lost beam?)"
+        elif not m.confirmed:
+            status, reason = "unconfirmed", (f"{log_name}: the window at {w.t0:.3f} s is not confirmed by its "
+                                             "neighbours' distances")
+        elif len(w.position) < len(P_E):
+            missing = [names[c] for c in range(len(P_E)) if c not in w.position]
+            status, reason = "incomplete", f"{log_name}: reflector {', '.join(missing)} not measured in the window"
+        t_s = None if w is None else clock0 + 0.5 * (w.t0 + w.t1) - t_first
+        rows.append([s.stop, s.pose_id, s.kind, "" if w is None else f"{w.t0:.6f}", "" if w is None else f"{w.t1:.6f}",
+                     0 if w is None else w.samples, "" if w is None else f"{w.spread_m() * 1e3:.6f}", status, log_name])
+        if status == "matched":
+            P_L = np.array([w.position[c] for c in range(len(P_E))])
+            xyz, rotvec, rms = _derive(eye, P_E, P_L)
+        if s.kind == "drift":
+            ref = refs.get(s.pose_id)
+            drift = None
+            if status == "matched" and ref is not None:
+                drift = float(np.linalg.norm(np.array(xyz) - np.array(ref)))
+            events.append(("drift_check", {"reference_pose_id": s.pose_id,
+                                           "drift_mm": None if drift is None else drift * 1e3,
+                                           "over_threshold": False, "stop": s.stop}, s.pose_id, t_s))
+            continue
+        seq = seq0 + len(records)
+        if status == "matched":
+            refs.setdefault(s.pose_id, list(xyz))
+            refl = {names[c]: (tuple(map(float, w.position[c])), "ok") for c in range(len(P_E))}
+            records.append(PoseRecord(s.pose_id, "measured", s.q, seq=seq, time_s=t_s, xyz=xyz, rotvec=rotvec,
+                                      fit_rms_m=rms, reflectors=refl))
+        else:
+            records.append(PoseRecord(s.pose_id, "failed", s.q, seq=seq, time_s=t_s, reason=reason))
+    for i, w in enumerate(windows):
+        if i not in matched_windows:
+            rows.append(["", "", "", f"{w.t0:.6f}", f"{w.t1:.6f}", w.samples, f"{w.spread_m() * 1e3:.6f}",
+                         "rejected", log_name])
+    state["drift_reference"] = {str(k): v for k, v in refs.items()}
+    return rows, records, events
+
+
+def _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot) -> Path:
+    """Write the poses and events (one transaction for the poses), the meta and stream_match.csv."""
+    from campaign.fileio import atomic_write
+    from campaign.measure.store import MeasurementStore
+
+    ids = [r.pose_id for r in records]
+    if len(set(ids)) != len(ids):
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        raise DataError(f"{run.path}/program/stops.csv: pose_id {dup[0]} is measured at two stops; a run "
+                        "stores a pose once (a repeat has an id of its own)")
+    match_csv = run.path / "import" / MATCH_FILE
+    with run.lock("import"):
+        new = not run.measurements_path.is_file()
+        target = run.measurements_path
+        path = target.with_name(target.name + ".partial") if new else target
+        if new:
+            path.unlink(missing_ok=True)
+        try:
+            with MeasurementStore(path) as store:
+                if new:
+                    store.set_meta("source", {"kind": "stream", "length_unit": "mm" if layout.length_scale != 1 else "m",
+                                              "logs": []})
+                    store.record_robot(robot)
+                    store.set_meta("frame", frame)
+                    store.set_meta("T_LI", np.eye(4).tolist())
+                    store.set_meta("kind", kind)
+                    if kind == "markers":
+                        store.set_meta("marker_positions", np.asarray(P_E, dtype=float).tolist())
+                        store.set_meta("marker_names", list(names))
+                else:
+                    stored = store.stored_ids() & {r.pose_id for r in records}
+                    if stored:
+                        raise DataError(f"{run.path}: pose {min(stored)} is already stored; {layout.path} "
+                                        "repeats stops an earlier log imported")
+                if records:
+                    store.add_poses(records)
+                for kind_, detail, pid, t in events:
+                    store.add_event(kind_, detail, pose_id=pid, time_s=t)
+                src = store.get_meta("source", {})
+                src.setdefault("logs", []).append(str(layout.path.resolve()))
+                store.set_meta("source", src)
+                clock = max([state.get("clock_s", 0.0)] + [r.time_s for r in records if r.time_s is not None]
+                            + [e[3] for e in events if e[3] is not None])
+                store.set_meta("campaign_clock_s", clock)
+                store.add_event("stream_import", {"log": str(layout.path.resolve()), "samples": finder.samples,
+                                                  "next_stop": next_stop}, time_s=clock)
+                seq = int(state.get("seq", 0)) + len(records)
+                store.set_meta(META_KEY, {"next_stop": next_stop, "clock_s": clock + 1.0, "seq": seq,
+                                          "drift_reference": state.get("drift_reference", {})})
+            if new:
+                path.replace(target)
+        finally:
+            if new:
+                path.unlink(missing_ok=True)
+        text = io.StringIO()
+        w = csv.writer(text, lineterminator="\n")
+        old = match_csv.read_text() if match_csv.is_file() and not new else ""
+        if not old:
+            w.writerow(MATCH_HEADER)
+        w.writerows(rows)
+        match_csv.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(match_csv, old + text.getvalue())
+    return match_csv

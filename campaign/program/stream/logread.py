@@ -1,0 +1,277 @@
+"""A laser tracker's log read in blocks of bytes, so memory does not grow with the log.
+
+The log is a delimited text file with a header line: a time column (``time_s``, s on any clock,
+or ``time`` / ``timestamp`` in ISO 8601), ``x, y, z`` and optionally ``target`` (the reflector
+measured on that row, one of the robot's reflector names). Other columns are ignored; ``columns``
+maps a file's own names (``{column in the file: name used}``, campaign.measure.csvio.parse_columns).
+Rows with an empty or non-finite coordinate are no measurement (the beam was lost) and are dropped.
+
+A block of all-numeric rows is parsed by numpy in C (target names are replaced by their codes
+first); anything else (ISO time stamps, a malformed row) goes line by line, and a bad value is one
+:class:`DataError` naming the file, the row and the column.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import DataError
+
+#: bytes read at a time: large enough for numpy's parser to run at full speed, small enough that
+#: a block's arrays (a few tens of MB) never matter
+BLOCK_BYTES = 8 << 20
+TIME_S_COLUMNS = ("time_s", "t_s")
+TIME_ISO_COLUMNS = ("time", "timestamp", "datetime", "date_time")
+DELIMITERS = (",", ";", "\t")
+
+
+@dataclass(frozen=True)
+class LogLayout:
+    """Where a log keeps what is read: column indices, the time's form, the length unit."""
+
+    path: Path
+    delimiter: str
+    header: tuple
+    time_col: int
+    time_iso: bool
+    xyz_cols: tuple
+    target_col: int | None
+    #: the reflector names a ``target`` value may take, in code order (code = index)
+    targets: tuple
+    length_scale: float
+
+    @property
+    def n_cols(self) -> int:
+        return len(self.header)
+
+
+@dataclass(frozen=True)
+class LogChunk:
+    """Consecutive measured rows: t (n,) s, p (n, 3) m in the log's frame, target (n,) int16
+    (the reflector's code, 0 without a target column); ``rows`` the file rows read so far."""
+
+    t: np.ndarray
+    p: np.ndarray
+    target: np.ndarray
+    rows: int
+
+
+def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, targets=()) -> LogLayout:
+    """The layout of the log ``path`` from its header line; DataError naming what is missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such log")
+    with open(path, "rb") as f:
+        first = f.readline()
+    try:
+        line = first.decode("utf-8-sig").strip()
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: row 1: not text (expected a header line such as time_s,x,y,z)") from None
+    if not line:
+        raise DataError(f"{path}: empty (expected a header line such as time_s,x,y,z)")
+    delim = next((d for d in DELIMITERS if d in line), ",")
+    header = tuple(h.strip() for h in line.split(delim))
+    rename = dict(columns or {})
+    missing_src = [c for c in rename if c not in header]
+    if missing_src:
+        raise DataError(f"{path}: --columns names {', '.join(missing_src)}, not in the header ({', '.join(header)})")
+    names = [rename.get(h, h) for h in header]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise DataError(f"{path}: column {', '.join(dup)} appears twice in the header")
+
+    def col(name):
+        return names.index(name) if name in names else None
+
+    time_col, iso = None, False
+    for n in TIME_S_COLUMNS:
+        if col(n) is not None:
+            time_col = col(n)
+            break
+    if time_col is None:
+        for n in TIME_ISO_COLUMNS:
+            if col(n) is not None:
+                time_col, iso = col(n), True
+                break
+    if time_col is None:
+        raise DataError(f"{path}: no time column (time_s in s, or time/timestamp in ISO 8601) in the header "
+                        f"({', '.join(header)}); map yours with --columns time_s=COLUMN")
+    xyz = tuple(col(c) for c in "xyz")
+    if None in xyz:
+        miss = [c for c, i in zip("xyz", xyz) if i is None]
+        raise DataError(f"{path}: no column {', '.join(miss)} in the header ({', '.join(header)}); "
+                        "map yours with --columns x=COLUMN,...")
+    if length_unit not in ("m", "mm"):
+        raise DataError(f"--length-unit must be m or mm, got {length_unit!r}")
+    return LogLayout(path, delim, header, time_col, iso, xyz, col("target"), tuple(targets),
+                     1e-3 if length_unit == "mm" else 1.0)
+
+
+def iter_log(layout: LogLayout, *, block_bytes: int = BLOCK_BYTES, progress=None):
+    """The log's measured rows as :class:`LogChunk` s, in file order. ``progress``: callable
+    receiving the fraction of the file read (0..1)."""
+    size = max(layout.path.stat().st_size, 1)
+    done = 0
+    row = 1  # the header
+    with open(layout.path, "rb") as f:
+        done += len(f.readline())
+        tail = b""
+        while True:
+            data = f.read(block_bytes)
+            if not data:
+                break
+            done += len(data)
+            data = tail + data
+            cut = data.rfind(b"\n")
+            if cut < 0:
+                tail = data
+                continue
+            tail, data = data[cut + 1:], data[:cut + 1]
+            chunk = _parse(layout, data, row)
+            row += data.count(b"\n")
+            if chunk is not None:
+                yield chunk
+            if progress is not None:
+                progress(done / size)
+        if tail.strip():
+            chunk = _parse(layout, tail + b"\n", row)
+            if chunk is not None:
+                yield chunk
+    if progress is not None:
+        progress(1.0)
+
+
+def _parse(layout: LogLayout, data: bytes, row0: int) -> LogChunk | None:
+    """One block of whole lines (row0: the file row before its first line)."""
+    if b"\r" in data:
+        data = data.replace(b"\r", b"")
+    fast = None if layout.time_iso else _parse_numeric(layout, data)
+    if fast is None:
+        t, vals, g = _parse_lines(layout, data, row0)
+    else:
+        t, vals, g = fast
+    p = vals * layout.length_scale
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(t)
+    rows = row0 + data.count(b"\n")
+    if not ok.all():
+        t, p, g = t[ok], p[ok], g[ok]
+    if len(t) == 0:
+        return None
+    return LogChunk(t, np.ascontiguousarray(p), g, rows)
+
+
+def _parse_numeric(layout: LogLayout, data: bytes):
+    """numpy's C parser on a block whose every field is a number once target names are codes;
+    None when the block is anything else (then it is read line by line)."""
+    d = layout.delimiter.encode()
+    buf = data if d == b"," else data.replace(d, b",")
+    if b",," in buf or b",\n" in buf or buf.startswith(b",") or b"\n\n" in buf:
+        return None  # an empty field or line: the line reader knows what it means
+    if layout.target_col is not None:
+        last = layout.target_col == layout.n_cols - 1
+        first = layout.target_col == 0
+        for code, name in enumerate(layout.targets):
+            nb = name.encode()
+            if first:
+                buf = (b"\n" + buf).replace(b"\n" + nb + b",", b"\n" + str(code).encode() + b",")[1:]
+            elif last:
+                buf = buf.replace(b"," + nb + b"\n", b"," + str(code).encode() + b"\n")
+            else:
+                buf = buf.replace(b"," + nb + b",", b"," + str(code).encode() + b",")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            flat = np.fromstring(buf.replace(b"\n", b","), sep=",")
+        except (DeprecationWarning, ValueError):
+            return None
+    n_lines = buf.count(b"\n")
+    if flat.size != n_lines * layout.n_cols:
+        return None
+    a = flat.reshape(n_lines, layout.n_cols)
+    g = np.zeros(n_lines, dtype=np.int16)
+    if layout.target_col is not None:
+        codes = a[:, layout.target_col]
+        if not (np.isin(codes, np.arange(len(layout.targets)))).all():
+            return None
+        g = codes.astype(np.int16)
+    return a[:, layout.time_col].copy(), a[:, list(layout.xyz_cols)].copy(), g
+
+
+def _parse_lines(layout: LogLayout, data: bytes, row0: int):
+    """Line by line: empty coordinates are NaN (no measurement); anything unreadable is one error."""
+    path, delim = layout.path, layout.delimiter
+    t, vals, g = [], [], []
+    code = {name: k for k, name in enumerate(layout.targets)}
+    iso = []
+    for k, raw in enumerate(data.decode("utf-8", errors="replace").split("\n")):
+        line = raw.strip()
+        if not line:
+            continue
+        row = row0 + k + 1
+        cells = line.split(delim)
+        if len(cells) != layout.n_cols:
+            raise DataError(f"{path}: row {row} has {len(cells)} fields, expected {layout.n_cols} "
+                            f"({','.join(layout.header)})")
+        xyz = []
+        for c in layout.xyz_cols:
+            cell = cells[c].strip()
+            try:
+                xyz.append(float(cell) if cell else np.nan)
+            except ValueError:
+                raise DataError(f"{path}: row {row}, column {layout.header[c]}: not a number ({cell!r})") from None
+        tc = cells[layout.time_col].strip()
+        if layout.time_iso:
+            iso.append((row, tc))
+            t.append(0.0)
+        else:
+            try:
+                t.append(float(tc))
+            except ValueError:
+                raise DataError(f"{path}: row {row}, column {layout.header[layout.time_col]}: not a time in s "
+                                f"({tc!r}; ISO 8601 time stamps go in a column named time or timestamp)") from None
+        if layout.target_col is not None:
+            name = cells[layout.target_col].strip()
+            if name not in code:
+                raise DataError(f"{path}: row {row}, column {layout.header[layout.target_col]}: {name!r} is not one "
+                                f"of the robot's reflectors ({', '.join(layout.targets)})")
+            g.append(code[name])
+        else:
+            g.append(0)
+        vals.append(xyz)
+    t = np.array(t, dtype=float)
+    if layout.time_iso and iso:
+        t = iso_seconds(path, layout.header[layout.time_col], iso)
+    return t, np.array(vals, dtype=float).reshape(-1, 3), np.array(g, dtype=np.int16)
+
+
+def iso_seconds(path, column, cells) -> np.ndarray:
+    """ISO 8601 time stamps [(row, text), ...] as s since 1970 (UTC when the stamp says its
+    offset, ``Z`` or ``+HH:MM``; else the stamps' own local clock)."""
+    texts, offsets = [], []
+    for row, s in cells:
+        off = 0.0
+        if s.endswith(("Z", "z")):
+            s = s[:-1]
+        elif len(s) > 6 and s[-6] in "+-" and s[-3] == ":" and "T" in s[:-6] + " ":
+            try:
+                sign = 1.0 if s[-6] == "+" else -1.0
+                off = sign * (int(s[-5:-3]) * 3600 + int(s[-2:]) * 60)
+            except ValueError:
+                raise DataError(f"{path}: row {row}, column {column}: not an ISO 8601 time ({s!r})") from None
+            s = s[:-6]
+        texts.append(s.replace(" ", "T", 1))
+        offsets.append(off)
+    try:
+        stamps = np.array(texts, dtype="datetime64[ns]")
+    except ValueError:
+        for (row, s), text in zip(cells, texts):
+            try:
+                np.datetime64(text, "ns")
+            except ValueError:
+                raise DataError(f"{path}: row {row}, column {column}: not an ISO 8601 time ({s!r})") from None
+        raise
+    return stamps.astype("int64") * 1e-9 - np.array(offsets)

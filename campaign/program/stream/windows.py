@@ -1,0 +1,248 @@
+"""Still windows in a tracker's log: where the tool stood still, found block by block.
+
+A continuous log is cut into blocks of about STREAM_BLOCK_S; a block is still when the robust
+spread of its positions (the norm of the per-axis median absolute deviations: a spike or two do
+not move it) stays below STREAM_STILL_FACTOR times the log's own noise level, estimated from the
+data (the STREAM_NOISE_QUANTILE quantile of the blocks' spreads: the still blocks are the quiet
+ones). Still blocks that follow each other at one position make a window; a change of reflector
+(``target``) between them continues the window when the tool did not move in between (at most
+STREAM_SWITCH_BLOCKS moving blocks, or a short gap). A window keeps, per reflector, the median of
+its samples (the position) and their robust standard deviation (the spread, a quality figure).
+
+A log with one record per stable point (``point`` mode: successive records of one reflector are
+apart, not within the noise) makes a window of each group of records at one position.
+Memory: the samples of the open window only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from campaign.tolerances import (STREAM_BLOCK_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M, STREAM_NOISE_QUANTILE,
+                                 STREAM_POINT_STEP_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
+                                 STREAM_SWITCH_BLOCKS, STREAM_SWITCH_S, STREAM_WINDOW_MAX_SAMPLES)
+
+#: robust standard deviation from the median absolute deviation of a normal sample
+MAD_TO_SIGMA = 1.4826
+
+
+@dataclass
+class Window:
+    """One still window: t0, t1 (s, the log's clock), samples, and per reflector code its median
+    position (3,) m, robust spread (m: the 3-D robust standard deviation) and sample count."""
+
+    t0: float
+    t1: float
+    samples: int
+    position: dict
+    spread: dict
+    counts: dict
+
+    def spread_m(self) -> float:
+        """The largest of its reflectors' spreads (m)."""
+        return float(max(self.spread.values())) if self.spread else float("nan")
+
+
+@dataclass
+class _Open:
+    t0: float
+    t1: float
+    parts: dict = field(default_factory=dict)  # code -> [arrays (k, 3)]
+    ref: dict = field(default_factory=dict)  # code -> (3,) position of its first still block
+    n: int = 0
+    last_code: int = -1
+
+
+def block_size(dt_s: float) -> int:
+    """Samples per block at a sample interval ``dt_s`` (s): about STREAM_BLOCK_S, 5 to 50."""
+    if not np.isfinite(dt_s) or dt_s <= 0:
+        return 5
+    return int(np.clip(round(STREAM_BLOCK_S / dt_s), 5, 50))
+
+
+def block_spreads(p: np.ndarray, B: int) -> tuple:
+    """(median (nb, 3), robust spread (nb,)) of consecutive blocks of B samples of p (n, 3)."""
+    nb = len(p) // B
+    blocks = p[:nb * B].reshape(nb, B, 3)
+    med = np.median(blocks, axis=1)
+    mad = np.median(np.abs(blocks - med[:, None, :]), axis=1)
+    return med, np.sqrt(np.sum(mad * mad, axis=1))
+
+
+def is_point_log(t, p, g) -> bool:
+    """A log of stable points (one record per point) rather than a continuous one: most
+    successive records of one reflector are further apart than STREAM_POINT_STEP_M."""
+    if len(t) < 3:
+        return True
+    same = g[1:] == g[:-1]
+    if same.sum() < 2:
+        # reflectors in turn, each once a stop: successive records of one reflector are a stop apart
+        order = np.argsort(g, kind="stable")
+        gs, ps = g[order], p[order]
+        same = gs[1:] == gs[:-1]
+        step = np.linalg.norm(np.diff(ps, axis=0), axis=1)[same]
+    else:
+        step = np.linalg.norm(np.diff(p, axis=0), axis=1)[same]
+    return bool(np.mean(step <= STREAM_POINT_STEP_M) < 0.25) if len(step) else True
+
+
+class WindowFinder:
+    """Feed :class:`~campaign.program.stream.logread.LogChunk` s in order (:meth:`feed`), then
+    :meth:`finish`: the still windows in time order. The noise level and the block size come from
+    the first chunk (a 100 Hz log's first block of bytes holds hours)."""
+
+    def __init__(self):
+        self.windows: list = []
+        self.B = None
+        self.tau = None
+        self.noise_m = None
+        self.dt_s = None
+        self.point_mode = None
+        self._carry = None
+        self._open = None
+        self._moving = 0  # moving blocks since the open window's last still block
+        self.samples = 0
+        self.t_first = None
+        self.t_last = None
+
+    # -- set-up from the first data ---------------------------------------------------------
+    def _calibrate(self, t, p, g):
+        self.point_mode = is_point_log(t, p, g)
+        dt = np.diff(t)
+        self.dt_s = float(np.median(dt[dt > 0])) if (dt > 0).any() else 1.0
+        if self.point_mode:
+            self.tau = STREAM_POINT_STEP_M
+            self.noise_m = float("nan")
+            return
+        self.B = block_size(self.dt_s)
+        _, s = block_spreads(p, self.B)
+        same = _uniform(g, self.B)
+        s = s[same] if same.any() else s
+        level = float(np.quantile(s, STREAM_NOISE_QUANTILE)) if len(s) else 0.0
+        # s is the norm of 3 per-axis MADs: a still block's s ≈ 0.6745·√3·σ
+        self.noise_m = max(level / (0.6745 * np.sqrt(3.0)), STREAM_MIN_NOISE_M)
+        self.tau = STREAM_STILL_FACTOR * self.noise_m
+
+    # -- streaming ---------------------------------------------------------------------------
+    def feed(self, chunk) -> None:
+        t, p, g = chunk.t, chunk.p, chunk.target
+        if len(t) == 0:
+            return
+        if self.t_first is None:
+            self.t_first = float(t[0])
+        self.t_last = float(t[-1])
+        self.samples += len(t)
+        if self.point_mode is None:
+            self._calibrate(t, p, g)
+        if self.point_mode:
+            self._feed_points(t, p, g)
+            return
+        if self._carry is not None:
+            ct, cp, cg = self._carry
+            t, p, g = np.concatenate([ct, t]), np.concatenate([cp, p]), np.concatenate([cg, g])
+        B = self.B
+        nb = len(t) // B
+        self._carry = (t[nb * B:], p[nb * B:], g[nb * B:])
+        if nb == 0:
+            return
+        t, p, g = t[:nb * B], p[:nb * B], g[:nb * B]
+        med, s = block_spreads(p, B)
+        tb = t.reshape(nb, B)
+        gap_s = STREAM_GAP_BLOCKS * B * self.dt_s
+        # a block is still: quiet, one reflector, no gap inside
+        still = (s <= self.tau) & _uniform(g, B) & (tb[:, -1] - tb[:, 0] <= gap_s)
+        codes = g[::B]
+        idx = np.flatnonzero(still)
+        # whole runs of moving blocks between still ones are counted at once
+        prev = -1
+        for b in idx:
+            self._moving += b - prev - 1
+            prev = b
+            self._still_block(b, tb[b, 0], tb[b, -1], int(codes[b]), med[b], p[b * B:(b + 1) * B])
+        self._moving += nb - 1 - prev
+        if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS:
+            self._close()
+
+    def _still_block(self, b, t0, t1, code, med, samples):
+        w = self._open
+        if w is not None:
+            gap = t0 - w.t1
+            near = code in w.ref and np.linalg.norm(med - w.ref[code]) <= STREAM_SAME_PLACE_FACTOR * self.tau
+            quiet = self._moving == 0 and gap <= STREAM_GAP_BLOCKS * self.B * self.dt_s
+            switch = code != w.last_code and code not in w.ref and \
+                (self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_SWITCH_S) and gap <= STREAM_SWITCH_S
+            if near and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch:
+                self._extend(w, t1, code, med, samples)
+                self._moving = 0
+                return
+            self._close()
+        self._open = _Open(t0=t0, t1=t1)
+        self._extend(self._open, t1, code, med, samples)
+        self._moving = 0
+
+    def _extend(self, w, t1, code, med, samples):
+        w.t1 = t1
+        w.ref.setdefault(code, np.array(med))
+        w.parts.setdefault(code, []).append(np.array(samples))
+        w.n += len(samples)
+        w.last_code = code
+        if w.n > STREAM_WINDOW_MAX_SAMPLES:  # a long pause: every other sample is as good
+            for c, parts in w.parts.items():
+                allp = np.concatenate(parts)[::2]
+                w.parts[c] = [allp]
+            w.n = sum(len(v[0]) for v in w.parts.values())
+
+    def _close(self):
+        w, self._open = self._open, None
+        if w is None:
+            return
+        position, spread, counts = {}, {}, {}
+        for code, parts in w.parts.items():
+            pts = np.concatenate(parts)
+            position[code], spread[code] = robust_mean(pts)
+            counts[code] = len(pts)
+        self.windows.append(Window(float(w.t0), float(w.t1), int(sum(counts.values())), position, spread, counts))
+
+    def _feed_points(self, t, p, g):
+        """One record per stable point: a record joins the open group when its reflector is new
+        to the group (reflectors in turn) or it repeats one at the same place; else a new group."""
+        for k in range(len(t)):
+            code = int(g[k])
+            w = self._open
+            if w is not None:
+                same_place = code in w.ref and np.linalg.norm(p[k] - w.ref[code]) <= self.tau
+                if same_place or (code not in w.ref and t[k] - w.t1 <= STREAM_SWITCH_S * 5):
+                    self._extend(w, float(t[k]), code, p[k], p[k:k + 1])
+                    continue
+                self._close()
+            self._open = _Open(t0=float(t[k]), t1=float(t[k]))
+            self._extend(self._open, float(t[k]), code, p[k], p[k:k + 1])
+
+    def finish(self) -> list:
+        if not self.point_mode and self._carry is not None and len(self._carry[0]) and self._open is not None:
+            t, p, g = self._carry  # the last partial block: still when it is at the open window's place
+            code = int(g[0])
+            if (g == code).all() and code in self._open.ref and self._moving == 0:
+                med = np.median(p, axis=0)
+                if np.linalg.norm(med - self._open.ref[code]) <= self.tau:
+                    self._extend(self._open, float(t[-1]), code, med, p)
+        self._close()
+        return self.windows
+
+
+def _uniform(g, B) -> np.ndarray:
+    nb = len(g) // B
+    gb = g[:nb * B].reshape(nb, B)
+    return gb.min(axis=1) == gb.max(axis=1)
+
+
+def robust_mean(pts: np.ndarray) -> tuple:
+    """(median (3,), robust 3-D standard deviation) of samples pts (k, 3), m: the median's and
+    the MAD's breakdown point is one half, so spikes do not move them."""
+    med = np.median(pts, axis=0)
+    if len(pts) < 2:
+        return med, 0.0
+    mad = np.median(np.abs(pts - med), axis=0) * MAD_TO_SIGMA
+    return med, float(np.sqrt(np.sum(mad * mad)))
