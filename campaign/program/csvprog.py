@@ -12,6 +12,8 @@ import numpy as np
 
 EXTENSION = ".csv"
 UNITS = "rad"
+#: full precision (repr): read back exactly
+DECIMALS = 15
 
 
 def render(inp) -> list:
@@ -31,3 +33,23 @@ def read_joints(files) -> np.ndarray:
     head = rows[0]
     cols = [i for i, h in enumerate(head) if h.startswith("j") and h[1:].isdigit()]
     return np.array([[float(r[i]) for i in cols] for r in rows[1:] if r], dtype=float)
+
+
+def check(files, robot) -> list:
+    """Header ``stop,pose_id,kind,dwell_s,j1..jN``, one row a stop numbered in order, known kinds,
+    dwell >= 0, joints within the limits."""
+    from campaign.program import common as C
+    from campaign.program.stops import KINDS
+
+    name, text = files[0]
+    rows = list(csv.reader(io.StringIO(text)))
+    N = robot.n_joints
+    want = ["stop", "pose_id", "kind", "dwell_s", *(f"j{j}" for j in range(1, N + 1))]
+    if not rows or rows[0] != want:
+        return [f"{name}: header must be {','.join(want)}"]
+    out = []
+    for k, r in enumerate(rows[1:]):
+        if len(r) != len(want) or r[0] != str(k) or r[2] not in KINDS or float(r[3]) < 0:
+            out.append(f"{name}: line {k + 2}: expected stop {k}, a kind of {', '.join(KINDS)}, dwell_s >= 0")
+            break
+    return out or C.limit_problems(read_joints(text), robot, UNITS, name, DECIMALS)

@@ -20,7 +20,9 @@ from campaign.errors import ConfigError, DataError
 
 #: format name -> module under campaign.program (each has ``render(ProgramInput) -> [(name, text)]``,
 #: ``EXTENSION``, ``read_joints(text or files) -> (n, N)`` in the format's units and ``check(files, ...)``)
-FORMATS = {"csv": "campaign.program.csvprog"}
+FORMATS = {"urscript": "campaign.program.urscript", "krl": "campaign.program.krl", "rapid": "campaign.program.rapid",
+           "fanuc-ls": "campaign.program.fanuc_ls", "pdl2": "campaign.program.pdl2",
+           "ros2-trajectory": "campaign.program.ros2", "csv": "campaign.program.csvprog"}
 
 
 @dataclass(frozen=True)
@@ -32,9 +34,10 @@ class ProgramInput:
     speeds (0 < speed <= 1); max_velocity, max_acceleration (N,): the robot's limits in the
     controller's convention (rad/s, rad/s², from robot.yaml, as the plan's Ruckig timing uses them);
     move_s (n,): Ruckig's rest-to-rest time into each stop from the one before (s; 0 for the first);
-    trigger_output: digital output pulsed at each measured stop, or None; name: program name (a
-    valid identifier in every language: letters, digits, underscore, starting with a letter);
-    robot_name; joint_names; lower, upper (N,): joint limits (model convention)."""
+    trigger_output: digital output pulsed at each measured stop once the robot has settled, or
+    None; name: program name (letters, digits, underscore, starting with a letter; each language
+    shortens it to its own limit); robot_name; joint_names; prismatic (N,) bool; settle_s: the
+    settle time at the start of each dwell (s, plan.settle_time_s)."""
 
     stops: tuple
     q_controller: np.ndarray
@@ -47,6 +50,12 @@ class ProgramInput:
     robot_name: str
     joint_names: tuple
     prismatic: np.ndarray
+    settle_s: float = 0.0
+    #: (k, dt_s) -> (times (m,) s from the move's start, positions, velocities, accelerations (m, N)):
+    #: samples of the Ruckig move into stop k at ``speed``, controller convention (or None)
+    sampler: object = None
+    #: the suffix of --out (a format may write another flavour for it, e.g. ROS 2 JSON)
+    out_suffix: str = ""
 
 
 def format_module(fmt: str):
@@ -56,14 +65,17 @@ def format_module(fmt: str):
     return importlib.import_module(FORMATS[fmt])
 
 
-def program_name(run_dir) -> str:
-    """An identifier every language accepts, from the run folder's name (at most 24 characters:
-    FANUC's program names are the shortest limit we write, docs/programs.md)."""
-    base = "".join(c if c.isalnum() else "_" for c in Path(run_dir).resolve().name.upper())
-    base = base.strip("_") or "CAMPAIGN"
+def program_name(run_dir=None, stem: str | None = None) -> str:
+    """An identifier every language accepts (letters, digits, ``_``, starting with a letter):
+    ``stem`` (--out's) made one, else ``CAL_<run folder's name>``; each language shortens it to
+    its own limit (docs/programs.md)."""
+    raw = stem if stem is not None else Path(run_dir).resolve().name
+    base = "".join(c if c.isalnum() and c.isascii() else "_" for c in raw).strip("_") or "CAMPAIGN"
+    if stem is None and not base.upper().startswith("CAL"):
+        base = "CAL_" + base
     if not base[0].isalpha():
-        base = "C" + base
-    return ("CAL_" + base)[:24] if not base.startswith("CAL") else base[:24]
+        base = "P" + base
+    return base[:32]
 
 
 def _limits_controller(robot) -> tuple:
@@ -82,7 +94,26 @@ def _limits_controller(robot) -> tuple:
     return vc, ac
 
 
-def program_input(run_dir, *, speed: float = 1.0, trigger_output=None, stops=None, run=None) -> ProgramInput:
+def _sampler(robot, Q, speed):
+    """The ProgramInput.sampler of the stops Q (n, N) model convention (rad, m)."""
+    from campaign.plan.timing import ruckig_trajectory
+
+    def sample(k, dt_s):
+        T, traj = ruckig_trajectory(robot, Q[k - 1], Q[k])
+        times = np.arange(dt_s, T / speed - 1e-9, dt_s)
+        P, V, A = [], [], []
+        for t in times:
+            p, v, a = traj.at_time(t * speed)
+            P.append(p), V.append(np.asarray(v) * speed), A.append(np.asarray(a) * speed ** 2)
+        P = np.atleast_2d(robot.to_controller_q(np.array(P).reshape(-1, Q.shape[1])))
+        lin = np.linalg.inv(robot.controller_matrix) if robot.controller_matrix is not None else np.eye(Q.shape[1])
+        V, A = np.array(V).reshape(-1, Q.shape[1]) @ lin.T, np.array(A).reshape(-1, Q.shape[1]) @ lin.T
+        return times, P, V, A
+    return sample
+
+
+def program_input(run_dir, *, speed: float = 1.0, trigger_output=None, stops=None, run=None,
+                  out_suffix: str = "", name: str | None = None) -> ProgramInput:
     """The :class:`ProgramInput` of a planned run (its stops, or ``stops`` given)."""
     from campaign.plan.timing import rest_to_rest_time
     from campaign.program.stops import plan_stops, stops_array
@@ -102,8 +133,10 @@ def program_input(run_dir, *, speed: float = 1.0, trigger_output=None, stops=Non
     v, a = _limits_controller(robot)
     return ProgramInput(stops=stops, q_controller=np.atleast_2d(robot.to_controller_q(Q)), speed=float(speed),
                         max_velocity=v, max_acceleration=a, move_s=move_s / speed, trigger_output=trigger_output,
-                        name=program_name(run.path), robot_name=robot.name, joint_names=tuple(robot.joint_names),
-                        prismatic=np.asarray(robot.prismatic, dtype=bool))
+                        name=name or program_name(run.path), robot_name=robot.name, joint_names=tuple(robot.joint_names),
+                        prismatic=np.asarray(robot.prismatic, dtype=bool),
+                        settle_s=float(run.config.plan.settle_time_s), sampler=_sampler(robot, Q, float(speed)),
+                        out_suffix=out_suffix)
 
 
 @dataclass(frozen=True)
@@ -120,8 +153,9 @@ class ProgramResult:
 def build_program(run_dir, fmt: str, *, out=None, speed: float = 1.0, trigger_output=None) -> ProgramResult:
     """Write the program of format ``fmt`` for the planned run ``run_dir`` and RUN/program/stops.csv.
 
-    out: the program's file (a multi-part program: its first part, the others beside it with the
-    same stem); default RUN/program/<name>.<ext>. Returns the files written."""
+    out: the program's file: its folder holds the files, its stem names the program (as far as the
+    language's rules allow: KRL and RAPID name modules like their files, FANUC in 8 upper-case
+    characters); default RUN/program/cal_<run>.<ext>. Returns the files written."""
     from campaign.fileio import atomic_write
     from campaign.program.stops import PROGRAM_DIR, stops_path, write_stops_csv
     from campaign.run import RunFolder
@@ -132,27 +166,14 @@ def build_program(run_dir, fmt: str, *, out=None, speed: float = 1.0, trigger_ou
         raise DataError(f"{run.path}: no such run folder")
     if not run.poses_csv.is_file():
         raise DataError(f"{run.path}: no plan/poses.csv (run `campaign plan --run {run.path}` first)")
-    inp = program_input(run.path, speed=speed, trigger_output=trigger_output, run=run)
+    if out is not None and Path(out).is_dir():
+        raise ConfigError(f"--out {out}: is a folder; give the program's file name")
+    inp = program_input(run.path, speed=speed, trigger_output=trigger_output, run=run,
+                        out_suffix=Path(out).suffix if out is not None else "",
+                        name=program_name(stem=Path(out).stem) if out is not None else None)
     files = mod.render(inp)
-    if out is None:
-        folder, stem = run.path / PROGRAM_DIR, None
-    else:
-        out = Path(out)
-        if out.is_dir():
-            raise ConfigError(f"--out {out}: is a folder; give the program's file name")
-        folder, stem = out.parent, out
-    written = []
-    for k, (name, text) in enumerate(files):
-        if stem is not None:
-            name = stem.name if k == 0 else _sibling(stem, files[0][0], name)
-        written.append(atomic_write(folder / name, text))
+    folder = run.path / PROGRAM_DIR if out is None else Path(out).parent
+    written = [atomic_write(folder / name, text) for name, text in files]
     sp = write_stops_csv(stops_path(run.path), inp.stops)
     return ProgramResult(tuple(written), sp, len(inp.stops), sum(s.measured for s in inp.stops),
                          float(np.sum(inp.move_s) + sum(s.dwell_s for s in inp.stops)))
-
-
-def _sibling(out: Path, first: str, name: str) -> str:
-    """The name of a further part beside ``out``: the generated name with the generated first
-    part's stem replaced by ``out``'s stem (KRL's .dat beside its .src, parts _2, _3, ...)."""
-    first_stem = Path(first).stem
-    return out.stem + name[len(first_stem):] if name.startswith(first_stem) else name
