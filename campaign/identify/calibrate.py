@@ -72,6 +72,9 @@ class CalibrationResult:
     identification_time_s: float | None = None
     #: one-reflector data: where they were measured in the tool frame, (3,) m
     measured_point_in_tool_m: tuple | None = None
+    #: 6-D or raw-reflector data measured on a tool mounting: the measured frame in the URDF's tool frame
+    #: ({"translation_m": [3], "rotation_vector_rad": [3]}, params.yaml's ``tool_mounting_in_tool``)
+    tool_mounting_in_tool: dict | None = None
     #: data in the tracker's frame: the registration and the identified tracker pose (metrics.json's ``tracker``)
     tracker: dict | None = None
     #: the measurement noise floor (campaign.diagnose.floor.NoiseFloor.as_json())
@@ -259,15 +262,56 @@ def measured_point(robot, poses, train=None):
     return point if found is None else found[1]
 
 
-def prepare_measured(robot, poses, train, point=None):
+def tool_mounting(robot, poses, train=None):
+    """The frame 6-D or raw-reflector data were measured in, in the URDF's tool frame, (4, 4), when
+    the ``train`` poses (all when None) place it on the nominal model far from the tool frame
+    (:func:`campaign.measure.plausibility.tool_mounting`: a marker plate or a flange the URDF does
+    not describe) and the nominal model fits the data there as a real robot's errors allow
+    (:func:`campaign.measure.plausibility.nominal_limit_m`); else None (other kinds too).
+    The tolerance priors of the tool then hold around the mounting, as they do around a one-reflector
+    measured point (:func:`measured_point`)."""
+    rows = np.flatnonzero(np.ones(len(poses), bool) if train is None else train)
+    fit = plausibility.mounting_fit(robot, poses, rows)
+    return None if fit is None or not fit[2] < min(fit[1], plausibility.nominal_limit_m(robot)) else fit[0]
+
+
+def mounting_json(X) -> dict:
+    """A tool mounting (4, 4) as params.yaml writes it: translation (m) and rotation vector (rad)."""
+    from campaign.model.rotations import matrix_to_rotvec
+
+    return {"translation_m": [float(v) for v in X[:3, 3]],
+            "rotation_vector_rad": [float(v) for v in matrix_to_rotvec(np.asarray(X)[:3, :3])]}
+
+
+def mounting_from_json(d, source) -> np.ndarray:
+    """params.yaml's ``tool_mounting_in_tool`` back to (4, 4); DataError naming ``source`` when malformed."""
+    from campaign.model.rotations import rotvec_to_matrix
+
+    try:
+        t = np.asarray(d["translation_m"], dtype=float).reshape(3)
+        r = np.asarray(d["rotation_vector_rad"], dtype=float).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        raise DataError(f"{source}: tool_mounting_in_tool must hold translation_m and rotation_vector_rad "
+                        "(3 numbers each)") from None
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = rotvec_to_matrix(r), t
+    return X
+
+
+def prepare_measured(robot, poses, train, point=None, mounting=None):
     """The data as the model sees them: (poses in F_I, the robot whose tool frame is the measured
-    point, the tracker registration or None). One-reflector data are fitted at the measured point
-    (``point``, else :func:`measured_point` on the ``train`` poses); data in the tracker's frame are
+    point or frame, the tracker registration or None). One-reflector data are fitted at the measured
+    point (``point``, else :func:`measured_point` on the ``train`` poses), 6-D and raw-reflector data
+    in the measured frame (``mounting``, else :func:`tool_mounting`); data in the tracker's frame are
     registered (:func:`register_tracker`) on the ``train`` poses. Used by calibrate and diagnose alike."""
     if point is None:
         point = measured_point(robot, poses, train)
     if point is not None:
         robot = robot.with_tool_point(point)
+    if mounting is None:
+        mounting = tool_mounting(robot, poses, train)
+    if mounting is not None:
+        robot = robot.with_tool_transform(mounting)
     tracker = None
     if poses.frame == "tracker":
         poses, tracker = register_tracker(robot, poses, train)
@@ -397,7 +441,11 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if point is not None and np.any(point) and len(robot.reflectors) != 1:
         say("one reflector, robot.yaml names none: measured at (" + ", ".join(f"{1e3 * v:.1f}" for v in point)
             + f") mm in {robot.tool_frame}, as the training poses place it on the nominal model")
-    poses, robot, tracker = prepare_measured(robot, poses, tr, point)
+    mounting = tool_mounting(robot, poses, tr)
+    if mounting is not None:
+        say(f"{plausibility.mounting_text(robot, mounting)}: a tool mounting, fitted (the nominal model's tool "
+            "frame, and the tolerance priors of the tool, moved there; params.yaml's tool_mounting_in_tool)")
+    poses, robot, tracker = prepare_measured(robot, poses, tr, point, mounting)
     if tracker is not None:
         what = "reflectors" if raw else "poses"
         say(f"measurements in the tracker's frame: registered to the nominal model "
@@ -501,6 +549,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         run_dir, stages, order, model, is_test, effects=tuple(effects), measurement_kind=poses.kind,
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
+        tool_mounting_in_tool=None if mounting is None else mounting_json(mounting),
         noise_floor=floor.as_json(), drift=measured_drift(run_dir, measured, floor).as_json(),
         ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json(), calibration_id=version.id,
@@ -580,6 +629,8 @@ def _write(result: CalibrationResult, robot, geo, out: Path) -> None:
     params.update(_param_block(model))
     if result.measured_point_in_tool_m is not None:  # the model's tool frame is this point (one reflector)
         params["measured_point_in_tool_m"] = list(result.measured_point_in_tool_m)
+    if result.tool_mounting_in_tool is not None:  # the model's tool frame is this frame (a tool mounting)
+        params["tool_mounting_in_tool"] = result.tool_mounting_in_tool
     if model is not geo:
         params["geometric_only"] = _param_block(geo)
     # networks trained by this calibrate run (stage -> file beside params.yaml)

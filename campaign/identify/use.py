@@ -100,8 +100,7 @@ class CalibratedRobot:
             raise DataError(f"{metrics_path}: malformed ({exc.__class__.__name__})") from None
         params = read_yaml_mapping(params_path, DataError)
         self.robot = robot or RunFolder(self.run_dir).robot()
-        if params.get("measured_point_in_tool_m") is not None:  # one-reflector data: the model's tool point
-            self.robot = self.robot.with_tool_point(params["measured_point_in_tool_m"])
+        self.robot = measured_frame(self.robot, params, params_path)
         if params.get("robot") not in (None, self.robot.name):
             raise DataError(f"{params_path}: calibrated for robot {params.get('robot')!r}, "
                             f"the run's robot is {self.robot.name!r}")
@@ -182,10 +181,22 @@ def calibrated_geometry(run_dir) -> tuple:
     if not params_path.is_file():
         raise DataError(f"{params_path}: not found; run `campaign calibrate {run_dir}` first")
     params = read_yaml_mapping(params_path, DataError)
-    robot = load_robot_for_run(run_dir)
+    robot = measured_frame(load_robot_for_run(run_dir), params, params_path, point=False)
     block = params.get("geometric_only", params)
     return robot, _block(robot, {"p_e_names": block.get("p_e_names"), "p_e": block.get("p_e")}, params_path,
                          "geometric_only." if "geometric_only" in params else "").p_e
+
+
+def measured_frame(robot: RobotModel, params: dict, params_path, *, point: bool = True) -> RobotModel:
+    """The run's robot whose tool frame is where the calibrated data were measured (params.yaml):
+    a one-reflector measured point (``point``), a tool mounting of 6-D or raw-reflector data."""
+    from campaign.identify.calibrate import mounting_from_json
+
+    if point and params.get("measured_point_in_tool_m") is not None:  # one-reflector data: the model's tool point
+        robot = robot.with_tool_point(params["measured_point_in_tool_m"])
+    if params.get("tool_mounting_in_tool") is not None:
+        robot = robot.with_tool_transform(mounting_from_json(params["tool_mounting_in_tool"], params_path))
+    return robot
 
 
 def _rows(context, idx):

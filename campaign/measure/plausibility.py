@@ -19,6 +19,10 @@ Checks on the data (after `import`, and again in `calibrate`), :func:`check_data
 * ``measured_point`` — one-reflector data that fit the nominal model measured at a point off the
   tool frame's origin, robot.yaml naming none (a marker stuck on the hand): said with the point,
   which `calibrate` then fits at, instead of ``nominal_residual``;
+* ``tool_mounting`` — 6-D or raw-reflector data that fit the nominal model measured in a frame
+  moved and turned from the URDF's tool frame (a marker plate, a flange the URDF does not
+  describe): said with its angle and distance, which `calibrate` then fits in, instead of
+  ``nominal_residual`` (whose joint-convention hint stays for data that no mounting explains);
 * ``base_frame`` — robot-frame data that fit the nominal model only after a rigid move;
 * ``rotation_reading`` / ``orientation_residual`` — the orientation columns read in another
   convention (roll-pitch-yaw, KUKA's A, B, C) agree with the nominal orientations.
@@ -87,6 +91,12 @@ def measured_point(robot, kind: str):
     if kind != "point":
         return None
     return np.asarray(robot.reflector_positions_in_E[0]) if len(robot.reflectors) == 1 else np.zeros(3)
+
+
+def nominal_limit_m(robot) -> float:
+    """How far (rms, m) data may miss the nominal model, rigidly registered, before the miss is
+    more than a real robot's geometric errors."""
+    return max(NOMINAL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE * robot_size_m(robot))
 
 
 def _sample(n: int) -> np.ndarray:
@@ -275,7 +285,6 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
     kind = poses.kind
     P_meas = _measured_points(poses)[idx]
     P_nom = _points(robot, q, kind, poses.marker_positions)
-    size = robot_size_m(robot)
     out = []
     layout_bad = False
     if kind == "markers" and poses.markers is not None and poses.markers.shape[1] >= 2:
@@ -284,7 +293,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
             out.append(w)
             layout_bad = True
     scale = _spread_m(P_meas.reshape(-1, 3)) / max(_spread_m(P_nom.reshape(-1, 3)), 1e-300)
-    limit = max(NOMINAL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE * size)
+    limit = nominal_limit_m(robot)
     if not layout_bad and np.isfinite(scale) and not 1 / WORKSPACE_SCALE_MAX <= scale <= WORKSPACE_SCALE_MAX:
         cause = _unit_cause(robot, q, P_meas, kind, poses.marker_positions, limit)
         out.append(Finding("workspace_scale",
@@ -296,7 +305,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
         return out
     rms, _ = _registered_rms(P_nom, P_meas)
     noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
-    found = _off_point(robot, poses, q, P_meas, rms, limit)
+    found = _off_point(robot, poses, q, P_meas, rms, limit) or _off_mounting(robot, poses, idx, rms, limit)
     if found is not None:
         out.append(found)
     elif np.isfinite(rms) and rms > limit:
@@ -357,6 +366,75 @@ def _off_point(robot, poses, q, P_meas, rms, limit):
                    f"within {_mm(rms_p)} measured at ({where}) mm in the tool frame ({robot.tool_frame}): a "
                    "reflector off the tool frame, which calibrate finds and fits at; name it in robot.yaml's "
                    "reflectors when it is known (docs/priors.md, \"The measured point\")")
+
+
+def tool_mounting(robot, q, T_measured, frame: str):
+    """The frame 6-D data (or raw reflectors' fitted poses) were measured in, when it is not the
+    URDF's tool frame: (T (4, 4) the tracker's pose (identity for ``frame`` "robot"), X (4, 4) the
+    measured frame in the tool frame) minimising the position misfit of T·FK(q)·X's origin
+    (:func:`register_measured_point`) and then the orientations' (X's rotation: the mean of
+    (T FK)ᵀ R_measured, projected on the rotations), on joint vectors q (n, N) and measured poses
+    T_measured (n, 4, 4) (rows with a missing value left out); None when X lies within
+    POINT_REGISTRATION_MIN_TOLERANCES tool tolerances and CORRECTION_MAX_RAD of the identity (the
+    tool transform's own parameters fit that)."""
+    T_meas = np.asarray(T_measured, dtype=float)
+    ok = np.isfinite(T_meas).all(axis=(1, 2))
+    if ok.sum() < 3:
+        return None
+    T_fk = forward(robot, np.asarray(q)[ok])
+    T, p = register_measured_point(T_fk, T_meas[ok, :3, 3], tracker=frame == "tracker")
+    D = np.einsum("nji,jk,nkl->nil", T_fk[:, :3, :3], T[:3, :3].T, T_meas[ok, :3, :3]).mean(axis=0)
+    U, _, Vt = np.linalg.svd(D)
+    X = np.eye(4)
+    X[:3, :3] = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    X[:3, 3] = p
+    tol = robot_tolerances(robot)
+    if (np.linalg.norm(p) <= POINT_REGISTRATION_MIN_TOLERANCES * tol["tool_m"]
+            and np.linalg.norm(matrix_to_rotvec(X[:3, :3])) <= CORRECTION_MAX_RAD):
+        return None
+    return T, X
+
+
+def mounting_text(robot, X) -> str:
+    """``the tool frame is 29° and 115 mm from the URDF's (tool0)``."""
+    deg = np.rad2deg(np.linalg.norm(matrix_to_rotvec(np.asarray(X)[:3, :3])))
+    return f"the tool frame is {deg:.0f}° and {_mm(np.linalg.norm(np.asarray(X)[:3, 3]))} from the URDF's " \
+           f"({robot.tool_frame})"
+
+
+def mounting_fit(robot, poses, rows=None):
+    """The tool mounting of 6-D or raw-reflector data (MeasuredPoses) on the ``rows`` (indices;
+    default all, at most PLAUSIBILITY_MAX_POSES of them spread evenly): (X (4, 4), registered rms
+    (m) of the nominal model in the URDF's tool frame, the same in the mounted frame X), or None
+    (other kinds, or no mounting beyond the tool's tolerances: :func:`tool_mounting`)."""
+    if poses.kind not in ("pose", "markers"):
+        return None
+    rows = np.arange(len(poses)) if rows is None else np.asarray(rows)
+    idx = rows[_sample(len(rows))]
+    q = poses.q[idx]
+    found = tool_mounting(robot, q, poses.T_IE[idx], poses.frame)
+    if found is None:
+        return None
+    P_meas = _measured_points(poses)[idx]
+    rms = [_registered_rms(_points(r, q, poses.kind, poses.marker_positions), P_meas)[0]
+           for r in (robot, robot.with_tool_transform(found[1]))]
+    return found[1], rms[0], rms[1]
+
+
+def _off_mounting(robot, poses, idx, rms, limit):
+    """``tool_mounting`` when 6-D or raw-reflector data miss the nominal model by more than
+    ``limit`` but fit it (under ``limit``, rigidly registered) in the frame :func:`tool_mounting`
+    finds."""
+    if not np.isfinite(rms) or rms <= limit:
+        return None
+    fit = mounting_fit(robot, poses, idx)
+    if fit is None or not fit[2] <= limit:
+        return None
+    X, _, rms_x = fit
+    return Finding("tool_mounting",
+                   f"{mounting_text(robot, X)}: a tool mounting (a marker plate, a flange), which calibrate "
+                   f"fits; the nominal model misses the data by {_mm(rms)} rms in the URDF's tool frame, by "
+                   f"{_mm(rms_x)} in the mounted one (the rest: the robot's own errors)")
 
 
 def _reflector_layout(markers, P_nominal):

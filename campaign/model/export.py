@@ -11,7 +11,8 @@ for a revolute joint, a translation ``pd_j`` along z for a prismatic one):
 where ``F_j`` is the product of the fixed joints between joint j-1 and joint j (unchanged) and
 ``S_j`` the model frame's axis alignment (campaign.model.robot). The base transform's error
 ``D_0 = T̄_0⁻¹ T̂_0`` is folded into joint 1's origin; the tool's ``D_E = T̄_E⁻¹ T̂_E`` into the
-last fixed joint before the tool frame, or, when the tool frame is the last moving joint's
+last fixed joint before the tool frame (a tool mounting fitted by calibrate, ``RobotModel.tool_mounting``,
+in front of it: the tool link becomes the measured frame), or, when the tool frame is the last moving joint's
 child link itself, into a new fixed joint ``<tool>_calibration`` above the tool link (its
 parent becomes a new empty link ``<tool>_uncalibrated``). The joint axes stay as written.
 Relative mesh file names are made absolute so the written file finds them from anywhere.
@@ -87,6 +88,8 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path) -> Path:
             origin = D0 @ origin
         joints[names[-1]].origin = origin
     DE = np.linalg.solve(_T(robot.R_nominal[N + 1], robot.t_nominal[N + 1]), That[N + 1])
+    if robot.tool_mounting is not None:  # the nominal tool transform is the URDF's times the mounting
+        DE = robot.tool_mounting @ DE
     tool_names = robot.transform_joints[N + 1]
     if tool_names:
         last = joints[tool_names[-1]]

@@ -151,6 +151,9 @@ class RobotModel:
     meta_path: Path | None = None
     #: pose of F_I (the base frame) in the URDF's root link, (4, 4), with locked joints applied
     T_root_base: np.ndarray = None
+    #: the tool mounting folded into the tool transform (:meth:`with_tool_transform`): the
+    #: measured frame in the URDF's tool frame, (4, 4), or None
+    tool_mounting: np.ndarray = None
 
     # -- loading ------------------------------------------------------------------------
     @classmethod
@@ -289,6 +292,23 @@ class RobotModel:
         t = np.array(self.t_nominal)
         t[-1] = t[-1] + self.R_nominal[-1] @ p
         return dataclasses.replace(self, t_nominal=_read_only(t), name=self.name)
+
+    def with_tool_transform(self, T_tool_measured) -> "RobotModel":
+        """The same robot whose tool frame is the measured frame ``T_tool_measured`` (4, 4) in the
+        URDF's tool frame (moved and turned): the model of 6-D or raw-reflector data measured on a
+        tool mounting (a marker plate, a flange) the URDF does not describe. The mounting is kept
+        in :attr:`tool_mounting` (composed with any earlier one), for the URDF export."""
+        import dataclasses
+
+        X = np.asarray(T_tool_measured, dtype=float).reshape(4, 4)
+        if np.allclose(X, np.eye(4), rtol=0, atol=0):
+            return self
+        t, R = np.array(self.t_nominal), np.array(self.R_nominal)
+        t[-1] = t[-1] + R[-1] @ X[:3, 3]
+        R[-1] = R[-1] @ X[:3, :3]
+        before = np.eye(4) if self.tool_mounting is None else self.tool_mounting
+        return dataclasses.replace(self, t_nominal=_read_only(t), R_nominal=_read_only(R), name=self.name,
+                                   tool_mounting=_read_only(before @ X))
 
     def with_default_reflectors(self) -> "RobotModel":
         """This robot, or, when robot.yaml names no reflector, the same robot carrying
