@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "campaign.iso9283.commands",
     "campaign.auto.commands",
     "campaign.program.commands",
+    "campaign.watch.commands",
 )
 
 

@@ -37,6 +37,9 @@ def register(sub):
                    help="when auto plans: the N most informative poses (default: the short campaign; 0: all)")
     p.add_argument("--no-report", action="store_true", help="no HTML reports at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    from campaign.watch.commands import add_watch_argument
+
+    add_watch_argument(p)
     p.set_defaults(func=_auto)
 
 
@@ -59,6 +62,9 @@ def _auto(args):
     options = AutoOptions(budget_h=args.budget, target_mm=args.target_mm, max_poses=args.max_poses,
                           grid_scale=args.grid_scale if args.grid_scale is not None else 1.0,
                           select=args.select).check()
-    auto(args.run, cell, options, say=lambda line: print(line, flush=True),
-         progress=not args.quiet and sys.stderr.isatty(), report=not args.no_report)
+    from campaign.watch.commands import watching
+
+    with watching(args.run, args.watch):
+        auto(args.run, cell, options, say=lambda line: print(line, flush=True),
+             progress=not args.quiet and sys.stderr.isatty(), report=not args.no_report)
     return 0

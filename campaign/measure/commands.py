@@ -45,6 +45,9 @@ def register(sub):
                    help="forget the poses stored as failed and measure them again")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verbose", action="store_true", help="print every retry and reconnect on stderr")
+    from campaign.watch.commands import add_watch_argument
+
+    add_watch_argument(p)
     p.add_argument("--frame", choices=("robot", "tracker"), default="robot",
                    help="store poses in the robot's base frame from the set-up points (default), or in the "
                         "tracker's own frame without a set-up: calibrate then identifies the tracker's pose")
@@ -54,6 +57,7 @@ def register(sub):
 def _run(args):
     from campaign.errors import ConfigError, PeerError, RobotFault
     from campaign.measure.session import measure_run
+    from campaign.watch.commands import watching
 
     run = args.run
     log = lambda msg: print(f"\n{msg}", file=sys.stderr, flush=True)  # noqa: E731
@@ -66,10 +70,11 @@ def _run(args):
         raise ConfigError("--token-file goes with --controller/--tracker (a cell started here serves on loopback)")
     peers = {} if local else {"controller": _hostport(args.controller, "controller"),
                               "tracker": _hostport(args.tracker, "tracker")}
-    res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
-                      log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
-                      verbose=args.verbose, frame=args.frame, cell=args.cell, options=args.options,
-                      token_file=args.token_file, **peers)
+    with watching(run, args.watch):
+        res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
+                          log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
+                          verbose=args.verbose, frame=args.frame, cell=args.cell, options=args.options,
+                          token_file=args.token_file, **peers)
     h = res.simulated_duration_s / 3600
     print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
           f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"

@@ -1,0 +1,1 @@
+"""`campaign watch`: the live page of a run (server, API, bundled assets); docs/watch.md."""

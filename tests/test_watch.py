@@ -1,0 +1,288 @@
+"""`campaign watch` and `--watch`: the live page of a run (docs/watch.md), over real sockets, and in
+a real headless Chromium while a simulated campaign runs (skipped where no Chromium is installed)."""
+
+import http.client
+import json
+import math
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from campaign.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+TOKEN = "a-shared-secret-of-the-cell-0123456789"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from screenshot_reports import find_browser  # noqa: E402
+
+sys.path.pop(0)
+
+
+def _reject_constant(name):
+    raise ValueError(f"not strict JSON: {name}")
+
+
+def get(port, path, headers=None):
+    """(status, headers, body) of one GET on 127.0.0.1:port."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        conn.request("GET", path, headers=headers or {})
+        r = conn.getresponse()
+        return r.status, dict(r.getheaders()), r.read()
+    finally:
+        conn.close()
+
+
+def get_json(port, path, headers=None):
+    status, _, body = get(port, path, headers)
+    assert status == 200, body
+    return json.loads(body, parse_constant=_reject_constant)
+
+
+def log_counts(run):
+    """(measured, failed) in the run's log, read here with SQLite itself."""
+    try:
+        with sqlite3.connect(f"file:{run / 'measurements.sqlite'}?mode=ro", uri=True) as db:
+            got = dict(db.execute("SELECT status, COUNT(*) FROM poses GROUP BY status").fetchall())
+    except sqlite3.OperationalError:
+        return 0, 0
+    return got.get("measured", 0), got.get("failed", 0)
+
+
+def url_from(stream, pattern=r"http://127\.0\.0\.1:(\d+)/", timeout_s=60.0):
+    """The port in the first line of ``stream`` matching ``pattern`` (read in a thread: no hang)."""
+    found = {}
+
+    def read():
+        for line in stream:
+            m = re.search(pattern, line)
+            if m:
+                found["port"] = int(m.group(1))
+                return
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    t.join(timeout_s)
+    assert "port" in found, "the watcher never said where it serves"
+    return found["port"]
+
+
+# -- beyond loopback ---------------------------------------------------------------------------------
+def test_beyond_loopback_without_a_token_file_the_command_refuses_in_one_line(tmp_path, capsys):
+    (tmp_path / "run").mkdir()
+    assert main(["watch", str(tmp_path / "run"), "--host", "0.0.0.0", "--port", "0"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--host 0.0.0.0" in err[0] and "--token-file" in err[0]
+
+
+def test_a_token_file_shorter_than_sixteen_characters_is_refused_naming_the_file(tmp_path, capsys):
+    token = tmp_path / "token"
+    token.write_text("short\n")
+    assert main(["watch", str(tmp_path), "--host", "0.0.0.0", "--port", "0", "--token-file", str(token)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(token) in err[0] and "16" in err[0]
+
+
+def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
+    from campaign.measure.auth import read_token
+    from campaign.watch.server import WatchServer
+
+    token = tmp_path / "token"
+    token.write_text(TOKEN + "\n")
+    (tmp_path / "run").mkdir()
+    server = WatchServer(tmp_path / "run", host="127.0.0.1", port=0, key=read_token(token)).start()
+    try:
+        for path in ("/", "/api/status", "/api/poses", "/?token=wrong-token-0123456789"):
+            assert get(server.port, path)[0] == 401
+        status, headers, _ = get(server.port, f"/api/status?token={TOKEN}")
+        assert status == 303 and headers["Location"] == "/api/status"  # the token leaves the address bar
+        cookie = headers["Set-Cookie"]
+        assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and TOKEN not in cookie
+        jar = {"Cookie": cookie.split(";")[0]}
+        assert get_json(server.port, "/api/status", jar)["state"] == "planned"
+        assert get(server.port, "/", jar)[0] == 200
+        assert get(server.port, "/api/status", {"Cookie": "campaign_watch=0123abcd"})[0] == 401
+    finally:
+        server.stop()
+
+
+# -- the API against a log written here ------------------------------------------------------------------
+def _write_log(run, robot, ids, q, failed, offsets_m, times_s):
+    from campaign.measure.store import MeasurementStore, PoseRecord
+    from campaign.model.kinematics import forward
+
+    T = forward(robot, q)
+    with MeasurementStore(run / "measurements.sqlite") as store:
+        store.use_wal()
+        store.add_event("session_start", {"planned": 10})
+        for k, pid in enumerate(ids):
+            if pid in failed:
+                store.add_pose(PoseRecord(int(pid), "failed", tuple(q[k]), seq=k, reason="tracker: brr: beam_lost",
+                                          time_s=times_s[k], wall_time_unix_s=time.time()))
+            else:
+                xyz = T[k, :3, 3] + offsets_m[k]
+                store.add_pose(PoseRecord(int(pid), "measured", tuple(q[k]), seq=k, time_s=times_s[k],
+                                          wall_time_unix_s=time.time(), xyz=tuple(xyz), rotvec=(0.0, 0.0, 0.0)))
+            if k == 3:
+                store.add_event("drift_check", {"drift_mm": 0.031, "over_threshold": False}, pose_id=int(pid),
+                                time_s=times_s[k] + 1.0)
+
+
+def test_status_and_poses_agree_with_a_log_written_here_and_the_state_follows_the_lock(tmp_path, robot):
+    from campaign.run import RunFolder
+    from campaign.sim.truth import random_joint_poses
+    from campaign.watch.server import WatchServer
+
+    run = tmp_path / "run"
+    (run / "plan").mkdir(parents=True)
+    q = random_joint_poses(robot, 10, seed=3)
+    ids = np.arange(500, 510)
+    (run / "plan" / "poses.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6\n" + "".join(
+        f"{i}," + ",".join(repr(float(v)) for v in row) + "\n" for i, row in zip(ids, q)))
+    server = WatchServer(run, port=0).start()
+    try:
+        st = get_json(server.port, "/api/status")
+        assert st["state"] == "planned" and (st["measured"], st["failed"], st["planned"]) == (0, 0, 10)
+        assert get_json(server.port, "/api/poses") == []
+
+        rng = np.random.default_rng(7)
+        offsets = rng.normal(size=(10, 3)) * 1e-3  # known position errors against the nominal model
+        times = np.arange(10) * 36.0 + 100.0
+        _write_log(run, robot, ids[:8], q[:8], {502, 506}, offsets, times)
+        time.sleep(0.6)  # the view reads the log at most every 0.5 s
+        st = get_json(server.port, "/api/status")
+        assert set(st) == {"measured", "failed", "planned", "eta_s", "state", "campaign_h", "last_pose", "drift"}
+        assert (st["measured"], st["failed"], st["planned"]) == (6, 2, 10)
+        assert st["state"] == "interrupted"  # no command holds the run, two planned poses have no outcome
+        assert st["last_pose"] == 507 and math.isclose(st["campaign_h"], times[7] / 3600)
+        assert math.isclose(st["eta_s"], 2 * 36.0)  # two poses to go at 36 s each on the campaign clock
+        assert math.isclose(st["drift"]["last_mm"], 0.031) and st["drift"]["checks"] == 1
+        poses = get_json(server.port, "/api/poses")
+        assert [p["pose_id"] for p in poses] == list(range(500, 508))
+        assert [p["reason"] for p in poses if p["status"] == "failed"] == ["tracker: brr: beam_lost"] * 2
+        for p, off in zip(poses, offsets):
+            if p["status"] == "measured":
+                assert math.isclose(p["error_nominal_mm"], 1e3 * np.linalg.norm(off), rel_tol=1e-9)
+            else:  # where in the workspace it failed: the nominal position of its joints
+                assert p["error_nominal_mm"] is None and len(p["nominal_xyz_m"]) == 3
+        assert [p["pose_id"] for p in get_json(server.port, "/api/poses?from=6")] == [506, 507]
+
+        with RunFolder(run).lock("run"):  # a driver holds the run (here: this process)
+            assert get_json(server.port, "/api/status")["state"] == "running"
+        _write_remaining(run, robot, ids, q, offsets, times)
+        time.sleep(0.6)
+        st = get_json(server.port, "/api/status")
+        assert (st["measured"], st["failed"], st["state"], st["eta_s"]) == (8, 2, "finished", 0.0)
+
+        # only the reports' folders are served, never the simulator's truth nor anything outside
+        (run / "sim").mkdir()
+        (run / "sim" / "truth.yaml").write_text("secret: 1\n")
+        (run / "plan" / "tour.png").write_bytes(b"\x89PNG")
+        assert get(server.port, "/run/plan/tour.png")[0] == 200
+        for path in ("/run/sim/truth.yaml", "/run/../run/sim/truth.yaml", "/run/plan/../sim/truth.yaml",
+                     "/run/campaign.yaml", "/run/measurements.sqlite", "/api/poses?from=-1"):
+            assert get(server.port, path)[0] in (400, 404), path
+    finally:
+        server.stop()
+
+
+def _write_remaining(run, robot, ids, q, offsets, times):
+    from campaign.measure.store import MeasurementStore, PoseRecord
+    from campaign.model.kinematics import forward
+
+    T = forward(robot, q)
+    with MeasurementStore(run / "measurements.sqlite") as store:
+        for k in (8, 9):
+            store.add_pose(PoseRecord(int(ids[k]), "measured", tuple(q[k]), seq=k, time_s=times[k],
+                                      xyz=tuple(T[k, :3, 3] + offsets[k]), rotvec=(0.0, 0.0, 0.0)))
+
+
+# -- live, in a real browser ---------------------------------------------------------------------------
+@pytest.mark.skipif(find_browser() is None, reason="no Chromium on this machine (apt-get install chromium)")
+def test_a_headless_browser_follows_a_simulated_campaign_live_until_finished(runs):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from browser import Chromium
+    finally:
+        sys.path.pop(0)
+    run = runs.make(n=24, sim={"time_factor": 0.015}, run={"timeout_s": 2.0})  # ~0.4 s per pose in real time
+    proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet", "--watch", "0"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV,
+                            start_new_session=True)
+    try:
+        port = url_from(proc.stderr)
+        with Chromium(width=1200, height=900) as browser:
+            browser.goto(f"http://127.0.0.1:{port}/")
+            seen, samples = [], 0
+            while proc.poll() is None:
+                before = log_counts(run)[0]
+                shown = browser.evaluate("document.getElementById('measured').textContent")
+                try:
+                    status = get_json(port, "/api/status")
+                except ConnectionError:  # the run ended and its watcher with it, between poll() and here
+                    assert proc.wait(timeout=30) == 0
+                    break
+                after = log_counts(run)[0]
+                if shown.isdigit():
+                    assert before - 5 <= int(shown) <= after, (before, shown, after)
+                    seen.append(int(shown))
+                if status["state"] == "running":  # read within 0.25 s of the log (RunView's refresh)
+                    assert before - 5 <= status["measured"] <= after
+                samples += 1
+                time.sleep(0.3)
+            # the command keeps serving a moment after the run while a page polls: the page ends "finished"
+            browser.wait_for("document.getElementById('state').textContent === 'finished'", timeout_s=10)
+            final = int(browser.evaluate("document.getElementById('measured').textContent"))
+        assert proc.wait(timeout=30) == 0
+        measured, failed = log_counts(run)
+        assert final == measured and measured + failed == 24
+        from campaign.watch.server import WatchServer
+
+        server = WatchServer(run, port=0).start()  # a watcher opened on the finished run
+        try:
+            st = get_json(server.port, "/api/status")
+        finally:
+            server.stop()
+        assert (st["state"], st["measured"], st["failed"], st["planned"]) == ("finished", measured, failed, 24)
+        assert len(set(seen)) >= 3 and seen == sorted(seen) and seen[-1] > seen[0], seen  # it grew, live
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def test_a_watcher_on_a_killed_run_shows_it_interrupted(runs):
+    run = runs.make(n=200, sim={"time_factor": 5e-4})
+    watcher = subprocess.Popen([sys.executable, "-m", "campaign.cli", "watch", str(run), "--port", "0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    driver = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV, start_new_session=True)
+    try:
+        port = url_from(watcher.stdout)
+        deadline = time.time() + 60
+        while time.time() < deadline and log_counts(run)[0] < 10:
+            time.sleep(0.05)
+        assert get_json(port, "/api/status")["state"] == "running"
+        os.killpg(driver.pid, signal.SIGKILL)  # no goodbye: the lock file still names the dead driver
+        driver.wait()
+        time.sleep(0.6)
+        st = get_json(port, "/api/status")
+        assert st["state"] == "interrupted" and st["measured"] == log_counts(run)[0] < 200
+        assert json.loads((run / ".lock").read_text())["command"] == "run"
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+        watcher.send_signal(signal.SIGINT)
+        watcher.wait(timeout=10)
+        for pid in runs.cell_pids(run):
+            os.kill(pid, signal.SIGKILL)
