@@ -173,3 +173,7 @@ STREAM_DISTANCE_TOL_REL = 0.01
 #: sum to at most this factor of the time between the windows plus STREAM_DWELL_SLACK_S
 STREAM_DWELL_FACTOR = 1.5
 STREAM_DWELL_SLACK_S = 2.0
+#: The smallest error (mm) a log-scaled report figure shows: 1 pm, far below any tracker's
+#: noise; smaller errors (exact data: a nominal model's own predictions, a perfect adapter)
+#: are drawn at this value instead of at log10(0) = -inf.
+REPORT_LOG_FLOOR_MM = 1e-9

@@ -16,6 +16,7 @@ from campaign.identify.report import (SIDE_STAGES, WORKSPACE_CELLS, WORKSPACE_MI
                                       orientation_measured, signed_components, workspace_colour_scale)
 from campaign.identify.svgplot import (LABEL_PX, SUPTITLE_PX, TICK_PX, Svg, SvgPanels, colour, decade_ticks,
                                       nice_ticks, viridis)
+from campaign.tolerances import REPORT_LOG_FLOOR_MM
 
 #: colour levels of the workspace figure (one path per level)
 WORKSPACE_LEVELS = 64
@@ -35,17 +36,18 @@ def svg_distributions(residuals: dict, is_test, out: Path) -> list:
                      left=70, top=70 if two_lines else 56)
     for c, (label, unit, k) in enumerate(blocks):
         vals = [_norms(residuals[s][use])[k] for s in names]
-        hi = max(np.max(v) for v in vals)
-        lo = max(min(max(np.min(v), 1e-9) for v in vals), hi * 1e-5)
+        hi = max(float(np.max(v)) for v in vals)
+        hi = max(hi, REPORT_LOG_FLOOR_MM)  # zero errors (exact data) on the floor, not at log10(0)
+        lo = min(max(min(max(float(np.min(v)), REPORT_LOG_FLOOR_MM) for v in vals), hi * 1e-5), hi)
         edges = np.linspace(np.log10(lo * 0.95), np.log10(hi * 1.05), 50)  # log10 of the quantity
         for r, (name, v) in enumerate(zip(names, vals)):
-            counts, _ = np.histogram(np.log10(np.maximum(v, 1e-300)), bins=edges)
+            counts, _ = np.histogram(np.log10(np.maximum(v, lo)), bins=edges)
             sx, sy = np.repeat(edges, 2)[1:-1], np.repeat(counts, 2).astype(float)  # the histogram's steps
             grid.band(r, c, sx, np.zeros_like(sy), sy, color=colour(r), alpha=0.45)
             grid.line(r, c, sx, sy, color=colour(r), width=1.2)
             mean, q90 = float(np.mean(v)), float(np.quantile(v, 0.9))
-            grid.vline(r, c, np.log10(mean), color="#000", width=1.0)
-            grid.vline(r, c, np.log10(q90), color="#000", width=1.0, dash="5 3")
+            grid.vline(r, c, np.log10(max(mean, lo)), color="#000", width=1.0)
+            grid.vline(r, c, np.log10(max(q90, lo)), color="#000", width=1.0, dash="5 3")
             grid.title(r, c, f"{name}:{chr(10) if two_lines else '  '}mean {mean:.3g} {unit}, q90 {q90:.3g} {unit}")
     svg = Svg(grid.width, grid.height)
     grid.finish(svg, xlabels=[f"{label} [{unit}], log scale" for label, unit, _ in blocks],
@@ -173,7 +175,8 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
             seen.add(stage)
             labels.append(stage)
             values.append(stages[stage]["position_mm"]["mean"])
-    lo, hi = min(values), max(values)
+    shown = np.maximum(values, REPORT_LOG_FLOOR_MM)  # on the log axis: exact data on the floor
+    lo, hi = float(shown.min()), float(shown.max())
     floor = noise_floor.mean_position_mm if noise_floor is not None and noise_floor.mean_position_mm > 0 else None
     if floor is not None:  # a zero floor has no place on a log axis
         lo = min(lo, floor)
@@ -208,7 +211,7 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
              anchor="middle")
     chain = [x for x, label in enumerate(labels) if label not in SIDE_STAGES]
     side = [x for x, label in enumerate(labels) if label in SIDE_STAGES]
-    vals = np.asarray(values)
+    vals = shown
     legend = [("line", colour(0), "model as it was built up")]
     svg.polyline(X(chain), Y(vals[chain]), stroke=colour(0), width=1.6)
     svg.markers(X(chain), Y(vals[chain]), r=4, fill=colour(0))
@@ -220,8 +223,8 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
         svg.add(f'<path d="M{left} {fy:.1f}h{pw}" stroke="{colour(3)}" stroke-width="1.8" stroke-dasharray="2 3" '
                 f'fill="none" class="noise-floor" data-floor-mm="{floor:.6g}"/>')
         legend.append(("dots", colour(3), f"tracker noise floor {floor_label(noise_floor)}"))
-    for x, v in enumerate(values):
-        svg.text(float(X(x)), float(Y(v)) - 9, f"{v:.3g}", anchor="middle")
+    for x, (v, y) in enumerate(zip(values, shown)):
+        svg.text(float(X(x)), float(Y(y)) - 9, f"{v:.3g}", anchor="middle")
     for x, s in enumerate(wrapped):
         svg.text(float(X(x)), top + ph + 16, s, anchor="middle")
     # the legend, upper right, on white
