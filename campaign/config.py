@@ -111,7 +111,18 @@ def check_names(value, where: str) -> tuple:
             raise ConfigError(f"{where}[{i}]: must be a string, got {v!r}")
         if v.strip():
             out.append(v.strip())
-    return tuple(out)
+    return refuse_repeats(out, where)
+
+
+def refuse_repeats(names, where: str) -> tuple:
+    """``names`` as a tuple, or a ConfigError naming the first entry given twice (an effect
+    named twice would be fitted twice over: its parameters undetermined, its stage unusable)."""
+    seen = set()
+    for name in names:
+        if name in seen:
+            raise ConfigError(f"{where}: '{name}' is named twice (name each effect once)")
+        seen.add(name)
+    return tuple(names)
 
 
 def check_hidden_effects(value, where: str) -> tuple:
@@ -138,9 +149,7 @@ def check_hidden_effects(value, where: str) -> tuple:
             raise ConfigError(f"{where}[{i}]: must be a string or {{effect: NAME, params: [...]}}, got {v!r}")
         elif v.strip():
             specs.append(v.strip())
-    if len(set(specs)) < len(specs):
-        raise ConfigError(f"{where}: an effect is hidden twice")
-    return tuple(specs), tuple(stated)
+    return refuse_repeats(specs, where), tuple(stated)
 
 
 def parse_faults(section, where="campaign.yaml"):

@@ -73,3 +73,44 @@ def test_report_figures_draw_zero_and_constant_errors(tmp_path, value_mm):
     svg = (tmp_path / dist[0]).read_text()
     assert not re.search(r"\b(nan|inf)\b", svg.lower())
     assert len(joints) == 2 and ws
+
+
+@pytest.fixture(scope="module")
+def nominal_run(tmp_path_factory):
+    """An imported run of exact nominal COMAU poses (not calibrated)."""
+    tmp = tmp_path_factory.mktemp("nominal")
+    run = tmp / "run"
+    assert main(["import", str(nominal_csv(tmp / "nominal.csv", n=40)), "--run", str(run), "--quiet"]) == 0
+    return run
+
+
+def run_copy(run: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, dst)
+    return dst
+
+
+# -- 2. an effect named twice -------------------------------------------------------------------
+
+def test_an_effect_named_twice_in_effects_is_refused_before_any_fit(nominal_run, capsys):
+    one_line_error(capsys, ["calibrate", nominal_run, "--no-ann", "--effects", "ground_compliance,ground_compliance"],
+                   r"--effects: 'ground_compliance' is named twice")
+    assert not (nominal_run / "calibration").exists()
+
+
+def test_an_effect_named_twice_in_campaign_yaml_is_refused_by_calibrate_and_auto(nominal_run, tmp_path, capsys):
+    run = run_copy(nominal_run, tmp_path / "run")
+    cfg = run / "campaign.yaml"
+    cfg.write_text(cfg.read_text().replace("effects: []", "effects: [ground_compliance, ground_compliance]"))
+    for argv in (["calibrate", run, "--no-ann"], ["auto", run, "--sim"]):
+        one_line_error(capsys, argv, r"campaign\.yaml: effects: 'ground_compliance' is named twice")
+    assert not (run / "calibration").exists()
+
+
+def test_two_specs_of_one_effect_name_are_refused(nominal_run, tmp_path, capsys):
+    mine = tmp_path / "mine.py"
+    mine.write_text("from campaign.effects.ground_compliance import GroundCompliance\n\n\n"
+                    "class Mine(GroundCompliance):\n    pass\n")
+    one_line_error(capsys, ["calibrate", nominal_run, "--no-ann", "--effects", f"ground_compliance,{mine}:Mine"],
+                   r"both named 'ground_compliance'")

@@ -321,7 +321,7 @@ def candidate_specs(candidates, current, run_dir):
     if candidates is None:
         specs = list(available()) + sorted(set(entry_point_effects()) - set(available()))
     else:
-        specs = [resolve_effect_spec(s) for s in parse_effect_list(candidates)]
+        specs = [resolve_effect_spec(s) for s in parse_effect_list(candidates, "--candidates")]
     current_names = {effect_class(e).name for e in current}
     return [s for s in specs if s not in current and effect_class(s).name not in current_names]
 

@@ -154,15 +154,18 @@ def effect_name(spec: str) -> str:
     return effect_class(spec).name
 
 
-def parse_effect_list(text) -> tuple:
-    """``"a,b"`` or a list -> tuple of specs (empty entries dropped)."""
+def parse_effect_list(text, where: str = "--effects") -> tuple:
+    """``"a,b"`` or a list -> tuple of specs (empty entries dropped); a spec given twice is a
+    ConfigError naming ``where``."""
+    from campaign.config import refuse_repeats
+
     if text is None:
         return ()
     if isinstance(text, str):
         items = text.split(",")
     else:
         items = list(text)
-    return tuple(s.strip() for s in items if str(s).strip())
+    return refuse_repeats([s.strip() for s in items if str(s).strip()], where)
 
 
 class Effect:
@@ -227,6 +230,14 @@ class EffectSet:
     """An ordered tuple of effects with a flat parameter vector spanning all of them."""
 
     effects: tuple = ()
+
+    def __post_init__(self):
+        by_name = {}
+        for e in self.effects:  # two specs of one effect (a built-in and a file of the same name)
+            if e.name in by_name:
+                raise ConfigError(f"effects '{by_name[e.name]}' and '{e.spec}' are both named '{e.name}': "
+                                  "a model holds each effect once")
+            by_name[e.name] = e.spec
 
     @property
     def n_params(self) -> int:

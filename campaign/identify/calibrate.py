@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import effect_context, effect_name, make_effect, parse_effect_list, resolve_effect_spec
+from campaign.effects.base import (EffectSet, effect_context, effect_name, make_effect, parse_effect_list,
+                                   resolve_effect_spec)
 from campaign.errors import ConfigError, DataError, Implausible
 from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.ann_stage import AnnStages
@@ -385,8 +386,7 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         check_ann_options(ann_options or {})
     robot = robot or run.robot()
     effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
-    for name in effects:  # an unknown effect is one line before any fit
-        make_effect(name, robot)
+    EffectSet(tuple(make_effect(name, robot) for name in effects))  # unknown or twice: one line before any fit
     fix = check_model_options(robot, effects, model, fix)  # a bad --model or --fix: one line before any fit
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():

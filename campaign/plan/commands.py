@@ -157,7 +157,7 @@ def _selection_options(args):
 
         args.select = DEFAULT_SELECT  # the default short campaign, with these options
     if args.for_effects is not None:
-        effects = parse_effect_list(args.for_effects)
+        effects = parse_effect_list(args.for_effects, "--for-effects")
     else:
         from campaign.run import RunFolder
 

@@ -61,7 +61,7 @@ def _synth(args):
     robot = load_robot(args.robot, tool_frame=args.tool_frame, base_frame=args.base_frame)
     if args.kind == "pose" and args.frame == "robot" and args.miss_rate == 0:
         poses, truth = synthetic_campaign(robot, args.poses, seed=args.seed, noise_m=args.noise_um * 1e-6,
-                                          hidden=parse_effect_list(args.hidden))
+                                          hidden=parse_effect_list(args.hidden, "--hidden"))
     else:
         from dataclasses import replace
 
@@ -71,7 +71,7 @@ def _synth(args):
             raise ConfigError(f"--miss-rate must be in [0, 1), got {args.miss_rate}")
         # one-reflector data identify fewer parameters: the truth's errors go where they can see them
         _, truth = synthetic_campaign(robot, 1, seed=args.seed, noise_m=args.noise_um * 1e-6,
-                                      hidden=parse_effect_list(args.hidden), position_only=args.kind == "point")
+                                      hidden=parse_effect_list(args.hidden, "--hidden"), position_only=args.kind == "point")
         if args.frame == "tracker":
             truth = replace(truth, T_LI=random_tracker_pose(args.seed))
         from campaign.sim.truth import random_joint_poses
