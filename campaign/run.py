@@ -184,6 +184,22 @@ class RunFolder:
 
         return tuple(resolve_effect_spec(e, self.config.dir) for e in self.config.effects)
 
+    def last_calibration(self) -> dict | None:
+        """What the run's current calibration fitted, read from its params.yaml (not from
+        campaign.yaml, which a `calibrate --effects` does not change): {"calibration_id",
+        "effects": (spec, ...), "path"}; None when the run is not calibrated."""
+        from campaign.versioned import calibration_folder
+
+        path = (calibration_folder(self.path).current() or self.calibration_dir) / "params.yaml"
+        if not path.is_file():
+            return None
+        params = read_yaml_mapping(path, DataError)
+        block = params.get("effects") or {}
+        if not isinstance(block, dict):
+            raise DataError(f"{path}: effects: expected a mapping of effect names, got {block!r}")
+        specs = tuple(str((v.get("spec") if isinstance(v, dict) else None) or k) for k, v in block.items())
+        return {"calibration_id": params.get("calibration_id"), "effects": specs, "path": path}
+
     # -- the measurement log ------------------------------------------------------------------
     def store(self, *, create: bool = False):
         """The run's MeasurementStore (``create``: make the folder and the log if missing)."""

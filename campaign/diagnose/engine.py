@@ -38,7 +38,7 @@ from campaign.diagnose.candidates import fit_candidate, linearise
 from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, make_effect,
                                    parse_effect_list, resolve_effect_spec)
 from campaign.errors import DataError
-from campaign.identify.calibrate import (check_pose_count, configured_effects, distinct_poses, equations_per_pose,
+from campaign.identify.calibrate import (check_pose_count, distinct_poses, equations_per_pose,
                                          load_robot_for_run, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import FoldRule, choose_folds, run_split, train_test_split, validation_file
@@ -46,6 +46,7 @@ from campaign.measure.drift import Drift, measured_drift
 from campaign.measure.floor import NoiseFloor, noise_floor, times_the_noise
 from campaign.measure.store import open_run
 from campaign.model.base_params import base_parameters
+from campaign.run import RunFolder
 from campaign.tolerances import ZERO_NOISE_MODEL_ATOL_M
 
 #: family-wise significance level of the candidate ranking and of the structure test
@@ -129,6 +130,8 @@ class Diagnosis:
     fold_pose_ids: tuple = ()
     #: the drift over the campaign's time, apart from the floor (campaign.measure.drift.Drift)
     drift: Drift = field(default_factory=Drift)
+    #: where the current model's effects come from, when the last calibration and campaign.yaml differ
+    model_note: str | None = None
 
     @property
     def model_to_noise(self) -> float | None:
@@ -165,6 +168,7 @@ class Diagnosis:
                 "regressor_fit_time_s": None if s is None else s.fit_time_s,
             },
             "current_effects": list(self.current_effects),
+            "model_note": self.model_note,
             "config_line": config_line(self.current_effects, self._verdict_spec()),
             "folds": self.folds,
             "fold_rule": None if self.fold_rule is None else self.fold_rule.as_json(),
@@ -204,6 +208,7 @@ class Diagnosis:
 
     def text(self) -> str:
         lines = [f"current model: geometric" + "".join(f" + {e}" for e in self.current_effects),
+                 *([f"  {self.model_note}"] if self.model_note else []),
                  f"candidates scored on {self.folds} held-out folds of {self.n_train} training poses "
                  f"({'' if self.fold_rule is None else self.fold_rule.reason() + '; '}test set untouched):", "",
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
@@ -326,6 +331,25 @@ def candidate_specs(candidates, current, run_dir):
     return [s for s in specs if s not in current and effect_class(s).name not in current_names]
 
 
+def current_model_effects(run_dir) -> tuple:
+    """(effects of the current model, a note or None): the effects the run's last calibration
+    fitted (its params.yaml: `calibrate --effects` leaves campaign.yaml as it is), or campaign.yaml's
+    when the run is not calibrated; the note says so when the two differ."""
+    run = RunFolder(run_dir)
+    configured = run.effects
+    last = run.last_calibration()
+    if last is None or set(last["effects"]) == set(configured):
+        return configured, None
+    fitted = last["effects"]
+
+    def words(specs):
+        return "geometric" + "".join(f" + {e}" for e in specs)
+
+    return fitted, (f"the last calibration ({last['calibration_id']}) fitted {words(fitted)}, while "
+                    f"{run.config_path} enables {', '.join(configured) or 'no effect'}: diagnosing the "
+                    f"calibrated model (`campaign calibrate {run_dir}` without --effects fits campaign.yaml's)")
+
+
 def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
              structure: bool = True) -> Diagnosis:
     """Diagnose a run's current model: noise floor, model-free structure test, candidate ranking.
@@ -337,8 +361,13 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     run_dir = Path(run_dir)
     say = progress or (lambda msg: None)
     robot = load_robot_for_run(run_dir)
-    current = configured_effects(run_dir) if effects is None else tuple(resolve_effect_spec(e)
-                                                                        for e in parse_effect_list(effects))
+    model_note = None
+    if effects is None:
+        current, model_note = current_model_effects(run_dir)
+    else:
+        current = tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
+    if model_note:
+        say(model_note)
     names = candidate_specs(candidates, current, run_dir)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
@@ -513,4 +542,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
                      r_out, rule, tuple(skipped), expected,
-                     fold_pose_ids(poses.pose_id[tr], fold, folds), measured_drift(run_dir, poses, floor))
+                     fold_pose_ids(poses.pose_id[tr], fold, folds), measured_drift(run_dir, poses, floor),
+                     model_note)
