@@ -173,7 +173,18 @@ STREAM_DISTANCE_TOL_REL = 0.01
 #: sum to at most this factor of the time between the windows plus STREAM_DWELL_SLACK_S
 STREAM_DWELL_FACTOR = 1.5
 STREAM_DWELL_SLACK_S = 2.0
+
 #: The smallest error (mm) a log-scaled report figure shows: 1 pm, far below any tracker's
 #: noise; smaller errors (exact data: a nominal model's own predictions, a perfect adapter)
 #: are drawn at this value instead of at log10(0) = -inf.
 REPORT_LOG_FLOOR_MM = 1e-9
+
+#: A run stops when one pose's readings put two reflectors this many times farther apart (or
+#: closer) than robot.yaml's reflector positions: a nest is machined to ~0.1 mm on distances of
+#: 0.1 m (0.1 %) and a tracker reads to ~10 µm; 1.5× is a unit (mm: 1000×, inches: 39×) or
+#: another tool, never a measurement.
+READING_SPREAD_RATIO_MAX = 1.5
+
+#: A reading farther than this from the tracker (m) is not a distance: the longest-range laser
+#: trackers measure to 80 m (160 m across); a reading in mm of a reflector 0.2 m away is 200.
+TRACKER_RANGE_MAX_M = 160.0

@@ -114,3 +114,100 @@ def test_two_specs_of_one_effect_name_are_refused(nominal_run, tmp_path, capsys)
                     "class Mine(GroundCompliance):\n    pass\n")
     one_line_error(capsys, ["calibrate", nominal_run, "--no-ann", "--effects", f"ground_compliance,{mine}:Mine"],
                    r"both named 'ground_compliance'")
+
+
+# -- 4. diagnose describes the model the last calibration made -----------------------------------
+
+def test_diagnose_after_calibrate_effects_describes_the_calibrated_model(nominal_run, tmp_path, capsys):
+    run = run_copy(nominal_run, tmp_path / "run")
+    assert main(["calibrate", str(run), "--no-ann", "--effects", "ground_compliance"]) == 0
+    calibration_id = json.loads((run / "calibration" / "metrics.json").read_text())["calibration_id"]
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["current_effects"] == ["ground_compliance"]  # params.yaml's, not campaign.yaml's (none)
+    assert "ground_compliance" not in [c["effect"] for c in d["ranking"]]
+    assert calibration_id in d["model_note"] and "campaign.yaml enables no effect" in d["model_note"]
+    # campaign.yaml made to agree: no note
+    cfg = run / "campaign.yaml"
+    cfg.write_text(cfg.read_text().replace("effects: []", "effects: [ground_compliance]"))
+    assert main(["diagnose", str(run), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["current_effects"] == ["ground_compliance"] and d["model_note"] is None
+
+
+# -- 3. a tracker adapter in millimetres stops the run at once ----------------------------------
+
+#: a perfect cell: the nominal robot (Pinocchio) seen by a tracker 2.4 m away; the tracker's
+#: option ``scale`` multiplies its readings (1000: an adapter that returns millimetres)
+PERFECT_CELL = '''
+import numpy as np
+import pinocchio as pin
+
+WORLD = {"q": None}
+T_LI = np.array([[0, -1, 0, 2.4], [1, 0, 0, 0.5], [0, 0, 1, -0.3], [0, 0, 0, 1.0]])
+SETUP_I = {"setup_origin": [0, 0, 0], "setup_x": [0.3, 0, 0], "setup_y": [0, 0.3, 0]}
+
+
+class Controller:
+    joint_convention = "model"
+
+    def __init__(self, robot, options):
+        WORLD["q"] = np.array(robot.q_mid)
+
+    def move(self, q):
+        WORLD["q"] = np.array(q)
+
+
+class Tracker:
+    def __init__(self, robot, options):
+        self.robot, self.scale = robot, float(options.get("scale", 1.0))
+
+    def measure(self, aims):
+        robot = self.robot
+        model = robot.pinocchio_model
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, robot.pinocchio_q(WORLD["q"])[0])
+        T_IE = np.linalg.inv(robot.T_root_base) @ data.oMf[model.getFrameId(robot.tool_frame)].homogeneous
+        T_LE = T_LI @ T_IE
+        true = {r.name: T_LE[:3, :3] @ np.array(r.position_in_E) + T_LE[:3, 3] for r in robot.reflectors}
+        true.update({k: T_LI[:3, :3] @ np.array(v, float) + T_LI[:3, 3] for k, v in SETUP_I.items()})
+        return {name: self.scale * true[name] for name in aims}
+'''
+
+
+def stored_count(run: Path) -> int:
+    import sqlite3
+
+    if not (run / "measurements.sqlite").exists():
+        return 0
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        return db.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
+
+
+@pytest.mark.parametrize("frame, match", [
+    ("tracker", r"pose 1000: reflectors \w+ and \w+ read [\d.]+ m apart, 1,000× the [\d.]+ m of the robot's "
+                r"reflector geometry .*millimetres"),
+    ("robot", r"base-frame set-up: target setup_\w+ reads [\d,]+ m from the tracker, beyond any laser tracker's "
+              r"range \(160 m\): the readings look like millimetres")])
+def test_a_tracker_adapter_in_millimetres_stops_the_run_at_the_first_pose(runs, tmp_path, capsys, frame, match):
+    import time
+
+    run = runs.make(n=30, seed=3, run={"timeout_s": 5.0})
+    (run / "my_cell_mm.py").write_text(PERFECT_CELL)
+    (tmp_path / "mm.yaml").write_text("tracker: {scale: 1000.0}\n")
+    t0 = time.perf_counter()
+    line = one_line_error(capsys, ["run", run, "--cell", "my_cell_mm.py", "--options", tmp_path / "mm.yaml",
+                                   "--frame", frame, "--quiet"], match)
+    assert time.perf_counter() - t0 < 30
+    assert "must return metres" in line and stored_count(run) == 0  # nothing wrong stored
+
+
+def test_a_perfect_adapter_measures_and_calibrates_to_zero(runs, capsys):
+    run = runs.make(n=30, seed=3, run={"timeout_s": 5.0})
+    (run / "my_cell.py").write_text(PERFECT_CELL)
+    assert main(["run", str(run), "--cell", "my_cell.py", "--quiet"]) == 0
+    assert stored_count(run) == 30
+    assert main(["calibrate", str(run), "--no-ann"]) == 0, capsys.readouterr().err
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["stages"]["geometric"]["test"]["position_mm"]["max"] < 1e-6

@@ -11,7 +11,7 @@ from campaign.auto.decisions import TIME_ALPHA, TIME_INPUTS, decide, inputs_text
 from campaign.auto.report import result
 from campaign.auto.state import (MAX_POSES_FACTOR, AutoOptions, AutoResult, CellSource, Decision, Limits, Round,
                                  load_state, save_state)
-from campaign.errors import ConfigError, PeerError, RobotFault
+from campaign.errors import ConfigError, Implausible, PeerError, RobotFault
 from campaign.run import RunFolder
 
 
@@ -177,6 +177,9 @@ class _Loop:
                      + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
         if res.stopped_kind == "interrupted":
             raise KeyboardInterrupt
+        if res.stopped_kind == "implausible":
+            raise Implausible(f"campaign stopped: {res.stopped}; fix it, then run `campaign auto {self.run.path}` "
+                              "again to resume")
         if res.stopped_kind == "robot_fault":
             raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, run `campaign auto "
                              f"{self.run.path}` again to resume")

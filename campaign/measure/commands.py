@@ -55,7 +55,7 @@ def register(sub):
 
 
 def _run(args):
-    from campaign.errors import ConfigError, PeerError, RobotFault
+    from campaign.errors import ConfigError, Implausible, PeerError, RobotFault
     from campaign.measure.session import measure_run
     from campaign.watch.commands import watching
 
@@ -83,6 +83,8 @@ def _run(args):
     if res.stopped_kind == "interrupted":
         print(f"campaign run: {res.stopped}; everything measured is stored, re-run to resume", file=sys.stderr)
         return 130
+    if res.stopped_kind == "implausible":
+        raise Implausible(f"campaign stopped: {res.stopped}; fix it, then re-run to resume")
     if res.stopped_kind == "robot_fault":
         raise RobotFault(f"campaign stopped: {res.stopped}; everything measured is stored, re-run to resume")
     if res.stopped:

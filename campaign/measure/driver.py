@@ -25,9 +25,10 @@ import numpy as np
 
 from campaign.config import MAX_GRID_SIZE as MAX_POSE_ID  # pose ids are the plan's grid indices
 from campaign.config import RunConfig
-from campaign.errors import AuthError, DataError, PeerError, ProtocolError, RobotFault
+from campaign.errors import AuthError, DataError, Implausible, PeerError, ProtocolError, RobotFault
 from campaign.measure import protocol as P
 from campaign.measure.aims import AimPredictor
+from campaign.measure.plausibility import check_tracker_readings
 from campaign.measure.reflectors import frame_from_setup_points, invert, pose_from_reflectors, transform_points
 from campaign.measure.store import PoseRecord, open_run
 from campaign.model.rotations import matrix_to_rotvec
@@ -245,7 +246,9 @@ def _derive(T_LI, P_E, P_L):
 class RunResult:
     """The outcome of one `campaign run` session. ``stopped_kind``: None (every pose has an
     outcome or ``max_poses`` was reached), ``interrupted``, ``robot_fault``, ``unreachable``
-    or ``failures`` (too many failed poses in a row); ``stopped`` says why in words."""
+    ``failures`` (too many failed poses in a row) or ``implausible`` (a pose's readings no tracker
+    measuring in metres gives: campaign.measure.plausibility.check_tracker_readings); ``stopped``
+    says why in words."""
 
     measured: int
     failed: int
@@ -383,7 +386,11 @@ def _setup(store, trk, opts, base):
     if any(len(v) == 0 for v in pts.values()):
         missing = ", ".join(t for t, v in pts.items() if not v)
         raise PeerError(f"tracker: the base-frame set-up points could not be measured ({missing})")
-    T_LI = frame_from_setup_points(*[np.mean(pts[t], axis=0) for t in P.SETUP_TARGETS])
+    means = [np.mean(pts[t], axis=0) for t in P.SETUP_TARGETS]
+    wrong = check_tracker_readings(means, None, P.SETUP_TARGETS)  # their range (their spacing is unknown)
+    if wrong:
+        raise Implausible(f"base-frame set-up: {wrong}")
+    T_LI = frame_from_setup_points(*means)
     T_LI = [[float(v) for v in row] for row in T_LI]
     store.set_meta("setup_points_L", {t: np.mean(v, axis=0).tolist() for t, v in pts.items()})
     store.set_meta("T_LI", T_LI)  # last: its presence marks the set-up as done
@@ -416,6 +423,11 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
             pid = int(ids[k])
             rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base,
                                    targets, aim)
+            wrong = None if rec.status != "measured" else check_tracker_readings(
+                [rec.reflectors[t][0] for t in targets], P_E, targets)
+            if wrong:  # hours of cell time at stake: stop now, this pose not stored
+                stopped, kind = f"pose {pid}: {wrong} (this pose is not stored)", "implausible"
+                break
             store.add_pose(rec)
             clock = max(clock, c)
             if n == 0:

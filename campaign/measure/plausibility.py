@@ -51,7 +51,8 @@ from campaign.tolerances import (CORRECTION_MAX_FRACTION_OF_SIZE, CORRECTION_MAX
                                  FITTED_NOISE_BELOW_FLOOR_FACTOR, MODEL_RESIDUAL_MAX_FRACTION_OF_SIZE,
                                  MODEL_RESIDUAL_MAX_M, NOMINAL_RESIDUAL_MAX_FRACTION_OF_SIZE, NOMINAL_RESIDUAL_MAX_M,
                                  ORIENTATION_SPREAD_MAX_RAD, PLAUSIBILITY_MAX_POSES, POINT_REGISTRATION_MIN_TOLERANCES,
-                                 REFLECTOR_DISTANCE_TOL_M, TRACKER_NOISE_MIN_M, WORKSPACE_SCALE_MAX)
+                                 READING_SPREAD_RATIO_MAX, REFLECTOR_DISTANCE_TOL_M, TRACKER_NOISE_MIN_M,
+                                 TRACKER_RANGE_MAX_M, WORKSPACE_SCALE_MAX)
 
 
 @dataclass(frozen=True)
@@ -437,8 +438,10 @@ def _off_mounting(robot, poses, idx, rms, limit):
                    f"{_mm(rms_x)} in the mounted one (the rest: the robot's own errors)")
 
 
-def _reflector_layout(markers, P_nominal):
-    """``reflector_layout`` when the measured reflectors' distances do not match the nominal ones."""
+def _distances(markers, P_nominal):
+    """(median ratio measured / nominal, median |difference| m, median measured m, median nominal m)
+    of the distances between reflectors (markers (n, k, 3) m, P_nominal (k, 3) m), or None when no
+    pair is measured."""
     k = markers.shape[1]
     i, j = np.triu_indices(k, 1)
     d_meas = np.linalg.norm(markers[:, i] - markers[:, j], axis=-1)
@@ -446,9 +449,16 @@ def _reflector_layout(markers, P_nominal):
     ok = np.isfinite(d_meas) & (d_nom > 0)
     if not ok.any():
         return None
-    ratio = float(np.median((d_meas / d_nom)[ok]))
-    diff = float(np.median(np.abs(d_meas - d_nom)[ok]))
-    meas, nom = float(np.median(d_meas[ok])), float(np.median(np.broadcast_to(d_nom, d_meas.shape)[ok]))
+    return (float(np.median((d_meas / d_nom)[ok])), float(np.median(np.abs(d_meas - d_nom)[ok])),
+            float(np.median(d_meas[ok])), float(np.median(np.broadcast_to(d_nom, d_meas.shape)[ok])))
+
+
+def _reflector_layout(markers, P_nominal):
+    """``reflector_layout`` when the measured reflectors' distances do not match the nominal ones."""
+    found = _distances(markers, P_nominal)
+    if found is None:
+        return None
+    ratio, diff, meas, nom = found
     if not 1 / WORKSPACE_SCALE_MAX <= ratio <= WORKSPACE_SCALE_MAX:
         cause = ("the markers file looks like mm (it must be in m)" if abs(np.log(ratio / 1e-3)) < np.log(1.3) else
                  "the data look like mm imported as metres" if abs(np.log(ratio / 1e3)) < np.log(1.3) else
@@ -461,6 +471,51 @@ def _reflector_layout(markers, P_nominal):
         return Finding("reflector_layout",
                        f"the distances between the measured reflectors differ from the nominal ones by {_mm(diff)} "
                        "(median): check the reflectors' order (m1..mk) and positions in --markers / robot.yaml")
+    return None
+
+
+#: lengths a tracker's software may give instead of metres: (name, how many of them make a metre)
+LENGTH_UNITS = (("millimetres", 1e3), ("centimetres", 1e2), ("inches", 1 / 0.0254), ("feet", 1 / 0.3048),
+                ("micrometres", 1e6))
+
+
+def length_unit_named(ratio: float) -> str | None:
+    """The unit whose metre is ``ratio`` of them, within 10 % (1000 -> "millimetres"), or None."""
+    for name, per_metre in LENGTH_UNITS:
+        if abs(np.log(ratio / per_metre)) < np.log(1.1):
+            return name
+    return None
+
+
+def check_tracker_readings(P_L, P_E, names) -> str | None:
+    """Readings of one pose that no tracker measuring in metres can give, said in one sentence
+    (None when plausible): the reflectors (P_L (k, 3), m in the tracker's frame) farther apart or
+    closer together than the tool's reflectors (P_E (k, 3), m in the tool frame; names (k,)) by
+    more than READING_SPREAD_RATIO_MAX, or a reading beyond any tracker's range
+    (TRACKER_RANGE_MAX_M; P_E None: points of unknown spacing, the range alone). Each names the
+    length unit the readings look like."""
+    P_L = np.asarray(P_L, dtype=float)
+    P_E = np.zeros((0, 3)) if P_E is None else np.asarray(P_E, dtype=float)
+    fix = "the tracker adapter's measure() must return metres in the tracker's frame (docs/cell.md)"
+    if len(P_E) >= 2:
+        i, j = np.triu_indices(len(P_E), 1)
+        d_meas = np.linalg.norm(P_L[i] - P_L[j], axis=-1)
+        d_nom = np.linalg.norm(P_E[i] - P_E[j], axis=-1)
+        k = int(np.argmax(d_nom))  # the widest pair: its ratio the least disturbed by noise
+        ratio = float(d_meas[k] / d_nom[k]) if d_nom[k] > 0 else 1.0
+        if not 1 / READING_SPREAD_RATIO_MAX <= ratio <= READING_SPREAD_RATIO_MAX:
+            unit = length_unit_named(ratio)
+            cause = (f"the readings look like {unit}" if unit else
+                     "the readings are in another unit than metres, or robot.yaml's reflector positions are wrong")
+            return (f"reflectors {names[i[k]]} and {names[j[k]]} read {d_meas[k]:,.4g} m apart, {ratio:,.4g}× the "
+                    f"{d_nom[k]:.4g} m of the robot's reflector geometry (robot.yaml reflectors): {cause}; {fix}")
+    far = np.linalg.norm(P_L, axis=-1)
+    k = int(np.argmax(far))
+    if far[k] > TRACKER_RANGE_MAX_M:
+        unit = (f"the readings look like millimetres ({far[k] / 1e3:.3g} m)" if far[k] / 1e3 <= TRACKER_RANGE_MAX_M
+                else "the readings are in another unit than metres")
+        return (f"target {names[k]} reads {far[k]:,.0f} m from the tracker, beyond any laser tracker's range "
+                f"({TRACKER_RANGE_MAX_M:.0f} m): {unit}; {fix}")
     return None
 
 
