@@ -180,3 +180,53 @@ def test_an_unknown_tool_mounting_is_said_and_fitted_not_blamed_on_the_joint_con
         pin.framesForwardKinematics(model, data, q_new[k])
         np.testing.assert_allclose(data.oMf[frame].translation, pred[k, 7:10], atol=1e-9)
         np.testing.assert_allclose(pin.log3(data.oMf[frame].rotation), pred[k, 10:13], atol=1e-9)
+
+
+def test_the_tracker_pose_in_metrics_maps_predict_and_the_exported_urdf_into_the_trackers_frame(tmp_path, capsys):
+    import pinocchio as pin
+
+    src = _synth(tmp_path, "ur10", "--robot", "ur10", "--poses", "120", "--seed", "12", "--frame", "tracker")
+    run = tmp_path / "run"
+    assert main(["import", str(src), "--run", str(run), "--robot", "ur10", "--frame", "tracker", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    T_L_I = np.asarray(metrics["tracker"]["T_L_I"])
+    for alias in ("T_L_I_registration", "tracker_pose_identified"):  # deprecated, the same matrix
+        np.testing.assert_array_equal(metrics["tracker"][alias], T_L_I)
+    header, values = _read(src)
+    test = np.isin(values[:, 0], metrics["test_pose_ids"])
+    q = values[test][:, 2:8]
+    _write(tmp_path / "q.csv", [f"q{j}" for j in range(1, 7)], q)
+    assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    pred = _read(tmp_path / "p.csv")[1][:, 7:10]
+    measured_L = values[test][:, 8:11]  # the tracker's own readings of poses the fit never saw
+    err_mm = 1e3 * np.linalg.norm(pred @ T_L_I[:3, :3].T + T_L_I[:3, 3] - measured_L, axis=1)
+    assert err_mm.mean() < 0.05, err_mm.mean()  # 10 µm noise: about 0.016 mm mean, plus the fit's
+    assert main(["export", str(run), "--urdf", str(tmp_path / "cal.urdf")]) == 0
+    model = pin.buildModelFromUrdf(str(tmp_path / "cal.urdf"))
+    data = model.createData()
+    for k in range(len(q)):
+        pin.framesForwardKinematics(model, data, q[k])
+        y = T_L_I[:3, :3] @ data.oMf[model.getFrameId("tool0")].translation + T_L_I[:3, 3]
+        assert np.linalg.norm(y - measured_L[k]) < 1e-4
+
+
+def test_one_measured_point_is_said_by_import_calibrate_and_params_yaml(tmp_path, capsys, robot):
+    from campaign.sim.truth import make_truth, random_joint_poses, random_tracker_pose
+
+    truth = make_truth(robot, seed=3, position_only=True)
+    q = random_joint_poses(robot, 60, seed=4)
+    T = truth.pose(q)
+    P = T[:, :3, :3] @ np.array([0.08, -0.03, 0.06]) + T[:, :3, 3]  # a marker on the hand, 104 mm off
+    T_L = random_tracker_pose(6)
+    P = P @ T_L[:3, :3].T + T_L[:3, 3] + np.random.default_rng(7).normal(0, 1e-5, P.shape)
+    _write(tmp_path / "p.csv", ["pose_id", *(f"q{j}" for j in range(1, 7)), "x", "y", "z"],
+           np.column_stack([np.arange(len(q)), q, P]))
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "p.csv"), "--run", str(run), "--frame", "tracker", "--quiet"]) == 0
+    said_import = re.search(r"measured at (\([^)]*\) mm)", capsys.readouterr().err).group(1)
+    assert main(["calibrate", str(run), "--no-ann", "--no-report"]) == 0
+    said_calibrate = re.search(r"robot.yaml names none: measured at (\([^)]*\) mm)", capsys.readouterr().err).group(1)
+    point = yaml.safe_load((run / "calibration" / "params.yaml").read_text())["measured_point_in_tool_m"]
+    assert said_import == said_calibrate == "(" + ", ".join(f"{1e3 * v:.1f}" for v in point) + ") mm"
+    np.testing.assert_allclose(point, [0.08, -0.03, 0.06], atol=3e-3)  # the truth's tool errors beside it

@@ -76,7 +76,8 @@ class CalibrationResult:
     #: 6-D or raw-reflector data measured on a tool mounting: the measured frame in the URDF's tool frame
     #: ({"translation_m": [3], "rotation_vector_rad": [3]}, params.yaml's ``tool_mounting_in_tool``)
     tool_mounting_in_tool: dict | None = None
-    #: data in the tracker's frame: the registration and the identified tracker pose (metrics.json's ``tracker``)
+    #: data in the tracker's frame: the tracker's pose T_L_I and its registration's rms (metrics.json's
+    #: ``tracker``, :func:`tracker_block`)
     tracker: dict | None = None
     #: the measurement noise floor (campaign.diagnose.floor.NoiseFloor.as_json())
     noise_floor: dict | None = None
@@ -344,18 +345,18 @@ def register_tracker(robot, poses, train):
     rms = float(np.sqrt(np.nanmean(np.sum((fitted - P_meas) ** 2, axis=1))))
     if poses.markers is not None:
         poses = replace(poses, markers=transform_points(invert(T_LI0), poses.markers))
-    return replace(poses, T_IE=T_I), {"T_L_I_registration": T_LI0.tolist(), "registration_rms_mm": rms * 1e3}
+    return replace(poses, T_IE=T_I), tracker_block(T_LI0, rms)
 
 
-def _identified_tracker(robot, tracker, model) -> list:
-    """The tracker's pose T_LI after identification: registration · T̂_I0 · T̄_I0⁻¹ (the base
-    transform's identified error read as the tracker's; the two cannot be told apart)."""
-    from campaign.model.export import calibrated_transforms
-
-    T0_hat = calibrated_transforms(robot, model.params_)[0]
-    T0_bar = np.eye(4)
-    T0_bar[:3, :3], T0_bar[:3, 3] = robot.R_nominal[0], robot.t_nominal[0]
-    return (np.asarray(tracker["T_L_I_registration"]) @ T0_hat @ np.linalg.inv(T0_bar)).tolist()
+def tracker_block(T_L_I, rms_m: float) -> dict:
+    """metrics.json's ``tracker``: ``T_L_I`` (4, 4), the pose of the model's base frame F_I in the
+    tracker's frame L, which maps predict's output, compensate's targets and the exported URDF's
+    root frame into the tracker's frame (the tracker's pose error beyond it is the base transform's
+    identified error, inside the model); ``registration_rms_mm``; and the deprecated aliases
+    ``T_L_I_registration`` and ``tracker_pose_identified`` of ``T_L_I`` (the latter held, until
+    2026-11, the registration times the base transform's error, which maps no output of the model)."""
+    T = np.asarray(T_L_I, dtype=float).tolist()
+    return {"T_L_I": T, "registration_rms_mm": rms_m * 1e3, "T_L_I_registration": T, "tracker_pose_identified": T}
 
 
 def stage_name(effects) -> str:
@@ -439,8 +440,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                      rows_per_pose=informative_equations(n_seen[tr]) if raw else None)
     point = measured_point(robot, poses, tr)
     if point is not None and np.any(point) and len(robot.reflectors) != 1:
-        say("one reflector, robot.yaml names none: measured at (" + ", ".join(f"{1e3 * v:.1f}" for v in point)
-            + f") mm in {robot.tool_frame}, as the training poses place it on the nominal model")
+        say(f"one reflector, robot.yaml names none: measured at {plausibility.point_text(point)} in "
+            f"{robot.tool_frame}, as the training poses place it on the nominal model (params.yaml's "
+            "measured_point_in_tool_m)")
     mounting = tool_mounting(robot, poses, tr)
     if mounting is not None:
         say(f"{plausibility.mounting_text(robot, mounting)}: a tool mounting, fitted (the nominal model's tool "
@@ -508,8 +510,6 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                  fixed=fix, **choice.model_kwargs()).fit(poses.q[tr], Y[tr], ctx_tr)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
-    if tracker is not None:
-        tracker["tracker_pose_identified"] = _identified_tracker(robot, tracker, geo)
     ann_skipped = ann_stages = rule = None
     n_ann = int((tr & usable).sum())  # the network learns pose residuals: poses with a pose
     if ann == "auto":

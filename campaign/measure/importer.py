@@ -69,7 +69,7 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         options = replace(options, markers=read_markers_file(markers_file))
     options = replace(options, columns=column_mapping(model, options.columns))
     reading = iter_measured_chunks(csv_path, model, options, progress=progress)
-    warnings = import_warnings(csv_path, model, options)
+    warnings = import_warnings(csv_path, model, options, run.path)
     if strict and warnings:
         raise Implausible(f"{csv_path}: {len(warnings)} plausibility warning(s) with --strict "
                           f"({', '.join(w.code for w in warnings)}): nothing imported", warnings)
@@ -88,20 +88,26 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
     return ImportResult(n, tuple(warnings), past, model.name, reading.numbered)
 
 
-def import_warnings(csv_path, robot, options) -> list:
+def import_warnings(csv_path, robot, options, run_dir=None) -> list:
     """The plausibility warnings of a validated CSV (its first rows; see
-    campaign.measure.plausibility.check_data), orientation readings tested for 6-D data."""
+    campaign.measure.plausibility.check_data), orientation readings tested for 6-D data. A
+    measured point or tool mounting is placed on the rows calibrate will train on (the split of
+    ``run_dir``), so import and calibrate say one value."""
+    import numpy as np
+
+    from campaign.identify.split import run_split
     from campaign.measure.csvio import ROTATIONS, read_check_sample, rotation_readings_table
     from campaign.measure.plausibility import check_data, measured_point
 
     sample, orient = read_check_sample(csv_path, robot, options)
+    train = np.flatnonzero(~run_split(run_dir, sample.pose_id)) if run_dir is not None else None
     point = measured_point(robot, sample.kind)
     checked = robot if point is None else robot.with_tool_point(point)
     orientation = None
     if orient is not None:
         scales = (1.0, 3.141592653589793 / 180) if options.angle_unit == "rad" else (1.0,)
         orientation = (orient, ROTATIONS[options.rotation][0], options.rotation, rotation_readings_table(), scales)
-    return check_data(checked, sample, orientation=orientation)
+    return check_data(checked, sample, orientation=orientation, fit_rows=train)
 
 
 def column_mapping(robot, columns=None) -> dict:

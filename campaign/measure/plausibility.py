@@ -274,10 +274,12 @@ def _measured_points(poses):
     return poses.xyz[:, None, :]
 
 
-def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None) -> list:
+def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None, fit_rows=None) -> list:
     """Warnings on measured data (MeasuredPoses) against the nominal ``robot`` (whose tool frame is
     the measured point for one-reflector data). noise_mm: the measurement noise floor (E‖e‖, mm)
-    when known, to say how far the disagreement is from it. orientation: optional
+    when known, to say how far the disagreement is from it. fit_rows: the rows (indices) that place
+    a measured point or a tool mounting, as calibrate places them on its training poses (default:
+    every row), so that both say one value. orientation: optional
     ``(values (n, k), columns, reading, readings, angle_scales)`` of the orientation columns as
     written, to test other rotation readings (:func:`rotation_readings`). Returns a list of
     :class:`Finding`."""
@@ -306,7 +308,9 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None)
         return out
     rms, _ = _registered_rms(P_nom, P_meas)
     noise = "" if not noise_mm else f" ({rms * 1e3 / noise_mm:,.0f}× the noise)"
-    found = _off_point(robot, poses, q, P_meas, rms, limit) or _off_mounting(robot, poses, idx, rms, limit)
+    fit_rows = np.arange(len(poses)) if fit_rows is None else np.asarray(fit_rows)
+    found = (_off_point(robot, poses, q, P_meas, rms, limit, fit_rows)
+             or _off_mounting(robot, poses, idx, rms, limit, fit_rows))
     if found is not None:
         out.append(found)
     elif np.isfinite(rms) and rms > limit:
@@ -348,12 +352,12 @@ def off_origin_point(robot, q, P_measured, frame: str):
     return T, p
 
 
-def _off_point(robot, poses, q, P_meas, rms, limit):
+def _off_point(robot, poses, q, P_meas, rms, limit, fit_rows):
     """``measured_point`` when one-reflector data miss the nominal model at the tool frame's origin
-    by more than ``limit`` but fit it at the point :func:`off_origin_point` finds."""
+    by more than ``limit`` but fit it at the point :func:`off_origin_point` finds on ``fit_rows``."""
     if poses.kind != "point" or not np.isfinite(rms) or rms <= limit:
         return None
-    found = off_origin_point(robot, q, P_meas[:, 0], poses.frame)
+    found = off_origin_point(robot, poses.q[fit_rows], poses.xyz[fit_rows], poses.frame)
     if found is None:
         return None
     T_reg, p = found
@@ -361,10 +365,9 @@ def _off_point(robot, poses, q, P_meas, rms, limit):
     rms_p = float(np.sqrt(np.nanmean(np.sum((P_fit - P_meas) ** 2, axis=-1))))
     if rms_p > limit:
         return None
-    where = ", ".join(f"{1e3 * v:.1f}" for v in p)
     return Finding("measured_point",
                    f"the data miss the nominal model at the tool frame's origin by {_mm(rms)} rms but fit it "
-                   f"within {_mm(rms_p)} measured at ({where}) mm in the tool frame ({robot.tool_frame}): a "
+                   f"within {_mm(rms_p)} measured at {point_text(p)} in the tool frame ({robot.tool_frame}): a "
                    "reflector off the tool frame, which calibrate finds and fits at; name it in robot.yaml's "
                    "reflectors when it is known (docs/priors.md, \"The measured point\")")
 
@@ -396,6 +399,11 @@ def tool_mounting(robot, q, T_measured, frame: str):
     return T, X
 
 
+def point_text(p) -> str:
+    """``(79.1, -30.1, 60.3) mm``: a point in the tool frame as import, calibrate and the docs say it."""
+    return "(" + ", ".join(f"{1e3 * v:.1f}" for v in np.asarray(p, dtype=float)) + ") mm"
+
+
 def mounting_text(robot, X) -> str:
     """``the tool frame is 29° and 115 mm from the URDF's (tool0)``."""
     deg = np.rad2deg(np.linalg.norm(matrix_to_rotvec(np.asarray(X)[:3, :3])))
@@ -422,13 +430,13 @@ def mounting_fit(robot, poses, rows=None):
     return found[1], rms[0], rms[1]
 
 
-def _off_mounting(robot, poses, idx, rms, limit):
+def _off_mounting(robot, poses, idx, rms, limit, fit_rows):
     """``tool_mounting`` when 6-D or raw-reflector data miss the nominal model by more than
     ``limit`` but fit it (under ``limit``, rigidly registered) in the frame :func:`tool_mounting`
-    finds."""
+    finds on ``fit_rows``."""
     if not np.isfinite(rms) or rms <= limit:
         return None
-    fit = mounting_fit(robot, poses, idx)
+    fit = mounting_fit(robot, poses, fit_rows)
     if fit is None or not fit[2] <= limit:
         return None
     X, _, rms_x = fit
