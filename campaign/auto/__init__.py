@@ -28,10 +28,18 @@ losing nothing and measuring nothing twice; every decision follows deterministic
 stored data.
 """
 
-from campaign.auto.decisions import decide, time_change_p, weak_structure_inputs
-from campaign.auto.loop import auto
-from campaign.auto.report import plot_rounds, verdict_text, write_auto_report
-from campaign.auto.state import AutoOptions, AutoResult, CellSource, Decision, Limits, Round, state_path
+# Lazy: `campaign --help` imports campaign.auto.commands, hence this package, and must not pull
+# numpy in with the loop (tests/test_urdf_chain.py).
+_WHERE = {"decide": "decisions", "time_change_p": "decisions", "weak_structure_inputs": "decisions",
+          "auto": "loop", "plot_rounds": "report", "verdict_text": "report", "write_auto_report": "report",
+          "AutoOptions": "state", "AutoResult": "state", "CellSource": "state", "Decision": "state",
+          "Limits": "state", "Round": "state", "state_path": "state"}
 
-__all__ = ["AutoOptions", "AutoResult", "CellSource", "Decision", "Limits", "Round", "auto", "decide", "plot_rounds",
-           "state_path", "time_change_p", "verdict_text", "weak_structure_inputs", "write_auto_report"]
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    if name not in _WHERE:
+        raise AttributeError(f"module 'campaign.auto' has no attribute {name!r}")
+    import importlib
+    return getattr(importlib.import_module(f"campaign.auto.{_WHERE[name]}"), name)
