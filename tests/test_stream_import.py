@@ -232,3 +232,124 @@ def test_an_imported_log_calibrates_to_the_noise_floor(tmp_path, robot):
     test_mean = metrics["stages"]["geometric"]["test"]["position_mm"]["mean"]
     floor = metrics["noise_floor"]["mean_position_mm"]
     assert test_mean <= 1.2 * floor, (test_mean, floor)
+
+
+def test_a_log_that_ends_halfway_imports_what_it_has_and_a_second_log_continues(tmp_path, robot):
+    run, stops, writer = make_run(tmp_path, robot, seed=5, lost_rate=0.03, pause_rate=0.03)
+    full = tmp_path / "full.csv"
+    got = writer.write(full)
+    lines = full.read_text().splitlines(keepends=True)
+    cut = len(lines) // 2
+    (tmp_path / "a.csv").write_text("".join(lines[:cut]))
+    (tmp_path / "b.csv").write_text(lines[0] + "".join(lines[cut:]))
+    args = ["--run", str(run), "--length-unit", "mm", "--frame", "tracker", "--quiet"]
+    assert main(["import", "--stream", str(tmp_path / "a.csv"), *args]) == 0
+    first = {int(r["stop"]) for r in match_rows(run) if r["stop"]}
+    assert 0.3 * len(stops) < max(first) < 0.7 * len(stops)  # what the first half holds, no more
+    assert main(["import", "--stream", str(tmp_path / "b.csv"), *args]) == 0
+    rows = [r for r in match_rows(run) if r["stop"]]
+    stop_ids = [int(r["stop"]) for r in rows]
+    assert stop_ids == sorted(set(stop_ids)), "the second log continues after the first; no stop twice"
+    assert {r["log"] for r in rows} == {"a.csv", "b.csv"}
+    # the stop the cut went through may be lost: one stop more than the faults
+    found, complete, _ = check_found_and_right(run, stops, writer, got, min_found=0.95)
+    assert len(complete) - len(found) <= 2
+
+
+def test_iso_time_stamps_and_a_log_in_the_robot_frame_in_metres(tmp_path, robot):
+    run, stops, writer = make_run(tmp_path, robot, n_poses=40, seed=7, T_LI=np.eye(4), lost_rate=0.0,
+                                  pause_rate=0.0, short_gaps=0, long_gap_stops=0, clock0_s=0.0)
+    got = writer.write(tmp_path / "m.csv", mm=False)
+    start = np.datetime64("2026-03-29T00:59:58.5")
+    out = ["timestamp;X;Y;Z;target"]
+    for ln in (tmp_path / "m.csv").read_text().splitlines()[1:]:
+        t, x, y, z, g = ln.split(",")
+        stamp = start + np.timedelta64(int(round(float(t) * 1e6)), "us")
+        out.append(f"{stamp}+01:00;{x};{y};{z};{g}")
+    (tmp_path / "iso.csv").write_text("\n".join(out) + "\n")
+    assert main(["import", "--stream", str(tmp_path / "iso.csv"), "--run", str(run), "--columns", "x=X,y=Y,z=Z",
+                 "--quiet"]) == 0
+    found, complete, n = check_found_and_right(run, stops, writer, got, min_found=1.0)
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        frame = db.execute("SELECT value FROM meta WHERE key = 'frame'").fetchone()[0]
+        x0 = db.execute("SELECT x, y, z FROM poses WHERE status = 'measured' ORDER BY seq LIMIT 1").fetchone()
+    assert frame == '"robot"'
+    first = next(s for s in stops if s.kind != "via")
+    assert np.allclose(x0, forward(robot, np.array([first.q]), writer.p_e)[0, :3, 3], atol=1e-4)
+
+
+def test_a_log_of_one_record_per_stable_point_is_matched(tmp_path, robot):
+    run, stops, writer = make_run(tmp_path, robot, n_poses=60, seed=9, pause_rate=0.0, short_gaps=0, spike_rate=0.0)
+    t, P, g, got = writer.rows()
+    # the tracker's software keeps one averaged point per reflector and stop
+    rows = []
+    k = 0
+    while k < len(t):
+        e = k
+        while e + 1 < len(t) and g[e + 1] == g[k] and t[e + 1] - t[e] < 0.1 and np.linalg.norm(P[e + 1] - P[e]) < 2e-4:
+            e += 1
+        if e - k >= 20:
+            rows.append((t[e], *(P[k:e + 1].mean(axis=0) * 1e3), REFLECTORS[g[k]]))
+        k = e + 1
+    (tmp_path / "points.csv").write_text("time_s,x,y,z,target\n" + "".join(
+        f"{r[0]:.3f},{r[1]:.4f},{r[2]:.4f},{r[3]:.4f},{r[4]}\n" for r in rows))
+    assert main(["import", "--stream", str(tmp_path / "points.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)
+
+
+def test_a_log_without_target_is_one_point_per_stop(tmp_path, robot):
+    """No target column: the tool frame's origin of a robot with several reflectors (like a one-reflector
+    CSV import); here the log tracks the reflector the generator puts at the tool frame's origin."""
+    run, stops, writer = make_run(tmp_path, robot, n_poses=60, seed=11, targets=False)
+    writer.P_E = np.zeros((1, 3))
+    got = writer.write(tmp_path / "one.csv")
+    assert main(["import", "--stream", str(tmp_path / "one.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    status = {int(r["stop"]): r["status"] for r in match_rows(run) if r["stop"]}
+    complete = [k for k, n in got.items() if min(n) >= 10]
+    assert sum(status.get(k) == "matched" for k in complete) >= 0.98 * len(complete)
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        kind = db.execute("SELECT value FROM meta WHERE key = 'kind'").fetchone()[0]
+        xyz = dict((p, np.array(v)) for p, *v in db.execute("SELECT pose_id, x, y, z FROM poses WHERE status = 'measured'"))
+    assert kind == '"point"'
+    by_id = {s.pose_id: s for s in stops}
+    for pid, p in xyz.items():
+        assert np.abs(p - writer.truth_points(np.array(by_id[pid].q))[0, 0]).max() < 3e-4
+
+
+@pytest.mark.parametrize("text, message", [
+    ("time_s,x,y,z\n0,1,2,3\n1,1,2,oops\n", r"bad\.csv: row 3, column z: not a number \('oops'\)"),
+    ("time_s,x,y,z,target\n0,1,2,3,rrr1\n1,1,2,3,prism9\n",
+     r"bad\.csv: row 3, column target: 'prism9' is not one of the robot's reflectors \(rrr1, rrr2, brr\)"),
+    ("time_s,x,y,z\n0,1,2,3\n1,1,2\n", r"bad\.csv: row 3 has 3 fields, expected 4"),
+    ("t,x,y,z\n0,1,2,3\n", r"bad\.csv: no time column \(time_s in s, or time/timestamp in ISO 8601\)"),
+    ("time_s,x,y\n0,1,2\n", r"bad\.csv: no column z in the header"),
+    ("timestamp,x,y,z\n2026-13-45T00:00:00,1,2,3\n", r"bad\.csv: row 2, column timestamp: not an ISO 8601 time"),
+    ("", r"bad\.csv: empty"),
+])
+def test_a_bad_log_is_one_line_naming_the_file_row_and_column(tmp_path, robot, capsys, text, message):
+    import re
+
+    run, _, _ = make_run(tmp_path, robot, n_poses=5)
+    (tmp_path / "bad.csv").write_text(text)
+    assert main(["import", "--stream", str(tmp_path / "bad.csv"), "--run", str(run)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(message, err), err
+    assert not (run / "measurements.sqlite").exists() and not (run / "import").exists()
+
+
+def test_import_stream_refuses_what_it_cannot_do_in_one_line(tmp_path, robot, capsys):
+    run, _, writer = make_run(tmp_path, robot, n_poses=20)
+    writer.write(tmp_path / "log.csv")
+    cases = [(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(tmp_path / "nowhere")], "no such"),
+             (["import", "x.csv", "--stream", str(tmp_path / "log.csv"), "--run", str(run)], "not both"),
+             (["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--angle-unit", "deg"],
+              "--angle-unit: not with --stream")]
+    for argv, msg in cases:
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and msg in err, err
+    (run / "program" / "stops.csv").unlink()
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run)]) == 1
+    assert "campaign program RUN --format csv" in capsys.readouterr().err

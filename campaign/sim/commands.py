@@ -14,6 +14,15 @@ def register(sub):
                     "one cell serves a run at a time (it holds RUN/sim/.lock while it serves). "
                     "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`. "
                     "It is `campaign serve --controller sim --tracker sim` (docs/cell.md) with a default run.")
+    s.add_argument("run_dir", metavar="RUN", nargs="?", default=None,
+                   help="the run (the same as --run); with --stream-out, the run whose program is driven")
+    s.add_argument("--stream-out", metavar="LOG", default=None,
+                   help="instead of serving: drive the simulated cell through RUN/program/stops.csv (`campaign program "
+                        "RUN --format csv`) and write the tracker's continuous log (time_s,x,y,z,target in m, the "
+                        "tracker's frame, motion included, lost beams as sim.faults.beam_lost says) for "
+                        "`campaign import --stream LOG --run RUN --frame tracker`")
+    s.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+                   help="with --stream-out: the log's sample rate (default: %(default)s Hz)")
     s.add_argument("--config", metavar="FILE", default=None,
                    help="configuration (default: RUN/campaign.yaml, or the embedded one for a run without it)")
     s.add_argument("--robot", metavar="NAME|URDF|robot.yaml", default=None,
@@ -107,8 +116,16 @@ def yaml_markers(P) -> str:
 
 def _sim(args):
     from campaign.cell.server import serve_until_interrupted
+    from campaign.errors import ConfigError
     from campaign.run import RunFolder
     from campaign.sim.cell import start_cell
+
+    if args.run_dir is not None:
+        if args.run != "runs/sim" and Path(args.run) != Path(args.run_dir):
+            raise ConfigError(f"two runs given: {args.run_dir} and --run {args.run}")
+        args.run = args.run_dir
+    if args.stream_out is not None:
+        return _stream_out(args)
 
     run = RunFolder(args.run, config=args.config)
     cfg = sim_config(run, args.robot, args.tool_frame, args.base_frame)
@@ -120,6 +137,29 @@ def _sim(args):
         print(f"simulated cell: {world.robot.name}, controller {args.host}:{cell.controller_port}, "
               f"tracker {args.host}:{cell.tracker_port} (truth in {world.truth_path}); Ctrl-C stops", flush=True)
         return serve_until_interrupted(cell)
+
+
+def _stream_out(args):
+    import sys
+
+    from campaign.errors import ConfigError
+    from campaign.progress import Progress
+    from campaign.sim.streamlog import write_stream_log
+
+    if args.run_dir is None:
+        raise ConfigError("--stream-out LOG needs the run: campaign sim RUN --stream-out LOG")
+    if (args.robot, args.tool_frame, args.base_frame) != (None, None, None):
+        raise ConfigError("--robot, --tool-frame, --base-frame: not with --stream-out (the run's robot is driven)")
+    bar = Progress("sim --stream-out", total=1000, enabled=sys.stderr.isatty(), unit="‰")
+    try:
+        res = write_stream_log(args.run, args.stream_out, rate_hz=args.rate, config=args.config,
+                               progress=lambda f: bar.update(int(1000 * f) - bar.done))
+    finally:
+        bar.close()
+    print(f"wrote {res['samples']:,} samples at {res['rate_hz']:g} Hz ({res['stops']} stops, "
+          f"{res['duration_s'] / 3600:.2f} h, {res['lost']} stops with a lost beam) to {args.stream_out}; "
+          f"truth in {res['truth']}")
+    return 0
 
 
 def sim_config(run, robot=None, tool_frame=None, base_frame=None):

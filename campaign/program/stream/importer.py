@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,12 +30,14 @@ META_KEY = "stream_import"
 
 @dataclass(frozen=True)
 class StreamResult:
-    """What an import of a log did: stops matched / skipped / unconfirmed, windows rejected, poses
+    """What an import of a log did: stops matched / skipped (no window) / incomplete (a reflector
+    missing) / unconfirmed (no neighbour confirms the window's distance), windows rejected, poses
     stored (measured, failed), drift checks, the log's samples, rate (Hz) and noise (m), and the
     next stop a further log starts at."""
 
     matched: int
     skipped: int
+    incomplete: int
     unconfirmed: int
     rejected: int
     measured: int
@@ -49,11 +52,11 @@ class StreamResult:
     match_csv: Path
 
     def summary(self, log, run) -> str:
-        found = self.matched + self.skipped + self.unconfirmed
+        found = self.matched + self.skipped + self.incomplete + self.unconfirmed
         mode = "one record per stable point" if self.point_mode else \
             f"{self.rate_hz:.0f} Hz, noise {self.noise_m * 1e6:.1f} µm"
         return (f"{log}: matched {self.matched} of {found} stops reached ({self.skipped} without a still window, "
-                f"{self.unconfirmed} unconfirmed), {self.rejected} windows rejected; {self.samples:,} samples "
+                f"{self.incomplete} with a reflector missing, {self.unconfirmed} unconfirmed), {self.rejected} windows rejected; {self.samples:,} samples "
                 f"({mode}); stored {self.measured} measured and {self.failed} failed poses, {self.drift_checks} "
                 f"drift checks in {run}/measurements.sqlite; next stop {self.next_stop} of {self.n_stops}")
 
@@ -124,12 +127,11 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
     next_stop = max(first_stop, int(last) + 1)
     result = _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot)
-    n_match = sum(1 for r in rows if r[7] == "matched")
-    return StreamResult(n_match, sum(1 for r in rows if r[7] == "skipped"),
-                        sum(1 for r in rows if r[7] in ("unconfirmed", "incomplete")),
-                        sum(1 for r in rows if r[7] == "rejected"),
-                        sum(1 for r in records if r.status == "measured"),
-                        sum(1 for r in records if r.status == "failed"), len(events), finder.samples,
+    status = Counter(r[7] for r in rows)
+    stored = Counter(r.status for r in records)
+    return StreamResult(status["matched"], status["skipped"], status["incomplete"], status["unconfirmed"],
+                        status["rejected"], stored["measured"], stored["failed"],
+                        sum(1 for e in events if e[0] == "drift_check"), finder.samples,
                         1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
                         next_stop, len(stops), bool(finder.point_mode), result)
 
@@ -169,6 +171,7 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
     seq0 = int(state.get("seq", 0))
     refs = {int(k): v for k, v in (state.get("drift_reference") or {}).items()}
     eye = np.eye(4)
+    threshold_mm = run.config.run.drift_threshold_mm
     for mi in range(first_m, last + 1):
         s = stops[measured_idx[mi]]
         m = by_stop.get(mi)
@@ -193,9 +196,14 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
             drift = None
             if status == "matched" and ref is not None:
                 drift = float(np.linalg.norm(np.array(xyz) - np.array(ref)))
+            over = drift is not None and drift * 1e3 > threshold_mm
             events.append(("drift_check", {"reference_pose_id": s.pose_id,
                                            "drift_mm": None if drift is None else drift * 1e3,
-                                           "over_threshold": False, "stop": s.stop}, s.pose_id, t_s))
+                                           "over_threshold": over, "stop": s.stop}, s.pose_id, t_s))
+            if over:
+                events.append(("warning", {"message": f"warning: drift check at stop {s.stop}: reference pose "
+                                                      f"{s.pose_id} moved {drift * 1e3:.3f} mm (threshold "
+                                                      f"{threshold_mm} mm)"}, s.pose_id, t_s))
             continue
         seq = seq0 + len(records)
         if status == "matched":

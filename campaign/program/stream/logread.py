@@ -169,6 +169,8 @@ def _parse_numeric(layout: LogLayout, data: bytes):
     None when the block is anything else (then it is read line by line)."""
     d = layout.delimiter.encode()
     buf = data if d == b"," else data.replace(d, b",")
+    if b" " in buf and not any(" " in name for name in layout.targets):
+        buf = buf.replace(b" ", b"")  # fixed-width fields (campaign.program.stream.logwrite)
     if b",," in buf or b",\n" in buf or buf.startswith(b",") or b"\n\n" in buf:
         return None  # an empty field or line: the line reader knows what it means
     if layout.target_col is not None:

@@ -6,7 +6,8 @@ not move it) stays below STREAM_STILL_FACTOR times the log's own noise level, es
 data (the STREAM_NOISE_QUANTILE quantile of the blocks' spreads: the still blocks are the quiet
 ones). Still blocks that follow each other at one position make a window; a change of reflector
 (``target``) between them continues the window when the tool did not move in between (at most
-STREAM_SWITCH_BLOCKS moving blocks, or a short gap). A window keeps, per reflector, the median of
+STREAM_SWITCH_BLOCKS moving blocks, or a short gap); a reflector measured again after another starts
+the next window (the reflectors' cycle of a stop repeated in place). A window keeps, per reflector, the median of
 its samples (the position) and their robust standard deviation (the spread, a quality figure).
 
 A log with one record per stable point (``point`` mode: successive records of one reflector are
@@ -173,7 +174,9 @@ class WindowFinder:
             quiet = self._moving == 0 and gap <= STREAM_GAP_BLOCKS * self.B * self.dt_s
             switch = code != w.last_code and code not in w.ref and \
                 (self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_SWITCH_S) and gap <= STREAM_SWITCH_S
-            if near and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch:
+            # a reflector measured again after another: the next measurement (a repeat in place)
+            again = code != w.last_code and code in w.ref
+            if near and not again and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch:
                 self._extend(w, t1, code, med, samples)
                 self._moving = 0
                 return
