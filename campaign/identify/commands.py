@@ -125,11 +125,19 @@ def register(sub):
     p = sub.add_parser("compensate",
                        help="corrected joint commands that bring the real tool to the nominal poses of given commands")
     p.add_argument("run", metavar="DIR", help="run folder calibrated by `campaign calibrate`")
-    p.add_argument("--csv", required=True, metavar="IN",
-                   help="CSV with nominal joint commands q1..qN (rad), optional pose_id and context columns")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--csv", metavar="IN",
+                     help="CSV with nominal joint commands q1..qN (rad), optional pose_id and context columns")
+    src.add_argument("--program", metavar="FILE",
+                     help="a robot program whose joint and Cartesian targets are rewritten (with --format; every "
+                          "other line left as it was, what could not be read listed; docs/programs.md)")
+    p.add_argument("--format", metavar="F", default=None,
+                   help="the program's language: urscript, krl (.src or .dat), rapid, fanuc-ls, pdl2, "
+                        "ros2-trajectory, csv")
     p.add_argument("--out", metavar="OUT", default=None,
                    help="CSV to write: pose_id,q1..qN (corrected, rad),dq1..dqN,residual_position_mm,"
-                        "residual_orientation_mrad,converged,within_limits (default: standard output)")
+                        "residual_orientation_mrad,converged,within_limits (default: standard output); with "
+                        "--program the filtered program (default: FILE's name with _compensated)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written, dq included (default: rad)")
@@ -362,6 +370,12 @@ def _predict(args):
 
 
 def _compensate(args):
+    from campaign.errors import ConfigError
+
+    if args.program is not None:
+        return _compensate_program(args)
+    if args.format is not None:
+        raise ConfigError("--format goes with --program (a CSV of joints is read with --csv alone)")
     from campaign.identify.use import CalibratedRobot, compensate_rows, read_joint_csv, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
@@ -376,4 +390,22 @@ def _compensate(args):
     if not inside.all():
         print(f"warning: {int((~inside).sum())} corrected command(s) outside the joint limits "
               "(column within_limits = 0)", file=sys.stderr)
+    return 0
+
+
+def _compensate_program(args):
+    from campaign.errors import ConfigError
+    from campaign.program.compensate import compensate_program_file
+
+    if args.format is None:
+        raise ConfigError("--program needs --format (urscript, krl, rapid, fanuc-ls, pdl2, ros2-trajectory, csv)")
+    if args.columns is not None or args.angle_unit != "rad":
+        raise ConfigError("--columns and --angle-unit go with --csv; a program's units are its language's")
+    out, res = compensate_program_file(args.run, args.program, args.format, out=args.out, stage=args.stage)
+    print(f"wrote {out}: {res.joints} joint and {res.poses} Cartesian targets compensated ({res.stage}), "
+          f"{len(res.unclear)} not understood, {len(res.outside)} outside the calibrated domain or not reached")
+    for line, text, why in res.unclear:
+        print(f"  line {line}: not understood, left as written: {why}: {text}")
+    for line, why in res.outside:
+        print(f"  line {line}: {why}")
     return 0

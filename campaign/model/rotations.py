@@ -179,3 +179,44 @@ def inverse_left_jacobian(phi):
         1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)),
     )
     return np.eye(3) - 0.5 * K + c * (K @ K)
+
+
+def matrix_to_quaternion(R):
+    """Unit quaternions ``(..., 4)`` (w, x, y, z; w >= 0) of rotation matrices ``(..., 3, 3)``,
+    the inverse of :func:`quaternion_to_matrix` (Shepperd's method: the largest of the four
+    squared components is taken first, so no division by a small number)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R, axis1=-2, axis2=-1)
+    d = np.stack([tr, R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], axis=-1)
+    k = np.argmax(d, axis=-1)
+    out = np.empty(R.shape[:-2] + (4,))
+    s = np.sqrt(np.maximum(1.0 + 2.0 * np.take_along_axis(d, k[..., None], -1)[..., 0] - tr, 1e-300)) * 2
+    w = np.where(k == 0, s / 4, 0)
+    m = k == 0
+    out[m] = np.stack([w[m], (R[..., 2, 1] - R[..., 1, 2])[m] / s[m], (R[..., 0, 2] - R[..., 2, 0])[m] / s[m],
+                       (R[..., 1, 0] - R[..., 0, 1])[m] / s[m]], axis=-1)
+    m = k == 1
+    out[m] = np.stack([(R[..., 2, 1] - R[..., 1, 2])[m] / s[m], s[m] / 4, (R[..., 0, 1] + R[..., 1, 0])[m] / s[m],
+                       (R[..., 0, 2] + R[..., 2, 0])[m] / s[m]], axis=-1)
+    m = k == 2
+    out[m] = np.stack([(R[..., 0, 2] - R[..., 2, 0])[m] / s[m], (R[..., 0, 1] + R[..., 1, 0])[m] / s[m], s[m] / 4,
+                       (R[..., 1, 2] + R[..., 2, 1])[m] / s[m]], axis=-1)
+    m = k == 3
+    out[m] = np.stack([(R[..., 1, 0] - R[..., 0, 1])[m] / s[m], (R[..., 0, 2] + R[..., 2, 0])[m] / s[m],
+                       (R[..., 1, 2] + R[..., 2, 1])[m] / s[m], s[m] / 4], axis=-1)
+    return out * np.where(out[..., :1] < 0, -1.0, 1.0)
+
+
+def zyz(a, b, c):
+    """Z-Y-Z Euler angles (COMAU's POS): ``Rz(a) Ry(b) Rz(c)``."""
+    return rot_z(a) @ rot_y(b) @ rot_z(c)
+
+
+def zyz_from_matrix(R):
+    """Inverse of :func:`zyz`; returns ``(..., 3)`` with ``b`` in [0, pi] (``c = 0`` where b is 0 or pi)."""
+    R = np.asarray(R, dtype=float)
+    b = np.arccos(np.clip(R[..., 2, 2], -1.0, 1.0))
+    regular = np.sin(b) > 1e-9
+    a = np.where(regular, np.arctan2(R[..., 1, 2], R[..., 0, 2]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    c = np.where(regular, np.arctan2(R[..., 2, 1], -R[..., 2, 0]), 0.0)
+    return np.stack([a, b, c], axis=-1)

@@ -1,0 +1,523 @@
+"""`campaign compensate RUN --program FILE --format F`: a robot program's targets filtered through
+the calibration, every other character left as it was.
+
+A **joint target** (controller convention and units) becomes the joints that bring the calibrated
+robot to the pose the nominal robot reaches at the written joints:
+q' = compensate(FK_nominal(q)) (campaign.identify.use.CalibratedRobot.compensate).
+A **Cartesian target** T (the pose of the run's tool frame in its base frame, the program's
+length unit and orientation convention) becomes the target the nominal controller must be given
+so that the calibrated robot reaches T: the joints q with calibrated(q) = T, started from the
+nominal inverse kinematics (the solution nearest the previous target's, so a program's
+configuration is followed), then T' = FK_nominal(q), which the nominal controller turns back into
+q. Configuration flags (KRL S/T, RAPID confdata, FANUC CONFIG, PDL2's string) are kept as written.
+
+Only the numbers of a target are replaced (each written with at least as many decimals as it
+had, and the format's precision); what looks like a target but cannot be read is listed with its
+line and left as it was. Targets whose joints lie outside the joint ranges the run measured (its
+calibrated domain: a model is not known beyond its data) are named, as are targets the
+calibrated model could not reach (not converged: left as written).
+
+Formats: ``urscript`` (``p[x, y, z, rx, ry, rz]`` in m and rotation vector; joint lists
+``[q1, ..., qN]`` in rad), ``krl`` (.src or .dat: ``{A1 .., A6 ..}`` axis aggregates in deg and
+``{X .., Y .., Z .., A .., B .., C ..}`` POS/E6POS aggregates in mm, R = Rz(A) Ry(B) Rx(C); FRAME
+aggregates are frames, not targets), ``rapid`` (jointtarget ``[[rax_1..6], [eax_a..f]]`` in deg;
+robtarget ``[[x, y, z], [q1..q4], conf, extax]`` in mm and a quaternion w, x, y, z), ``fanuc-ls``
+(/POS positions: J1.. in deg, or X, Y, Z mm and W, P, R deg, R = Rz(R) Ry(P) Rx(W)), ``pdl2``
+(``JNT(var, ...)`` deg; ``POS(x, y, z, e1, e2, e3, 'cnfg')`` mm and Z-Y-Z Euler deg),
+``ros2-trajectory`` (every point's ``positions``, rad), ``csv`` (``j1..jN`` columns, rad).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import ConfigError, DataError
+
+NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_NUM = re.compile(NUM)
+FORMATS = ("urscript", "krl", "rapid", "fanuc-ls", "pdl2", "ros2-trajectory", "csv")
+
+
+@dataclass
+class Target:
+    """One target of a program: ``spans`` [(start, end)] of its numbers in the text, ``values``
+    as written, ``kind`` ``joint`` (values in the format's joint units, controller convention) or
+    ``pose`` (``convention`` names how values give a pose), its ``line`` (1-based)."""
+
+    kind: str
+    spans: list
+    values: list
+    line: int
+    convention: str = ""
+    name: str = ""
+    #: a Cartesian target's configuration as written, as a test of controller joints (N,) in
+    #: degrees: KRL's T bits (the sign of each axis), RAPID's quadrants of axes 1, 4, 6, FANUC's
+    #: turn numbers of J1, J4, J6; None when not given or not read
+    config: object = None
+
+
+@dataclass
+class Unclear:
+    line: int
+    text: str
+    why: str
+
+
+@dataclass
+class Scan:
+    targets: list = field(default_factory=list)
+    unclear: list = field(default_factory=list)
+
+
+def _line_of(text: str, pos: int) -> int:
+    return text.count("\n", 0, pos) + 1
+
+
+def _numbers(text: str, start: int, end: int) -> tuple:
+    """(spans, values) of the numbers in text[start:end]."""
+    spans, vals = [], []
+    for m in _NUM.finditer(text, start, end):
+        spans.append((m.start(), m.end()))
+        vals.append(float(m.group()))
+    return spans, vals
+
+
+# -- the formats' targets --------------------------------------------------------------------
+
+def _unread(text: str, declaration: str, found_lines: set) -> list:
+    """Lines declaring a target (regex ``declaration``) where no target value was read."""
+    return [Unclear(k, ln.strip()[:60], "a target declaration whose value could not be read")
+            for k, ln in enumerate(text.splitlines(), start=1)
+            if re.search(declaration, ln, re.I) and k not in found_lines]
+
+
+def _scan_urscript(text: str, n: int) -> Scan:
+    out = Scan()
+    for m in re.finditer(r"(p?)\[([^\[\]]*)\]", text):
+        body = m.group(2)
+        if not body.strip() or not re.fullmatch(rf"\s*{NUM}(\s*,\s*{NUM})*\s*", body):
+            continue
+        spans, vals = _numbers(text, m.start(2), m.end(2))
+        line = _line_of(text, m.start())
+        if m.group(1):
+            if len(vals) == 6:
+                out.targets.append(Target("pose", spans, vals, line, "m_rotvec"))
+            else:
+                out.unclear.append(Unclear(line, m.group(), f"a pose p[...] of {len(vals)} values, not 6"))
+        elif len(vals) == n:
+            out.targets.append(Target("joint", spans, vals, line))
+        elif re.search(r"\b(movej|movel|movep|servoj|movec)\s*\(\s*$", text[max(0, m.start() - 40):m.start()]):
+            out.unclear.append(Unclear(line, m.group(), f"a joint list of {len(vals)} values, the robot has {n}"))
+    return out
+
+
+def _krl_items(body: str, offset: int) -> dict:
+    """{NAME: (span, value)} of an aggregate body ``NAME value, ...``."""
+    items = {}
+    for m in re.finditer(rf"([A-Za-z_]\w*)\s+({NUM})", body):
+        items[m.group(1).upper()] = ((offset + m.start(2), offset + m.end(2)), float(m.group(2)))
+    return items
+
+
+def _kuka_turn(items):
+    """KRL's T (turn) bits: bit j set when axis j + 1 is negative (KUKA's definition)."""
+    if "T" not in items:
+        return None
+    bits = int(items["T"][1])
+    return lambda q_deg: all(((q_deg[j] < 0) == bool(bits >> j & 1)) for j in range(min(6, len(q_deg))))
+
+
+def _quadrants(cf: dict):
+    """Axes {index: quadrant}: floor(angle / 90°) as RAPID's confdata; turns as FANUC's: {index: (turn,)}."""
+    return lambda q_deg: all(np.floor(q_deg[j] / 90.0) == c for j, c in cf.items() if j < len(q_deg))
+
+
+def _turns(turns: dict):
+    return lambda q_deg: all(np.round(q_deg[j] / 360.0) == t for j, t in turns.items() if j < len(q_deg))
+
+
+def _scan_krl(text: str, n: int) -> Scan:
+    out = Scan()
+    axes = [f"A{j}" for j in range(1, min(n, 6) + 1)] + [f"E{j}" for j in range(1, n - 5)]
+    found_lines = set()
+    for m in re.finditer(r"\{([^{}]*)\}", text):
+        items = _krl_items(m.group(1), m.start(1))
+        line = _line_of(text, m.start())
+        start = text.rfind("\n", 0, m.start()) + 1
+        head = text[start:m.start()].upper()
+        if "A1" in items and not {"X", "Y", "Z"} & set(items):
+            missing = [a for a in axes if a not in items]
+            if missing:
+                out.unclear.append(Unclear(line, m.group()[:60], f"an axis aggregate without {', '.join(missing)}"))
+                continue
+            out.targets.append(Target("joint", [items[a][0] for a in axes], [items[a][1] for a in axes], line))
+            found_lines.add(line)
+        elif {"X", "Y", "Z"} <= set(items):
+            if re.search(r"\bFRAME\b|\$(BASE|TOOL|NULLFRAME)\b|BASE_DATA|TOOL_DATA", head):
+                continue  # a frame (base, tool), not a target
+            missing = [a for a in ("X", "Y", "Z", "A", "B", "C") if a not in items]
+            if missing:
+                out.unclear.append(Unclear(line, m.group()[:60], f"a position without {', '.join(missing)}"))
+                continue
+            keys = ("X", "Y", "Z", "A", "B", "C")
+            out.targets.append(Target("pose", [items[a][0] for a in keys], [items[a][1] for a in keys], line,
+                                      "mm_kuka_abc", config=_kuka_turn(items)))
+            found_lines.add(line)
+    out.unclear += _unread(text, r"^\s*DECL\s+(GLOBAL\s+)?(E6POS|POS|E6AXIS|AXIS)\s+\w+", found_lines)
+    return out
+
+
+def _scan_rapid(text: str, n: int) -> Scan:
+    out = Scan()
+    found_lines = set()
+    rob = re.compile(rf"\[\s*\[({NUM}\s*,\s*{NUM}\s*,\s*{NUM})\]\s*,\s*\[({NUM}(?:\s*,\s*{NUM}){{3}})\]\s*,"
+                     r"\s*\[([^\[\]]*)\]\s*,\s*\[[^\[\]]*\]\s*\]")
+    for m in rob.finditer(text):
+        s1, v1 = _numbers(text, m.start(1), m.end(1))
+        s2, v2 = _numbers(text, m.start(2), m.end(2))
+        line = _line_of(text, m.start())
+        cf = [int(float(x)) for x in m.group(3).split(",")] if re.fullmatch(rf"\s*{NUM}(\s*,\s*{NUM}){{3}}\s*",
+                                                                         m.group(3)) else None
+        out.targets.append(Target("pose", s1 + s2, v1 + v2, line, "mm_quat",
+                                  config=_quadrants({0: cf[0], 3: cf[1], 5: cf[2]}) if cf else None))
+        found_lines.add(line)
+    jt = re.compile(rf"\[\s*\[({NUM}(?:\s*,\s*{NUM}){{5}})\]\s*,\s*\[([^\[\]]*)\]\s*\]")
+    for m in jt.finditer(text):
+        s1, v1 = _numbers(text, m.start(1), m.end(1))
+        line = _line_of(text, m.start())
+        if n > 6:
+            s2, v2 = _numbers(text, m.start(2), m.end(2))
+            s1, v1 = s1 + s2[:n - 6], v1 + v2[:n - 6]
+        out.targets.append(Target("joint", s1[:n], v1[:n], line))
+        found_lines.add(line)
+    out.unclear += _unread(text, r"\b(robtarget|jointtarget)\s+\w+\s*:=", found_lines)
+    return out
+
+
+def _scan_fanuc(text: str, n: int) -> Scan:
+    out = Scan()
+    if "/POS" not in text:
+        return out
+    base = text.index("/POS")
+    axes = [f"J{j}" for j in range(1, min(n, 6) + 1)] + [f"E{j}" for j in range(1, n - 5)]
+    for m in re.finditer(r"P\[(\d+)(?::[^\]]*)?\]\s*\{(.*?)\};", text[base:], re.S):
+        s, e = base + m.start(2), base + m.end(2)
+        body = text[s:e]
+        gp = re.search(r"GP1\s*:(.*?)(?=GP\d\s*:|$)", body, re.S)
+        line = _line_of(text, base + m.start())
+        if not gp:
+            out.unclear.append(Unclear(line, f"P[{m.group(1)}]", "no group 1 (GP1) in the position"))
+            continue
+        g0 = s + gp.start(1)
+        vals = {a.upper(): ((g0 + v.start(2), g0 + v.end(2)), float(v.group(2)))
+                for v in re.finditer(rf"\b(J\d|E\d|X|Y|Z|W|P|R)\s*=\s*({NUM})", gp.group(1))
+                for a in [v.group(1)]}
+        if "J1" in vals:
+            if any(a not in vals for a in axes):
+                out.unclear.append(Unclear(line, f"P[{m.group(1)}]", f"joint values J1..J{n} incomplete"))
+                continue
+            out.targets.append(Target("joint", [vals[a][0] for a in axes], [vals[a][1] for a in axes], line,
+                                      name=f"P[{m.group(1)}]"))
+        elif all(a in vals for a in ("X", "Y", "Z", "W", "P", "R")):
+            keys = ("X", "Y", "Z", "W", "P", "R")
+            cfg = re.search(r"CONFIG\s*:\s*'[^,']*,\s*(-?\d+)\s*,\s*(-?\d+)\s*,\s*(-?\d+)\s*'", gp.group(1))
+            out.targets.append(Target("pose", [vals[a][0] for a in keys], [vals[a][1] for a in keys], line,
+                                      "mm_fanuc_wpr", name=f"P[{m.group(1)}]",
+                                      config=_turns({0: int(cfg.group(1)), 3: int(cfg.group(2)),
+                                                     5: int(cfg.group(3))}) if cfg else None))
+        else:
+            out.unclear.append(Unclear(line, f"P[{m.group(1)}]", "neither J1..Jn nor X, Y, Z, W, P, R"))
+        if re.search(r"GP[2-9]\s*:", body):
+            out.unclear.append(Unclear(line, f"P[{m.group(1)}]", "groups 2.. (other motion groups) left as written"))
+    return out
+
+
+def _scan_pdl2(text: str, n: int) -> Scan:
+    out = Scan()
+    for m in re.finditer(r"\bJNT\s*\(\s*\w+\s*,([^()]*)\)", text, re.I):
+        spans, vals = _numbers(text, m.start(1), m.end(1))
+        line = _line_of(text, m.start())
+        if len(vals) < n or not re.fullmatch(rf"\s*{NUM}(\s*,\s*{NUM})*\s*(,\s*\d+\s*)?", m.group(1)):
+            out.unclear.append(Unclear(line, m.group()[:60], f"JNT with other than {n} numbers"))
+            continue
+        out.targets.append(Target("joint", spans[:n], vals[:n], line))
+    for m in re.finditer(rf"\bPOS\s*\(((?:\s*{NUM}\s*,){{5}}\s*{NUM})\s*(,\s*'[^']*')?\s*\)", text, re.I):
+        spans, vals = _numbers(text, m.start(1), m.end(1))
+        out.targets.append(Target("pose", spans, vals, _line_of(text, m.start()), "mm_zyz"))
+    return out
+
+
+def _scan_ros2(text: str, n: int) -> Scan:
+    out = Scan()
+    for m in re.finditer(r"positions\"?\s*:\s*\[([^\[\]]*)\]", text):
+        spans, vals = _numbers(text, m.start(1), m.end(1))
+        line = _line_of(text, m.start())
+        if len(vals) == n:
+            out.targets.append(Target("joint", spans, vals, line))
+        else:
+            out.unclear.append(Unclear(line, m.group()[:60], f"{len(vals)} positions, the robot has {n}"))
+    return out
+
+
+def _scan_csv(text: str, n: int) -> Scan:
+    out = Scan()
+    lines = text.splitlines(keepends=True)
+    if not lines:
+        return out
+    head = [h.strip() for h in lines[0].strip().split(",")]
+    want = [f"j{j}" for j in range(1, n + 1)]
+    if any(w not in head for w in want):
+        out.unclear.append(Unclear(1, lines[0].strip()[:60], f"no columns {','.join(want)}"))
+        return out
+    cols = [head.index(w) for w in want]
+    pos = len(lines[0])
+    for k, ln in enumerate(lines[1:], start=2):
+        cells, starts, p = ln.rstrip("\r\n").split(","), [], pos
+        for c in cells:
+            starts.append(p)
+            p += len(c) + 1
+        try:
+            vals = [float(cells[i]) for i in cols]
+            spans = [(starts[i], starts[i] + len(cells[i])) for i in cols]
+            out.targets.append(Target("joint", spans, vals, k))
+        except (IndexError, ValueError):
+            if ln.strip():
+                out.unclear.append(Unclear(k, ln.strip()[:60], "a row without numbers in j1..jN"))
+        pos += len(ln)
+    return out
+
+
+SCANNERS = {"urscript": (_scan_urscript, "rad"), "krl": (_scan_krl, "deg"), "rapid": (_scan_rapid, "deg"),
+            "fanuc-ls": (_scan_fanuc, "deg"), "pdl2": (_scan_pdl2, "deg"), "ros2-trajectory": (_scan_ros2, "rad"),
+            "csv": (_scan_csv, "rad")}
+#: decimals written at least, by format (joint values; poses: length, angle/quaternion)
+DECIMALS = {"urscript": (9, 7, 9), "krl": (4, 4, 5), "rapid": (4, 4, 8), "fanuc-ls": (3, 3, 3),
+            "pdl2": (4, 4, 5), "ros2-trajectory": (9, 0, 0), "csv": (15, 0, 0)}
+
+
+def scan(text: str, fmt: str, n_joints: int) -> Scan:
+    """The targets of a program text and what looked like a target but could not be read."""
+    if fmt not in SCANNERS:
+        raise ConfigError(f"--format {fmt!r}: compensate reads {', '.join(FORMATS)}")
+    return SCANNERS[fmt][0](text, n_joints)
+
+
+# -- pose conventions ---------------------------------------------------------------------
+
+def pose_to_T(values, convention: str) -> np.ndarray:
+    """(4, 4) SI pose of a Cartesian target's values."""
+    from campaign.model import rotations as R
+
+    v = np.asarray(values, dtype=float)
+    T = np.eye(4)
+    if convention == "m_rotvec":
+        T[:3, 3], T[:3, :3] = v[:3], R.rotvec_to_matrix(v[3:6])
+        return T
+    T[:3, 3] = v[:3] * 1e-3
+    a = np.radians(v[3:6])
+    if convention == "mm_kuka_abc":
+        T[:3, :3] = R.kuka_abc(a[0], a[1], a[2])
+    elif convention == "mm_fanuc_wpr":
+        T[:3, :3] = R.urdf_rpy(a[0], a[1], a[2])
+    elif convention == "mm_zyz":
+        T[:3, :3] = R.zyz(a[0], a[1], a[2])
+    elif convention == "mm_quat":
+        T[:3, :3] = R.quaternion_to_matrix(v[3:7])
+    else:
+        raise ValueError(convention)
+    return T
+
+
+def T_to_pose(T, convention: str, like) -> list:
+    """The values of ``convention`` for the pose T (4, 4) SI; ``like``: the values written before
+    (the Euler angles' branch nearest them, a quaternion's sign)."""
+    from campaign.model import rotations as R
+
+    T = np.asarray(T, dtype=float)
+    if convention == "m_rotvec":
+        return [*T[:3, 3], *R.matrix_to_rotvec(T[:3, :3])]
+    xyz = list(T[:3, 3] * 1e3)
+    if convention == "mm_quat":
+        q = R.matrix_to_quaternion(T[:3, :3])
+        return xyz + list(q if np.dot(q, like[3:7]) >= 0 else -q)
+    if convention == "mm_kuka_abc":
+        c, b, a = R.urdf_rpy_from_matrix(T[:3, :3])
+        ang = [a, b, c]
+    elif convention == "mm_fanuc_wpr":
+        ang = list(R.urdf_rpy_from_matrix(T[:3, :3]))
+    else:
+        ang = list(R.zyz_from_matrix(T[:3, :3]))
+    deg = np.degrees(ang)
+    old = np.asarray(like[3:6], dtype=float)
+    deg = deg + 360.0 * np.round((old - deg) / 360.0)  # the branch nearest the written angles
+    return xyz + list(deg)
+
+
+# -- rewriting -------------------------------------------------------------------------------
+
+def _decimals(token: str) -> int:
+    return len(token.split(".", 1)[1]) if "." in token and "e" not in token.lower() else 0
+
+
+def _write(text: str, spans, values, least: list) -> list:
+    """[(start, end, new token)] for the values (each with the decimals it had, at least ``least``)."""
+    out = []
+    for (s, e), v, d in zip(spans, values, least):
+        decimals = max(_decimals(text[s:e]), d)
+        tok = f"{v:.{decimals}f}"
+        if float(tok) == 0:
+            tok = tok.lstrip("-")
+        out.append((s, e, tok))
+    return out
+
+
+@dataclass(frozen=True)
+class ProgramCompensation:
+    """What `campaign compensate --program` did. text: the new program; joints, poses: targets
+    rewritten; unclear: [(line, text, why)] left as written; outside: [(line, why)] targets outside
+    the calibrated domain (rewritten) or not reached (left)."""
+
+    text: str
+    joints: int
+    poses: int
+    unclear: tuple
+    outside: tuple
+    stage: str
+
+
+def measured_ranges(run_dir, robot):
+    """(lo, hi) (N,) model joints the run measured, or None without measurements."""
+    from campaign.run import RunFolder
+
+    run = RunFolder(run_dir)
+    if not run.measurements_path.is_file():
+        return None
+    with run.store() as store:
+        q = store.load_measured().q
+    return (q.min(axis=0), q.max(axis=0)) if len(q) else None
+
+
+def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=None) -> ProgramCompensation:
+    """Rewrite the targets of a program ``text`` of format ``fmt`` through the calibration of
+    ``run_dir`` (module docstring)."""
+    from campaign.identify.use import CalibratedRobot
+    from campaign.model.kinematics import forward
+    from campaign.program.common import unit_scale
+
+    cal = calibrated or CalibratedRobot(run_dir, stage=stage)
+    robot = cal.robot
+    if cal.context_keys:
+        raise ConfigError(f"the calibrated model ({cal.stage}) needs per-pose context ({', '.join(cal.context_keys)}) "
+                          "that a program does not give; compensate with --stage geometric or a stage without it")
+    found = scan(text, fmt, robot.n_joints)
+    least_joint, least_len, least_ang = DECIMALS[fmt]
+    scale = unit_scale(robot.prismatic, SCANNERS[fmt][1])
+    ranges = measured_ranges(run_dir, robot)
+    edits, outside = [], []
+    joints = [t for t in found.targets if t.kind == "joint"]
+    poses = [t for t in found.targets if t.kind == "pose"]
+
+    def note_domain(t, q):
+        if ranges is not None:
+            lo, hi = ranges
+            bad = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
+            if len(bad):
+                j = bad[0]
+                outside.append((t.line, f"{t.name or 'target'}: joint {j + 1} at {np.degrees(q[j]):.2f} deg is outside "
+                                        f"the measured range {np.degrees(lo[j]):.2f}..{np.degrees(hi[j]):.2f} deg"))
+
+    n_joint = n_pose = 0
+    solved = {}
+    if joints:
+        q_ctrl = np.array([t.values for t in joints], dtype=float) / scale
+        q = np.atleast_2d(robot.to_model_q(q_ctrl))
+        q_new, _, ok = cal.compensate(forward(robot, q), q)
+        new_ctrl = np.atleast_2d(robot.to_controller_q(q_new)) * scale
+        for k, (t, qn, qc, good) in enumerate(zip(joints, q_new, new_ctrl, ok)):
+            solved[id(t)] = q[k]
+            if not good:
+                outside.append((t.line, f"{t.name or 'joint target'}: the calibrated model does not reach it "
+                                        "(left as written)"))
+                continue
+            note_domain(t, qn)
+            edits += _write(text, t.spans, qc, [least_joint] * len(qc))
+            n_joint += 1
+    previous = robot.q_mid.copy()
+    for t in sorted(found.targets, key=lambda t: t.spans[0][0]):  # program order: a pose's branch follows
+        if t.kind == "joint":
+            previous = solved[id(t)]
+            continue
+        q_t = _compensate_pose(text, t, cal, previous, edits, outside, note_domain, (least_len, least_ang))
+        if q_t is not None:
+            previous, n_pose = q_t, n_pose + 1
+    new = text
+    for s, e, tok in sorted(edits, reverse=True):
+        new = new[:s] + tok + new[e:]
+    unclear = tuple((u.line, u.text, u.why) for u in sorted(found.unclear, key=lambda u: u.line))
+    return ProgramCompensation(new, n_joint, n_pose, unclear, tuple(sorted(outside)), cal.stage)
+
+
+def nominal_solutions(robot, T, previous, config=None, n_starts: int = 24):
+    """Nominal IK solutions of T (4, 4) within the joint limits, nearest ``previous`` (N,) first;
+    ``config``: a test of controller joints in degrees (the configuration a program wrote)."""
+    from campaign.model.ik import nominal_ik
+
+    rng = np.random.default_rng(0)
+    starts = np.vstack([previous, robot.q_mid, rng.uniform(robot.q_lower, robot.q_upper,
+                                                           size=(n_starts, robot.n_joints))])
+    q, _, ok = nominal_ik(robot, np.repeat(T[None], len(starts), axis=0), starts, max_iter=100)
+    inside = np.all((q >= robot.q_lower - 1e-9) & (q <= robot.q_upper + 1e-9), axis=1)
+    q = q[ok & inside]
+    if config is not None:
+        deg = np.atleast_2d(robot.to_controller_q(q)) * np.where(robot.prismatic, 1e3, 180.0 / np.pi) if len(q) else q
+        q = q[[bool(config(d)) for d in deg]] if len(q) else q
+    return q[np.argsort(np.linalg.norm(q - previous, axis=1))] if len(q) else q
+
+
+def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least):
+    """Rewrite one Cartesian target (module docstring); its calibrated joints, or None (listed)."""
+    from campaign.model.kinematics import forward
+
+    robot = cal.robot
+    T = pose_to_T(t.values, t.convention)
+    sols = nominal_solutions(robot, T, previous, t.config)
+    what = t.name or "Cartesian target"
+    if not len(sols):
+        why = " in the configuration written" if t.config is not None else ""
+        outside.append((t.line, f"{what}: the nominal robot does not reach it{why} (left as written)"))
+        return None
+    q, _, ok = cal.compensate(T[None], sols[:1])
+    if not ok[0]:
+        outside.append((t.line, f"{what}: the calibrated model does not reach it (left as written)"))
+        return None
+    note_domain(t, q[0])
+    values = T_to_pose(forward(robot, q)[0], t.convention, t.values)
+    dec = [least[0]] * 3 + [least[1]] * (len(values) - 3)
+    edits += _write(text, t.spans, values, dec)
+    return q[0]
+
+
+def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None) -> tuple:
+    """Read ``program``, rewrite it (:func:`compensate_program`), write ``out`` (default: beside
+    it, ``<stem>_compensated<suffix>``; never the program itself). Returns (out path, result)."""
+    from campaign.fileio import atomic_write
+
+    program = Path(program)
+    if not program.is_file():
+        raise DataError(f"{program}: no such program file")
+    try:
+        text = program.read_text()
+    except UnicodeDecodeError:
+        raise DataError(f"{program}: not a text file") from None
+    out = Path(out) if out is not None else program.with_name(program.stem + "_compensated" + program.suffix)
+    if out.resolve() == program.resolve():
+        raise ConfigError(f"--out {out}: is the program itself; write the filtered program to another file")
+    res = compensate_program(run_dir, text, fmt, stage=stage)
+    if not res.joints and not res.poses and not res.unclear:
+        raise DataError(f"{program}: no {fmt} targets found (is --format right?)")
+    atomic_write(out, res.text)
+    return out, res

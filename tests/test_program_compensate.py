@@ -1,0 +1,200 @@
+"""`campaign compensate RUN --program FILE --format F`: a program's targets filtered through the
+calibration. Checked against the simulated truth (read only after the command answered): the
+true robot at the rewritten joint targets, and the nominal controller's joints of the rewritten
+Cartesian targets, reach the poses the program meant; every other line is left as it was."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from campaign.cli import main
+from campaign.measure.csvio import write_measured_csv
+from campaign.model.ik import nominal_ik
+from campaign.model.kinematics import forward, pose_error
+from campaign.program.compensate import T_to_pose, pose_to_T, scan
+from campaign.program.generate import format_module
+from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+DATA = Path(__file__).parent / "data" / "program"
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory, robot):
+    """(run folder, truth, measured poses): 80 poses of a synthetic campaign, calibrated without ANN."""
+    tmp = tmp_path_factory.mktemp("comp")
+    truth = make_truth(robot, seed=3)
+    poses = synthesize(truth, random_joint_poses(robot, 80, seed=3), seed=4)
+    write_measured_csv(tmp / "m.csv", poses)
+    run = tmp / "run"
+    assert main(["import", str(tmp / "m.csv"), "--run", str(run), "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0
+    return run, truth, poses
+
+
+def _true_pose(truth, poses, q):
+    """The truth's tool pose in the frame the set-up points defined (the calibration's frame)."""
+    return truth.pose_in_measured_frame(np.atleast_2d(q), poses.T_LI)
+
+
+def _mm(T_a, T_b):
+    return np.linalg.norm(pose_error(T_a, T_b)[:, :3], axis=1) * 1e3
+
+
+def _joints_inside(robot, n, seed):
+    q = random_joint_poses(robot, n, seed=seed, margin=0.3)
+    return q
+
+
+@pytest.mark.parametrize("fmt", ["urscript", "krl", "rapid", "fanuc-ls", "pdl2", "ros2-trajectory", "csv"])
+def test_joint_targets_of_every_program_reach_the_nominal_poses(tmp_path, robot, calibrated, fmt):
+    run, truth, poses = calibrated
+    prog_run = tmp_path / "p"
+    shutil.copytree(DATA / "plan", prog_run / "plan")
+    shutil.copy(DATA / "campaign.yaml", prog_run / "campaign.yaml")
+    mod = format_module(fmt)
+    assert main(["program", str(prog_run), "--format", fmt, "--out", str(tmp_path / ("prog" + mod.EXTENSION))]) == 0
+    src = sorted(p for p in tmp_path.iterdir() if p.is_file() and p.stem.lower() == "prog")
+    target_file = next(p for p in src if p.suffix != ".src")  # KRL: the .dat holds the targets
+    out = tmp_path / ("filtered" + target_file.suffix)
+    assert main(["compensate", str(run), "--program", str(target_file), "--format", fmt, "--out", str(out)]) == 0
+    before, after = target_file.read_text(), out.read_text()
+    files_before = [(p.name, p.read_text()) for p in src]
+    files_after = [(p.name, after if p == target_file else p.read_text()) for p in src]
+    read = (lambda f: mod.read_joints(f)) if fmt in ("csv", "urscript", "ros2-trajectory") else \
+        (lambda f: mod.read_joints(f, 6))
+    scale = np.where(robot.prismatic, 1e3, 180 / np.pi) if mod.UNITS == "deg" else np.ones(6)
+    q_old, q_new = read(files_before) / scale, read(files_after) / scale
+    T_meant = forward(robot, q_old)
+    err_before, err_after = _mm(_true_pose(truth, poses, q_old), T_meant), _mm(_true_pose(truth, poses, q_new), T_meant)
+    assert err_before.mean() > 0.3
+    # LS writes 3 decimals (1 mdeg: ~15 µm at this reach); the others 4 or more
+    assert err_after.max() < (0.06 if fmt == "fanuc-ls" else 0.03), (err_before, err_after)
+    changed = [k for k, (a, b) in enumerate(zip(before.splitlines(), after.splitlines())) if a != b]
+    assert len(before.splitlines()) == len(after.splitlines()) and changed
+    targets = {before.count("\n", 0, a) for t in scan(before, fmt, 6).targets for a, _ in t.spans}
+    assert set(changed) <= targets  # nothing but target lines changed
+
+
+def _cartesian_check(robot, truth, poses, T_meant, T_new, q_near):
+    """The nominal controller, given T_new, moves to nominal IK(T_new) (the branch of q_near);
+    the true robot there must be at T_meant."""
+    q_ctrl, _, ok = nominal_ik(robot, T_new, q_near, max_iter=100)
+    assert ok.all()
+    return _mm(_true_pose(truth, poses, q_ctrl), T_meant), _mm(_true_pose(truth, poses, q_near), T_meant)
+
+
+def _bits(q_deg):
+    return sum(1 << j for j in range(6) if q_deg[j] < 0)
+
+
+#: per format: (convention, head, a joint target line (the program's start), a pose line, end)
+CARTESIAN = {
+    "krl": ("mm_kuka_abc", "DEFDAT cell\n", "", "  DECL E6POS P{k}={{X {0:.4f},Y {1:.4f},Z {2:.4f},A {3:.5f},"
+            "B {4:.5f},C {5:.5f},S 6,T {bits},E1 0.0,E2 0.0}}\n", "ENDDAT\n"),
+    "rapid": ("mm_quat", "MODULE Cell\n", "", "  CONST robtarget p{k}:=[[{0:.4f},{1:.4f},{2:.4f}],[{3:.8f},{4:.8f},"
+              "{5:.8f},{6:.8f}],[{cf1},{cf4},{cf6},0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n", "ENDMODULE\n"),
+    "urscript": ("m_rotvec", "def cell():\n", "  movej([{j}])\n", "  movel(p[{0:.7f}, {1:.7f}, {2:.7f}, {3:.9f}, "
+                 "{4:.9f}, {5:.9f}], a=1.2, v=0.25)\n", "end\n"),
+    "fanuc-ls": ("mm_fanuc_wpr", "/PROG CELL\n/MN\n   1:  L P[1] 100mm/sec FINE ;\n/POS\n",
+                 "P[1]{{\n   GP1:\n\tUF : 0, UT : 1,\n\t{jls}\n}};\n",
+                 "P[{k2}]{{\n   GP1:\n\tUF : 0, UT : 1,\t\tCONFIG : 'N U T, 0, 0, 0',\n"
+                 "\tX = {0:.3f} mm,\tY = {1:.3f} mm,\tZ = {2:.3f} mm,\n\tW = {3:.3f} deg,\t"
+                 "P = {4:.3f} deg,\tR = {5:.3f} deg\n}};\n", "/END\n"),
+    "pdl2": ("mm_zyz", "PROGRAM cell\nBEGIN\n", "  JNT(jp, {jd})\n",
+             "  p{k} := POS({0:.4f}, {1:.4f}, {2:.4f}, {3:.5f}, {4:.5f}, {5:.5f}, 'S')\n", "END cell\n"),
+}
+
+
+@pytest.mark.parametrize("fmt", list(CARTESIAN))
+def test_cartesian_targets_become_what_the_nominal_controller_needs(tmp_path, robot, calibrated, fmt):
+    run, truth, poses = calibrated
+    conv, head, joint_line, line, end = CARTESIAN[fmt]
+    rng = np.random.default_rng(11)
+    start = robot.q_mid + [0.0, 0.0, 0.0, 0.0, 0.7, 0.0]  # the wrist away from its singularity (q5 = 0)
+    q = np.clip(start + np.cumsum(rng.normal(scale=0.08, size=(5, 6)), axis=0), robot.q_lower + 0.2,
+                robot.q_upper - 0.2)  # a path: each target near the one before, as programs go
+    T = forward(robot, q)
+    q_deg = np.degrees(q)
+    lead = np.degrees(start)
+    text = head + joint_line.format(j=", ".join(f"{v:.9f}" for v in start),
+                                    jd=", ".join(f"{v:.4f}" for v in lead),
+                                    jls=",\t".join(f"J{i + 1}= {v:.3f} deg" for i, v in enumerate(lead)))
+    for k in range(len(q)):
+        text += line.format(*T_to_pose(T[k], conv, [0, 0, 0, 0, 0, 0, 1]), k=k, k2=k + 2, bits=_bits(q_deg[k]),
+                            cf1=int(np.floor(q_deg[k, 0] / 90)), cf4=int(np.floor(q_deg[k, 3] / 90)),
+                            cf6=int(np.floor(q_deg[k, 5] / 90)))
+    text += end
+    path = tmp_path / ("cell" + format_module(fmt).EXTENSION.replace(".src", ".dat"))
+    path.write_text(text)
+    assert main(["compensate", str(run), "--program", str(path), "--format", fmt]) == 0
+    out = path.with_name(path.stem + "_compensated" + path.suffix)
+    new = [t for t in scan(out.read_text(), fmt, 6).targets if t.kind == "pose"]
+    assert len(new) == len(q)
+    T_written = np.array([pose_to_T(t.values, conv) for t in scan(text, fmt, 6).targets if t.kind == "pose"])
+    T_new = np.array([pose_to_T(t.values, conv) for t in new])
+    after, before = _cartesian_check(robot, truth, poses, T_written, T_new, q)
+    assert before.mean() > 0.3
+    assert after.max() < (0.06 if fmt == "fanuc-ls" else 0.02), (before, after)
+    if fmt in ("krl", "fanuc-ls", "pdl2"):  # the configuration flags as written
+        flags = {"krl": r"S 6,T ", "fanuc-ls": "CONFIG : 'N U T, 0, 0, 0'", "pdl2": "'S')"}[fmt]
+        assert out.read_text().count(flags) == len(q)
+
+
+def test_what_is_not_understood_is_listed_and_left(tmp_path, robot, calibrated, capsys):
+    run, *_ = calibrated
+    text = ("MODULE Cell\n"
+            "  CONST jointtarget j1:=[[10,20,30,0,40,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+            "  CONST robtarget p2:=Offs(p1,0,0,10);\n"
+            "  ! a comment [[1,2,3]] that is no target\n"
+            "  PROC main()\n    MoveAbsJ j1\\NoEOffs, v100, fine, tool0;\n  ENDPROC\nENDMODULE\n")
+    (tmp_path / "cell.mod").write_text(text)
+    assert main(["compensate", str(run), "--program", str(tmp_path / "cell.mod"), "--format", "rapid"]) == 0
+    said = capsys.readouterr().out
+    assert "1 joint and 0 Cartesian targets compensated" in said
+    assert "line 3: not understood, left as written: a target declaration whose value could not be read" in said
+    new = (tmp_path / "cell_compensated.mod").read_text().splitlines()
+    old = text.splitlines()
+    assert [k for k in range(len(old)) if old[k] != new[k]] == [1]
+    assert new[1].startswith("  CONST jointtarget j1:=[[10.") and new[1].endswith("],[9E9,9E9,9E9,9E9,9E9,9E9]];")
+
+
+def test_a_target_outside_the_measured_joints_is_named(tmp_path, robot, calibrated, capsys):
+    run, _, poses = calibrated
+    lo, hi = poses.q.min(axis=0), poses.q.max(axis=0)
+    q_out = (lo + hi) / 2
+    q_out[0] = min(hi[0] + 0.05, robot.q_upper[0] - 0.01)  # beyond what was measured, inside the limits
+    assert q_out[0] > hi[0]
+    q_in = (lo + hi) / 2
+    vals = [", ".join(f"{v:.9f}" for v in q) for q in (q_in, q_out)]
+    (tmp_path / "a.script").write_text(f"def a():\n  movej([{vals[0]}])\n  movej([{vals[1]}])\nend\n")
+    assert main(["compensate", str(run), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
+    said = capsys.readouterr().out
+    assert "1 outside the calibrated domain" in said and "line 3: target: joint 1 at" in said
+
+
+@pytest.mark.parametrize("args, match", [
+    (["--program", "{p}"], "--program needs --format"),
+    (["--csv", "{p}", "--format", "krl"], "--format goes with --program"),
+    (["--program", "{p}", "--format", "gcode"], "--format 'gcode': compensate reads"),
+    (["--program", "{tmp}/none.src", "--format", "krl"], "none.src: no such program file"),
+    (["--program", "{p}", "--format", "krl", "--out", "{p}"], "is the program itself"),
+    (["--program", "{p}", "--format", "fanuc-ls"], "no fanuc-ls targets found"),
+])
+def test_bad_program_compensation_input_is_one_line(tmp_path, calibrated, capsys, args, match):
+    run, *_ = calibrated
+    p = tmp_path / "x.dat"
+    p.write_text("DEFDAT x\n  DECL E6AXIS XP1={A1 1.0,A2 2.0,A3 3.0,A4 4.0,A5 5.0,A6 6.0}\nENDDAT\n")
+    assert main(["compensate", str(run), *[a.format(p=p, tmp=tmp_path) for a in args]]) == 1
+    err = capsys.readouterr().err.strip()
+    assert match in err and len(err.splitlines()) == 1
+    assert p.read_text().startswith("DEFDAT x")
+
+
+def test_a_run_without_calibration_is_refused_in_one_line(tmp_path, capsys):
+    p = tmp_path / "x.script"
+    p.write_text("def x():\n  movej([0, 0, 0, 0, 0, 0])\nend\n")
+    (tmp_path / "run").mkdir()
+    assert main(["compensate", str(tmp_path / "run"), "--program", str(p), "--format", "urscript"]) == 1
+    assert "run `campaign calibrate" in capsys.readouterr().err
