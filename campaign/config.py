@@ -364,11 +364,9 @@ class CampaignConfig:
             return self
         kw = {"tool_frame": tool_frame, "base_frame": base_frame}
         if robot is not None:
-            from campaign.model.robot import names_example_robot
+            from campaign.model.robot import robot_spec
 
-            # a path is made absolute; a name stays a name (a run folder named like it does not hide it)
-            kw["robot"] = str(Path(robot).resolve()) if Path(robot).exists() and not names_example_robot(robot) \
-                else str(robot)
+            kw["robot"] = robot_spec(robot)  # a path made absolute; a name stays a name
         else:
             kw = {k: v if v is not None else getattr(self, k) for k, v in kw.items()}
         return replace(self, **kw)

@@ -9,10 +9,15 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from campaign.cli import main
+from campaign.model.robot import RobotModel
 from campaign.paths import ROBOT_MODELS
+from campaign.run import RunFolder
+
+from fcl_reference import erd_robot
 
 COMAU_URDF = ROBOT_MODELS / "comau_racer5_080" / "robot.urdf"
 
@@ -211,3 +216,21 @@ def test_a_perfect_adapter_measures_and_calibrates_to_zero(runs, capsys):
     assert main(["calibrate", str(run), "--no-ann"]) == 0, capsys.readouterr().err
     metrics = json.loads((run / "calibration" / "metrics.json").read_text())
     assert metrics["stages"]["geometric"]["test"]["position_mm"]["max"] < 1e-6
+
+
+# -- 6. --robot NAME is a name even when a folder of that name is here ---------------------------
+
+@pytest.mark.parametrize("name, joint", [("comau_racer5_080", None), ("ur10", "shoulder_pan_joint")])
+def test_import_resolves_a_robot_name_shadowed_by_a_folder_as_model_and_plan_do(tmp_path, monkeypatch, capsys,
+                                                                               name, joint):
+    if name == "ur10" and not erd_robot("ur_description/urdf/ur10_robot.urdf").is_file():
+        pytest.skip("example-robot-data is not installed")
+    monkeypatch.chdir(tmp_path)
+    assert main(["synth", "--csv", "data.csv", "--robot", name, "--poses", "30"]) == 0
+    (tmp_path / name).mkdir()  # e.g. a run folder `campaign plan --run ur10` made
+    assert main(["model", "chain", "--robot", name]) == 0
+    assert main(["import", "data.csv", "--run", "run", "--robot", name, "--quiet"]) == 0, capsys.readouterr().err
+    assert yaml.safe_load((tmp_path / "run" / "campaign.yaml").read_text())["robot"] == name
+    robot = RunFolder(tmp_path / "run").robot()
+    assert robot.joint_names == RobotModel.load(name).joint_names
+    assert joint is None or robot.joint_names[0] == joint

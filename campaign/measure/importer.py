@@ -45,6 +45,7 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
 
     from campaign.measure.csvio import ImportOptions, iter_measured_chunks, read_markers_file
     from campaign.measure.store import write_imported
+    from campaign.model.robot import robot_spec
 
     run = RunFolder(run_dir)
     if run.has_config:
@@ -58,9 +59,7 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
                                   "import into a new run folder for another robot or frame")
         spec, tool_frame, base_frame = cfg.robot_spec, cfg.tool_frame, cfg.base_frame
     else:
-        spec = robot if robot is not None else DEFAULT_ROBOT
-        if robot is not None and Path(robot).exists():
-            spec = str(Path(robot).resolve())
+        spec = robot_spec(robot) if robot is not None else DEFAULT_ROBOT
     model = load_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
     if run.measurements_path.exists():  # checked again under the lock by write_imported
         raise DataError(f"{run.path}: already holds {run.measurements_path.name}; import into a new run folder")

@@ -443,6 +443,26 @@ def names_example_robot(spec) -> bool:
     return catalog.lookup(text) is not None
 
 
+def _names_embedded(spec) -> bool:
+    """Whether ``spec`` names an embedded model (campaign/data/robot_models/<name>) that no file or
+    robot.yaml folder of that name in the current directory hides (a bare folder does not)."""
+    text = str(spec)
+    here = Path(text)
+    return ("/" not in text and (ROBOT_MODELS / text).is_dir() and not here.is_file()
+            and not (here / "robot.yaml").is_file())
+
+
+def robot_spec(given) -> str:
+    """The one reading of ``--robot`` for every command: a robot's name stays a name (a folder
+    of that name without a robot.yaml in the current directory, such as a run folder, does not
+    hide it); a URDF, a robot.yaml or its folder becomes an absolute path (a run's campaign.yaml
+    records it so)."""
+    text = str(given)
+    if not Path(text).exists() or names_example_robot(text) or _names_embedded(text):
+        return text
+    return str(Path(text).resolve())
+
+
 def _named_example(spec):
     """(URDF path, tool frame, base frame) when ``spec`` names one of example-robot-data's robots
     (:func:`names_example_robot`); None otherwise."""
@@ -461,7 +481,7 @@ def _named_example(spec):
 def _resolve(spec) -> tuple:
     """(urdf path or None, robot.yaml path or None) for what `load` was given."""
     p = Path(spec)
-    if p.is_dir():
+    if p.is_dir() and not _names_embedded(spec):
         meta = p / "robot.yaml"
         if not meta.is_file():
             raise ConfigError(f"{meta}: robot description not found (expected robot.yaml beside a URDF)")
