@@ -32,18 +32,31 @@ def one_line_error(capsys, argv, match) -> str:
     return lines[0]
 
 
-def nominal_csv(path: Path, n: int = 40, seed: int = 0) -> Path:
-    """The COMAU's nominal poses of E, computed by Pinocchio from the URDF: data a perfect
-    calibration fits with zero error (what `predict --stage nominal` or a perfect adapter gives)."""
+def comau_q(n: int = 40, seed: int = 0) -> np.ndarray:
+    """Random joint vectors (n, 6) inside 80 % of the COMAU's limits (rad)."""
+    model = pin.buildModelFromUrdf(str(COMAU_URDF))
+    rng = np.random.default_rng(seed)
+    return rng.uniform(model.lowerPositionLimit, model.upperPositionLimit, size=(n, model.nq)) * 0.8
+
+
+def nominal_poses(q) -> np.ndarray:
+    """The COMAU's nominal poses of E (n, 4, 4) at q (n, 6), by Pinocchio from the URDF."""
     model = pin.buildModelFromUrdf(str(COMAU_URDF))
     data, fid = model.createData(), model.getFrameId("E")
-    rng = np.random.default_rng(seed)
-    q = rng.uniform(model.lowerPositionLimit, model.upperPositionLimit, size=(n, model.nq)) * 0.8
-    rows = ["pose_id,q1,q2,q3,q4,q5,q6,x,y,z,rx,ry,rz"]
-    for i, qi in enumerate(q):
+    out = []
+    for qi in q:
         pin.framesForwardKinematics(model, data, qi)
-        T = data.oMf[fid]
-        values = [*qi, *T.translation, *Rotation.from_matrix(T.rotation).as_rotvec()]
+        out.append(data.oMf[fid].homogeneous)
+    return np.array(out)
+
+
+def nominal_csv(path: Path, n: int = 40, seed: int = 0, q=None) -> Path:
+    """The COMAU's nominal poses of E, computed by Pinocchio from the URDF: data a perfect
+    calibration fits with zero error (what `predict --stage nominal` or a perfect adapter gives)."""
+    q = comau_q(n, seed) if q is None else q
+    rows = ["pose_id,q1,q2,q3,q4,q5,q6,x,y,z,rx,ry,rz"]
+    for i, (qi, T) in enumerate(zip(q, nominal_poses(q))):
+        values = [*qi, *T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()]
         rows.append(f"{i + 1}," + ",".join(repr(float(v)) for v in values))
     path.write_text("\n".join(rows) + "\n")
     return path
@@ -234,3 +247,29 @@ def test_import_resolves_a_robot_name_shadowed_by_a_folder_as_model_and_plan_do(
     robot = RunFolder(tmp_path / "run").robot()
     assert robot.joint_names == RobotModel.load(name).joint_names
     assert joint is None or robot.joint_names[0] == joint
+
+
+# -- 7. predict and compensate use the limit slack the run's import accepted --------------------
+
+def test_predict_and_compensate_accept_what_the_import_accepted_with_limit_slack(tmp_path, capsys):
+    robot = RobotModel.load()
+    q = comau_q(40, seed=5)
+    q[3, 0] = robot.q_upper[0] + np.radians(0.3)  # a real reading 0.3 deg past the URDF's limit
+    data = nominal_csv(tmp_path / "data.csv", q=q)
+    run = tmp_path / "run"
+    assert main(["import", str(data), "--run", str(run), "--limit-slack", "0.5", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0
+    out = tmp_path / "pred.csv"
+    assert main(["predict", str(run), "--csv", str(data), "--out", str(out)]) == 0, capsys.readouterr().err
+    got = np.loadtxt(out, delimiter=",", skiprows=1)
+    assert np.allclose(got[:, 7:10], nominal_poses(q)[:, :3, 3], atol=1e-6)  # exact data: the nominal model
+    assert main(["compensate", str(run), "--csv", str(data), "--out", str(tmp_path / "comp.csv")]) == 0
+    # further past than the run accepted: refused, saying the slack in force; accepted when given
+    q[3, 0] = robot.q_upper[0] + np.radians(0.8)
+    far = nominal_csv(tmp_path / "far.csv", q=q)
+    capsys.readouterr()
+    for verb in ("predict", "compensate"):
+        one_line_error(capsys, [verb, run, "--csv", far],
+                       r"line 5, q1 = [\d.]+ rad is outside the joint limit [\d.]+ rad of COMAU Racer5-0\.80 "
+                       r"\(limit slack in force: 0\.5 deg, as the run's import accepted; --limit-slack")
+        assert main([verb, str(run), "--csv", str(far), "--limit-slack", "1", "--out", str(tmp_path / "x.csv")]) == 0

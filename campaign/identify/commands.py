@@ -120,6 +120,9 @@ def register(sub):
                    help="unit of the joint columns read and written (default: rad)")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
                    help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
+    p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
+                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
+                        "prismatic ones; default: what the run's import accepted)")
     p.set_defaults(func=_predict)
 
     p = sub.add_parser("compensate",
@@ -143,6 +146,9 @@ def register(sub):
                    help="unit of the joint columns read and written, dq included (default: rad)")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
                    help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
+    p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
+                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
+                        "prismatic ones; default: what the run's import accepted)")
     p.set_defaults(func=_compensate)
 
 
@@ -357,11 +363,12 @@ class _CalibrateProgress:
 
 
 def _predict(args):
-    from campaign.identify.use import CalibratedRobot, predict_rows, read_joint_csv, write_table
+    from campaign.identify.use import CalibratedRobot, predict_rows, read_joint_csv, run_joint_slack, write_table
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
+    slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
-                                         columns=args.columns)
+                                         columns=args.columns, slack=slack, slack_source=source)
     header, rows = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:
@@ -376,11 +383,13 @@ def _compensate(args):
         return _compensate_program(args)
     if args.format is not None:
         raise ConfigError("--format goes with --program (a CSV of joints is read with --csv alone)")
-    from campaign.identify.use import CalibratedRobot, compensate_rows, read_joint_csv, write_table
+    from campaign.identify.use import (CalibratedRobot, compensate_rows, read_joint_csv, run_joint_slack,
+                                      write_table)
 
     calibrated = CalibratedRobot(args.run, stage=args.stage)
+    slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
-                                         columns=args.columns)
+                                         columns=args.columns, slack=slack, slack_source=source)
     header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
     write_table(args.out, header, rows)
     if args.out:

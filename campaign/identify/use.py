@@ -210,14 +210,17 @@ def joint_scale(robot: RobotModel, angle_unit: str = "rad") -> np.ndarray:
     return np.where(robot.prismatic | (angle_unit == "rad"), 1.0, np.pi / 180.0)
 
 
-def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad", columns=None) -> tuple:
+def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad", columns=None,
+                   slack=None, slack_source: str | None = None) -> tuple:
     """Joint coordinates (and the context columns an effect needs) from a CSV.
 
     Header: ``q1..qN`` (rad, or deg with ``angle_unit``; m for prismatic joints; in the
     controller's convention, converted by robot.yaml's ``controller``), optionally ``pose_id``
     and any context columns (``time_s``, ``temperature_c``, ...). columns: the file's own
     names (``--columns`` text or {column in the file: name used}; default robot.yaml's
-    ``columns:``), as `import` reads them; a mapped measurement column may be absent.
+    ``columns:``), as `import` reads them; a mapped measurement column may be absent. slack:
+    (N,) rad or m, how far past the URDF's limits readings are accepted (default: round-off,
+    JOINT_LIMIT_SLACK; :func:`run_joint_slack` gives a run's), said as from ``slack_source``.
     Returns (pose_id (n,), q (n, N) model, rad and m, context dict).
     """
     from campaign.measure.csvio import not_joint_name
@@ -236,10 +239,26 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
         raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
     q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1) * scale)
     robot.check_joints(q, field=f"{path}" + (" (read in deg)" if angle_unit == "deg" else ""),
-                       slack=JOINT_LIMIT_SLACK, lines=lines)
+                       slack=JOINT_LIMIT_SLACK if slack is None else slack, lines=lines, slack_source=slack_source)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)
     context = {k: col[k] for k in header if k not in cols and k != "pose_id"}
     return pose_id, q, context
+
+
+def run_joint_slack(run_dir, robot: RobotModel, given_deg_or_mm: float | None = None) -> tuple:
+    """(slack (N,) rad or m, its source in words) for joint readings given to a calibrated run:
+    what its import accepted past the URDF's limits (``--limit-slack`` recorded), or
+    ``given_deg_or_mm`` (deg for revolute joints, mm for prismatic ones) when that is more."""
+    from campaign.measure.importer import joint_slack
+
+    run_slack = joint_slack(run_dir, robot)
+    source = "as the run's import accepted"
+    if given_deg_or_mm is None:
+        return run_slack, source + "; --limit-slack DEG_OR_MM to accept more"
+    if not np.isfinite(given_deg_or_mm) or given_deg_or_mm < 0:
+        raise ConfigError(f"--limit-slack must be a number >= 0 (deg or mm), got {given_deg_or_mm!r}")
+    given = JOINT_LIMIT_SLACK + np.where(robot.prismatic, given_deg_or_mm * 1e-3, np.radians(given_deg_or_mm))
+    return np.maximum(run_slack, given), "--limit-slack or the run's import, the larger"
 
 
 def write_table(path, header, rows) -> None:

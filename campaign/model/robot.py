@@ -378,12 +378,14 @@ class RobotModel:
             return q
         return np.linalg.solve(self.controller_matrix, (q - self.controller_offset).T).T
 
-    def check_joints(self, q, *, field: str = "q", slack=0.0, pose_ids=None, lines=None) -> np.ndarray:
+    def check_joints(self, q, *, field: str = "q", slack=0.0, pose_ids=None, lines=None,
+                     slack_source: str | None = None) -> np.ndarray:
         """Validate joint vectors; return them as float64 (n, N).
 
         Raises :class:`campaign.errors.DataError` naming the robot, the row (its ``pose_ids``
         entry, its file line from ``lines``, else its 1-based row number), the joint, the value
-        and the limit (continuous joints have none). slack: scalar or (N,), rad or m.
+        and the limit (continuous joints have none). slack: scalar or (N,), rad or m;
+        slack_source: where it comes from, when the message should say the slack in force.
         """
         from campaign.errors import DataError
 
@@ -405,8 +407,10 @@ class RobotModel:
             lim = self.q_lower[j] if lo[i, j] else self.q_upper[j]
             u = self.joint_units[j]
             where = _row_label(i, pose_ids, lines)
+            said = "" if slack_source is None else \
+                f" (limit slack in force: {limit_slack_text(self, np.broadcast_to(slack, (N,))[j], j)}, {slack_source})"
             raise DataError(f"{field}: {where}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
-                            f"{lim:.6g} {u} of {self.name}")
+                            f"{lim:.6g} {u} of {self.name}{said}")
         return q
 
     def describe(self) -> str:
@@ -418,6 +422,18 @@ class RobotModel:
             kind = self.joint_types[k - 1] if 1 <= k <= self.n_joints else "fixed"
             lines.append(f"  T_{tname:<6} {kind:<10} {', '.join(self.transform_joints[k]) or '(identity)'}")
         return "\n".join(lines)
+
+
+def limit_slack_text(robot, slack, j: int) -> str:
+    """``0.5 deg`` or ``0.2 mm``: how far past joint j's limit readings are accepted (``slack``,
+    rad or m, JOINT_LIMIT_SLACK's round-off allowance included and not shown), as --limit-slack
+    takes it; ``none`` for round-off alone."""
+    from campaign.tolerances import JOINT_LIMIT_SLACK
+
+    extra = max(float(slack) - JOINT_LIMIT_SLACK, 0.0)
+    if extra <= JOINT_LIMIT_SLACK:
+        return "none"
+    return f"{extra * 1e3:.6g} mm" if robot.prismatic[j] else f"{np.degrees(extra):.6g} deg"
 
 
 def _row_label(i: int, pose_ids=None, lines=None) -> str:
