@@ -13,7 +13,7 @@ q. Configuration flags (KRL S/T, RAPID confdata, FANUC CONFIG, PDL2's string) ar
 
 Only the numbers of a target are replaced (each written with at least as many decimals as it
 had, and the format's precision); what looks like a target but cannot be read is listed with its
-line and left as it was. Targets whose joints lie outside the joint ranges the run measured (its
+line and left as it was. Targets whose nominal joints lie outside the joint ranges the run measured (its
 calibrated domain: a model is not known beyond its data) are named, as are targets the
 calibrated model could not reach (not converged: left as written).
 
@@ -422,6 +422,8 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
     poses = [t for t in found.targets if t.kind == "pose"]
 
     def note_domain(t, q):
+        """Name a target whose nominal joints q (N,) (what the program asks for; the compensation
+        moves them by the robot's errors) lie outside the joint ranges the run measured."""
         if ranges is not None:
             lo, hi = ranges
             bad = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
@@ -443,7 +445,7 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
                 outside.append((t.line, f"{t.name or 'joint target'}: the calibrated model does not reach it "
                                         "(left as written)"))
                 continue
-            note_domain(t, qn)
+            note_domain(t, q[k])
             edits += _write(text, t.spans, qc, [least_joint] * len(qc))
             n_joint += 1
     previous = robot.q_mid.copy()
@@ -494,7 +496,7 @@ def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least)
     if not ok[0]:
         outside.append((t.line, f"{what}: the calibrated model does not reach it (left as written)"))
         return None
-    note_domain(t, q[0])
+    note_domain(t, sols[0])
     values = T_to_pose(forward(robot, q)[0], t.convention, t.values)
     dec = [least[0]] * 3 + [least[1]] * (len(values) - 3)
     edits += _write(text, t.spans, values, dec)
