@@ -33,6 +33,12 @@ METRES_MAX_ABS = 20.0
 #: Joint-limit slack (rad) when validating measured joint values (encoder rounding).
 JOINT_LIMIT_SLACK = 1e-6
 
+#: A joint reading further past its limit than this (rad for revolute joints, m for prismatic
+#: ones) is no encoder reading slightly past a limit (TIAGo's torso reads 0.18 mm past; a few
+#: hundredths of a degree is usual) but another robot's data: a forgotten --robot, not --limit-slack.
+FAR_PAST_LIMIT_RAD = 0.0873  # 5 deg
+FAR_PAST_LIMIT_M = 0.005
+
 #: Joint-limit slack (rad) of the simulated controller: a command at a limit, computed in
 #: float64 from the limits themselves (grid cells, via postures), lies within round-off of it.
 JOINT_COMMAND_SLACK = 1e-9

@@ -412,7 +412,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     if poses.q.shape[1] != robot.n_joints:
         raise DataError(f"{run_dir}: the measurements have {poses.q.shape[1]} joint values per pose, the run's robot "
                         f"{robot.name} has {robot.n_joints} joints")
-    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=joint_slack(run_dir, robot), pose_ids=poses.pose_id)
+    robot.check_joints(poses.q, field=f"{run_dir}: q", slack=joint_slack(run_dir, robot), pose_ids=poses.pose_id,
+                       slack_source="the --limit-slack its import recorded")
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     raw = poses.kind == "markers" and poses.markers is not None
     if raw:  # identified from the seen reflectors' positions: every pose with one seen contributes
@@ -440,7 +441,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                      rows_per_pose=informative_equations(n_seen[tr]) if raw else None)
     point = measured_point(robot, poses, tr)
     if point is not None and np.any(point) and len(robot.reflectors) != 1:
-        say(f"one reflector, robot.yaml names none: measured at {plausibility.point_text(point)} in "
+        named = "robot.yaml names none" if robot.meta_path is not None else \
+            f"none named ({robot.name} was given without a robot.yaml)"
+        say(f"one reflector, {named}: measured at {plausibility.point_text(point)} in "
             f"{robot.tool_frame}, as the training poses place it on the nominal model (params.yaml's "
             "measured_point_in_tool_m)")
     mounting = tool_mounting(robot, poses, tr)

@@ -229,12 +229,15 @@ def _export(args):
     if not args.csv and not args.urdf:
         raise ConfigError("export: give --csv OUT and/or --urdf OUT")
     if args.urdf:
-        from campaign.identify.use import calibrated_geometry
+        from campaign.identify.use import calibrated_geometry, export_notes
         from campaign.model.export import write_calibrated_urdf
 
         robot, p_e = calibrated_geometry(args.run)
-        write_calibrated_urdf(robot, p_e, args.urdf)
+        notes = export_notes(args.run, robot)
+        write_calibrated_urdf(robot, p_e, args.urdf, notes)
         print(f"wrote the calibrated geometric model of {robot.name} ({robot.n_params} parameters) to {args.urdf}")
+        for note in notes:
+            print(f"  {note}")
         if not args.csv:
             return 0
     with RunFolder(args.run).store() as store:

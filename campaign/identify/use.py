@@ -187,6 +187,37 @@ def calibrated_geometry(run_dir) -> tuple:
                          "geometric_only." if "geometric_only" in params else "").p_e
 
 
+def export_notes(run_dir, robot: RobotModel) -> list:
+    """What the exported URDF of a calibrated run is and leaves out, one sentence each (written
+    as a comment into the URDF and said by `campaign export --urdf`): the joint convention its
+    joints are in, the gravity of its root frame (a URDF cannot state it; Pinocchio assumes -z),
+    and what of the current model it does not hold (the effects, the network)."""
+    from campaign.versioned import calibration_folder
+
+    folder = calibration_folder(run_dir).current() or Path(run_dir) / "calibration"
+    params = read_yaml_mapping(folder / "params.yaml", DataError)
+    notes = []
+    if robot.controller_matrix is None:
+        notes.append("joints: the URDF's own convention, which is the controller's (robot.yaml names no "
+                     "controller convention)")
+    else:
+        from campaign.measure.plausibility import controller_yaml
+
+        notes.append("joints: the URDF's (model) convention, not the controller's: q_model = coupling * q_controller + "
+                     f"offset, robot.yaml's {controller_yaml(robot, np.eye(robot.n_joints), np.zeros(robot.n_joints))}")
+    g = ", ".join(f"{v:.4g}" for v in robot.gravity_in_I)
+    notes.append(f"gravity in the root frame '{robot.base_frame}': ({g}) m/s^2 (a URDF cannot state it: give it to "
+                 "Pinocchio or a simulator, whose default is (0, 0, -9.81))")
+    effects = list((params.get("effects") or {}))
+    left = [f"the effects {', '.join(effects)} (identified with the geometry; the URDF holds the geometric-only "
+            "identification)"] if effects else []
+    if params.get("ann_stages"):
+        left.append("the neural compensator")
+    if left:
+        notes.append(f"left out: {' and '.join(left)}; `campaign predict` and `campaign compensate` apply them")
+    return notes
+
+
 def measured_frame(robot: RobotModel, params: dict, params_path, *, point: bool = True) -> RobotModel:
     """The run's robot whose tool frame is where the calibrated data were measured (params.yaml):
     a one-reflector measured point (``point``), a tool mounting of 6-D or raw-reflector data."""
@@ -237,7 +268,11 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     extra = [h for h in header if h.startswith("q") and h[1:].isdigit() and h not in cols]
     if extra:
         raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
-    q = robot.to_model_q(np.stack([col[c] for c in cols], axis=1) * scale)
+    from campaign.measure.csvio import check_joint_units
+
+    written = np.stack([col[c] for c in cols], axis=1)
+    check_joint_units(path, written * scale, written, lines, robot, angle_unit == "deg")
+    q = robot.to_model_q(written * scale)
     robot.check_joints(q, field=f"{path}" + (" (read in deg)" if angle_unit == "deg" else ""),
                        slack=JOINT_LIMIT_SLACK if slack is None else slack, lines=lines, slack_source=slack_source)
     pose_id = col["pose_id"].astype(np.int64) if "pose_id" in col else np.arange(len(q), dtype=np.int64)

@@ -478,20 +478,7 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom, first_r
     N = len(layout.joints)
     prismatic = robot.prismatic if robot is not None else np.zeros(N, dtype=bool)
     q = np.stack([col[c] for c in layout.joints], axis=1) * np.where(prismatic, l_scale, a_scale)
-    for j, name in enumerate(layout.joints):
-        if prismatic[j]:
-            big = np.abs(q[:, j]) > METRES_MAX_ABS
-            if big.any():
-                fail(big, name, "m: a prismatic joint's value must be in m (this looks like mm; --length-unit mm)",
-                     q[:, j])
-            continue
-        bound = RADIANS_MAX_ABS
-        if robot is not None and robot.joint_types[j] != "continuous":
-            bound = max(bound, abs(robot.q_lower[j]) + 1e-6, abs(robot.q_upper[j]) + 1e-6)
-        big = np.abs(q[:, j]) > bound
-        if big.any():
-            fail(big, name, "exceeds 2*pi and the joint's limits: joint values must be in rad (this looks like "
-                            "degrees; --angle-unit deg)", q[:, j] if deg else None)
+    check_joint_units(path, q, np.stack([col[c] for c in layout.joints], axis=1), lines, robot, deg)
     past = None
     if robot is not None:
         q = robot.to_model_q(q)
@@ -505,8 +492,7 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom, first_r
             u = robot.joint_units[j]
             raise DataError(f"{path}: line {lines[k]}, column q{j + 1}: {q[k, j]:.6g} {u} is outside "
                             f"the joint limit {lim:.6g} {u} of {robot.name}"
-                            + ("" if options.limit_slack_rad or options.limit_slack_m else
-                               " (readings slightly past a limit: --limit-slack DEG_OR_MM)"))
+                            + limit_hint(robot, q, options))
         excess = np.maximum(robot.q_lower - JOINT_LIMIT_SLACK - q, q - robot.q_upper - JOINT_LIMIT_SLACK) * limited
         if (excess > 0).any():
             k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
@@ -548,6 +534,52 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom, first_r
     t = col["time_s"] if layout.has_time else np.full(n, np.nan)
     return {"pose_id": pid.astype(np.int64), "time_s": t, "q": q, "xyz": xyz, "rotvec": rv, "markers": markers,
             "context": {h: col[h] for h in layout.context}, "lines": lines, "past_limits": past}
+
+
+def check_joint_units(path, q, written, lines, robot=None, read_in_deg: bool = False) -> None:
+    """Joint readings in another unit than read: a revolute joint beyond 2*pi and its limits
+    (degrees read as rad), a prismatic one beyond METRES_MAX_ABS (mm read as m). q (n, N) as
+    read (rad, m); written (n, N) as the file writes them; lines (n,) the file's line numbers.
+    DataError naming the line, the column and the option; import, predict and compensate alike."""
+    N = q.shape[1]
+    prismatic = robot.prismatic if robot is not None else np.zeros(N, dtype=bool)
+    for j in range(N):
+        if prismatic[j]:
+            big, what, v = np.abs(q[:, j]) > METRES_MAX_ABS, ("m: a prismatic joint's value must be in m (this looks "
+                                                              "like mm; --length-unit mm)"), q[:, j]
+        else:
+            bound = RADIANS_MAX_ABS
+            if robot is not None and robot.joint_types[j] != "continuous":
+                bound = max(bound, abs(robot.q_lower[j]) + 1e-6, abs(robot.q_upper[j]) + 1e-6)
+            big = np.abs(q[:, j]) > bound
+            what = "exceeds 2*pi and the joint's limits: joint values must be in rad (this looks like degrees; " \
+                   "--angle-unit deg)"
+            v = q[:, j] if read_in_deg else written[:, j]
+        if big.any():
+            k = int(np.argmax(big))
+            raise DataError(f"{path}: line {lines[k]}, column q{j + 1}: {v[k]:.6g} {what}")
+
+
+def limit_hint(robot, q, options) -> str:
+    """What joint readings q (n, N, model convention) past the limits mean, by the largest excess
+    of any joint: far past (FAR_PAST_LIMIT_*), another robot's data (a forgotten ``--robot``);
+    else readings slightly past, the ``--limit-slack`` in force or the option to give."""
+    from campaign.tolerances import FAR_PAST_LIMIT_M, FAR_PAST_LIMIT_RAD
+
+    limited = np.array([t != "continuous" for t in robot.joint_types], dtype=bool)
+    excess = np.max(np.maximum(robot.q_lower - q, q - robot.q_upper) * limited, axis=0)  # (N,)
+    far = excess / np.where(robot.prismatic, FAR_PAST_LIMIT_M, FAR_PAST_LIMIT_RAD)
+    j = int(np.argmax(far))
+    past = f"{excess[j] * 1e3:.3g} mm" if robot.prismatic[j] else f"{math.degrees(excess[j]):.3g} deg"
+    if far[j] > 1:
+        return (f" (q{j + 1} reads up to {past} past a limit: no reading slightly past, but data of another robot, "
+                f"unit or joint convention; the file is read as {robot.name}'s: --robot NAME|URDF (`campaign "
+                "robots`), --angle-unit, robot.yaml's controller)")
+    given = np.where(robot.prismatic, options.limit_slack_m, options.limit_slack_rad)[j]
+    if given:
+        slack = f"{given * 1e3:.6g} mm" if robot.prismatic[j] else f"{math.degrees(given):.6g} deg"
+        return f" ({past} past at most, more than the --limit-slack in force: {slack})"
+    return f" (up to {past} past: readings slightly past a limit: --limit-slack DEG_OR_MM)"
 
 
 @dataclass(frozen=True)

@@ -56,8 +56,10 @@ def calibrated_transforms(robot: RobotModel, p_e) -> list:
     return out
 
 
-def write_calibrated_urdf(robot: RobotModel, p_e, out_path) -> Path:
-    """Write the URDF of ``robot`` with the calibrated chain ``p_e`` (6N + 12,) to ``out_path``."""
+def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
+    """Write the URDF of ``robot`` with the calibrated chain ``p_e`` (6N + 12,) to ``out_path``;
+    ``notes`` (sentences: the joint convention, the gravity, what is left out) head the file as
+    an XML comment."""
     import yourdfpy
 
     out_path = Path(out_path)
@@ -114,5 +116,18 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path) -> Path:
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(out_path.name + ".partial")
     u.write_xml_file(str(tmp))
+    _prepend_comment(tmp, notes)
     tmp.replace(out_path)
     return out_path
+
+
+def _prepend_comment(path: Path, notes) -> None:
+    """``notes`` as one XML comment after the declaration of the XML file at ``path``."""
+    if not notes:
+        return
+    text = path.read_text()
+    body = "\n".join(f"  {n}" for n in notes).replace("--", "- -")
+    head, sep, rest = text.partition("?>")
+    comment = f"\n<!--\n  The calibrated geometric model written by `campaign export --urdf`.\n{body}\n-->"
+    text = head + sep + comment + rest if sep else f"<!--\n{body}\n-->\n" + text
+    path.write_bytes(text.encode("ascii", "xmlcharrefreplace"))  # the declaration says ASCII

@@ -509,9 +509,15 @@ def _resolve(spec) -> tuple:
     named = ROBOT_MODELS / str(spec)
     if "/" not in str(spec) and named.is_dir():
         return _resolve(named)
-    known = ", ".join(sorted(d.name for d in ROBOT_MODELS.iterdir() if d.is_dir())) if ROBOT_MODELS.is_dir() else ""
-    raise ConfigError(f"robot '{spec}': neither a URDF file, a robot.yaml (or its folder), nor a known name "
-                      f"({known}; `campaign robots` lists every name)")
+    import difflib
+
+    from campaign.model import catalog
+
+    names = [known.name for known, _ in catalog.known_robots()]
+    close = difflib.get_close_matches(str(spec).lower(), names, 1, 0.6)
+    raise ConfigError(f"robot '{spec}': neither a URDF file, a robot.yaml (or its folder), nor a known name"
+                      + (f" (did you mean {close[0]}?)" if close else "")
+                      + f"; known names: {', '.join(names)} (`campaign robots` says which are installed)")
 
 
 def _xml_diagnosis(urdf_path: Path) -> str:
