@@ -179,5 +179,8 @@ def test_ros2_refuses_a_trigger_and_urscript_an_output_it_lacks(tmp_path, capsys
     run = _run(tmp_path)
     assert main(["program", str(run), "--format", "ros2-trajectory", "--trigger-output", "1"]) == 1
     assert main(["program", str(run), "--format", "urscript", "--trigger-output", "9"]) == 1
+    assert main(["program", str(run), "--format", "csv", "--trigger-output", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert "carries no digital outputs" in err[0] and "urscript writes digital outputs 0..7" in err[1]
+    assert "a csv joint table carries no digital outputs" in err[2]
+    assert not (run / "program").exists()

@@ -17,6 +17,10 @@ DECIMALS = 15
 
 
 def render(inp) -> list:
+    if inp.trigger_output is not None:
+        from campaign.errors import ConfigError
+
+        raise ConfigError("--trigger-output: a csv joint table carries no digital outputs")
     N = inp.q_controller.shape[1]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")

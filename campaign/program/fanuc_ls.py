@@ -55,7 +55,10 @@ def _attr(name: str, n_lines: int, comment: str) -> list:
 
 def _program(name: str, mn: list, pos: list, comment: str) -> str:
     lines = [f"/PROG  {name}"] + _attr(name, len(mn), comment) + ["/MN"]
-    lines += [f"{k:4d}:  {stmt} ;" for k, stmt in enumerate(mn, start=1)]
+    # motion statements follow the line number directly, others after two blanks (as the LS files
+    # a controller writes)
+    lines += [f"{k:4d}:{stmt}    ;" if re.match(r"[JL] P\[", stmt) else f"{k:4d}:  {stmt} ;"
+              for k, stmt in enumerate(mn, start=1)]
     lines += ["/POS"] + pos + ["/END"]
     return "\n".join(lines) + "\n"
 
