@@ -229,7 +229,9 @@ class RunConfig:
     #: re-measure the reference pose every N stored poses (0: never); "auto": about
     #: DRIFT_CHECKS_PER_CAMPAIGN times a campaign, at least every 500 poses (campaign.measure.driver)
     drift_check_every: int | str = "auto"
-    drift_threshold_mm: float = 0.05
+    #: a drift check's reading farther than this from the reference's earlier readings is a
+    #: warning; "auto": from the noise floor (campaign.measure.drift.moved_threshold_m)
+    drift_threshold_mm: float | str = "auto"
 
     @classmethod
     def parse(cls, doc: dict, where: _Where) -> "RunConfig":
@@ -239,7 +241,7 @@ class RunConfig:
                 kw[key] = check_number(doc[key], where(key), low=0.0, low_open=True, high=MAX_TIMEOUT_S)
         if "backoff_s" in doc:
             kw["backoff_s"] = check_number(doc["backoff_s"], where("backoff_s"), low=0.0, high=3600.0)
-        if "drift_threshold_mm" in doc:
+        if "drift_threshold_mm" in doc and doc["drift_threshold_mm"] != "auto":
             kw["drift_threshold_mm"] = check_number(doc["drift_threshold_mm"], where("drift_threshold_mm"), low=0.0)
         if "retries" in doc:
             kw["retries"] = check_int(doc["retries"], where("retries"), low=0, high=MAX_RETRIES)

@@ -194,3 +194,31 @@ READING_SPREAD_RATIO_MAX = 1.5
 #: A reading farther than this from the tracker (m) is not a distance: the longest-range laser
 #: trackers measure to 80 m (160 m across); a reading in mm of a reflector 0.2 m away is 200.
 TRACKER_RANGE_MAX_M = 160.0
+
+#: The drift's interval and test (campaign.measure.drift): a 95 % confidence region of the
+#: velocity, and "significant" when it leaves out 0, so a drift-free cell is called drifting in
+#: 1 run of 20 by chance (the issue's bar: at most 1 of 20 seeds).
+DRIFT_ALPHA = 0.05
+
+#: ... the residual scatter of the drift fit gets this σ (m) added in quadrature: a noise-free
+#: cell (simulated, `sim.noise_m: 0`) leaves residuals of round-off only, and a velocity of
+#: round-off would otherwise test as significant; 1 nm is 1000 times below a tracker's noise.
+DRIFT_NUMERICAL_SIGMA_M = 1e-9
+
+#: Two measurements are of one pose when every joint but the last agrees exactly and the last
+#: within this (rad): `campaign auto` re-measures a pose with its last joint r µrad on (r the
+#: repeat, campaign.plan.extend.REMEASURE_OFFSET_RAD), a tool offset of 0.2 m then moves by
+#: 2 µm at r = 10, below a tracker's noise; poses a plan chooses differ by 1e-3 rad or more.
+SAME_POSE_TOL_RAD = 1e-5
+
+#: The driver's drift check warns that the reference pose moved when its reading lies farther
+#: from the mean of the reference's earlier readings than the noise floor explains with this
+#: probability per check (campaign.measure.drift.moved_threshold_m): 8 checks a campaign then
+#: warn falsely in under 1 % of campaigns, and a 10 µm tracker (σ ~6 µm of the tool position)
+#: is warned at ~35 µm, a 100 µm one at ~0.35 mm (a fixed 0.05 mm warned at every check).
+DRIFT_WARNING_ALPHA = 1e-3
+
+#: ... and before any noise is known (no back-to-back repeats measured yet, no stated tracker
+#: noise), at this fixed distance (mm): the default of the days before the floor decided it,
+#: five times a 10 µm tracker's noise of the tool position.
+DRIFT_WARNING_FALLBACK_MM = 0.05

@@ -88,21 +88,23 @@ def test_a_warm_up_leaves_the_floor_at_the_noise_and_is_reported_as_drift(warm_r
     # how far the model is from the noise, as the truth says it (the issue: 1× said, 9× true)
     assert out["model_to_noise"] == pytest.approx(out["heldout_mean_position_mm"] / true_mm, rel=0.3)
     assert out["heldout_mean_position_mm"] / true_mm > 2
-    # the drift: the reference pose's true displacement over the checks' times, as a rate
+    # the drift: the least-squares rate of the reference pose's true positions at the times it was read
     t_ref = poses.time_s[poses.pose_id == ref["pose_id"]].min()
-    t = np.array([c[2] for c in checks])
-    T_ref = truth.pose(np.repeat([ref["q"]], len(t) + 1, axis=0), {"time_s": np.r_[t_ref, t]})
-    moved = np.linalg.norm(T_ref[1:, :3, 3] - T_ref[0, :3, 3], axis=1)
-    dt_h = (t - t_ref) / 3600
-    true_um_per_h = np.sqrt(np.sum(moved ** 2 * dt_h ** 2) / np.sum(dt_h ** 4)) * 1e6
+    t = np.r_[t_ref, [c[2] for c in checks]]
+    T_ref = truth.pose(np.repeat([ref["q"]], len(t), axis=0), {"time_s": t})
+    tc = (t - t.mean()) / 3600
+    true_um_per_h = np.linalg.norm(tc @ (T_ref[:, :3, 3] - T_ref[:, :3, 3].mean(axis=0)) / (tc @ tc)) * 1e6
     assert len(checks) >= 6 and out["drift"]["source"] == "drift checks"
     monitor = json.loads((warm_run / "plan" / "summary.json").read_text())["drift_monitor"]
     assert monitor["checks"] == len(checks) and monitor["reference_pose_id"] == ref["pose_id"]
     assert monitor["motions_clear"] == len(checks)  # to the reference and back, checked by the plan
     assert out["drift_um_per_h"] == pytest.approx(true_um_per_h, rel=0.25), (out["drift"], true_um_per_h)
+    lo, hi = out["drift"]["ci95_um_per_h"]
+    assert out["drift"]["significant"] is True and lo <= true_um_per_h <= hi, (out["drift"], true_um_per_h)
     assert metrics["drift_um_per_h"] == pytest.approx(out["drift_um_per_h"])
     assert metrics["noise_floor"]["mean_position_mm"] == pytest.approx(out["noise_floor_mm"])
-    assert "drift: " in printed and "µm/h from" in printed
+    assert metrics["drift"]["ci95_um_per_h"] == out["drift"]["ci95_um_per_h"]
+    assert "drift: " in printed and "µm/h (95 %: " in printed
 
 
 def imported(tmp_path, robot, q, time_s, effects, seed=11):
@@ -134,8 +136,11 @@ def test_imported_repeats_close_in_time_give_the_floor_and_those_far_apart_the_d
     true_mm = float(np.linalg.norm(e, axis=1).mean() * 1e3)
     assert floor.source == "repeats" and not floor.upper_bound and floor.dof == 2 * 12 * 2
     assert floor.mean_position_mm == pytest.approx(true_mm, rel=0.3)
-    assert d.drift.monitor is None and d.drift.repeats is not None and d.drift.repeats.n == 12
+    assert d.drift.monitor is None and d.drift.repeats is not None
+    assert (d.drift.repeats.poses, d.drift.repeats.n) == (12, 12 * 6)  # every reading of the 12 poses
     assert d.drift.um_per_h == pytest.approx(np.linalg.norm(v) * 1e6, rel=0.2)
+    lo, hi = d.drift.fit.ci95_um_per_h
+    assert d.drift.significant and lo <= np.linalg.norm(v) * 1e6 <= hi
     assert d.as_json()["drift_um_per_h"] == pytest.approx(d.drift.um_per_h)
     # without times, rows far apart are far apart too: the same floor, from the bursts' rows
     rows = floor_from_repeats(measured.xyz, measured.q)

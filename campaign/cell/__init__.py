@@ -143,6 +143,23 @@ def _find_file(src: str, base_dir) -> Path:
     return p
 
 
+def adapter_source(spec: str, base_dir=None) -> Path | None:
+    """The file holding the adapters a SPEC names (a FILE.py, relative to the current directory or
+    ``base_dir``; a module's or a built-in's source), found without importing it; None when
+    there is none (a missing file, an entry point, a module that cannot be found)."""
+    import importlib.util
+
+    src, _ = _split(spec)
+    if src.endswith(".py"):
+        p = _find_file(src, base_dir)
+        return p if p.is_file() else None
+    try:
+        found = importlib.util.find_spec(BUILTIN_CELLS.get(src, src))
+    except (ImportError, ValueError):
+        return None
+    return Path(found.origin) if found is not None and found.origin and Path(found.origin).is_file() else None
+
+
 def adapter_class(spec: str, role: str, base_dir=None):
     """The class a SPEC names for ``role`` (see :func:`resolve_adapter`)."""
     return resolve_adapter(spec, role, base_dir)[0]

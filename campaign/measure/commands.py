@@ -43,6 +43,9 @@ def register(sub):
                    help="measure at most this many poses (the rest stays for a re-run)")
     p.add_argument("--retry-failed", action="store_true",
                    help="forget the poses stored as failed and measure them again")
+    p.add_argument("--allow-other-cell", action="store_true",
+                   help="measure the rest of a run on another cell than the one it was measured on so far "
+                        "(refused otherwise; the change is recorded in the run)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verbose", action="store_true", help="print every retry and reconnect on stderr")
     from campaign.watch.commands import add_watch_argument
@@ -74,7 +77,7 @@ def _run(args):
         res = measure_run(run, sim=args.sim, config=args.config, progress=not args.quiet and sys.stderr.isatty(),
                           log=log, max_poses=args.max_poses, poses_csv=args.poses, retry_failed=args.retry_failed,
                           verbose=args.verbose, frame=args.frame, cell=args.cell, options=args.options,
-                          token_file=args.token_file, **peers)
+                          token_file=args.token_file, allow_other_cell=args.allow_other_cell, **peers)
     h = res.simulated_duration_s / 3600
     print(f"measured {res.measured}, failed {res.failed} (stored before this run: {res.stored_before}; "
           f"still to measure: {res.remaining}); campaign clock {h:.2f} h = {h / 24:.2f} days; wall {res.wall_s:.1f} s"

@@ -77,6 +77,8 @@ class RunOptions(RunConfig):
     (campaign.config.RunConfig) and what campaign.yaml does not set. Times in s."""
 
     setup_repeats: int = 10
+    #: the stated tracker noise (``tracker: {noise_m}``, m), for the drift check's threshold
+    tracker_noise_m: float | None = None
     #: stop the campaign when this many poses in a row fail (something systematic is wrong)
     max_consecutive_failures: int = 50
 
@@ -263,7 +265,8 @@ class RunResult:
 
 def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOptions(), *, progress=False,
                  log=None, max_poses=None, poses_csv=None, retry_failed=False, verbose=False, plan=None,
-                 frame: str = "robot", key: bytes | None = None) -> RunResult:
+                 frame: str = "robot", key: bytes | None = None, cell_identity: dict | None = None,
+                 allow_other_cell: bool = False) -> RunResult:
     """Measure every planned pose of ``run_dir`` that has no stored outcome yet.
 
     controller, tracker: (host, port). ``progress`` draws a bar on stderr; ``log`` receives
@@ -271,6 +274,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
     the failed poses first so they are measured again. ``poses_csv`` replaces
     RUN/plan/poses.csv; ``plan``: the (ids, q, vias) of :func:`read_plan` when already read.
     ``key``: the shared secret when the peers authenticate frames (`campaign serve --token-file`).
+    ``cell_identity``: the cell measured on (campaign.measure.cell_identity), recorded in the log;
+    another cell than the log's is refused unless ``allow_other_cell``.
     Each measure request carries the aims (campaign.measure.aims).
     Returns counts and the campaign clock (s) at the end, which continues from the last
     stored time. The caller holds the run's lock (campaign.measure.session). Ctrl-C
@@ -316,9 +321,14 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             trk = Peer(*tracker, "tracker", opts, chatter, key)
             ctrl.heartbeat()
             trk.heartbeat()
+            if cell_identity is not None:
+                from campaign.measure.cell_identity import record_cell, recorded_cell, refuse_other_cell
+
+                refuse_other_cell(run_dir, recorded_cell(store), cell_identity, allow_other_cell)
+                record_cell(store, cell_identity, allowed=allow_other_cell)
             store.add_event("session_start", {"controller": f"{ctrl.host}:{ctrl.port}",
                                               "tracker": f"{trk.host}:{trk.port}", "stored_before": stored_before,
-                                              "planned": len(ids)})
+                                              "planned": len(ids), "cell": cell_identity})
             recorded = store.get_meta("frame")
             if recorded is not None and recorded != frame:
                 from campaign.errors import ConfigError
@@ -393,6 +403,12 @@ def _setup(store, trk, opts, base):
     T_LI = frame_from_setup_points(*means)
     T_LI = [[float(v) for v in row] for row in T_LI]
     store.set_meta("setup_points_L", {t: np.mean(v, axis=0).tolist() for t, v in pts.items()})
+    # the tracker's noise per reflector coordinate from the set-up's repeats (pooled over the points
+    # and the coordinates): the drift check's threshold before the campaign's own repeats are measured
+    dev = np.concatenate([np.asarray(v) - np.mean(v, axis=0) for v in pts.values()])
+    dof = 3 * (len(dev) - len(pts))
+    if dof > 0:
+        store.set_meta("setup_noise_m", {"sigma": float(np.sqrt(np.sum(dev ** 2) / dof)), "dof": int(dof)})
     store.set_meta("T_LI", T_LI)  # last: its presence marks the set-up as done
     store.add_event("setup", {"T_LI": T_LI, "readings": {t: len(v) for t, v in pts.items()}})
     return T_LI
@@ -418,6 +434,9 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
     clock = clock0 = clock_start
     stopped = kind = None
     reference = store.get_meta("drift_reference")
+    # the reference's readings so far: its first, then every drift check's (resumed runs too)
+    readings = [] if reference is None else [reference["xyz"]] + [
+        d["xyz_m"] for _, _, _, d in store.events("drift_check") if isinstance(d, dict) and d.get("xyz_m")]
     try:
         for n, k in enumerate(todo):
             pid = int(ids[k])
@@ -438,6 +457,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
                 if reference is None:
                     reference = {"pose_id": pid, "q": list(map(float, Q[k])), "xyz": list(rec.xyz)}
                     store.set_meta("drift_reference", reference)
+                    readings = [reference["xyz"]]
             else:
                 n_fail += 1
                 in_a_row += 1
@@ -450,18 +470,10 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
                                 time_s=clock)
                 due = False
             if due:
-                drift, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets, aim)
+                xyz, c = _drift_check(base + _DRIFT_ID + 4 * k, reference, ctrl, trk, opts, T_LI, P_E, targets, aim)
                 clock = max(clock, c)
-                over = drift is not None and drift * 1e3 > opts.drift_threshold_mm
-                store.add_event("drift_check", {"reference_pose_id": reference["pose_id"],
-                                                "drift_mm": None if drift is None else drift * 1e3,
-                                                "over_threshold": over}, pose_id=pid, time_s=clock)
-                if over:
-                    drift_warnings += 1
-                    msg = (f"warning: drift check after {n_stored} poses: reference pose {reference['pose_id']} "
-                           f"moved {drift * 1e3:.3f} mm (threshold {opts.drift_threshold_mm} mm)")
-                    store.add_event("warning", {"message": msg}, pose_id=pid, time_s=clock)
-                    say(msg)
+                warned = _record_drift_check(store, reference, xyz, readings, opts, P_E, n_stored, pid, clock, say)
+                drift_warnings += warned
             per_pose = (clock - clock0) / n if n else 0.0
             bar.update(1, extra=f"ok {n_ok} failed {n_fail} | sim {clock / 3600:.1f} h, "
                                 f"~{per_pose * (len(todo) - n - 1) / 3600:.1f} h to go")
@@ -544,9 +556,60 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
                           retries=retries, reason=str(exc)), clock
 
 
+def _record_drift_check(store, reference, xyz, readings, opts, P_E, n_stored, pid, clock, say) -> int:
+    """Store a drift check's reading ``xyz`` (m, or None when it could not be measured) as a
+    ``drift_check`` event: its position, its distance from the reference's first reading
+    (``drift_mm``) and from the mean of its earlier ``readings`` (``moved_mm``, appended to), and
+    the warning's threshold (``run.drift_threshold_mm``, "auto": from the noise floor so far).
+    1 when it warned (a ``warning`` event and a line), else 0."""
+    detail = {"reference_pose_id": reference["pose_id"], "drift_mm": None, "over_threshold": False}
+    if xyz is None:
+        store.add_event("drift_check", detail, pose_id=pid, time_s=clock)
+        return 0
+    earlier = np.asarray(readings, dtype=float)
+    moved_m = float(np.linalg.norm(xyz - earlier.mean(axis=0)))
+    threshold_m, why = _drift_threshold_m(store, opts, P_E, len(earlier))
+    over = moved_m > threshold_m
+    detail.update(drift_mm=float(np.linalg.norm(xyz - earlier[0])) * 1e3, xyz_m=[float(v) for v in xyz],
+                  moved_mm=moved_m * 1e3, threshold_mm=threshold_m * 1e3, threshold_from=why, over_threshold=over)
+    store.add_event("drift_check", detail, pose_id=pid, time_s=clock)
+    readings.append(list(map(float, xyz)))
+    if not over:
+        return 0
+    msg = (f"warning: drift check after {n_stored} poses: reference pose {reference['pose_id']} moved "
+           f"{moved_m * 1e3:.3g} mm from the mean of its {len(earlier)} earlier reading"
+           f"{'s' if len(earlier) > 1 else ''} (threshold {threshold_m * 1e3:.3g} mm, {why})")
+    store.add_event("warning", {"message": msg}, pose_id=pid, time_s=clock)
+    say(msg)
+    return 1
+
+
+def _drift_threshold_m(store, opts, P_E, n_earlier) -> tuple:
+    """(the drift check's warning threshold m, where it came from): ``run.drift_threshold_mm``
+    when a number, else beyond the noise of what is stored so far (campaign.measure.drift
+    .moved_threshold_m, warning_sigma_m), else tolerances.DRIFT_WARNING_FALLBACK_MM."""
+    from campaign.measure.drift import moved_threshold_m, warning_sigma_m
+    from campaign.tolerances import DRIFT_WARNING_ALPHA, DRIFT_WARNING_FALLBACK_MM
+
+    if opts.drift_threshold_mm != "auto":
+        return float(opts.drift_threshold_mm) * 1e-3, "run.drift_threshold_mm"
+    try:
+        poses = store.load_measured()
+        ok = np.isfinite(poses.xyz).all(axis=1)
+        poses = poses.subset(np.flatnonzero(ok))
+    except DataError:
+        poses = None
+    setup = store.get_meta("setup_noise_m")
+    sigma = warning_sigma_m(poses, opts.tracker_noise_m, P_E, None if setup is None else setup["sigma"])
+    if sigma is None:
+        return DRIFT_WARNING_FALLBACK_MM * 1e-3, "no noise known yet"
+    return (moved_threshold_m(sigma, n_earlier),
+            f"the noise exceeds it once in {1 / DRIFT_WARNING_ALPHA:.0f} checks")
+
+
 def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS, aim=None):
-    """Re-measure the reference pose: (distance (m) of its derived position from the first
-    time or None when it could not be measured, campaign clock s)."""
+    """Re-measure the reference pose: (its derived position (3,) m or None when it could not be
+    measured, campaign clock s)."""
     clock = 0.0
     try:
         reply, err = _move(ctrl, P.Move(rid, tuple(map(float, reference["q"]))), opts)
@@ -561,7 +624,7 @@ def _drift_check(rid, reference, ctrl, trk, opts, T_LI, P_E, targets=REFLECTORS,
         if any(t not in by or by[t].status != "ok" for t in targets):
             return None, clock
         xyz, _, _ = _derive(T_LI, P_E, np.array([by[t].xyz_m for t in targets]))
-        return float(np.linalg.norm(np.array(xyz) - np.array(reference["xyz"]))), clock
+        return np.array(xyz, dtype=float), clock
     except (RobotFault, PeerUnreachable):
         raise
     except PeerError:

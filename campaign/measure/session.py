@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from dataclasses import replace
 
 from campaign.errors import CampaignError, ConfigError
 from campaign.measure.driver import RunOptions, RunResult, measured_robot, read_plan, run_campaign
@@ -23,7 +24,7 @@ def check_simulated_cell(cfg, robot) -> None:
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
                 log=None, max_poses=None, poses_csv=None, retry_failed: bool = False,
                 verbose: bool = False, frame: str = "robot", cell: str | None = None, options=None,
-                token_file=None) -> RunResult:
+                token_file=None, allow_other_cell: bool = False) -> RunResult:
     """Measure the planned poses of ``run_dir`` that have no stored outcome yet.
 
     sim: start the simulated cell (a child process, stopped at the end) and drive it; cell:
@@ -41,7 +42,7 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     cfg = run.config
     robot = run.robot()
     run.check_recorded_robot()
-    opts = RunOptions.from_config(cfg.run)
+    opts = replace(RunOptions.from_config(cfg.run), tracker_noise_m=cfg.tracker.noise_m)
     if max_poses is not None and max_poses < 0:
         raise ConfigError(f"--max-poses must be >= 0, got {max_poses}")
     if cell is not None and str(cell).strip() == "sim":
@@ -64,9 +65,14 @@ def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, co
     measured_robot(robot)  # refused before the run is touched
     if sim:  # what the simulated cell would refuse, refused before it is started
         check_simulated_cell(cfg, robot)
+    from campaign.measure.cell_identity import cell_identity, check_cell
+
+    identity = cell_identity(cfg, sim=sim, cell=cell, options=options, controller=controller, tracker=tracker)
     kw = dict(progress=progress, log=log, max_poses=max_poses, poses_csv=poses_csv, retry_failed=retry_failed,
-              verbose=verbose, plan=plan, frame=frame, key=key)
+              verbose=verbose, plan=plan, frame=frame, key=key, cell_identity=identity,
+              allow_other_cell=allow_other_cell)
     with run.lock("run"), _no_empty_log(run):
+        check_cell(run.path, identity, allow_other_cell)  # before the cell is started or the log written
         if sim:
             from campaign.sim.launcher import SimulatedCell
 

@@ -324,15 +324,21 @@ class RunView:
         checks = [(t, d.get("drift_mm"), bool(d.get("over_threshold"))) for k, _, t, _, d in self._events
                   if k == "drift_check"]
         values = [finite(v) for _, v, _ in checks if finite(v) is not None]
+        stored = [d.get("threshold_mm") for k, _, _, _, d in self._events if k == "drift_check"]
+        stored = [finite(v) for v in stored if v is not None]
         return {"checks": len(checks), "last_mm": finite(checks[-1][1]) if checks else None,
-                "max_mm": max(values) if values else None, "threshold_mm": self.drift_threshold_mm(),
+                "max_mm": max(values) if values else None,
+                "threshold_mm": stored[-1] if stored else self.drift_threshold_mm(),
                 "over_threshold": sum(o for _, _, o in checks)}
 
     def drift_threshold_mm(self):
+        """The configured threshold (mm), None when ``auto`` (from the noise floor, stored with
+        each check) or unreadable."""
         try:
-            return finite(self.run.config.run.drift_threshold_mm)
+            value = self.run.config.run.drift_threshold_mm
         except CampaignError:
             return None
+        return None if value == "auto" else finite(value)
 
     def status(self) -> dict:
         """The eight fields of ``/api/status`` (DESIGN.md, `campaign watch`)."""
