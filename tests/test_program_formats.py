@@ -184,3 +184,38 @@ def test_ros2_refuses_a_trigger_and_urscript_an_output_it_lacks(tmp_path, capsys
     assert "carries no digital outputs" in err[0] and "urscript writes digital outputs 0..7" in err[1]
     assert "a csv joint table carries no digital outputs" in err[2]
     assert not (run / "program").exists()
+
+
+@pytest.fixture(scope="module")
+def tiago():
+    """The TIAGo's torso and arm (a prismatic joint, then 7 revolute), from example-robot-data."""
+    from campaign.errors import ConfigError
+    from campaign.model.robot import RobotModel
+
+    try:
+        return RobotModel.load("tiago")
+    except ConfigError as exc:
+        pytest.skip(f"example-robot-data not installed ({exc})")
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_a_prismatic_joint_and_eight_joints_in_every_format(tmp_path, tiago, fmt):
+    from campaign.sim.truth import random_joint_poses
+
+    run = tmp_path / "tiago"
+    (run / "plan").mkdir(parents=True)
+    Q = random_joint_poses(tiago, 5, seed=2)
+    head = "pose_id," + ",".join(f"q{j}" for j in range(1, 9))
+    (run / "plan" / "poses.csv").write_text(head + "\n" + "".join(
+        f"{100 + k}," + ",".join(repr(float(v)) for v in q) + "\n" for k, q in enumerate(Q)))
+    (run / "campaign.yaml").write_text(yaml.safe_dump({"robot": "tiago", "run": {"drift_check_every": 0}}))
+    mod = format_module(fmt)
+    paths = _program(run, fmt)
+    files = _files(paths)
+    assert mod.check(files, tiago) == []
+    got = mod.read_joints(files) if fmt in ("csv", "urscript", "ros2-trajectory") else mod.read_joints(files, 8)
+    want = _expected(run, tiago, mod.UNITS)
+    assert got.shape == want.shape == (5, 8)
+    np.testing.assert_allclose(got, want, rtol=0, atol=0.5 * 10.0 ** -mod.DECIMALS * (1 + 1e-9))
+    if mod.UNITS == "deg":  # the torso's lift in mm, the arm's joints in degrees
+        np.testing.assert_allclose(got[:, 0], Q[:, 0] * 1e3, atol=0.5 * 10.0 ** -mod.DECIMALS + 1e-9)
