@@ -219,3 +219,25 @@ def test_a_prismatic_joint_and_eight_joints_in_every_format(tmp_path, tiago, fmt
     np.testing.assert_allclose(got, want, rtol=0, atol=0.5 * 10.0 ** -mod.DECIMALS * (1 + 1e-9))
     if mod.UNITS == "deg":  # the torso's lift in mm, the arm's joints in degrees
         np.testing.assert_allclose(got[:, 0], Q[:, 0] * 1e3, atol=0.5 * 10.0 ** -mod.DECIMALS + 1e-9)
+
+
+#: a speed past the robot's limits, per format: (regex of the value, replacement, the message expected)
+SPEEDING = {
+    "urscript": (r"v=(\d+\.\d+)\)  # Ruckig [1-9]", lambda m: m.group(0).replace(m.group(1), f"{float(m.group(1)) * 3:.6f}"),
+                 "exceed a joint's limit"),
+    "krl": (r"\$VEL_AXIS\[2\] = 50\.0", lambda m: "$VEL_AXIS[2] = 150.0", "must be a percentage in (0, 100]"),
+    "rapid": (r"\\T:=(\d+\.\d+)", lambda m: "\\T:=0.000", "\\T must be > 0"),
+    "ros2-trajectory": (r"velocities: \[(-?\d+\.\d+), ", lambda m: "velocities: [99.0, ", "beyond the robot's limits"),
+}
+
+
+@pytest.mark.parametrize("fmt", list(SPEEDING))
+def test_each_checker_names_a_speed_past_the_limits(tmp_path, robot, fmt):
+    import re
+
+    run = _run(tmp_path)
+    files = _files(_program(run, fmt))
+    pattern, repl, match = SPEEDING[fmt]
+    k = next(i for i, (_, t) in enumerate(files) if re.search(pattern, t))
+    files[k] = (files[k][0], re.sub(pattern, repl, files[k][1], count=1))
+    assert any(match in p for p in format_module(fmt).check(files, robot))
