@@ -222,3 +222,44 @@ DRIFT_WARNING_ALPHA = 1e-3
 #: noise), at this fixed distance (mm): the default of the days before the floor decided it,
 #: five times a 10 µm tracker's noise of the tool position.
 DRIFT_WARNING_FALLBACK_MM = 0.05
+
+#: Identifiability on the training poses (campaign.identify.identifiability): a direction of the
+#: column-scaled whitened Jacobian whose singular value is below this fraction of the largest is
+#: not identified. A joint that never moved gives 1e-15..1e-16 (round-off); a campaign of 12
+#: random poses on the COMAU has its smallest at 0.04: the gap is twelve decades wide.
+IDENT_NULL_RTOL = 1e-8
+
+#: ... and below this fraction barely identified: its σ is at least 300 times the best-known
+#: direction's (a wrist that turned 1-2°), where random 12-300 pose campaigns stay above 0.03.
+IDENT_WEAK_RTOL = 3e-3
+
+#: A joint whose training values span less than this (rad; m for a prismatic joint) never moved:
+#: 0.1° is below any deliberate motion of a calibration campaign and above encoder noise.
+JOINT_STILL_RAD = 1.7e-3
+
+#: A joint whose training values span less than this fraction of its range is named beside barely
+#: identified directions (a wrist that turned 1-3° of 400°): the likely cause, said in words.
+JOINT_NARROW_FRACTION = 0.05
+
+#: The calibrated domain (campaign.identify.domain). Margin beyond a joint's training range: this
+#: many times range / n (a fresh pose from the same spread falls beyond n poses' extreme by more
+#: than c·range/n with probability about exp(-c): 6 gives 0.25 % an end, 3 % over 6 joints' 12 ends)
+DOMAIN_MARGIN_POSES = 6.0
+
+#: ... and at least this (rad; 0.5°: a joint held still within encoder play is still inside) or,
+#: for a prismatic joint, this (m)
+DOMAIN_MIN_MARGIN_RAD = 8.7e-3
+DOMAIN_MIN_MARGIN_M = 1e-3
+
+#: A pose farther from its nearest training pose (joint space scaled by the training spread) than
+#: this times the largest nearest-neighbour distance among the training poses is outside
+#: (benchmarks/bench_domain.py: fresh poses from the training spread flagged <= 5 % from 20 poses on)
+DOMAIN_NN_FACTOR = 1.2
+
+#: Bins of a joint's limit range for its coverage (the share of bins holding a training pose)
+DOMAIN_COVERAGE_BINS = 20
+
+#: Training poses per cell of the pairwise occupancy grids: a cell the training spread reaches stays
+#: empty with probability about exp(-this) (0.1 % at 7), over 15-21 joint pairs under 1 % for a
+#: uniform spread; denser and sparser parts of a real plan take the rest of the 5 % budget
+DOMAIN_PAIR_POSES_PER_CELL = 7.0

@@ -39,6 +39,8 @@ from campaign.model.kinematics import forward, pose_error
 from campaign.model.robot import RobotModel
 from campaign.run import RunFolder
 from campaign.identify.checks import with_checks
+from campaign.identify.domain import DOMAIN_FILE, domain_record
+from campaign.identify.identifiability import hold_unidentified
 from campaign.measure.importer import joint_slack
 from campaign.versioned import Version, calibration_folder
 
@@ -99,6 +101,9 @@ class CalibrationResult:
     calibration_id: str | None = None
     #: which model was identified and why (campaign.identify.model_choice; metrics.json's ``model``)
     model_choice: dict | None = None
+    #: the calibrated domain, the uncertainty and the identifiability (campaign.identify.domain.domain_record;
+    #: domain.json beside params.yaml)
+    domain: dict | None = None
 
     @property
     def metrics(self) -> dict:
@@ -123,6 +128,12 @@ class CalibrationResult:
         out["test_pose_ids"] = [int(i) for i in self.test_pose_ids]
         if self.model_choice is not None:
             out["model"] = self.model_choice
+        if self.domain is not None:
+            from campaign.identify.domain import domain_metrics
+
+            current = next((n for n in reversed(self.order) if n in self.domain["over_domain"]), None)
+            out.update(domain_metrics(self.domain, None, self.stages, current))
+            out["identifiability"] = {k: v for k, v in self.domain["identifiability"].items()}
         return out
 
     def floor_line(self) -> str:
@@ -502,6 +513,10 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     geo, choice = fit_model(lambda **kw: CalibrationModel(robot=robot, position_only=position_only, points=points,
                                                           **kw), poses.q[tr], Y[tr], model=model_kind,
                             fixed=geometric_fix(fix), progress=say)
+    geo, ident = hold_unidentified(
+        lambda **kw: CalibrationModel(robot=robot, position_only=position_only, points=points,
+                                      **{**choice.model_kwargs(), "fixed": geometric_fix(fix), **kw}),
+        geo, poses.q[tr], Y[tr], frame=poses.frame, progress=say)
     t_geo = time.perf_counter() - t0
     dz_geo = geo.residuals(poses.q, poses.T_IE)
     add_stage("geometric", dz_geo, geo.point_residuals(poses.q, poses.markers) if raw else None)
@@ -509,8 +524,10 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
     dz_model = dz_geo
     if effects:
         say(f"identifying geometric + {', '.join(effects)}")
-        model = CalibrationModel(robot=robot, effects=effects, position_only=position_only, points=points,
-                                 fixed=fix, **choice.model_kwargs()).fit(poses.q[tr], Y[tr], ctx_tr)
+        make = lambda **kw: CalibrationModel(robot=robot, effects=effects, position_only=position_only,  # noqa: E731
+                                             points=points, **{**choice.model_kwargs(), "fixed": fix, **kw})
+        model, ident = hold_unidentified(make, make().fit(poses.q[tr], Y[tr], ctx_tr), poses.q[tr], Y[tr], ctx_tr,
+                                         frame=poses.frame, progress=say)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
     ann_skipped = ann_stages = rule = None
@@ -560,6 +577,10 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                  {k: v[te] for k, v in context.items()}, stages=stages,
                                  stage=stage_name(effects) if effects else "geometric", fix=fix))
     result = with_checks(result, robot, poses, geo, stage_name(effects))
+    models = {"geometric": geo, **({stage_name(effects): model} if effects else {})}
+    record = domain_record(robot, models, poses.q[tr], Y[tr], ctx_tr, poses.q, context, floor.as_json(), is_test,
+                           ident)
+    result = replace(result, domain=record, warnings=tuple(result.warnings) + tuple(ident.findings(robot)))
     if strict and result.warnings:
         raise Implausible(f"{run_dir}: {len(result.warnings)} plausibility warning(s) with --strict "
                           f"({', '.join(w.code for w in result.warnings)}): nothing written", result.warnings)
@@ -576,10 +597,33 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                             param_text=parameter_text(model), noise_floor=floor if floor.known else None,
                             extra_html=f"<h2>Against the measurement noise</h2>"
                             f"<pre>{html.escape(result.floor_line())}</pre>" + model_choice_html(result.model_choice)
+                            + _domain_section(robot, result, models, poses.q, context, version.path)
                             + (result.ann.report_html() if result.ann is not None else ""),
                             out_dir=version.path, calibration_id=version.id)
         result = replace(result, report_path=Path(page))
     return result
+
+
+def _domain_section(robot, result, models, q, context, out) -> str:
+    """The report's section on the calibrated domain and the uncertainty, with its figure."""
+    from campaign.identify.domain import Domain
+    from campaign.identify.domain_figures import domain_html, joint_sweeps, svg_domain
+    from campaign.identify.uncertainty import Uncertainty
+
+    record = result.domain
+    stage = list(record["over_domain"])[-1]
+    m = models[stage]
+    unc = Uncertainty.from_json(record["uncertainty"][stage], "uncertainty")
+    dom = Domain.from_json(record["domain"], "domain")
+    ctx0 = {k: np.full(1, float(np.median(v))) for k, v in (context or {}).items()} if m.effect_set_.effects else {}
+
+    def sigma_fn(Q):
+        c = {k: np.repeat(v, len(Q)) for k, v in ctx0.items()}
+        return 1e3 * unc.sigma_m(robot, m.effect_set_, m.params_, m.effect_params_, Q, c)
+
+    fig = svg_domain(robot, dom, joint_sweeps(robot, dom, sigma_fn, dom.q_train), q, record["sigma_all"][stage], out)
+    heldout = result.stages.get(stage, {}).get("test", {}).get("position_mm", {}).get("mean")
+    return domain_html(robot, record, fig, heldout)
 
 
 def parameter_text(model: CalibrationModel) -> str:
@@ -639,6 +683,10 @@ def _write(result: CalibrationResult, robot, geo, out: Path) -> None:
     # networks trained by this calibrate run (stage -> file beside params.yaml)
     params["ann_stages"] = dict(result.ann.files) if result.ann is not None else {}
     atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
+    if result.domain is not None:  # the calibrated domain and the uncertainty, the same calibration_id
+        atomic_write_json(out / DOMAIN_FILE, {"calibration_id": result.calibration_id, "robot": robot.name,
+                                              **{k: v for k, v in result.domain.items()
+                                                 if k not in ("over_domain", "sigma_all")}})
     metrics = result.metrics
     metrics.setdefault("warnings", [])  # plausibility warnings (DESIGN.md): an empty list when none
     atomic_write_json(out / "metrics.json", metrics)
@@ -669,11 +717,27 @@ def summary_text(result: CalibrationResult) -> str:
         lines += ["cross-validation on the training set (Table 5)", result.ann.table5, ""]
     lines += [format_table6(result.stages, result.order, "test"), "",
               format_table6(result.stages, result.order, "train"), ""]
-    lines.append(f"identified {m.base_.n_base} base parameters"
+    ident = (result.domain or {}).get("identifiability") or {}
+    held = len(ident.get("held") or ())
+    n_fit = m.base_.n_base - sum(1 for n in m.held_ if n in set(m.base_.names))
+    cond = (f"condition number {m.condition_number_:.3g}" if np.isfinite(m.condition_number_) else
+            "condition number inf: some directions are not identified")
+    lines.append((f"identified {n_fit} of {m.base_.n_base} base parameters" if n_fit < m.base_.n_base else
+                  f"identified {m.base_.n_base} base parameters")
                  + (f" + {m.effect_set_.n_params} effect parameters" if m.effect_set_.n_params else "")
-                 + f" in {m.n_iter_} iterations; condition number {m.condition_number_:.3g}; "
+                 + f" in {m.n_iter_} iterations; {cond}; "
                  f"noise σ {m.noise_sigma_['position_m'] * 1e6:.2f} µm"
                  + (f", {m.noise_sigma_['orientation_rad'] * 1e6:.1f} µrad" if m.noise_sigma_['orientation_rad'] else ""))
+    if ident and (held or ident.get("rank", 0) < ident.get("n_unknowns", 0)):
+        lines.append(f"not identified by the training poses: {ident['n_unknowns'] - ident['rank']} direction(s); "
+                     f"held at {'their nominal value' if ident['held_at'] == 'nominal' else 'the prior'}"
+                     + (f": {', '.join(ident['held'])}" if held else "") + " (warnings: unidentifiable)")
+    unc = result.metrics.get("uncertainty") if result.domain is not None else None
+    if unc and unc.get("stage") in unc["stages"] and unc["stages"][unc["stage"]]["heldout_mean_position_mm"] is not None:
+        u = unc["stages"][unc["stage"]]
+        lines.append(f"uncertainty of the model over its domain: sigma_mm mean {u['sigma_mm_mean']:.4f}, 95th percentile "
+                     f"{u['sigma_mm_q95']:.4f} mm (held-out mean error {u['heldout_mean_position_mm']:.4f} mm); "
+                     f"{u['basis']}")
     if m.absorbed_:
         lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "
                      + ", ".join(m.unknown_names_[i] for i in m.absorbed_))

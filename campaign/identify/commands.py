@@ -114,7 +114,8 @@ def register(sub):
                    help="CSV with q1..qN (rad or --angle-unit, N the robot's joints), optional pose_id and context "
                         "columns (time_s, temperature_c, ...)")
     p.add_argument("--out", metavar="OUT", default=None,
-                   help="CSV to write: pose_id,q1..qN,x,y,z (m),rx,ry,rz (rad) (default: standard output)")
+                   help="CSV to write: pose_id,q1..qN,x,y,z (m),rx,ry,rz (rad),in_domain (1/0),sigma_mm "
+                        "(default: standard output)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written (default: rad)")
@@ -123,6 +124,8 @@ def register(sub):
     p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
                    help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
                         "prismatic ones; default: what the run's import accepted)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 1, nothing written) when a row lies outside the calibrated domain")
     p.set_defaults(func=_predict)
 
     p = sub.add_parser("compensate",
@@ -139,8 +142,8 @@ def register(sub):
                         "ros2-trajectory, csv")
     p.add_argument("--out", metavar="OUT", default=None,
                    help="CSV to write: pose_id,q1..qN (corrected, rad),dq1..dqN,residual_position_mm,"
-                        "residual_orientation_mrad,converged,within_limits (default: standard output); with "
-                        "--program the filtered program (default: FILE's name with _compensated)")
+                        "residual_orientation_mrad,converged,within_limits,in_domain,sigma_mm (default: standard "
+                        "output); with --program the filtered program (default: FILE's name with _compensated)")
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written, dq included (default: rad)")
@@ -149,6 +152,8 @@ def register(sub):
     p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
                    help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
                         "prismatic ones; default: what the run's import accepted)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 1, nothing written) when a corrected command lies outside the calibrated domain")
     p.set_defaults(func=_compensate)
 
 
@@ -242,8 +247,12 @@ def _export(args):
             return 0
     with RunFolder(args.run).store() as store:
         poses = store.load_measured(include_unusable=True)  # raw reflectors: every row, as imported
-    write_measured_csv(args.csv, poses, RunFolder(args.run).robot())
+    from campaign.identify.use import export_domain_columns
+
+    appended, line = export_domain_columns(args.run, poses)
+    write_measured_csv(args.csv, poses, RunFolder(args.run).robot(), appended)
     print(f"wrote {len(poses)} poses to {args.csv}")
+    print(line, file=sys.stderr)
     return 0
 
 
@@ -372,11 +381,34 @@ def _predict(args):
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source)
-    header, rows = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
+    header, rows, inside, sigma = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
+    _refuse_outside(args, pose_id, inside, "rows")
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} calibrated poses ({calibrated.stage}) to {args.out}")
+    _domain_line(calibrated, inside, sigma, "rows")
     return 0
+
+
+def _refuse_outside(args, pose_id, inside, what) -> None:
+    """--strict: one line naming the rows outside the calibrated domain, before anything is written."""
+    from campaign.errors import DataError
+
+    if getattr(args, "strict", False) and inside is not None and not inside.all():
+        ids = [int(i) for i in pose_id[~inside]]
+        raise DataError(f"{args.csv}: {len(ids)} of {len(inside)} {what} outside the calibrated domain with --strict "
+                        f"(pose_id {', '.join(map(str, ids[:10]))}{', ...' if len(ids) > 10 else ''}): nothing written")
+
+
+def _domain_line(calibrated, inside, sigma, what) -> None:
+    from campaign.identify.domain import domain_summary
+
+    line = domain_summary(inside, sigma, what)
+    if calibrated.network is not None and sigma is not None:
+        line += " (the physical model's; the network's own uncertainty is not estimated)"
+    elif sigma is None and inside is not None:
+        line += f"; no sigma_mm for stage {calibrated.stage} (no physical model identified in it)"
+    print(line, file=sys.stderr)
 
 
 def _compensate(args):
@@ -393,7 +425,8 @@ def _compensate(args):
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source)
-    header, rows, ok, inside = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
+    header, rows, ok, inside, in_dom, sigma = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
+    _refuse_outside(args, pose_id, in_dom, "corrected commands")
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} corrected joint commands ({calibrated.stage}) to {args.out}")
@@ -402,6 +435,7 @@ def _compensate(args):
     if not inside.all():
         print(f"warning: {int((~inside).sum())} corrected command(s) outside the joint limits "
               "(column within_limits = 0)", file=sys.stderr)
+    _domain_line(calibrated, in_dom, sigma, "corrected commands")
     return 0
 
 

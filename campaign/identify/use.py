@@ -125,6 +125,10 @@ class CalibratedRobot:
             raise DataError(f"{folder}: the network of stage '{self.stage}' was not trained by the last "
                             f"calibrate; re-run `campaign calibrate {self.run_dir} --ann`")
         self.model = models[prior]
+        from campaign.identify.domain import read_domain
+
+        #: domain.json (campaign.identify.domain.StoredDomain), None for a calibration made before it
+        self.stored_domain = read_domain(folder, params.get("calibration_id"))
         self.network = None
         if net_file is not None:
             from campaign.ann import ResidualNetwork
@@ -149,6 +153,21 @@ class CalibratedRobot:
 
             T = compensate_pose(T, self.network.predict(q))
         return T
+
+    def in_domain(self, q):
+        """(n,) bool: inside the calibrated domain (None without domain.json)."""
+        if self.stored_domain is None:
+            return None
+        return self.stored_domain.domain.contains(np.asarray(q, dtype=float).reshape(-1, self.robot.n_joints))
+
+    def sigma_mm(self, q, context=None):
+        """(n,) mm: the physical model's 1-σ position uncertainty at the tool point (√trace of its
+        3×3 covariance); None without domain.json or for a stage without a physical model
+        (``nominal``, ``ann``). A network's own uncertainty is not in it."""
+        unc = None if self.stored_domain is None else self.stored_domain.uncertainty.get(self.model.stage)
+        if unc is None:
+            return None
+        return 1e3 * unc.sigma_m(self.robot, self.model.effects, self.model.p_e, self.model.theta, q, context)
 
     def compensate(self, T_target, q_start, context=None, *, tol_m: float = 1e-9, tol_rad: float = 1e-8,
                    max_iter: int = 50, step_rad: float = 1e-6, max_step_rad: float = 0.1):
@@ -312,15 +331,31 @@ def write_table(path, header, rows) -> None:
         w.writerows(rows)
 
 
+DOMAIN_COLUMNS = ("in_domain", "sigma_mm")
+
+
+def domain_columns(calibrated: CalibratedRobot, q, context=None):
+    """(in_domain (n,) bool or None, sigma_mm (n,) or None, cells (n,) of [in_domain, sigma_mm] as
+    written: 1/0 and mm, empty where unknown)."""
+    inside = calibrated.in_domain(q)
+    sigma = calibrated.sigma_mm(q, context)
+    cells = [["" if inside is None else int(inside[k]), "" if sigma is None else f"{sigma[k]:.4g}"]
+             for k in range(len(q))]
+    return inside, sigma, cells
+
+
 def predict_rows(calibrated: CalibratedRobot, pose_id, q, context, angle_unit: str = "rad"):
-    """Rows ``pose_id,q1..qN,x,y,z,rx,ry,rz`` (m, rad; q in ``angle_unit``) of the calibrated poses."""
+    """Rows ``pose_id,q1..qN,x,y,z,rx,ry,rz,in_domain,sigma_mm`` (m, rad; q in ``angle_unit``;
+    in_domain 1/0, sigma_mm in mm) of the calibrated poses. Returns (header, rows, in_domain,
+    sigma_mm) (the last two None without domain.json)."""
     T = calibrated.predict(q, context)
     rv = matrix_to_rotvec(T[:, :3, :3])
-    header = ["pose_id", *joint_columns(calibrated.robot.n_joints), *POSE_COLUMNS]
+    header = ["pose_id", *joint_columns(calibrated.robot.n_joints), *POSE_COLUMNS, *DOMAIN_COLUMNS]
     q_out = calibrated.robot.to_controller_q(q) / joint_scale(calibrated.robot, angle_unit)
+    inside, sigma, cells = domain_columns(calibrated, q, context)
     rows = [[int(i), *(repr(float(v)) for v in qq), *(repr(float(v)) for v in T[k, :3, 3]),
-             *(repr(float(v)) for v in rv[k])] for k, (i, qq) in enumerate(zip(pose_id, q_out))]
-    return header, rows
+             *(repr(float(v)) for v in rv[k]), *cells[k]] for k, (i, qq) in enumerate(zip(pose_id, q_out))]
+    return header, rows, inside, sigma
 
 
 def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, angle_unit: str = "rad"):
@@ -328,7 +363,8 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, an
 
     Columns: ``pose_id, q1..qN`` (corrected, rad or ``angle_unit``), ``dq1..dqN`` (correction, same unit),
     ``residual_position_mm, residual_orientation_mrad`` (model at the corrected q vs target),
-    ``converged``, ``within_limits`` (0/1). Returns (header, rows, converged, within_limits).
+    ``converged``, ``within_limits`` (0/1), ``in_domain`` (0/1, of the corrected command), ``sigma_mm``
+    (mm, there). Returns (header, rows, converged, within_limits, in_domain, sigma_mm).
     """
     robot = calibrated.robot
     T_target = forward(robot, q_nominal)
@@ -338,11 +374,36 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, an
     q_ctrl, q_nominal_ctrl = robot.to_controller_q(q) / scale, robot.to_controller_q(q_nominal) / scale
     cols = joint_columns(robot.n_joints)
     header = ["pose_id", *cols, *(f"d{c}" for c in cols),
-              "residual_position_mm", "residual_orientation_mrad", "converged", "within_limits"]
+              "residual_position_mm", "residual_orientation_mrad", "converged", "within_limits", *DOMAIN_COLUMNS]
+    in_dom, sigma, cells = domain_columns(calibrated, q, context)
     rows = []
     for k in range(len(q)):
         rows.append([int(pose_id[k]), *(repr(float(v)) for v in q_ctrl[k]),
                      *(repr(float(v)) for v in q_ctrl[k] - q_nominal_ctrl[k]),
                      f"{np.linalg.norm(r[k, :3]) * 1e3:.3e}", f"{np.linalg.norm(r[k, 3:]) * 1e3:.3e}",
-                     int(ok[k]), int(inside[k])])
-    return header, rows, ok, inside
+                     int(ok[k]), int(inside[k]), *cells[k]])
+    return header, rows, ok, inside, in_dom, sigma
+
+
+def export_domain_columns(run_dir, poses) -> tuple:
+    """({"in_domain": cells, "sigma_mm": cells}, one summary line) for `export --csv` of a run's
+    measured poses under its current calibration; no columns (and a line saying why) when the run has
+    no calibration or one without domain.json: the CSV stays one that `import` reads back."""
+    from campaign.errors import CampaignError
+    from campaign.identify.domain import domain_summary
+
+    try:
+        calibrated = CalibratedRobot(run_dir)
+        calibrated.model.effects.check_context(_effect_context(poses), len(poses))
+    except CampaignError as exc:
+        return {}, f"no in_domain, sigma_mm columns: {exc}"
+    inside, sigma, cells = domain_columns(calibrated, poses.q, _effect_context(poses))
+    if inside is None or sigma is None:
+        return {}, "no in_domain, sigma_mm columns: " + domain_summary(inside, sigma, "poses")
+    return {c: [row[i] for row in cells] for i, c in enumerate(DOMAIN_COLUMNS)}, domain_summary(inside, sigma, "poses")
+
+
+def _effect_context(poses) -> dict:
+    from campaign.effects.base import effect_context
+
+    return effect_context(poses.context, poses.time_s)

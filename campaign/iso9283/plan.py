@@ -253,6 +253,10 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
                 raise PlanError(f"--compensate {compensate}: the corrected commands fail: {'; '.join(why)}")
             compensation = {"run": str(Path(compensate).resolve()), "stage": calibrated.stage,
                             "residual_position_mm": (1e3 * np.linalg.norm(res[:, :3], axis=1)).tolist()}
+            inside, sigma = calibrated.in_domain(q_command), calibrated.sigma_mm(q_command)
+            # each corrected command against the calibration's domain (None: a calibration without domain.json)
+            compensation["in_domain"] = None if inside is None else [bool(v) for v in inside]
+            compensation["sigma_mm"] = None if sigma is None else [float(v) for v in sigma]
         ids = cycle_ids(cycles)
         Q = np.asarray(q_command)[pose_number(ids) - 1]
         summary = _write(run, cfg, model, scene, grid, suitable, cube, q_nominal, q_command, ids, Q, cycles,
@@ -303,7 +307,9 @@ def _write_version(version, run, cfg, robot, scene, grid, suitable, cube, q_nomi
         "campaign": {"kind": "iso9283", "mode": "iso9283",
                      "text": f"the ISO 9283 pose test: P1..P5 of a {2e3 * h:.0f} mm cube, {cycles} cycles"},
         "iso9283": {"cycles": cycles, "edge_m": 2 * h, "centre_m": cube["centre_m"].tolist(),
-                    "compensated_with": None if compensation is None else compensation["run"]},
+                    "compensated_with": None if compensation is None else compensation["run"],
+                    "outside_domain": [] if not (compensation or {}).get("in_domain") else
+                    [f"P{k + 1}" for k, v in enumerate(compensation["in_domain"]) if not v]},
         "tour": {"poses": int(len(Q)), "via_poses": 0, "dropped": 0, "motion_time_s": motion_s,
                  "clearance_m": pc.clearance_m, "motion_clearance_m": pc.motion_clearance_m,
                  "motion_sample_deg": pc.motion_sample_deg, "repeats": int(len(Q) - 5)},

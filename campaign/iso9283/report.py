@@ -111,9 +111,14 @@ def iso9283_report(run_dir, calibrated=None) -> dict:
     if other is not None:
         blocks["calibrated"] = other
     poses = []
-    for p in own["test"]["poses"]:
+    # the compensated run's commands against its calibration's domain (recorded by plan --iso9283 --compensate)
+    comp = ((other or own)["test"].get("compensated_with") or {}) if (other or own)["model"] == "calibrated" else {}
+    in_domain, sigma = comp.get("in_domain"), comp.get("sigma_mm")
+    for k, p in enumerate(own["test"]["poses"]):
         name = p["name"]
-        entry = {"pose": name, "model": own["model"], **own["poses"][name].as_dict()}
+        entry = {"pose": name, "model": own["model"], **own["poses"][name].as_dict(),
+                 "in_domain": None if in_domain is None else bool(in_domain[k]),
+                 "sigma_mm": None if sigma is None else float(sigma[k])}
         for label in ("nominal", "calibrated"):
             entry[label] = blocks[label]["poses"][name].as_dict() if label in blocks else None
         poses.append(entry)
@@ -162,6 +167,11 @@ def table_text(doc: dict) -> str:
         lines.append("orientation (mrad): " + "; ".join(
             f"{m} AP_a,b,c max {max(max(abs(p[m][f'AP_{c}_mrad']) for c in 'abc') for p in doc['poses']):.3f}, "
             f"RP_a,b,c max {max(max(p[m][f'RP_{c}_mrad'] for c in 'abc') for p in doc['poses']):.3f}" for m in labels))
+    outside = [p["pose"] for p in doc["poses"] if p.get("in_domain") is False]
+    if outside:
+        lines.append(f"outside the calibrated domain: {', '.join(outside)} (the calibrated figures there are "
+                     "extrapolated; sigma_mm " + ", ".join(f"{p['pose']} {p['sigma_mm']:.4f}" for p in doc["poses"]
+                                                           if p.get("sigma_mm") is not None) + ")")
     if doc["noise_floor_mm"] is not None:
         lines.append(f"noise floor {doc['noise_floor_mm']:.4f} mm (mean position error of one measurement, from the "
                      "cycles measured back to back)")

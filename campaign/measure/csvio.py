@@ -363,7 +363,8 @@ def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> 
         raise DataError(f"{path}: no measurement columns: expected x,y,z,rx,ry,rz (6-D), x,y,z (one reflector) "
                         f"or m1_x,m1_y,m1_z,... (raw reflectors){hint}")
     layout = CsvLayout(kind, joints, k, (), "time_s" in hs, rotation)
-    known = {"pose_id", "time_s", *joints, *layout.measure_columns}
+    # in_domain, sigma_mm: what `export --csv` appends from a calibration, not a measurement's context
+    known = {"pose_id", "time_s", *joints, *layout.measure_columns, *EXPORTED_DOMAIN_COLUMNS}
     return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs, rotation,
                      "pose_id" in hs)
 
@@ -799,12 +800,19 @@ def read_measured_csv(path, robot=None, options: ImportOptions | None = None) ->
     return concat_poses(iter_measured_chunks(path, robot, options).chunks)
 
 
-def write_measured_csv(path, poses: MeasuredPoses, robot=None) -> None:
+#: columns `export --csv` appends from the run's calibration (campaign.identify.use.DOMAIN_COLUMNS);
+#: `import` reads past them
+EXPORTED_DOMAIN_COLUMNS = ("in_domain", "sigma_mm")
+
+
+def write_measured_csv(path, poses: MeasuredPoses, robot=None, appended: dict | None = None) -> None:
     """Write poses as a measured-pose CSV: ``pose_id,time_s,q1..qN`` then the measurement columns
     of their kind (``x,y,z,rx,ry,rz``, ``x,y,z`` or ``m1_x,..``, an empty cell where a reflector
-    was missed), then the context columns. SI units; with ``robot``, joint values in its
-    controller's convention (robot.yaml's ``controller``), as they were imported."""
+    was missed), then the context columns, then ``appended`` ({column: (n,) cells as written}). SI
+    units; with ``robot``, joint values in its controller's convention (robot.yaml's ``controller``),
+    as they were imported."""
     path = Path(path)
+    appended = appended or {}
     extra = sorted(poses.context)
     q = poses.q if robot is None else robot.to_controller_q(poses.q)
     N = q.shape[1]
@@ -822,7 +830,7 @@ def write_measured_csv(path, poses: MeasuredPoses, robot=None) -> None:
 
     with atomic_open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(head + extra)
+        w.writerow(head + extra + list(appended))
         for i in range(len(poses)):
             row = [int(poses.pose_id[i])] + ([repr(float(poses.time_s[i]))] if has_time else [])
             row += [repr(float(v)) for v in q[i]]
@@ -833,4 +841,5 @@ def write_measured_csv(path, poses: MeasuredPoses, robot=None) -> None:
                 if rv is not None:
                     row += [repr(float(v)) for v in rv[i]]
             row += [repr(float(poses.context[k][i])) for k in extra]
+            row += [appended[k][i] for k in appended]
             w.writerow(row)

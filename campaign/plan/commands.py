@@ -134,6 +134,9 @@ def _plan_iso9283(args):
           f"in F_I; P1..P5, {iso['cycles']} cycles of P1, P5, P4, P3, P2"
           + (f"; commands compensated with {iso['compensated_with']}" if iso["compensated_with"] else ""))
     print(f"tour: {t['poses']:,} poses, motion {t['motion_time_s'] / 60:.1f} min; estimated {est['total_s'] / 3600:.2f} h")
+    if iso.get("outside_domain"):
+        print(f"warning: {', '.join(iso['outside_domain'])} outside the calibrated domain of {iso['compensated_with']} "
+              "(their corrections are extrapolated; iso9283.json: in_domain, sigma_mm)", file=sys.stderr)
     print(f"written: {args.run}/plan/poses.csv, iso9283.json, summary.json ({s['timing_s']['total']:.1f} s)")
     return 0
 

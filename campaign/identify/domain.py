@@ -1,0 +1,264 @@
+"""The calibrated domain: where in joint space the training poses lie, and a test that tells a new
+pose from them.
+
+Written beside params.yaml as ``domain.json`` (the same ``calibration_id``), with the model's
+uncertainty (campaign.identify.uncertainty) and the identifiability on the training poses
+(campaign.identify.identifiability). A pose is inside when
+
+* every joint lies within the training range widened by a margin: ``DOMAIN_MARGIN_POSES / n`` of
+  the range (the gap a fresh draw from the same spread leaves beyond the extremes of n poses is
+  about range / n; this many of them keeps a fresh pose's chance of falling beyond below 1 %
+  a joint), at least DOMAIN_MIN_MARGIN_RAD (m for a prismatic joint);
+* and its distance to the nearest training pose, in joint space scaled by each joint's training
+  spread (standard deviation, at least its margin), is at most DOMAIN_NN_FACTOR times the
+  largest such distance among the training poses themselves (leave-one-out): a workspace corner
+  inside every joint's range but far from every measured pose is outside;
+* and, for every pair of joints, its cell of a b × b grid over the two widened training ranges
+  holds a training pose, b = ⌊√(n / DOMAIN_PAIR_POSES_PER_CELL)⌋ (no grid below 4 cells): a
+  corner of the workspace no measured pose reached (joints 1 and 2 both high) is outside, where
+  the distance in all N joints, dominated by the others, does not see it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from campaign.errors import DataError
+from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMAIN_MIN_MARGIN_M,
+                                 DOMAIN_MIN_MARGIN_RAD, DOMAIN_NN_FACTOR, DOMAIN_PAIR_POSES_PER_CELL)
+
+DOMAIN_FILE = "domain.json"
+
+
+@dataclass(frozen=True)
+class Domain:
+    """Per joint (N,): training ``lower``/``upper``, ``margin``, ``scale`` (rad or m), ``coverage``
+    (share of the joint's limit range, in DOMAIN_COVERAGE_BINS bins, holding a training pose);
+    the training poses ``q_train`` (n, N) and the nearest-pose ``threshold`` (scaled units)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    margin: np.ndarray
+    scale: np.ndarray
+    coverage: np.ndarray
+    q_train: np.ndarray
+    threshold: float
+
+    def within_ranges(self, q) -> np.ndarray:
+        """(n, N) bool: each joint within its widened training range."""
+        q = np.asarray(q, dtype=float)
+        return (q >= self.lower - self.margin) & (q <= self.upper + self.margin)
+
+    def nearest_distance(self, q) -> np.ndarray:
+        """(n,) the scaled distance to the nearest training pose."""
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(self.q_train / self.scale)
+        d, _ = tree.query(np.asarray(q, dtype=float).reshape(-1, len(self.scale)) / self.scale, k=1)
+        return np.asarray(d, dtype=float)
+
+    @property
+    def pair_bins(self) -> int:
+        """Cells per joint of the pairwise occupancy grids (0: none)."""
+        b = int(np.sqrt(len(self.q_train) / DOMAIN_PAIR_POSES_PER_CELL))
+        return b if b >= 2 else 0
+
+    def _cells(self, q) -> np.ndarray:
+        """(n, N) int: each joint's cell of the pair grids."""
+        b = self.pair_bins
+        lo, hi = self.lower - self.margin, self.upper + self.margin
+        return np.clip(((q - lo) / (hi - lo) * b).astype(int), 0, b - 1)
+
+    def pairs_occupied(self, q) -> np.ndarray:
+        """(n,) bool: for every pair of joints, the pose's cell holds a training pose."""
+        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
+        b = self.pair_bins
+        if not b:
+            return np.ones(len(q), dtype=bool)
+        c, ct = self._cells(q), self._cells(self.q_train)
+        ok = np.ones(len(q), dtype=bool)
+        N = len(self.scale)
+        for i in range(N):
+            for j in range(i + 1, N):
+                occupied = np.zeros((b, b), dtype=bool)
+                occupied[ct[:, i], ct[:, j]] = True
+                ok &= occupied[c[:, i], c[:, j]]
+        return ok
+
+    def contains(self, q) -> np.ndarray:
+        """(n,) bool: inside the calibrated domain."""
+        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
+        if not len(q):
+            return np.zeros(0, dtype=bool)
+        return (self.within_ranges(q).all(axis=1) & (self.nearest_distance(q) <= self.threshold)
+                & self.pairs_occupied(q))
+
+    def why_outside(self, q, joint_names) -> list:
+        """For each row of q: "" inside, else what puts it outside (the first joint beyond its range,
+        or the distance to the nearest training pose)."""
+        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
+        ok = self.within_ranges(q)
+        d = self.nearest_distance(q)
+        pairs = self.pairs_occupied(q)
+        out = []
+        for i in range(len(q)):
+            bad = np.flatnonzero(~ok[i])
+            if len(bad):
+                out.append(f"{joint_names[bad[0]]} beyond the training range")
+            elif d[i] > self.threshold:
+                out.append(f"far from every training pose ({d[i] / self.threshold:.1f}x the threshold)")
+            elif not pairs[i]:
+                out.append("in a corner of two joints' ranges no training pose reached")
+            else:
+                out.append("")
+        return out
+
+    def as_json(self, robot) -> dict:
+        unit = ["m" if p else "rad" for p in robot.prismatic]
+        return {"joints": [{"joint": f"q{j + 1}", "unit": unit[j], "lower": float(self.lower[j]),
+                            "upper": float(self.upper[j]), "margin": float(self.margin[j]),
+                            "scale": float(self.scale[j]), "coverage": float(self.coverage[j])}
+                           for j in range(len(self.scale))],
+                "nearest_pose_threshold": float(self.threshold), "n_train": int(len(self.q_train)),
+                "training_q": [[float(v) for v in row] for row in self.q_train]}
+
+    @classmethod
+    def from_json(cls, d, where) -> "Domain":
+        try:
+            joints = d["joints"]
+            get = lambda key: np.array([float(j[key]) for j in joints])  # noqa: E731
+            q = np.asarray(d["training_q"], dtype=float).reshape(-1, len(joints))
+            out = cls(get("lower"), get("upper"), get("margin"), get("scale"), get("coverage"), q,
+                      float(d["nearest_pose_threshold"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{where}: malformed domain ({exc.__class__.__name__}: {exc})") from None
+        if not len(q) or not np.all(out.scale > 0):
+            raise DataError(f"{where}: the domain needs training poses and positive scales")
+        return out
+
+    def summary(self, robot) -> list:
+        """Per joint: (name, lower, upper, coverage) in degrees (mm for prismatic joints)."""
+        f = np.where(robot.prismatic, 1e3, 180.0 / np.pi)
+        return [(f"q{j + 1}", float(self.lower[j] * f[j]), float(self.upper[j] * f[j]), float(self.coverage[j]))
+                for j in range(len(self.scale))]
+
+
+def calibrated_domain(robot, q_train) -> Domain:
+    """The :class:`Domain` of the training poses q_train (n, N) of ``robot``."""
+    from scipy.spatial import cKDTree
+
+    q = np.asarray(q_train, dtype=float)
+    n = len(q)
+    lower, upper = q.min(axis=0), q.max(axis=0)
+    floor = np.where(robot.prismatic, DOMAIN_MIN_MARGIN_M, DOMAIN_MIN_MARGIN_RAD)
+    margin = np.maximum((upper - lower) * DOMAIN_MARGIN_POSES / max(n, 1), floor)
+    scale = np.maximum(q.std(axis=0), margin)
+    limits = np.stack([robot.q_lower, robot.q_upper], axis=1)
+    coverage = np.empty(robot.n_joints)
+    for j in range(robot.n_joints):
+        lo, hi = limits[j]
+        if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+            lo, hi = lower[j], upper[j] + 1e-12
+        b = np.clip(((q[:, j] - lo) / (hi - lo) * DOMAIN_COVERAGE_BINS).astype(int), 0, DOMAIN_COVERAGE_BINS - 1)
+        coverage[j] = len(np.unique(b)) / DOMAIN_COVERAGE_BINS
+    qs = q / scale
+    if n > 1:
+        d, _ = cKDTree(qs).query(qs, k=2)
+        loo = d[:, 1]
+        threshold = DOMAIN_NN_FACTOR * float(loo.max())
+    else:
+        threshold = 1.0
+    return Domain(lower, upper, margin, scale, coverage, q, max(threshold, 1e-9))
+
+
+def domain_path(folder) -> Path:
+    return Path(folder) / DOMAIN_FILE
+
+
+def domain_record(robot, models: dict, q_train, Y_train, ctx_train, q_all, ctx_all, noise_floor, is_test,
+                  identifiability) -> dict:
+    """What ``domain.json`` holds (without its calibration_id) and what metrics.json says of it
+    (``over_domain``), with ``sigma_all`` {stage: (n,) mm at every measured pose} for the report.
+
+    models: {stage: fitted CalibrationModel} (the geometric model and the current physical one);
+    q_train, Y_train, ctx_train: their training data; q_all, ctx_all: every measured pose (the
+    uncertainty over the domain); is_test (n,) bool of those; identifiability: the current
+    model's :class:`campaign.identify.identifiability.Identifiability`."""
+    from campaign.identify.uncertainty import model_uncertainty
+
+    domain = calibrated_domain(robot, q_train)
+    unc, over, sigma_all = {}, {}, {}
+    for stage, m in models.items():
+        u = model_uncertainty(m, q_train, Y_train, ctx_train if m.effect_set_.effects else None, noise_floor)
+        unc[stage] = u
+        s = 1e3 * u.sigma_m(robot, m.effect_set_, m.params_, m.effect_params_, q_all, ctx_all)
+        sigma_all[stage] = s
+        over[stage] = {"sigma_mm_mean": float(np.mean(s)), "sigma_mm_q95": float(np.quantile(s, 0.95)),
+                       "test_sigma_mm_mean": float(np.mean(s[is_test])) if np.any(is_test) else None,
+                       "basis": u.basis}
+    return {"domain": domain.as_json(robot), "uncertainty": {k: u.as_json() for k, u in unc.items()},
+            "identifiability": identifiability.as_json(), "over_domain": over, "sigma_all": sigma_all}
+
+
+def domain_metrics(record: dict, robot, stages: dict, current: str) -> dict:
+    """metrics.json's ``domain`` and ``uncertainty``: per-joint ranges and coverage; the current
+    model's sigma_mm over the measured poses (mean, 95th percentile) beside its held-out error."""
+    joints = [{k: j[k] for k in ("joint", "unit", "lower", "upper", "coverage")} for j in record["domain"]["joints"]]
+    out = {"domain": {"joints": joints, "n_train": record["domain"]["n_train"],
+                      "nearest_pose_threshold": record["domain"]["nearest_pose_threshold"], "file": DOMAIN_FILE}}
+    unc = {}
+    for stage, over in record["over_domain"].items():
+        test = stages.get(stage, {}).get("test", {}).get("position_mm", {})
+        unc[stage] = {**over, "heldout_mean_position_mm": test.get("mean")}
+    out["uncertainty"] = {"stage": current, "stages": unc,
+                          "network": "a neural stage's own uncertainty is not estimated: its rows carry the physical "
+                                     "model's sigma_mm"}
+    return out
+
+
+@dataclass(frozen=True)
+class StoredDomain:
+    """domain.json read back: the :class:`Domain`, the uncertainty of each stage that has one
+    ({stage: campaign.identify.uncertainty.Uncertainty}) and the identifiability record."""
+
+    domain: Domain
+    uncertainty: dict
+    identifiability: dict
+
+
+def read_domain(folder, calibration_id) -> StoredDomain | None:
+    """The calibration's domain.json (None when the calibration has none: made before it existed);
+    DataError when it is malformed or of another calibration."""
+    import json
+
+    from campaign.identify.uncertainty import Uncertainty
+
+    path = domain_path(folder)
+    if not path.is_file():
+        return None
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable ({exc.__class__.__name__})") from None
+    if not isinstance(d, dict) or d.get("calibration_id") != calibration_id:
+        raise DataError(f"{path}: of calibration {d.get('calibration_id') if isinstance(d, dict) else None!r}, "
+                        f"params.yaml is of {calibration_id!r}; re-run calibrate")
+    unc = d.get("uncertainty") or {}
+    if not isinstance(unc, dict):
+        raise DataError(f"{path}: uncertainty must be a mapping of stages")
+    return StoredDomain(Domain.from_json(d.get("domain"), path),
+                        {k: Uncertainty.from_json(v, f"{path}: uncertainty.{k}") for k, v in unc.items()},
+                        d.get("identifiability") or {})
+
+
+def domain_summary(in_domain, sigma_mm, what: str = "rows") -> str:
+    """One line: how many rows are outside the calibrated domain and the largest sigma_mm."""
+    if in_domain is None:
+        return f"no calibrated domain (a calibration from before domain.json): in_domain and sigma_mm left empty; " \
+               "re-run calibrate"
+    n_out = int(np.sum(~np.asarray(in_domain, dtype=bool)))
+    worst = f"; largest sigma_mm {float(np.max(sigma_mm)):.4f} mm" if sigma_mm is not None and len(sigma_mm) else ""
+    return f"{n_out} of {len(in_domain)} {what} outside the calibrated domain (in_domain = 0){worst}"

@@ -1,0 +1,203 @@
+"""Issue 30: what the data cannot tell. Identifiability on the measured poses (a joint that never
+moved is named, --strict refuses), the calibrated domain (in_domain) and the uncertainty pose by
+pose (sigma_mm) in every output. The simulator's truth is read only after the pipeline answered."""
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from campaign.cli import main
+from campaign.identify.domain import calibrated_domain, read_domain
+from campaign.identify.identifiability import analyse, hold_unidentified, parameter_words
+from campaign.identify.solver import CalibrationModel
+from campaign.identify.uncertainty import model_uncertainty
+from campaign.measure.csvio import write_measured_csv
+from campaign.sim.truth import make_truth, random_joint_poses, synthesize
+
+Q1_DEG = 17.2
+
+
+def _rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _joint_csv(path, q):
+    lines = ["pose_id,q1,q2,q3,q4,q5,q6"] + [f"{i}," + ",".join(repr(float(v)) for v in row) for i, row in enumerate(q)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def still_run(tmp_path_factory, robot):
+    """12 measured poses in which joint 1 never moved, imported and calibrated (the issue's case)."""
+    d = tmp_path_factory.mktemp("still")
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 12, seed=4)
+    q[:, 0] = np.deg2rad(Q1_DEG)
+    poses = synthesize(truth, q, seed=5)
+    write_measured_csv(d / "m.csv", poses, robot)
+    assert main(["import", str(d / "m.csv"), "--run", str(d / "run"), "--quiet"]) == 0
+    return d, truth, poses
+
+
+def test_a_joint_that_never_moved_is_named_and_strict_refuses(still_run, capsys):
+    d, _, _ = still_run
+    capsys.readouterr()
+    assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report", "--strict"]) == 1
+    err = capsys.readouterr().err
+    assert "unidentifiable" in err and "joint 1 never moved" in err and f"q1 = {Q1_DEG}°" in err
+    assert not (d / "run" / "calibration" / "metrics.json").exists()  # nothing written
+    assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    out = capsys.readouterr()
+    metrics = json.loads((d / "run" / "calibration" / "metrics.json").read_text())
+    codes = [w["code"] for w in metrics["warnings"]]
+    assert "unidentifiable" in codes
+    msg = next(w["message"] for w in metrics["warnings"] if w["code"] == "unidentifiable")
+    assert "joint 1 never moved" in msg and "held at their nominal value" in msg
+    assert metrics["identifiability"]["rank"] < metrics["identifiability"]["n_unknowns"]
+    assert metrics["identifiability"]["held_at"] == "nominal" and metrics["identifiability"]["held"]
+    # never "identified ... condition number inf"
+    line = next(x for x in out.out.splitlines() if x.startswith("identified"))
+    assert "inf" not in line and "of 30 base parameters" in line
+
+
+def test_predict_at_other_q1_is_outside_with_a_larger_sigma_and_strict_refuses(still_run, robot, tmp_path, capsys):
+    d, truth, poses = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    q = np.repeat(poses.q[:1], 8, axis=0)
+    q[4:, 0] = np.deg2rad([-60.0, -20.0, 60.0, 120.0])  # the first four at the trained q1: one training pose
+    _joint_csv(tmp_path / "q.csv", q)
+    capsys.readouterr()
+    assert main(["predict", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    err = capsys.readouterr().err
+    rows = _rows(tmp_path / "p.csv")
+    assert list(rows[0])[-2:] == ["in_domain", "sigma_mm"]
+    inside = np.array([int(r["in_domain"]) for r in rows])
+    sigma = np.array([float(r["sigma_mm"]) for r in rows])
+    assert inside[:4].all() and not inside[4:].any()
+    assert sigma[4:].min() > 20 * sigma[:4].max()
+    assert "4 of 8 rows outside the calibrated domain" in err
+    # the truth, read after the pipeline answered: the predicted poses are off by more there
+    T = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows])
+    err_mm = 1e3 * np.linalg.norm(T - truth.pose_in_measured_frame(q, poses.T_LI)[:, :3, 3], axis=1)
+    assert err_mm[4:].mean() > 20 * err_mm[:4].mean()
+    assert main(["predict", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--strict"]) == 1
+    assert "outside the calibrated domain with --strict" in capsys.readouterr().err
+
+
+def test_domain_json_carries_the_calibration_id(still_run):
+    d, _, _ = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    metrics = json.loads((d / "run" / "calibration" / "metrics.json").read_text())
+    folder = (d / "run" / "calibration").resolve()
+    stored = read_domain(folder, metrics["calibration_id"])
+    assert stored is not None and "geometric" in stored.uncertainty
+    from campaign.errors import DataError
+
+    with pytest.raises(DataError, match="domain.json: of calibration"):
+        read_domain(folder, "another-id")
+
+
+def test_a_partial_range_marks_poses_beyond_it_outside(robot):
+    q = random_joint_poses(robot, 200, seed=1)
+    half = robot.q_lower[1] + 0.5 * (robot.q_upper[1] - robot.q_lower[1])
+    q[:, 1] = robot.q_lower[1] + 0.05 + (q[:, 1] - robot.q_lower[1] - 0.05) * (half - robot.q_lower[1]) / \
+        (robot.q_upper[1] - robot.q_lower[1])
+    dom = calibrated_domain(robot, q)
+    fresh = random_joint_poses(robot, 1000, seed=2)
+    beyond = fresh[fresh[:, 1] > q[:, 1].max() + 0.1 * (robot.q_upper[1] - robot.q_lower[1])]
+    assert len(beyond) > 100 and not dom.contains(beyond).any()
+    within = fresh[(fresh[:, 1] > q[:, 1].min()) & (fresh[:, 1] < q[:, 1].max())]
+    assert dom.contains(within).mean() >= 0.95
+
+
+def test_a_full_spread_campaign_keeps_fresh_poses_inside_with_sigma_near_the_true_error(runs_full):
+    model, domain, unc, truth, T_LI, robot = runs_full
+    fresh = random_joint_poses(robot, 1000, seed=77)
+    assert domain.contains(fresh).mean() >= 0.95
+    sigma = unc.sigma_m(robot, model.effect_set_, model.params_, model.effect_params_, fresh)
+    true = np.linalg.norm(model.predict(fresh)[:, :3, 3] - truth.pose_in_measured_frame(fresh, T_LI)[:, :3, 3], axis=1)
+    assert 0.5 <= sigma.mean() / true.mean() <= 2.0
+    assert np.mean(true < 2 * sigma) >= 0.9
+
+
+@pytest.fixture(scope="module")
+def runs_full(robot):
+    truth = make_truth(robot, seed=8)
+    poses = synthesize(truth, random_joint_poses(robot, 150, seed=9), seed=10)
+    model = CalibrationModel(robot=robot).fit(poses.q, poses.T_IE)
+    unc = model_uncertainty(model, poses.q, poses.T_IE)
+    return model, calibrated_domain(robot, poses.q), unc, truth, poses.T_LI, robot
+
+
+def test_sigma_at_a_pose_is_the_least_squares_covariance_carried_to_the_tool_point(runs_full):
+    model, _, unc, _, _, robot = runs_full
+    q = random_joint_poses(robot, 5, seed=3)
+    J = model.jacobian(q, model.predict(q))[:, :3, :]  # base-parameter columns, the fit's own covariance
+    ref = np.sqrt(np.einsum("nij,jk,nik->n", J, model.covariance_, J))
+    # the fit's covariance is at its variance factor; the uncertainty's at the final weights' own
+    e = model.residual_at_fit_ / model.row_sigma_
+    s2 = np.sum(e ** 2) / (model.n_equations_ - model.n_effective_)
+    got = unc.sigma_m(robot, model.effect_set_, model.params_, model.effect_params_, q)
+    assert np.allclose(got, ref * np.sqrt(s2 / model.variance_factor_), rtol=1e-3)
+
+
+def test_a_wrist_that_barely_turned_is_named_barely_identified(robot):
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 40, seed=4)
+    q[:, 4] = np.deg2rad(17.2) + np.deg2rad(1.0) * (np.random.default_rng(1).uniform(size=40) - 0.5)
+    poses = synthesize(truth, q, seed=5)
+    m = CalibrationModel(robot=robot).fit(poses.q, poses.T_IE)
+    ident = analyse(m, poses.q)
+    assert ident.rank == ident.n_unknowns and ident.weak and not ident.unidentified
+    text = " ".join(f.message for f in ident.findings(robot))
+    assert "barely identified" in text and "joint 5 moved only 1.0°" in text
+
+
+def test_a_least_squares_fit_holds_the_unidentified_directions_at_nominal(robot):
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 40, seed=4)
+    q[:, 5] = 0.3
+    poses = synthesize(truth, q, seed=5)
+    make = lambda **kw: CalibrationModel(robot=robot, **kw)  # noqa: E731
+    first = make().fit(poses.q, poses.T_IE)
+    assert not np.isfinite(first.condition_number_)
+    model, ident = hold_unidentified(make, first, poses.q, poses.T_IE)
+    assert len(ident.held) == ident.n_unknowns - ident.rank == 4
+    assert np.isfinite(model.condition_number_)
+    assert all(model.values_[n] == 0.0 for n in ident.held)
+    # the same fit at the training poses: the held directions change nothing there
+    assert np.allclose(model.residuals(poses.q, poses.T_IE), first.residuals(poses.q, poses.T_IE), atol=1e-9)
+    assert [j for j, _, _ in ident.still] == [5]
+
+
+def test_parameters_are_named_in_an_engineers_words(robot):
+    assert parameter_words(robot, "pq1") == "joint 1's zero offset"
+    assert parameter_words(robot, "pR_6E_x") == "the tool's rotation about its x axis"
+    assert parameter_words(robot, "pR_12_y") == "joint 2's axis tilt about y"
+    assert parameter_words(robot, "pL_I0_z", "tracker") == "the base's (the tracker's pose) position along z"
+
+
+def test_export_and_compensate_append_the_columns_and_the_export_reads_back(still_run, tmp_path, capsys):
+    d, _, poses = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    assert main(["export", str(d / "run"), "--csv", str(tmp_path / "x.csv")]) == 0
+    rows = _rows(tmp_path / "x.csv")
+    assert list(rows[0])[:14] == ["pose_id", "time_s", "q1", "q2", "q3", "q4", "q5", "q6", "x", "y", "z", "rx", "ry",
+                                  "rz"]
+    assert list(rows[0])[-2:] == ["in_domain", "sigma_mm"] and all(r["in_domain"] == "1" for r in rows)
+    assert main(["import", str(tmp_path / "x.csv"), "--run", str(tmp_path / "again"), "--quiet"]) == 0
+    from campaign.measure.store import open_run
+
+    with open_run(tmp_path / "again") as store:
+        assert not set(store.load_measured().context) & {"in_domain", "sigma_mm"}
+    _joint_csv(tmp_path / "q.csv", poses.q[:3])
+    assert main(["compensate", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "c.csv")]) == 0
+    head = list(_rows(tmp_path / "c.csv")[0])
+    assert head[-4:] == ["converged", "within_limits", "in_domain", "sigma_mm"]
