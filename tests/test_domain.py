@@ -73,14 +73,14 @@ def test_predict_at_other_q1_is_outside_with_a_larger_sigma_and_strict_refuses(s
     _joint_csv(tmp_path / "q.csv", q)
     capsys.readouterr()
     assert main(["predict", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
-    err = capsys.readouterr().err
+    said = capsys.readouterr().out
     rows = _rows(tmp_path / "p.csv")
     assert list(rows[0])[-2:] == ["in_domain", "sigma_mm"]
     inside = np.array([int(r["in_domain"]) for r in rows])
     sigma = np.array([float(r["sigma_mm"]) for r in rows])
     assert inside[:4].all() and not inside[4:].any()
     assert sigma[4:].min() > 20 * sigma[:4].max()
-    assert "4 of 8 rows outside the calibrated domain" in err
+    assert "4 of 8 rows outside the calibrated domain" in said
     # the truth, read after the pipeline answered: the predicted poses are off by more there
     T = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows])
     err_mm = 1e3 * np.linalg.norm(T - truth.pose_in_measured_frame(q, poses.T_LI)[:, :3, 3], axis=1)

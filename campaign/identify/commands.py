@@ -252,7 +252,7 @@ def _export(args):
     appended, line = export_domain_columns(args.run, poses)
     write_measured_csv(args.csv, poses, RunFolder(args.run).robot(), appended)
     print(f"wrote {len(poses)} poses to {args.csv}")
-    print(line, file=sys.stderr)
+    print(line)
     return 0
 
 
@@ -386,7 +386,7 @@ def _predict(args):
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} calibrated poses ({calibrated.stage}) to {args.out}")
-    _domain_line(calibrated, inside, sigma, "rows")
+    _domain_line(calibrated, inside, sigma, "rows", bool(args.out))
     return 0
 
 
@@ -400,7 +400,9 @@ def _refuse_outside(args, pose_id, inside, what) -> None:
                         f"(pose_id {', '.join(map(str, ids[:10]))}{', ...' if len(ids) > 10 else ''}): nothing written")
 
 
-def _domain_line(calibrated, inside, sigma, what) -> None:
+def _domain_line(calibrated, inside, sigma, what, to_file: bool) -> None:
+    """The summary line of in_domain and sigma_mm: beside "wrote ..." on stdout when the CSV went to a
+    file, on stderr when the CSV itself is on stdout."""
     from campaign.identify.domain import domain_summary
 
     line = domain_summary(inside, sigma, what)
@@ -408,7 +410,7 @@ def _domain_line(calibrated, inside, sigma, what) -> None:
         line += " (the physical model's; the network's own uncertainty is not estimated)"
     elif sigma is None and inside is not None:
         line += f"; no sigma_mm for stage {calibrated.stage} (no physical model identified in it)"
-    print(line, file=sys.stderr)
+    print(line, file=sys.stdout if to_file else sys.stderr)
 
 
 def _compensate(args):
@@ -435,7 +437,7 @@ def _compensate(args):
     if not inside.all():
         print(f"warning: {int((~inside).sum())} corrected command(s) outside the joint limits "
               "(column within_limits = 0)", file=sys.stderr)
-    _domain_line(calibrated, in_dom, sigma, "corrected commands")
+    _domain_line(calibrated, in_dom, sigma, "corrected commands", bool(args.out))
     return 0
 
 
