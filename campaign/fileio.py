@@ -27,11 +27,23 @@ def _storage_error(path, exc: OSError) -> StorageError:
     return StorageError(f"{path}: cannot write ({exc.strerror or exc}); the previous file, if any, is unchanged")
 
 
+def check_writable_file(path, what: str | None = None, example: str = "out") -> Path:
+    """``path`` as a Path, or a StorageError when it names a directory (a file's name is needed:
+    nothing is written, no ``.partial`` left); ``what``: the option that named it; ``example``:
+    a file name to suggest inside that directory."""
+    path = Path(path)
+    if path.is_dir():
+        given = f"{what} {path}" if what else str(path)
+        raise StorageError(f"{given}: is a directory; name the file to write (e.g. {path / example})")
+    return path
+
+
 @contextlib.contextmanager
 def atomic_open(path, mode: str = "w", **kwargs):
     """Open ``path.partial`` for writing; on a clean exit it replaces ``path``, on an error
-    it is removed and ``path`` is left as it was. Yields the open file."""
-    path = Path(path)
+    it is removed and ``path`` is left as it was (a directory at ``path``: a StorageError before
+    anything is opened). Yields the open file."""
+    path = check_writable_file(path)
     tmp = path.with_name(path.name + ".partial")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

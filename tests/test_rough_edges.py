@@ -273,3 +273,23 @@ def test_predict_and_compensate_accept_what_the_import_accepted_with_limit_slack
                        r"line 5, q1 = [\d.]+ rad is outside the joint limit [\d.]+ rad of COMAU Racer5-0\.80 "
                        r"\(limit slack in force: 0\.5 deg, as the run's import accepted; --limit-slack")
         assert main([verb, str(run), "--csv", str(far), "--limit-slack", "1", "--out", str(tmp_path / "x.csv")]) == 0
+
+
+@pytest.fixture(scope="module")
+def calibrated_run(nominal_run, tmp_path_factory):
+    """A copy of ``nominal_run``, calibrated (geometry only, no report)."""
+    run = run_copy(nominal_run, tmp_path_factory.mktemp("calibrated") / "run")
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0
+    return run
+
+
+# -- 10. export into a directory ----------------------------------------------------------------
+
+@pytest.mark.parametrize("option", ["--urdf", "--csv"])
+def test_export_to_a_directory_is_one_line_naming_it_and_leaves_nothing(calibrated_run, tmp_path, capsys, option):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    line = one_line_error(capsys, ["export", calibrated_run, option, out], rf"{re.escape(str(out))}: is a directory")
+    assert "partial" not in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and [p.name for p in out.iterdir()] == ["keep.txt"]

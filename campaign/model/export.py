@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import ConfigError
+from campaign.fileio import atomic_write, check_writable_file
 from campaign.model.robot import RobotModel
 from campaign.model.rotations import cardan_xyz
 
@@ -63,6 +64,7 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
     import yourdfpy
 
     out_path = Path(out_path)
+    check_writable_file(out_path, "--urdf", "calibrated.urdf")  # before any work
     u = yourdfpy.URDF.load(str(robot.urdf_path), load_meshes=False, build_scene_graph=False,
                            build_collision_scene_graph=False)
     joints = {j.name: j for j in u.robot.joints}
@@ -113,21 +115,17 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
             if mesh is not None and mesh.filename and "://" not in mesh.filename \
                     and not Path(mesh.filename).is_absolute():
                 mesh.filename = str((base_dir / mesh.filename).resolve())
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(out_path.name + ".partial")
-    u.write_xml_file(str(tmp))
-    _prepend_comment(tmp, notes)
-    tmp.replace(out_path)
-    return out_path
+    from lxml import etree  # yourdfpy's XML library: the bytes its write_xml_file writes
+
+    text = etree.tostring(u.write_xml(), xml_declaration=True, pretty_print=True).decode("ascii")
+    return atomic_write(out_path, _with_comment(text, notes).encode("ascii", "xmlcharrefreplace"))  # ASCII declared
 
 
-def _prepend_comment(path: Path, notes) -> None:
-    """``notes`` as one XML comment after the declaration of the XML file at ``path``."""
+def _with_comment(text: str, notes) -> str:
+    """``notes`` as one XML comment after the declaration of the XML ``text``."""
     if not notes:
-        return
-    text = path.read_text()
+        return text
     body = "\n".join(f"  {n}" for n in notes).replace("--", "- -")
     head, sep, rest = text.partition("?>")
     comment = f"\n<!--\n  The calibrated geometric model written by `campaign export --urdf`.\n{body}\n-->"
-    text = head + sep + comment + rest if sep else f"<!--\n{body}\n-->\n" + text
-    path.write_bytes(text.encode("ascii", "xmlcharrefreplace"))  # the declaration says ASCII
+    return head + sep + comment + rest if sep else f"<!--\n{body}\n-->\n" + text
