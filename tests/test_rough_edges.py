@@ -293,3 +293,38 @@ def test_export_to_a_directory_is_one_line_naming_it_and_leaves_nothing(calibrat
     line = one_line_error(capsys, ["export", calibrated_run, option, out], rf"{re.escape(str(out))}: is a directory")
     assert "partial" not in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+# -- 9. a malformed URDF, a branching URDF -------------------------------------------------------
+
+def test_a_malformed_urdf_is_one_line_with_line_and_column(tmp_path, capfd):
+    text = COMAU_URDF.read_text()
+    lines = text.splitlines()
+    k = next(i for i, line in enumerate(lines) if line.strip() == "</joint>")
+    lines[k] = lines[k].replace("</joint>", "</jont>")  # a typo in a closing tag
+    bad = tmp_path / "bad.urdf"
+    bad.write_text("\n".join(lines) + "\n")
+    capfd.readouterr()
+    for argv in (["model", "chain", "--robot", bad], ["import", nominal_csv(tmp_path / "d.csv"), "--run",
+                                                      tmp_path / "run", "--robot", bad, "--quiet"]):
+        assert main([str(a) for a in argv]) == 1
+        err = capfd.readouterr().err  # the process's own stderr: a parser's lines would show here
+        assert err.strip().splitlines() == [err.strip()], err
+        assert re.search(rf"{re.escape(str(bad))}: not valid XML \(line {k + 1}, column \d+: mismatched tag\)", err)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_branching_urdf_without_a_tool_frame_is_refused_with_the_choices(tmp_path, capsys):
+    extra = ('<link name="cam_base"/><link name="cam_tilt"/>'
+             '<joint name="cam_pan_joint" type="revolute"><parent link="link1"/><child link="cam_base"/>'
+             '<origin xyz="0 0.1 0" rpy="0 0 0"/><axis xyz="0 0 1"/>'
+             '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+             '<joint name="cam_tilt_joint" type="revolute"><parent link="cam_base"/><child link="cam_tilt"/>'
+             '<axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>')
+    branching = tmp_path / "two_branches.urdf"
+    branching.write_text(COMAU_URDF.read_text().replace("</robot>", extra + "</robot>"))
+    one_line_error(capsys, ["model", "chain", "--robot", branching],
+                   r"two_branches\.urdf: the tree branches at 'link1' into 2 branches: name the tool frame with "
+                   r"--tool-frame .* \(the branches end at E, .*cam_tilt\)")
+    robot = RobotModel.load(branching, tool_frame="E")  # named: the COMAU's chain, the camera beside it
+    assert robot.joint_names == RobotModel.load().joint_names

@@ -573,9 +573,46 @@ def _load_yourdfpy(urdf_path: Path, build_scene_graph: bool = False):
         return yourdfpy.URDF.load(bare, **kw)
 
 
+def _moving_depth(joint, children: dict, locked: dict) -> int:
+    """The most moving joints (neither fixed nor locked) on a path from ``joint`` down to a leaf."""
+    below = max((_moving_depth(j, children, locked) for j in children[joint.child]), default=0)
+    return below + (joint.type != "fixed" and joint.name not in locked)
+
+
+def _tool_choices(link: str, children: dict, locked: dict) -> list:
+    """Tool frames a branch starting at ``link`` offers: where the default walk down it stops (a
+    leaf, or a link whose branches are fixed or one joint long), then the leaves below that;
+    branches with chains of their own below are followed each."""
+    while len(children[link]) == 1:
+        link = children[link][0].child
+    if any(_moving_depth(j, children, locked) >= 2 for j in children[link]):  # a hand with fingers, or more arms
+        return [link, *(e for j in children[link] for e in _tool_choices(j.child, children, locked))]
+    out, stack = [link], [j.child for j in reversed(children[link])]
+    while stack:  # the leaves below, depth first, in the URDF's order
+        cur = stack.pop()
+        if not children[cur]:
+            out.append(cur)
+        stack.extend(j.child for j in reversed(children[cur]))
+    return out
+
+
+def check_xml(path: Path) -> None:
+    """A ConfigError naming ``path``, the line and the column when the file is not well-formed
+    XML (yourdfpy would print its parser's lines, then read what it could recover)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        ET.parse(path)
+    except ET.ParseError as exc:
+        line, column = exc.position
+        why = str(exc).split(": line")[0]
+        raise ConfigError(f"{path}: not valid XML (line {line}, column {column + 1}: {why})") from None
+
+
 def _parse_urdf(urdf_path: Path):
     from campaign.model.urdf_chain import read_chain
 
+    check_xml(urdf_path)
     try:  # the chain alone, without importing yourdfpy and trimesh (half a second)
         return read_chain(urdf_path)
     except Exception:  # a file it does not take: yourdfpy reads it, or words what is wrong as before
@@ -716,6 +753,23 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
         tool = base
         while len(children[tool]) == 1:
             tool = children[tool][0].child
+        # a branch with a chain of its own (an arm, a head) below: which end is the tool cannot be
+        # guessed; fixed branches (reflectors, sensors) and one-joint ones (a gripper's fingers) end it
+        if any(_moving_depth(j, children, locked) >= 2 for j in children[tool]):
+            ends = list(dict.fromkeys(e for j in children[tool] for e in _tool_choices(j.child, children, locked)))
+
+            def joints_to(link):  # moving joints from the branch down to ``link``: the arms' ends first
+                n = 0
+                while link != tool:
+                    n += child_of[link].type != "fixed" and child_of[link].name not in locked
+                    link = child_of[link].parent
+                return n
+
+            ends.sort(key=lambda e: (len(children[e]) == 0, -joints_to(e)))  # a hand before its fingers
+            shown = ", ".join(ends[:12]) + (f", ... ({len(ends)} in all)" if len(ends) > 12 else "")
+            raise ConfigError(f"{src}: the tree branches at '{tool}' into {len(children[tool])} branches: name the "
+                              f"tool frame with --tool-frame or tool_frame in robot.yaml (the branches end at "
+                              f"{shown})")
     if tool not in links:
         raise ConfigError(f"{src}: {_frame_field('tool', tool_frame)} '{tool}' is not a link of {urdf_path.name}")
 
@@ -730,10 +784,7 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
     path.reverse()
     moving = [j for j in path if j.type != "fixed" and j.name not in locked]
     if not moving:
-        raise ConfigError(f"{src}: no moving joint between '{base}' and '{tool}'"
-                          + ("" if tool_frame or meta.get("tool_frame") else
-                             f" (the tree branches at '{tool}': name the tool with --tool-frame or "
-                             "tool_frame in robot.yaml)"))
+        raise ConfigError(f"{src}: no moving joint between '{base}' and '{tool}'")
     for j in moving:
         if j.mimic is not None:
             raise ConfigError(f"{urdf_path}: joint '{j.name}' mimics '{j.mimic.joint}': a mimic joint cannot be "
