@@ -198,3 +198,26 @@ def test_a_run_without_calibration_is_refused_in_one_line(tmp_path, capsys):
     (tmp_path / "run").mkdir()
     assert main(["compensate", str(tmp_path / "run"), "--program", str(p), "--format", "urscript"]) == 1
     assert "run `campaign calibrate" in capsys.readouterr().err
+
+
+def test_the_configuration_written_chooses_the_branch(tmp_path, robot, calibrated):
+    """One pose, two wrist configurations (q5 > 0 and its flip): KRL's T bits (the sign of each
+    axis) say which one the controller takes, and the compensation follows it (the elbow, which
+    the T bits do not give, is the one nearest the joints' mid-range here: no target before it)."""
+    run, truth, poses = calibrated
+    q_a = np.radians([20.0, 40.0, -60.0, 30.0, 40.0, 20.0])
+    q_b = q_a + np.radians([0, 0, 0, -180.0, 0, -180.0])
+    q_b[4] = -q_b[4]
+    T = forward(robot, q_a[None])[0]
+    np.testing.assert_allclose(forward(robot, q_b[None])[0], T, atol=1e-12)
+    x, y, z, a, b, c = T_to_pose(T, "mm_kuka_abc", [0] * 6)
+    for q in (q_a, q_b):
+        bits = _bits(np.degrees(q))
+        path = tmp_path / f"t{bits}.dat"
+        path.write_text(f"DEFDAT t{bits}\n  DECL E6POS XP1={{X {x:.4f},Y {y:.4f},Z {z:.4f},A {a:.5f},B {b:.5f},"
+                        f"C {c:.5f},S 2,T {bits}}}\nENDDAT\n")
+        assert main(["compensate", str(run), "--program", str(path), "--format", "krl"]) == 0
+        new = scan(path.with_name(path.stem + "_compensated.dat").read_text(), "krl", 6).targets
+        T_new = pose_to_T(new[0].values, "mm_kuka_abc")[None]
+        after, before = _cartesian_check(robot, truth, poses, T[None], T_new, q[None])
+        assert after[0] < 0.02 < before[0]

@@ -449,7 +449,8 @@ def _compensate_program(args):
         raise ConfigError("--program needs --format (urscript, krl, rapid, fanuc-ls, pdl2, ros2-trajectory, csv)")
     if args.columns is not None or args.angle_unit != "rad":
         raise ConfigError("--columns and --angle-unit go with --csv; a program's units are its language's")
-    out, res = compensate_program_file(args.run, args.program, args.format, out=args.out, stage=args.stage)
+    out, res = compensate_program_file(args.run, args.program, args.format, out=args.out, stage=args.stage,
+                                       progress=sys.stderr.isatty())
     print(f"wrote {out}: {res.joints} joint and {res.poses} Cartesian targets compensated ({res.stage}), "
           f"{len(res.unclear)} not understood, {len(res.outside)} outside the calibrated domain or not reached")
     for line, text, why in res.unclear:

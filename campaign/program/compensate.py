@@ -7,9 +7,11 @@ q' = compensate(FK_nominal(q)) (campaign.identify.use.CalibratedRobot.compensate
 A **Cartesian target** T (the pose of the run's tool frame in its base frame, the program's
 length unit and orientation convention) becomes the target the nominal controller must be given
 so that the calibrated robot reaches T: the joints q with calibrated(q) = T, started from the
-nominal inverse kinematics (the solution nearest the previous target's, so a program's
-configuration is followed), then T' = FK_nominal(q), which the nominal controller turns back into
-q. Configuration flags (KRL S/T, RAPID confdata, FANUC CONFIG, PDL2's string) are kept as written.
+nominal inverse kinematics in the configuration the target writes where it can be read (KRL's T
+bits, RAPID's quadrants of axes 1, 4, 6, FANUC's turns of J1, J4, J6; not what depends on the
+arm's geometry: KRL's S, RAPID's cfx, FANUC's F/N U/D T/B), within it the solution reached from the
+target before (a program's configuration is followed), then T' = FK_nominal(q), which the nominal
+controller turns back into q. Configuration flags are kept as written.
 
 Only the numbers of a target are replaced (each written with at least as many decimals as it
 had, and the format's precision); what looks like a target but cannot be read is listed with its
@@ -401,9 +403,18 @@ def measured_ranges(run_dir, robot):
     return (q.min(axis=0), q.max(axis=0)) if len(q) else None
 
 
-def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=None) -> ProgramCompensation:
+UNREACHED = ("the calibrated model does not reach it (beyond the real robot's reach or beside a singularity; "
+             "left as written)")
+#: joint targets solved together (one progress step)
+BLOCK = 500
+
+
+def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=None,
+                       progress: bool = False) -> ProgramCompensation:
     """Rewrite the targets of a program ``text`` of format ``fmt`` through the calibration of
-    ``run_dir`` (module docstring)."""
+    ``run_dir`` (module docstring). ``progress``: a bar on stderr."""
+    from campaign.progress import Progress
+
     from campaign.identify.use import CalibratedRobot
     from campaign.model.kinematics import forward
     from campaign.program.common import unit_scale
@@ -434,16 +445,19 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
 
     n_joint = n_pose = 0
     solved = {}
+    bar = Progress("compensating", len(found.targets), progress, " targets")
     if joints:
         q_ctrl = np.array([t.values for t in joints], dtype=float) / scale
         q = np.atleast_2d(robot.to_model_q(q_ctrl))
-        q_new, _, ok = cal.compensate(forward(robot, q), q)
+        q_new, ok = np.empty_like(q), np.empty(len(q), dtype=bool)
+        for a in range(0, len(q), BLOCK):
+            q_new[a:a + BLOCK], _, ok[a:a + BLOCK] = cal.compensate(forward(robot, q[a:a + BLOCK]), q[a:a + BLOCK])
+            bar.update(len(q[a:a + BLOCK]))
         new_ctrl = np.atleast_2d(robot.to_controller_q(q_new)) * scale
         for k, (t, qn, qc, good) in enumerate(zip(joints, q_new, new_ctrl, ok)):
             solved[id(t)] = q[k]
             if not good:
-                outside.append((t.line, f"{t.name or 'joint target'}: the calibrated model does not reach it "
-                                        "(left as written)"))
+                outside.append((t.line, f"{t.name or 'joint target'}: {UNREACHED}"))
                 continue
             note_domain(t, q[k])
             edits += _write(text, t.spans, qc, [least_joint] * len(qc))
@@ -456,6 +470,8 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
         q_t = _compensate_pose(text, t, cal, previous, edits, outside, note_domain, (least_len, least_ang))
         if q_t is not None:
             previous, n_pose = q_t, n_pose + 1
+        bar.update(1)
+    bar.close()
     new = text
     for s, e, tok in sorted(edits, reverse=True):
         new = new[:s] + tok + new[e:]
@@ -465,18 +481,29 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
 
 def nominal_solutions(robot, T, previous, config=None, n_starts: int = 24):
     """Nominal IK solutions of T (4, 4) within the joint limits, nearest ``previous`` (N,) first;
-    ``config``: a test of controller joints in degrees (the configuration a program wrote)."""
+    ``config``: a test of controller joints in degrees (the configuration a program wrote). The
+    solution reached from ``previous`` is taken when it passes (a program's next target lies in
+    its branch); otherwise ``n_starts`` more starts are solved."""
     from campaign.model.ik import nominal_ik
 
+    def passing(q, ok):
+        inside = np.all((q >= robot.q_lower - 1e-9) & (q <= robot.q_upper + 1e-9), axis=1)
+        q = q[ok & inside]
+        if config is not None and len(q):
+            deg = np.atleast_2d(robot.to_controller_q(q)) * np.where(robot.prismatic, 1e3, 180.0 / np.pi)
+            q = q[[bool(config(d)) for d in deg]]
+        return q
+
+    q = passing(*nominal_ik(robot, T[None], np.asarray(previous, dtype=float)[None], max_iter=100)[::2])
+    if len(q):
+        return q
     rng = np.random.default_rng(0)
-    starts = np.vstack([previous, robot.q_mid, rng.uniform(robot.q_lower, robot.q_upper,
-                                                           size=(n_starts, robot.n_joints))])
-    q, _, ok = nominal_ik(robot, np.repeat(T[None], len(starts), axis=0), starts, max_iter=100)
-    inside = np.all((q >= robot.q_lower - 1e-9) & (q <= robot.q_upper + 1e-9), axis=1)
-    q = q[ok & inside]
-    if config is not None:
-        deg = np.atleast_2d(robot.to_controller_q(q)) * np.where(robot.prismatic, 1e3, 180.0 / np.pi) if len(q) else q
-        q = q[[bool(config(d)) for d in deg]] if len(q) else q
+    starts = rng.uniform(robot.q_lower, robot.q_upper, size=(40 * n_starts, robot.n_joints))
+    if config is not None:  # starts in the configuration written (its signs, quadrants, turns)
+        deg = np.atleast_2d(robot.to_controller_q(starts)) * np.where(robot.prismatic, 1e3, 180.0 / np.pi)
+        starts = starts[[bool(config(d)) for d in deg]]
+    starts = np.vstack([robot.q_mid, starts[:n_starts]])
+    q = passing(*nominal_ik(robot, np.repeat(T[None], len(starts), axis=0), starts, max_iter=100)[::2])
     return q[np.argsort(np.linalg.norm(q - previous, axis=1))] if len(q) else q
 
 
@@ -494,7 +521,7 @@ def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least)
         return None
     q, _, ok = cal.compensate(T[None], sols[:1])
     if not ok[0]:
-        outside.append((t.line, f"{what}: the calibrated model does not reach it (left as written)"))
+        outside.append((t.line, f"{what}: {UNREACHED}"))
         return None
     note_domain(t, sols[0])
     values = T_to_pose(forward(robot, q)[0], t.convention, t.values)
@@ -503,7 +530,7 @@ def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least)
     return q[0]
 
 
-def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None) -> tuple:
+def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None, progress: bool = False) -> tuple:
     """Read ``program``, rewrite it (:func:`compensate_program`), write ``out`` (default: beside
     it, ``<stem>_compensated<suffix>``; never the program itself). Returns (out path, result)."""
     from campaign.fileio import atomic_write
@@ -518,7 +545,7 @@ def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None)
     out = Path(out) if out is not None else program.with_name(program.stem + "_compensated" + program.suffix)
     if out.resolve() == program.resolve():
         raise ConfigError(f"--out {out}: is the program itself; write the filtered program to another file")
-    res = compensate_program(run_dir, text, fmt, stage=stage)
+    res = compensate_program(run_dir, text, fmt, stage=stage, progress=progress)
     if not res.joints and not res.poses and not res.unclear:
         raise DataError(f"{program}: no {fmt} targets found (is --format right?)")
     atomic_write(out, res.text)
