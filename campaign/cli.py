@@ -42,7 +42,8 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="campaign",
-        description="Plan, run and evaluate a laser-tracker calibration campaign of a 6-axis robot.",
+        description="Plan, run and evaluate a laser-tracker calibration campaign of any serial robot arm "
+                    "(N joints, revolute or prismatic: a URDF, and a robot.yaml for what a URDF cannot say).",
     )
     parser.add_argument("--version", action="version", version=f"campaign {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

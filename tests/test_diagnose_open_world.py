@@ -152,7 +152,7 @@ def test_unknown_effect_is_unexplained_with_its_input_first_then_a_user_file_rea
     after = result.stages[stage]["test"]["position_mm"]["mean"]
     assert after <= 1.2 * floor, (after, floor)
     # the calibration report states the model against the floor from the repeats, not from the truth
-    m = re.search(rf"{re.escape(stage)}: held-out mean ([0-9.]+) mm = ([0-9.]+)× the measurement noise",
+    m = re.search(rf"{re.escape(stage)}: test set \(\d+ held-out poses\): mean ([0-9.]+) mm = ([0-9.]+)× the measurement noise",
                   result.floor_line())
     assert m and float(m.group(2)) == pytest.approx(float(m.group(1)) / result.metrics["noise_floor"]["mean_position_mm"],
                                                     abs=0.06), result.floor_line()
@@ -279,7 +279,11 @@ def test_a_droop_with_the_gravity_torques_is_said_to_grow_with_the_load_and_not_
     d = diagnose(run, folds=4, candidates="cyclic,drift")
     assert d.verdict == "unexplained" and d.structure_significant, d.text()
     assert "gravity load" in d.signature.growth and "time_s" not in d.signature.growth, d.text()
-    assert "grows with the gravity load" in d.text() and "not on time" in d.signature.text()
+    # the droop's residual is a function of the load (the regressor on it alone finds it), though its size,
+    # the geometry having absorbed the mean, need not rise with ‖τ‖: said as the statistics support
+    rho = d.signature.growth["gravity load"]["spearman_rho"]
+    claim = "grows with the gravity load" if rho >= 0.3 else "is a function of the gravity load"
+    assert claim in d.text() and "not on time" in d.signature.text()
 
 
 def test_a_growth_linear_in_time_is_said_to_grow_with_time_and_not_with_the_load(tmp_path, robot):

@@ -64,7 +64,7 @@ def test_diagnose_and_calibrate_of_a_noise_free_run_state_the_zero_floor(tmp_pat
 
     result = calibrate(run, ann=False)
     assert result.metrics["noise_floor"]["mean_position_mm"] == 0.0
-    assert "geometric: held-out mean 0.000 mm (the measurement noise is 0: no ratio to it)" in result.floor_line()
+    assert "geometric: test set (" in result.floor_line() and "held-out poses): mean 0.0000 mm (the measurement noise is 0: no ratio to it)" in result.floor_line()
 
 
 def test_a_model_that_misses_an_effect_is_not_at_a_zero_floor(tmp_path, robot):

@@ -174,7 +174,7 @@ def test_calibrate_model_map_with_fix_reports_the_choice_curve_and_what_was_held
     assert model["expected_heldout_mean_position_mm"] > 0 and model["measured_heldout_mean_position_mm"] > 0
     assert "model: map" in out and "held (--fix): pL_6E_x = 0" in out
     page = (run / "calibration" / "report.html").read_text()
-    assert "<h2>Model choice</h2>" in page and "CV held-out mean (mm)" in page
+    assert "<h2>Model choice</h2>" in page and "leave-one-out mean on the training poses (mm)" in page
 
 
 def test_plan_select_is_bayesian_d_optimal_the_design_starts_from_the_prior_precision(robot):

@@ -310,3 +310,78 @@ def test_export_says_the_joint_convention_the_gravity_and_what_it_leaves_out(com
 
     np.testing.assert_allclose(g, RobotModel.load().gravity_in_I, atol=1e-9)  # robot.yaml's, not -z
     pin.buildModelFromUrdf(str(tmp_path / "cal.urdf"))  # still a URDF
+
+
+# -- item 17: each held-out figure named by what it is ---------------------------------------------
+def test_calibrate_and_diagnose_name_the_test_set_the_folds_and_the_model_choices_leave_one_out(comau_run, capsys):
+    run, _ = comau_run
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--effects", "ground_compliance"]) == 0
+    out = capsys.readouterr().out
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    n_train = metrics["stages"]["geometric"]["train"]["n_poses"]
+    assert ("model: lsq for the geometry alone, chosen before the effects of geometric+ground_compliance "
+            f"(scored on the test set below) (least squares: leave-one-out mean") in out
+    assert f"on the {n_train} training poses" in out
+    assert "test-set mean position error at the tool point" in out
+    assert main(["diagnose", str(run), "--folds", "3", "--candidates", "drift", "--no-report"]) == 0
+    said = capsys.readouterr().out
+    assert "cross-validated mean" in said and "held-out folds of the training poses" in said
+    for text in (out, said):
+        assert "held-out mean" not in text and "cross-validated held-out" not in text  # no figure without its name
+
+
+# -- item 18: one number, one count, one claim, said once --------------------------------------------
+def test_the_history_table_and_chart_show_each_stage_from_the_last_calibration_that_fitted_it(tmp_path):
+    from campaign.identify.report import history_table
+    from campaign.identify.report_figures import svg_history
+
+    def stats(mm):
+        return {"position_mm": {"max": 2 * mm, "mean": mm, "q90": 1.5 * mm}, "n_poses": 30}
+
+    runs = [{"order": ["nominal", "geometric"], "stages": {"nominal": stats(7.0267), "geometric": stats(0.1015)}},
+            {"order": ["nominal", "geometric", "geometric+ground_compliance"],
+             "stages": {"nominal": stats(7.0267), "geometric": stats(0.1015),
+                        "geometric+ground_compliance": stats(0.01066)}},
+            {"order": ["nominal", "geometric", "geometric+ground_compliance"],  # more poses measured
+             "stages": {"nominal": stats(7.01), "geometric": stats(0.1003),
+                        "geometric+ground_compliance": stats(0.01064)}}]
+    (tmp_path / "calibration").mkdir()
+    (tmp_path / "calibration" / "history.json").write_text(json.dumps({"runs": runs}))
+    rows = history_table(tmp_path).splitlines()[1:]
+    assert [r.split()[0] for r in rows] == ["3", "3", "3"]
+    assert rows[-1].split()[1:3] == ["geometric+ground_compliance", "0.0106"]  # as the verdict rounds 0.01064
+    svg_history(tmp_path / "calibration" / "history.json", tmp_path, noise_floor=None)
+    chart = (tmp_path / "history.svg").read_text()
+    assert "test-set mean" in chart
+
+
+def test_the_fold_count_names_the_training_poses_and_their_distinct_poses_once():
+    from campaign.diagnose.engine import folds_text
+    from campaign.identify.split import FoldRule
+
+    text = folds_text(5, 129, FoldRule(5, 120))
+    assert text.startswith("5 held-out folds of 129 training poses (120 distinct: a pose and its repeats share a fold")
+
+
+@pytest.mark.parametrize("rho, p, claim", [(-0.06, 0.4, "is a function of the gravity load"),
+                                           (0.62, 1e-9, "grows with the gravity load")])
+def test_the_signature_says_grows_with_the_load_only_when_the_errors_size_rises_with_it(rho, p, claim):
+    from campaign.diagnose.signature import Signature
+
+    text = Signature(("q2",), growth={"gravity load": {"share_of_gain": 0.85, "spearman_rho": rho,
+                                                        "spearman_p": p}}).text()
+    assert claim in text and f"Spearman ρ {rho:+.2f}" in text
+    assert ("does not rise" in text) == (rho < 0.3)
+
+
+def test_no_network_is_said_once_and_help_names_any_serial_arm(comau_run, capsys):
+    run, _ = comau_run
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-report"]) == 0  # too few poses for the network: said why
+    out, err = capsys.readouterr()
+    assert (out + err).count("no neural compensator") == 1
+    from campaign.cli import build_parser
+
+    said = " ".join(build_parser().format_help().split())
+    assert "6-axis" not in said and "any serial robot arm" in said

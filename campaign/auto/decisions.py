@@ -44,7 +44,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
     if best is not None and diagnosis.verdict is not None:
         part = "" if diagnosis.verdict == best.effect else ", which explains part of what is left"
-        return Decision("add_effect", f"add {best.effect}{part} (held-out on the folds "
+        return Decision("add_effect", f"add {best.effect}{part} (cross-validated on the folds "
                                       f"{best.heldout_mean_position_mm_before:.4f} → "
                                       f"{best.heldout_mean_position_mm_after:.4f} mm; {best.description})",
                         effect=best.spec or best.effect)
@@ -136,7 +136,7 @@ def _floor_round(diagnosis, before, loop) -> Decision | None:
     chosen, _, _ = design_poses(loop.space, ids_train, ids, loop.design_effects(), n_max=n // FLOOR_TIMES)
     pose_ids = tuple(int(p) + r * REPEAT_ID_STRIDE for p in chosen for r in range(FLOOR_TIMES))
     return Decision("floor", f"the floor is known only to ±{100 * floor.relative_uncertainty:.0f} % "
-                             f"(held-out {ratio:.2f}× it on the folds): "
+                             f"(cross-validated {ratio:.2f}× it on the folds): "
                              f"measure {len(chosen)} informative poses {FLOOR_TIMES} times back to back, for the noise",
                     pose_ids=pose_ids)
 

@@ -136,7 +136,7 @@ class Round:
 
     def line(self) -> str:
         ratio = f" = {self.ratio:.2f}× the floor" if self.ratio is not None else " (no noise floor)"
-        return (f"round {self.number}: {self.poses} poses, {self.hours:.2f} h, {self.model}: held-out "
+        return (f"round {self.number}: {self.poses} poses, {self.hours:.2f} h, {self.model}: test set "
                 f"{self.heldout_mm:.4f} mm{ratio} → {self.decision.text}")
 
     def as_json(self) -> dict:

@@ -184,7 +184,8 @@ class Diagnosis:
         return c.spec or c.effect
 
     def floor_line(self) -> str:
-        held = f"held-out mean {self.heldout_mean_position_mm:.3f} mm"
+        held = (f"cross-validated mean {self.heldout_mean_position_mm:.4f} mm (the current model on its "
+                f"{self.folds} held-out folds of the training poses; calibrate's figure is the test set's)")
         if not self.floor.known:
             return (f"{held}; no noise floor (no repeated measurements, no `tracker: {{noise_m: ...}}` in "
                     "campaign.yaml): how far the model is from the measurement noise cannot be said")
@@ -209,8 +210,8 @@ class Diagnosis:
     def text(self) -> str:
         lines = [f"current model: geometric" + "".join(f" + {e}" for e in self.current_effects),
                  *([f"  {self.model_note}"] if self.model_note else []),
-                 f"candidates scored on {self.folds} held-out folds of {self.n_train} training poses "
-                 f"({'' if self.fold_rule is None else self.fold_rule.reason() + '; '}test set untouched):", "",
+                 f"candidates scored on {folds_text(self.folds, self.n_train, self.fold_rule)} (test set untouched):",
+                 "",
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
         for c in self.ranking:
             note = " (absorbed: " + ", ".join(c.absorbed) + ")" if c.absorbed else ""
@@ -260,16 +261,27 @@ def verdict_text(d: Diagnosis) -> str:
                      f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
             return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
-        return (f"verdict: unexplained — the model's held-out mean {d.heldout_mean_position_mm:.4g} mm is "
+        return (f"verdict: unexplained — the model's cross-validated mean {d.heldout_mean_position_mm:.4g} mm is "
                 f"{times_the_noise(d.heldout_mean_position_mm, d.floor.mean_position_mm).lstrip('= ')}, but neither a "
                 "candidate nor the regressor finds on which input the rest depends (a pose-to-pose error the inputs "
                 "do not carry, or a floor that is too low)")
     c = next(c for c in d.ranking if c.effect == d.verdict)
     return (f"verdict: add {c.effect} ({c.description}).\n"
-            f"  the held-out residual follows it: R² {c.r2:.2f}; held-out mean position error "
-            f"{c.heldout_mean_position_mm_before:.3f} → {c.heldout_mean_position_mm_after:.3f} mm (p = {c.p_value:.2g}).\n"
+            f"  the held-out residual follows it: R² {c.r2:.2f}; cross-validated mean position error (the folds) "
+            f"{c.heldout_mean_position_mm_before:.4f} → {c.heldout_mean_position_mm_after:.4f} mm (p = {c.p_value:.2g}).\n"
             f"  add to {d.run_dir}/campaign.yaml:   {config_line(d.current_effects, c.spec or c.effect)}\n"
             f"  or run:   campaign calibrate {d.run_dir} --effects {','.join([*d.current_effects, c.spec or c.effect])}")
+
+
+def folds_text(k: int, n_train: int, rule=None) -> str:
+    """``5 held-out folds of 129 training poses (120 distinct: a pose and its repeats share a fold;
+    5-fold: 60 training poses or more)``: one count of the training poses, on stdout and stderr alike."""
+    notes = []
+    if rule is not None and rule.n_poses != n_train:
+        notes.append(f"{rule.n_poses} distinct: a pose and its repeats share a fold")
+    if rule is not None:
+        notes.append(rule.reason())
+    return f"{k} held-out folds of {n_train} training poses" + (f" ({'; '.join(notes)})" if notes else "")
 
 
 def pose_folds(pose_id, k):
@@ -396,7 +408,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     fit_rule = replace(rule, n_poses=n_distinct, k=n_distinct if rule.leave_one_out else rule.k)
     check_pose_count(run_dir, robot, n_distinct, int(is_test.sum()), position_only, n_effect_params=n_current,
                      fold_rule=fit_rule, validation=validation_file(run_dir).is_file())
-    say(f"folds: {rule.text()}")
+    say(f"folds: {folds_text(folds, len(tr), rule)}")
     context = effect_context(poses.context, poses.time_s)
     fold = pose_folds(poses.pose_id[tr], folds)
     base = base_parameters(robot, position_only=position_only)

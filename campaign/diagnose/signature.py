@@ -57,7 +57,7 @@ MIN_RHO_ALONE = 0.5
 class Signature:
     depends_on: tuple
     periodic: dict = field(default_factory=dict)  # "q2" -> order
-    #: "time_s" -> {"change_mm", "steady"}; "gravity load" -> {"share_of_gain", "spearman_rho"}
+    #: "time_s" -> {"change_mm", "steady"}; "gravity load" -> {"share_of_gain", "spearman_rho", "spearman_p"}
     growth: dict = field(default_factory=dict)
     not_on: tuple = ()  # inputs tested and not depended on (time_s, context)
 
@@ -81,8 +81,12 @@ class Signature:
                 share = min(100 * value["share_of_gain"], 100)
                 load = (f"a regressor on the load alone finds {share:.0f} % of what one on all inputs finds; "
                         if share >= 100 * GRAVITY_SHARE_WITH_RHO else "")
-                parts.append(f"grows with the {name} ({load}the error's size against ‖τ‖: Spearman ρ "
-                             f"{value['spearman_rho']:+.2f})")
+                # "grows" only where the error's size rises with the load; a function of the load whose
+                # size does not (ρ near 0: the geometry absorbed its mean) is that, no more
+                rises = value["spearman_rho"] >= MIN_RHO and value.get("spearman_p", 0.0) < 0.01
+                parts.append(f"{'grows with' if rises else 'is a function of'} the {name} ({load}the error's size "
+                             f"against ‖τ‖: Spearman ρ {value['spearman_rho']:+.2f}"
+                             + ("" if rises else ", so its size does not rise with the load") + ")")
         if self.not_on:
             parts.append("not on " + ", ".join("time" if n == "time_s" else n for n in self.not_on))
         return "; ".join(parts) if parts else "no clear dependence"
@@ -180,6 +184,7 @@ def describe(robot, q, X, input_names, struct, depends_on, residual_frame1, time
             rho = float(rho) if np.isfinite(rho) else 0.0
             strong = rho >= MIN_RHO_ALONE and p < 0.01
             if strong or share >= GRAVITY_SHARE or (share >= GRAVITY_SHARE_WITH_RHO and rho >= MIN_RHO and p < 0.01):
-                growth["gravity load"] = {"share_of_gain": float(share), "spearman_rho": rho}
+                growth["gravity load"] = {"share_of_gain": float(share), "spearman_rho": rho,
+                                          "spearman_p": float(p) if np.isfinite(p) else 1.0}
     not_on = tuple(n for n in input_names if not n.startswith("q") and n not in depends_on)
     return Signature(tuple(depends_on), periodic, growth, not_on)

@@ -137,8 +137,8 @@ class CalibrationResult:
         return out
 
     def floor_line(self) -> str:
-        """``held-out mean 0.139 mm = 8.7× the measurement noise`` for every model stage
-        (test set), or why there is no floor."""
+        """``test set: mean 0.1390 mm = 8.7× the measurement noise`` for every model stage (the
+        held-out test poses), or why there is no floor."""
         floor = self.noise_floor
         if floor is None or floor.get("mean_position_mm") is None:
             return ("no noise floor: no repeated measurements and no `tracker: {noise_m: ...}` in campaign.yaml, "
@@ -148,7 +148,8 @@ class CalibrationResult:
                  f"{floor['detail']})"]
         for name in self.order[1:]:
             mean = self.stages[name]["test"]["position_mm"]["mean"]
-            lines.append(f"  {name}: held-out mean {mean:.3f} mm {times_the_noise(mean, floor['mean_position_mm'])}")
+            lines.append(f"  {name}: test set ({self.stages[name]['test']['n_poses']} held-out poses): mean {mean:.4f} mm "
+                         f"{times_the_noise(mean, floor['mean_position_mm'])}")
         if self.drift is not None:
             lines.append(Drift.from_json(self.drift).text())
         return "\n".join(lines)
@@ -538,7 +539,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
             ann_skipped = (f"no neural compensator: {n_ann} training poses are below the "
                            f"{ANN_MIN_TRAIN_POSES} where its cross-validation beats the physical model "
                            "(a short campaign calibrates the physical model; --ann trains one anyway)")
-            say(ann_skipped)
+            # said once, in the summary (summary_text), not also as progress
     if ann and not at_origin:
         raise DataError(f"{run_dir}: the neural compensator learns pose errors, and no pose was measured (raw "
                         "reflectors, fewer than three seen in the training or the test set): run with --no-ann")

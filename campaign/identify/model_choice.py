@@ -219,7 +219,7 @@ def fit_model(make, q, Y, context=None, *, model: str = "auto", fixed=None, prog
     what = {"lsq": lambda: "least squares", "map": lambda: f"MAP with the priors at strength {best['strength']:g}",
             "reduced": lambda: f"least squares without {len(dropped)} base parameters the data know worse than "
                                "the prior"}[best["model"]]()
-    reason = (f"{what}: cross-validated held-out mean {best['cv_mean_position_mm']:.4f} mm "
+    reason = (f"{what}: leave-one-out mean {best['cv_mean_position_mm']:.4f} mm on the {n_train} training poses "
               f"(least squares {lsq_cv:.4f} mm)" + (f"; the least restrictive model within {CHOICE_SE:g} standard errors "
                                                     "of the best, and another than least squares only when it is at "
                                                     f"least {100 * CHOICE_MARGIN:.0f} % better" if model == "auto" else ""))
@@ -287,19 +287,23 @@ def choice_json(choice: ModelChoice, model: CalibrationModel, q_test, *, ctx_te=
     out["expected_heldout_mean_position_mm"] = expected
     out["measured_heldout_mean_position_mm"] = measured
     out["expected_at"] = "each reflector" if model.points is not None else "the tool point"
+    out["stage"] = stage
     return out
 
 
 def choice_text(choice: dict) -> str:
     """The model choice in a few lines (the printed summary and the report)."""
-    lines = [f"model: {choice['choice']} ({choice['reason']})"]
+    stage = choice.get("stage")
+    scope = "" if stage in (None, "geometric") else \
+        f" for the geometry alone, chosen before the effects of {stage} (scored on the test set below)"
+    lines = [f"model: {choice['choice']}{scope} ({choice['reason']})"]
     if choice.get("cv_curve"):
-        lines.append("cross-validated held-out mean position error (mm) against the prior strength: "
+        lines.append("leave-one-out mean position error on the training poses (mm) against the prior strength: "
                      + ", ".join(f"{c['strength']:g}: {c['cv_mean_position_mm']:.4f}" for c in choice["cv_curve"]))
     if choice.get("fixed"):
         lines.append("held (--fix): " + ", ".join(f"{k} = {v:g}" for k, v in choice["fixed"].items()))
     e, m = choice.get("expected_heldout_mean_position_mm"), choice.get("measured_heldout_mean_position_mm")
     if e is not None and m is not None:
-        lines.append(f"held-out mean position error at {choice['expected_at']}: expected {e:.4f} mm (the fit's noise "
+        lines.append(f"test-set mean position error at {choice['expected_at']}: expected {e:.4f} mm (the fit's noise "
                      f"and its posterior), measured {m:.4f} mm ({m / e:.2f}x the expected)")
     return "\n".join(lines)

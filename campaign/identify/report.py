@@ -144,6 +144,19 @@ def history_rows(history_path: Path):
     return [(i + 1, r.get("effects", []), r.get("order", []), r.get("stages", {})) for i, r in enumerate(runs)]
 
 
+def history_stages(rows) -> list:
+    """[(run index, stage, test statistics)] of :func:`history_rows`: each model stage once, in the
+    order the stages were first added, with its figures from the last calibrate run that fitted it
+    (so the last row is the current model as the verdict states it, not an earlier run's)."""
+    first, latest = [], {}
+    for idx, _effects, order, stages in rows:
+        for stage in order:
+            if stage not in latest:
+                first.append(stage)
+            latest[stage] = (idx, stages[stage])
+    return [(latest[s][0], s, latest[s][1]) for s in first]
+
+
 def _wrap_stage(name: str, width: int = 22) -> str:
     """A stage name broken before its '+' parts so that a tick label stays narrow, never cut."""
     lines = [""]
@@ -218,20 +231,15 @@ def write_report(run_dir, stages: dict, order: list, residuals: dict, q, xyz, is
 
 
 def history_table(run_dir) -> str:
-    """The held-out (test-set) mean errors of every calibrate run, one row per model stage as added."""
+    """The test-set mean errors of the calibrate runs, one row per model stage as added, each from
+    the last run that fitted it (:func:`history_stages`)."""
     rows = history_rows(Path(run_dir) / "calibration" / "history.json")
     if not rows:
         return "no calibrate runs yet"
     lines = [f"{'calibrate run':<14}{'model stage':<44}{'mean ‖Δt‖ mm':>13}{'mean ‖Δφ‖ mrad':>15}"]
-    seen = set()
-    for idx, effects, order, stages in rows:
-        for stage in order:
-            if stage in seen:
-                continue
-            seen.add(stage)
-            st = stages[stage]
-            rot = f"{st['orientation_mrad']['mean']:>15.4f}" if "orientation_mrad" in st else f"{'-':>15}"
-            lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{rot}")
+    for idx, stage, st in history_stages(rows):
+        rot = f"{st['orientation_mrad']['mean']:>15.4f}" if "orientation_mrad" in st else f"{'-':>15}"
+        lines.append(f"{idx:<14}{stage:<44}{st['position_mm']['mean']:>13.4f}{rot}")
     return "\n".join(lines)
 
 
@@ -252,5 +260,5 @@ def model_choice_html(choice: dict | None) -> str:
         f"<td>{'chosen' if c['model'] == choice['choice'] and c['strength'] == choice['strength'] else ''}</td></tr>"
         for c in choice.get("candidates", []))
     table = ("<table><tr><th>candidate</th><th>prior strength</th><th>dropped</th>"
-             "<th>CV held-out mean (mm)</th><th>effective unknowns</th><th></th></tr>" + rows + "</table>") if rows else ""
+             "<th>leave-one-out mean on the training poses (mm)</th><th>effective unknowns</th><th></th></tr>" + rows + "</table>") if rows else ""
     return f"<h2>Model choice</h2><pre>{html.escape(choice_text(choice))}</pre>{table}"

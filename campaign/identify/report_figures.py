@@ -12,7 +12,7 @@ import numpy as np
 
 from campaign.identify.noise_floor import floor_label, tracker_noise_floor
 from campaign.identify.report import (SIDE_STAGES, WORKSPACE_CELLS, WORKSPACE_MIN_CELLS, _norms, _which_poses,
-                                      _wrap_stage, binned_quantiles, history_rows, largest_per_cell,
+                                      _wrap_stage, binned_quantiles, history_rows, history_stages, largest_per_cell,
                                       orientation_measured, signed_components, workspace_colour_scale)
 from campaign.identify.svgplot import (LABEL_PX, SUPTITLE_PX, TICK_PX, Svg, SvgPanels, colour, decade_ticks,
                                       nice_ticks, viridis)
@@ -159,7 +159,8 @@ def svg_workspace(xyz, dz, title: str, out: Path, name: str) -> str:
 
 
 def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_floor="auto"):
-    """Held-out mean position error of the current model after each calibrate run, and per stage
+    """Test-set mean position error of each model stage as it was added, from the last calibrate run
+    that fitted it (:func:`history_stages`: the current model as the verdict states it), and per stage
     (log axis), with the tracker noise floor as a dotted line (``noise_floor``: a NoiseFloor, None
     for none, or "auto": :func:`tracker_noise_floor` of the run that holds ``history_path``)."""
     rows = history_rows(history_path)
@@ -167,14 +168,9 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
         return None
     if isinstance(noise_floor, str) and noise_floor == "auto":
         noise_floor = tracker_noise_floor(Path(history_path).parent.parent)
-    labels, values, seen = [], [], set()
-    for _idx, _effects, order, stages in rows:
-        for stage in order:
-            if stage in seen:
-                continue
-            seen.add(stage)
-            labels.append(stage)
-            values.append(stages[stage]["position_mm"]["mean"])
+    points = history_stages(rows)
+    labels = [stage for _, stage, _ in points]
+    values = [st["position_mm"]["mean"] for _, _, st in points]
     shown = np.maximum(values, REPORT_LOG_FLOOR_MM)  # on the log axis: exact data on the floor
     lo, hi = float(shown.min()), float(shown.max())
     floor = noise_floor.mean_position_mm if noise_floor is not None and noise_floor.mean_position_mm > 0 else None
@@ -205,7 +201,7 @@ def svg_history(history_path: Path, out: Path, name: str = "history.svg", noise_
     for t, g in zip(dec, gy):
         svg.text(left - 8, g, f"{10.0 ** t:.3g}", anchor="end", baseline="middle", cls="ytick")
     svg.path(f"M{left} {top}h{pw}v{ph}h{-pw}z", stroke="#333", width=0.9)
-    svg.text(left - 62, top + ph / 2, "held-out mean ‖Δt‖ [mm] (log scale)", size=LABEL_PX, anchor="middle",
+    svg.text(left - 62, top + ph / 2, "test-set mean ‖Δt‖ [mm] (log scale)", size=LABEL_PX, anchor="middle",
              baseline="middle", rotate=-90)
     svg.text(left + pw / 2, 22, "watch the error fall: each model stage as it was added", size=SUPTITLE_PX,
              anchor="middle")
