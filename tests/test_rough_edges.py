@@ -328,3 +328,38 @@ def test_a_branching_urdf_without_a_tool_frame_is_refused_with_the_choices(tmp_p
                    r"--tool-frame .* \(the branches end at E, .*cam_tilt\)")
     robot = RobotModel.load(branching, tool_frame="E")  # named: the COMAU's chain, the camera beside it
     assert robot.joint_names == RobotModel.load().joint_names
+
+
+# -- 5. the exported URDF of one-reflector data names the measured point ---------------------------
+
+def test_export_urdf_of_a_one_marker_run_reproduces_predict_at_the_measured_point(tmp_path, capsys):
+    point = np.array([0.04, -0.03, 0.15])  # the marker in E, m: robot.yaml names none
+    q = comau_q(60, seed=8)
+    q_true = q + np.array([0, 1.5e-3, -1e-3, 0, 0, 0])  # the robot's own errors: zero offsets
+    T = nominal_poses(q_true)
+    xyz = T[:, :3, 3] + np.einsum("nij,j->ni", T[:, :3, :3], point)
+    rows = ["pose_id,q1,q2,q3,q4,q5,q6,x,y,z"] + [
+        f"{i + 1}," + ",".join(repr(float(v)) for v in (*q[i], *xyz[i])) for i in range(len(q))]
+    (tmp_path / "marker.csv").write_text("\n".join(rows) + "\n")
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "marker.csv"), "--run", str(run), "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["export", str(run), "--urdf", str(tmp_path / "calibrated.urdf")]) == 0
+    out = capsys.readouterr().out
+    assert "frame 'E_measured_point'" in out
+    q_check = comau_q(20, seed=9)
+    (tmp_path / "q.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6\n" + "".join(
+        f"{i},{','.join(repr(float(v)) for v in qi)}\n" for i, qi in enumerate(q_check)))
+    assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv"), "--stage", "geometric",
+                 "--out", str(tmp_path / "pred.csv")]) == 0
+    pred = np.loadtxt(tmp_path / "pred.csv", delimiter=",", skiprows=1)
+    model = pin.buildModelFromUrdf(str(tmp_path / "calibrated.urdf"))  # the URDF read by Pinocchio
+    data, fid = model.createData(), model.getFrameId("E_measured_point")
+    for qi, row in zip(q_check, pred):
+        pin.framesForwardKinematics(model, data, qi)
+        assert np.allclose(data.oMf[fid].translation, row[7:10], atol=1e-6)
+        assert np.allclose(data.oMf[fid].rotation, Rotation.from_rotvec(row[10:13]).as_matrix(), atol=1e-6)
+    # and the calibration is right: the true marker positions (q_true) within the noise-free fit
+    assert np.allclose(pred[:, 7:10], (nominal_poses(q_check + q_true[0] - q[0])[:, :3, :3] @ point)
+                       + nominal_poses(q_check + q_true[0] - q[0])[:, :3, 3], atol=2e-5)

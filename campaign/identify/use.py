@@ -200,7 +200,7 @@ def calibrated_geometry(run_dir) -> tuple:
     if not params_path.is_file():
         raise DataError(f"{params_path}: not found; run `campaign calibrate {run_dir}` first")
     params = read_yaml_mapping(params_path, DataError)
-    robot = measured_frame(load_robot_for_run(run_dir), params, params_path, point=False)
+    robot = measured_frame(load_robot_for_run(run_dir), params, params_path)
     block = params.get("geometric_only", params)
     return robot, _block(robot, {"p_e_names": block.get("p_e_names"), "p_e": block.get("p_e")}, params_path,
                          "geometric_only." if "geometric_only" in params else "").p_e
@@ -224,6 +224,12 @@ def export_notes(run_dir, robot: RobotModel) -> list:
 
         notes.append("joints: the URDF's (model) convention, not the controller's: q_model = coupling * q_controller + "
                      f"offset, robot.yaml's {controller_yaml(robot, np.eye(robot.n_joints), np.zeros(robot.n_joints))}")
+    if robot.tool_point is not None:
+        from campaign.model.export import measured_point_link
+
+        mm = ", ".join(f"{v * 1e3:.1f}" for v in robot.tool_point)
+        notes.append(f"the measured point: frame '{measured_point_link(robot)}' ({mm}) mm in '{robot.tool_frame}', "
+                     "where `campaign predict` gives the calibrated poses (one-reflector data)")
     g = ", ".join(f"{v:.4g}" for v in robot.gravity_in_I)
     notes.append(f"gravity in the root frame '{robot.base_frame}': ({g}) m/s^2 (a URDF cannot state it: give it to "
                  "Pinocchio or a simulator, whose default is (0, 0, -9.81))")

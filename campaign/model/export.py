@@ -15,6 +15,9 @@ last fixed joint before the tool frame (a tool mounting fitted by calibrate, ``R
 in front of it: the tool link becomes the measured frame), or, when the tool frame is the last moving joint's
 child link itself, into a new fixed joint ``<tool>_calibration`` above the tool link (its
 parent becomes a new empty link ``<tool>_uncalibrated``). The joint axes stay as written.
+One-reflector data measured at a point off the tool frame (``RobotModel.tool_point``, p): the
+tool link is the calibrated model's frame at the point moved back by p, and a new link
+``<tool>_measured_point`` hangs from it at p: there the URDF gives what `campaign predict` gives.
 Relative mesh file names are made absolute so the written file finds them from anywhere.
 """
 
@@ -57,6 +60,11 @@ def calibrated_transforms(robot: RobotModel, p_e) -> list:
     return out
 
 
+def measured_point_link(robot: RobotModel) -> str:
+    """The exported URDF's link at the measured point of one-reflector data (below the tool frame)."""
+    return f"{robot.tool_frame}_measured_point"
+
+
 def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
     """Write the URDF of ``robot`` with the calibrated chain ``p_e`` (6N + 12,) to ``out_path``;
     ``notes`` (sentences: the joint convention, the gravity, what is left out) head the file as
@@ -94,6 +102,9 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
     DE = np.linalg.solve(_T(robot.R_nominal[N + 1], robot.t_nominal[N + 1]), That[N + 1])
     if robot.tool_mounting is not None:  # the nominal tool transform is the URDF's times the mounting
         DE = robot.tool_mounting @ DE
+    point = None if robot.tool_point is None else _T(np.eye(3), robot.tool_point)
+    if point is not None:  # the nominal tool transform is the URDF's moved to the point: the tool link
+        DE = point @ DE @ np.linalg.inv(point)  # the point's frame moved back, the point a frame below it
     tool_names = robot.transform_joints[N + 1]
     if tool_names:
         last = joints[tool_names[-1]]
@@ -108,6 +119,13 @@ def write_calibrated_urdf(robot: RobotModel, p_e, out_path, notes=()) -> Path:
         jN.child = hook
         u.robot.joints.append(yourdfpy.Joint(name=f"{tool}_calibration", type="fixed", parent=hook, child=tool,
                                              origin=DE))
+    if point is not None:
+        name = measured_point_link(robot)
+        if name in {lk.name for lk in u.robot.links}:
+            raise ConfigError(f"{robot.urdf_path}: link '{name}' exists already; cannot add the measured point")
+        u.robot.links.append(yourdfpy.Link(name=name))
+        u.robot.joints.append(yourdfpy.Joint(name=f"{name}_joint", type="fixed", parent=robot.tool_frame,
+                                             child=name, origin=point))
     base_dir = Path(robot.urdf_path).parent
     for link in u.robot.links:
         for item in list(link.visuals or []) + list(link.collisions or []):

@@ -154,6 +154,9 @@ class RobotModel:
     #: the tool mounting folded into the tool transform (:meth:`with_tool_transform`): the
     #: measured frame in the URDF's tool frame, (4, 4), or None
     tool_mounting: np.ndarray = None
+    #: the measured point folded into the tool transform (:meth:`with_tool_point`): (3,) m in the
+    #: URDF's tool frame, or None (the URDF export names it as a frame of its own)
+    tool_point: np.ndarray = None
 
     # -- loading ------------------------------------------------------------------------
     @classmethod
@@ -291,7 +294,8 @@ class RobotModel:
             return self
         t = np.array(self.t_nominal)
         t[-1] = t[-1] + self.R_nominal[-1] @ p
-        return dataclasses.replace(self, t_nominal=_read_only(t), name=self.name)
+        before = np.zeros(3) if self.tool_point is None else self.tool_point
+        return dataclasses.replace(self, t_nominal=_read_only(t), name=self.name, tool_point=_read_only(before + p))
 
     def with_tool_transform(self, T_tool_measured) -> "RobotModel":
         """The same robot whose tool frame is the measured frame ``T_tool_measured`` (4, 4) in the
