@@ -737,7 +737,7 @@ def summary_text(result: CalibrationResult) -> str:
     if unc and unc.get("stage") in unc["stages"] and unc["stages"][unc["stage"]]["heldout_mean_position_mm"] is not None:
         u = unc["stages"][unc["stage"]]
         lines.append(f"uncertainty of the model over its domain: sigma_mm mean {u['sigma_mm_mean']:.4f}, 95th percentile "
-                     f"{u['sigma_mm_q95']:.4f} mm (held-out mean error {u['heldout_mean_position_mm']:.4f} mm); "
+                     f"{u['sigma_mm_q95']:.4f} mm (test-set mean error {u['heldout_mean_position_mm']:.4f} mm); "
                      f"{u['basis']}")
     if m.absorbed_:
         lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "

@@ -76,7 +76,7 @@ def domain_html(robot, record: dict, figure: str | None, heldout_mm: float | Non
     if ident.get("words"):
         parts.append("<p>Not or barely identified by these poses: " + html.escape("; ".join(ident["words"])) + "</p>")
     for stage, o in record.get("over_domain", {}).items():
-        held = "" if heldout_mm is None else f" (held-out mean error {heldout_mm:.4f} mm)"
+        held = "" if heldout_mm is None else f" (test-set mean error {heldout_mm:.4f} mm)"
         parts.append(f"<p>{html.escape(stage)}: sigma_mm over the measured poses mean {o['sigma_mm_mean']:.4f} mm, "
                      f"95th percentile {o['sigma_mm_q95']:.4f} mm{held if stage == list(record['over_domain'])[-1] else ''}; "
                      f"{html.escape(o['basis'])}.</p>")
