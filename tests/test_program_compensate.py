@@ -22,10 +22,13 @@ DATA = Path(__file__).parent / "data" / "program"
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory, robot):
-    """(run folder, truth, measured poses): 80 poses of a synthetic campaign, calibrated without ANN."""
+    """(run folder, truth, measured poses): 80 poses of a synthetic campaign, calibrated without ANN;
+    joint 1 measured within ±1 rad only (its limits are ±2.93 rad: the domain ends there)."""
     tmp = tmp_path_factory.mktemp("comp")
     truth = make_truth(robot, seed=3)
-    poses = synthesize(truth, random_joint_poses(robot, 80, seed=3), seed=4)
+    q = random_joint_poses(robot, 80, seed=3)
+    q[:, 0] *= 1.0 / np.abs(q[:, 0]).max()
+    poses = synthesize(truth, q, seed=4)
     write_measured_csv(tmp / "m.csv", poses)
     run = tmp / "run"
     assert main(["import", str(tmp / "m.csv"), "--run", str(run), "--quiet"]) == 0
@@ -160,18 +163,19 @@ def test_what_is_not_understood_is_listed_and_left(tmp_path, robot, calibrated, 
     assert new[1].startswith("  CONST jointtarget j1:=[[10.") and new[1].endswith("],[9E9,9E9,9E9,9E9,9E9,9E9]];")
 
 
-def test_a_target_outside_the_measured_joints_is_named(tmp_path, robot, calibrated, capsys):
+def test_a_target_outside_the_calibrated_domain_is_named(tmp_path, robot, calibrated, capsys):
+    """A measured pose is inside; joint 1 at 2.5 rad, where no pose was measured (±1 rad), is outside
+    (campaign.identify.domain, the calibration's domain.json)."""
     run, _, poses = calibrated
-    lo, hi = poses.q.min(axis=0), poses.q.max(axis=0)
-    q_out = (lo + hi) / 2
-    q_out[0] = min(hi[0] + 0.05, robot.q_upper[0] - 0.01)  # beyond what was measured, inside the limits
-    assert q_out[0] > hi[0]
-    q_in = (lo + hi) / 2
+    q_in = poses.q[0]
+    q_out = poses.q[1].copy()
+    q_out[0] = 2.5
     vals = [", ".join(f"{v:.9f}" for v in q) for q in (q_in, q_out)]
     (tmp_path / "a.script").write_text(f"def a():\n  movej([{vals[0]}])\n  movej([{vals[1]}])\nend\n")
     assert main(["compensate", str(run), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
     said = capsys.readouterr().out
-    assert "1 outside the calibrated domain" in said and "line 3: target: joint 1 at" in said
+    assert "1 outside the calibrated domain" in said
+    assert "line 3: target: outside the calibrated domain: q1 beyond the training range" in said
 
 
 @pytest.mark.parametrize("args, match", [
@@ -221,3 +225,16 @@ def test_the_configuration_written_chooses_the_branch(tmp_path, robot, calibrate
         T_new = pose_to_T(new[0].values, "mm_kuka_abc")[None]
         after, before = _cartesian_check(robot, truth, poses, T[None], T_new, q[None])
         assert after[0] < 0.02 < before[0]
+
+
+def test_a_calibration_without_domain_json_falls_back_on_the_measured_ranges(tmp_path, robot, calibrated, capsys):
+    run, _, poses = calibrated
+    old = tmp_path / "old"
+    shutil.copytree(run, old, symlinks=True)
+    (old / "calibration" / "domain.json").unlink()  # a calibration made before domain.json
+    q_out = poses.q[1].copy()
+    q_out[0] = 2.5
+    (tmp_path / "a.script").write_text("def a():\n  movej([" + ", ".join(f"{v:.9f}" for v in q_out) + "])\nend\n")
+    assert main(["compensate", str(old), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
+    said = capsys.readouterr().out
+    assert "line 2: target: q1 at 2.5000 is outside the measured range" in said and "no domain.json" in said

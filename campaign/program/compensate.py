@@ -15,9 +15,9 @@ controller turns back into q. Configuration flags are kept as written.
 
 Only the numbers of a target are replaced (each written with at least as many decimals as it
 had, and the format's precision); what looks like a target but cannot be read is listed with its
-line and left as it was. Targets whose nominal joints lie outside the joint ranges the run measured (its
-calibrated domain: a model is not known beyond its data) are named, as are targets the
-calibrated model could not reach (not converged: left as written).
+line and left as it was. Targets outside the calibrated domain (a model is not known beyond its
+data: the calibration's domain.json, campaign.identify.domain, at the corrected joints) are named,
+as are targets the calibrated model could not reach (not converged: left as written).
 
 Formats: ``urscript`` (``p[x, y, z, rx, ry, rz]`` in m and rotation vector; joint lists
 ``[q1, ..., qN]`` in rad), ``krl`` (.src or .dat: ``{A1 .., A6 ..}`` axis aggregates in deg and
@@ -403,6 +403,34 @@ def measured_ranges(run_dir, robot):
     return (q.min(axis=0), q.max(axis=0)) if len(q) else None
 
 
+def _outside_domain(cal, run_dir, checked) -> list:
+    """[(line, why)] of the targets outside the calibrated domain: the calibration's domain.json
+    (campaign.identify.domain: joint ranges with a margin, the nearest measured pose, pairs of
+    joints) at the corrected joints, as `compensate --csv` tests them; for a calibration made before
+    domain.json, the joint ranges the run measured at the nominal joints (what the program asks)."""
+    if not checked:
+        return []
+    targets = [t for t, _, _ in checked]
+    names = [f"q{j + 1}" for j in range(cal.robot.n_joints)]
+    stored = getattr(cal, "stored_domain", None)
+    if stored is not None:
+        why = stored.domain.why_outside(np.array([qc for _, qc, _ in checked]), names)
+        return [(t.line, f"{t.name or 'target'}: outside the calibrated domain: {w}")
+                for t, w in zip(targets, why) if w]
+    ranges = measured_ranges(run_dir, cal.robot)
+    if ranges is None:
+        return []
+    lo, hi = ranges
+    out = []
+    for t, _, q in checked:
+        bad = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
+        if len(bad):
+            j = bad[0]
+            out.append((t.line, f"{t.name or 'target'}: {names[j]} at {q[j]:.4f} is outside the measured range "
+                                f"{lo[j]:.4f}..{hi[j]:.4f} (rad or m; the calibration has no domain.json)"))
+    return out
+
+
 UNREACHED = ("the calibrated model does not reach it (beyond the real robot's reach or beside a singularity; "
              "left as written)")
 #: joint targets solved together (one progress step)
@@ -427,21 +455,14 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
     found = scan(text, fmt, robot.n_joints)
     least_joint, least_len, least_ang = DECIMALS[fmt]
     scale = unit_scale(robot.prismatic, SCANNERS[fmt][1])
-    ranges = measured_ranges(run_dir, robot)
     edits, outside = [], []
     joints = [t for t in found.targets if t.kind == "joint"]
     poses = [t for t in found.targets if t.kind == "pose"]
 
-    def note_domain(t, q):
-        """Name a target whose nominal joints q (N,) (what the program asks for; the compensation
-        moves them by the robot's errors) lie outside the joint ranges the run measured."""
-        if ranges is not None:
-            lo, hi = ranges
-            bad = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
-            if len(bad):
-                j = bad[0]
-                outside.append((t.line, f"{t.name or 'target'}: joint {j + 1} at {np.degrees(q[j]):.2f} deg is outside "
-                                        f"the measured range {np.degrees(lo[j]):.2f}..{np.degrees(hi[j]):.2f} deg"))
+    checked = []  # (target, its corrected joints (N,), its nominal joints (N,)): the domain test at the end
+
+    def note_domain(t, q_corrected, q_nominal):
+        checked.append((t, q_corrected, q_nominal))
 
     n_joint = n_pose = 0
     solved = {}
@@ -459,7 +480,7 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
             if not good:
                 outside.append((t.line, f"{t.name or 'joint target'}: {UNREACHED}"))
                 continue
-            note_domain(t, q[k])
+            note_domain(t, qn, q[k])
             edits += _write(text, t.spans, qc, [least_joint] * len(qc))
             n_joint += 1
     previous = robot.q_mid.copy()
@@ -472,6 +493,7 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
             previous, n_pose = q_t, n_pose + 1
         bar.update(1)
     bar.close()
+    outside += _outside_domain(cal, run_dir, checked)
     new = text
     for s, e, tok in sorted(edits, reverse=True):
         new = new[:s] + tok + new[e:]
@@ -523,7 +545,7 @@ def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least)
     if not ok[0]:
         outside.append((t.line, f"{what}: {UNREACHED}"))
         return None
-    note_domain(t, sols[0])
+    note_domain(t, q[0], sols[0])
     values = T_to_pose(forward(robot, q)[0], t.convention, t.values)
     dec = [least[0]] * 3 + [least[1]] * (len(values) - 3)
     edits += _write(text, t.spans, values, dec)
