@@ -153,14 +153,16 @@ def test_auto_adds_both_hidden_effects_and_ends_at_the_true_noise_floor(referenc
     from campaign.run import RunFolder
 
     state = _state(run)
-    assert state["finished"]["reason"] == "at_floor"
+    # at the floor, but the tight target wants more poses than the limit allows: the limit stops it
+    assert state["finished"]["reason"] == "max_poses" and "pose limit allows no more" in out
     assert set(RunFolder(run).config.effects) == set(TWO_EFFECTS)
     kinds = [r["decision"]["kind"] for r in state["rounds"]]
     assert kinds[:2] == ["add_effect", "add_effect"] and kinds[-1] == "stop" and "design" in kinds, kinds
     # one line per round, and the verdict last
     assert [ln.split(":")[0] for ln in out.splitlines() if ln.startswith("round ")] == \
         [f"round {k + 1}" for k in range(len(kinds))]
-    assert out.strip().splitlines()[-2].startswith("verdict: at the measurement noise")
+    assert out.strip().splitlines()[-2].startswith("verdict: stopped at the pose limit")
+    assert "(at the floor in the last diagnosis)" in out.strip().splitlines()[-2]
     # the design's poses were appended to the plan and measured, within the pose limit
     ids = _measured_ids(run)
     assert len(ids) == len(set(ids)) == state["rounds"][-1]["planned"] <= 116
@@ -257,7 +259,7 @@ def test_a_finished_auto_run_again_reports_and_measures_nothing(reference, capsy
     assert _measured_ids(run) == before and len(_state(run)["rounds"]) == rounds
     lines = again.strip().splitlines()
     assert [ln for ln in lines if ln.startswith("round ")] == [ln for ln in out.splitlines() if ln.startswith("round ")]
-    assert lines[-2].startswith("verdict: at the measurement noise")
+    assert lines[-2].startswith("verdict: stopped at the pose limit")
 
 
 def test_auto_without_a_cell_on_a_new_run_is_one_line(tmp_path, capsys):

@@ -235,3 +235,18 @@ def test_a_bad_option_is_one_line_naming_it(tmp_path):
         _cell(tmp_path, controller={"stifness_nm_rad": 1e5})
     with pytest.raises(ConfigError, match=r"stiffness_nm_rad: must be one number or 6 \(one per joint\), got 2"):
         _cell(tmp_path, controller={"stiffness_nm_rad": [1e5, 1e5]})
+
+
+def test_twin_json_keeps_every_session_of_a_run(tmp_path):
+    """Issue 31, part 5: a resumed run starts a new twin; cell/twin.json keeps the earlier session."""
+    ctrl, _ = _cell(tmp_path / "run")
+    ctrl.move(Q_A)
+    ctrl.move(Q_B)
+    first = json.loads((tmp_path / "run" / "cell" / "twin.json").read_text())
+    assert first["motions"] == 2 and len(first["sessions"]) == 1
+    ctrl2, _ = _cell(tmp_path / "run")  # the same run, served again
+    ctrl2.move(Q_A)
+    doc = json.loads((tmp_path / "run" / "cell" / "twin.json").read_text())
+    assert doc["motions"] == 1  # this session's, as before
+    assert [s["motions"] for s in doc["sessions"]] == [2, 1]
+    assert doc["totals"]["motions"] == 3 and doc["totals"]["steps"] == first["steps"] + doc["steps"]

@@ -35,6 +35,12 @@ def register(sub):
                    help="the plan's grid scale when auto plans (default: 1 = 1,428,000 candidates)")
     p.add_argument("--select", type=int, metavar="N", default=None,
                    help="when auto plans: the N most informative poses (default: the short campaign; 0: all)")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="measure the poses stored as failed again (as `campaign run --retry-failed`); a finished "
+                        "loop goes on for them")
+    p.add_argument("--allow-other-cell", action="store_true",
+                   help="measure on another cell than the run's measurements so far came from (refused otherwise; "
+                        "recorded in the run)")
     p.add_argument("--no-report", action="store_true", help="no HTML reports at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     from campaign.watch.commands import add_watch_argument
@@ -66,5 +72,6 @@ def _auto(args):
 
     with watching(args.run, args.watch):
         auto(args.run, cell, options, say=lambda line: print(line, flush=True),
-             progress=not args.quiet and sys.stderr.isatty(), report=not args.no_report)
+             progress=not args.quiet and sys.stderr.isatty(), report=not args.no_report,
+             retry_failed=args.retry_failed, allow_other_cell=args.allow_other_cell)
     return 0

@@ -234,12 +234,12 @@ def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
                                 f"{1e3 * predicted:.1f} µm)",
                         reason="unexplained")
     if n < DESIGN_MIN_POSES:
-        if at_floor:
+        if at_floor:  # the limit stops it, not the model: the reason names the limit
             return Decision("stop", f"stop: at the measurement noise; the model's predicted error "
                                     f"{1e3 * predicted:.1f} "
                                     f"µm is above the target {1e3 * target:.1f} µm, but the "
                                     f"{'budget' if limit == 'budget' else 'pose limit'} allows no more poses",
-                            reason="at_floor")
+                            reason="budget" if limit == "budget" else "max_poses")
         return _limit_stop(limit, rnd)
     chosen, _, after = design_poses(loop.space, ids_train, ids, effects, n_max=n, target_mm=target,
                                     n_min=DESIGN_MIN_POSES)

@@ -17,19 +17,26 @@ from campaign.run import RunFolder
 
 # -- the loop --------------------------------------------------------------------------------------
 def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = None, *, say=None,
-         progress: bool = False, report: bool = True) -> AutoResult:
+         progress: bool = False, report: bool = True, retry_failed: bool = False,
+         allow_other_cell: bool = False) -> AutoResult:
     """Run the loop on ``run_dir`` until there is nothing more to learn (module docstring).
 
     cell: where to measure (None: the one the run's earlier `auto` used); options: limits (None
     fields: those stored by an earlier `auto` of this run, else the defaults); say: a callable
     receiving the story, one line at a time (None: silent); progress: progress bars on stderr;
-    report: write the calibration report and RUN/auto/report.html at the end. Holds the run's
-    lock throughout."""
+    report: write the calibration report and RUN/auto/report.html at the end; retry_failed: the
+    poses stored as failed are measured again (`campaign run --retry-failed`), a finished loop
+    goes on for them; allow_other_cell: measure on another cell than the run's measurements so
+    far came from (refused otherwise, campaign.measure.cell_identity; recorded in the run).
+    The limits (``options``) cut the first campaign too: a plan auto makes holds what they allow
+    (its repeats for the noise floor included); the run's own plan is measured as far as they
+    allow. Holds the run's lock throughout."""
     say = say or (lambda line: None)
     run = RunFolder(run_dir)
     with run.lock("auto"):
         state = load_state(run)
         cell = _resolve_cell(run, state, cell)
+        _check_cell(run, cell, allow_other_cell, say)  # before the state records the cell
         opts = _resolve_options(state, options)
         state["cell"], state["options"] = cell.as_json(), asdict(opts)
         if cell.cell is not None and cell.cell != "sim":  # a bad spec in one line, before anything is planned
@@ -46,10 +53,11 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         for r in state["rounds"]:  # the story so far, when resumed
             say(Round.from_json(r).line())
         if state["finished"] is not None:
-            if not _reopen(run, state, limits):
+            if not _reopen(run, state, limits, retry_failed):
                 return result(run, state, say, report=False)
             say(f"continuing: {state['reopened']}")
-        loop = _Loop(run, state, cell, limits, say, progress)
+        loop = _Loop(run, state, cell, limits, say, progress, retry_failed=retry_failed,
+                     allow_other_cell=allow_other_cell)
         loop.go()
         return result(run, state, say, report=report)
 
@@ -61,6 +69,20 @@ def _resolve_cell(run, state, cell):
         return CellSource.from_json(state["cell"])
     raise ConfigError(f"{run.path}: no earlier `campaign auto` to resume: say where to measure (--sim, --cell SPEC, "
                       "or --controller HOST:PORT --tracker HOST:PORT)")
+
+
+def _check_cell(run, cell: CellSource, allow_other_cell: bool, say) -> None:
+    """Refused in one line (campaign.measure.cell_identity) when the run's measurements come from
+    another cell than ``cell`` and ``allow_other_cell`` is not given; said when it is."""
+    from campaign.measure.cell_identity import cell_identity, check_cell
+
+    sim = cell.sim or cell.cell == "sim"
+    identity = cell_identity(run.config, sim=sim, cell=None if sim else cell.cell, options=cell.options,
+                             controller=cell.controller, tracker=cell.tracker)
+    before = check_cell(run.path, identity, allow_other_cell)
+    if before is not None and before.get("fingerprint") != identity["fingerprint"] and identity.get("resolved", True):
+        say(f"measuring on another cell ({identity['spec']}) than so far ({before.get('spec')}), as "
+            "--allow-other-cell says: recorded in the run")
 
 
 def _resolve_options(state, options):
@@ -76,19 +98,94 @@ def _plan(run, state, opts, say, progress):
 
     if run.poses_csv.is_file() and (run.plan_dir / "summary.json").is_file() and run.has_config:
         summary = json.loads((run.plan_dir / "summary.json").read_text())
-        say(f"plan: the run's own plan, {summary['tour']['poses']} poses")
+        say(f"plan: the run's own plan, {summary['tour']['poses']} poses"
+            + ("" if _within_limits(run, summary, opts) else "; measured as far as the limits allow"))
     else:
         what = ("every suitable pose" if opts.select == 0 else
                 f"the {opts.select} most informative poses" if opts.select else "the default short campaign")
         scale = "" if opts.grid_scale == 1 else f" --grid-scale {opts.grid_scale:g}"
-        say(f"plan: {what} (as `campaign plan --run {run.path}{scale}`)")
         selection = SelectionOptions(n=opts.select, effects=run.effects).check() if opts.select else None
-        summary = plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
-                                all_poses=opts.select == 0)
+        cut = _selection_within_max_poses(opts, run.effects)
+        if cut is not None:
+            selection, what = cut, f"{what}, cut to --max-poses {opts.max_poses}: the {cut.n} most informative poses"
+        say(f"plan: {what} (as `campaign plan --run {run.path}{scale}`)")
+        summary = _plan_within(plan_campaign, run, opts, selection, progress, what="--max-poses")
+        if opts.budget_h is not None and _hours(summary) + _overhead_h(run, summary) > opts.budget_h:
+            left_h = opts.budget_h - _overhead_h(run, summary)
+            if left_h <= 0:
+                raise ConfigError(f"--budget {opts.budget_h:g} is too small for a first campaign: the set-up and the "
+                                  f"drift checks alone take {_overhead_h(run, summary):.2f} h")
+            say(f"plan: {_hours(summary) + _overhead_h(run, summary):.2f} h is more than --budget {opts.budget_h:g} h: "
+                f"the most informative poses that fit its {left_h:.2f} h besides the set-up and the drift checks, "
+                f"repeats and validation poses included (as `campaign plan --budget {left_h:.2f}`)")
+            budget = SelectionOptions(budget_h=left_h, effects=run.effects, min_validation=0).check()
+            summary = _plan_within(plan_campaign, run, opts, budget, progress, what="--budget")
+            if cut is not None and int(summary["tour"]["poses"]) > opts.max_poses:
+                summary = _plan_within(plan_campaign, run, opts, cut, progress, what="--max-poses")
     est = summary.get("estimated_campaign", {})
     state["plan"] = {"poses": int(summary["tour"]["poses"]), "estimated_h": float(est.get("total_s", 0.0)) / 3600}
     say(f"plan: {state['plan']['poses']} poses, estimated {state['plan']['estimated_h']:.2f} h")
     save_state(run, state)
+
+
+def _hours(summary) -> float:
+    return float((summary.get("estimated_campaign") or {}).get("total_s", 0.0)) / 3600
+
+
+def _overhead_h(run, summary) -> float:
+    """Campaign hours the plan's estimate leaves out: the base-frame set-up (each set-up point read
+    RunOptions.setup_repeats times) and the drift checks (each about a pose's time: a motion to the
+    reference and back, the settling, its reflectors; the tracker's time dominates)."""
+    from campaign.measure.driver import RunOptions
+    from campaign.measure.protocol import SETUP_TARGETS
+
+    cfg = run.config
+    setup_s = RunOptions.setup_repeats * len(SETUP_TARGETS) * cfg.plan.tracker_time_per_reflector_s
+    est = summary.get("estimated_campaign") or {}
+    checks = int((summary.get("drift_monitor") or {}).get("checks", 0))
+    return (setup_s + checks * float(est.get("seconds_per_pose", 0.0))) / 3600
+
+
+def _within_limits(run, summary, opts) -> bool:
+    """Whether a plan's tour fits ``--max-poses`` and ``--budget``."""
+    return ((opts.max_poses is None or int(summary["tour"]["poses"]) <= opts.max_poses)
+            and (opts.budget_h is None or _hours(summary) + _overhead_h(run, summary) <= opts.budget_h))
+
+
+def _selection_within_max_poses(opts, effects):
+    """The selection whose tour fits ``--max-poses`` (N chosen, a VALIDATION_FRACTION of N for
+    validation, the repeats for the floor), or None when the default short campaign fits."""
+    from campaign.plan.defaults import DEFAULT_SELECT
+    from campaign.plan.selection import MIN_VALIDATION, VALIDATION_FRACTION, SelectionOptions
+
+    if opts.max_poses is None:
+        return None
+    base = SelectionOptions(n=1, effects=effects)
+    repeats = base.repeat_poses * (base.repeat_times - 1)
+    chosen = opts.select or DEFAULT_SELECT
+    planned = chosen + max(MIN_VALIDATION, round(VALIDATION_FRACTION * chosen)) + repeats
+    if opts.max_poses >= planned and opts.select != 0:  # every suitable pose (--select 0): cut to the limit
+        return None
+    n = int((opts.max_poses - repeats) / (1.0 + VALIDATION_FRACTION))
+    while n > 0 and n + round(VALIDATION_FRACTION * n) + repeats > opts.max_poses:
+        n -= 1
+    if n < 1:
+        raise ConfigError(f"--max-poses {opts.max_poses} leaves no pose to choose after the {repeats} repeats the "
+                          "noise floor needs")
+    return replace(base, n=n, min_validation=0).check()
+
+
+def _plan_within(plan_campaign, run, opts, selection, progress, *, what: str):
+    """plan_campaign with ``selection``; a selection too small for the unknowns is one line
+    naming the limit (``what``) that made it so."""
+    try:
+        return plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
+                             all_poses=opts.select == 0 and selection is None)
+    except ConfigError as exc:
+        if selection is None or "--select" not in str(exc):
+            raise
+        limit = f"--max-poses {opts.max_poses}" if what == "--max-poses" else f"--budget {opts.budget_h:g}"
+        raise ConfigError(f"{limit} is too small for a first campaign: {exc}") from None
 
 
 def _limits(state, opts) -> Limits:
@@ -96,17 +193,22 @@ def _limits(state, opts) -> Limits:
     return Limits(max_poses, opts.budget_h, opts.target_mm)
 
 
-def _reopen(run, state, limits) -> bool:
+def _reopen(run, state, limits, retry_failed: bool = False) -> bool:
     """Whether a finished loop goes on: its effects were changed in campaign.yaml since (a user
-    effect added), or it stopped at a limit that is now larger."""
+    effect added), it stopped at a limit that is now larger, or failed poses are to be measured
+    again (``retry_failed``)."""
     last = Round.from_json(state["rounds"][-1])
     reason = state["finished"]["reason"]
     why = None
-    if tuple(run.effects) != tuple(last.effects):
+    failed = _failed_count(run) if retry_failed else 0
+    if failed:
+        why = f"--retry-failed: {failed} failed poses to measure again"
+    elif tuple(run.effects) != tuple(last.effects):
         why = f"the effects in {run.config_path} changed since ({', '.join(run.effects) or 'none'})"
-    elif reason == "max_poses" and limits.max_poses > last.planned:
+    elif reason == "max_poses" and limits.max_poses > state["finished"].get("max_poses", last.planned):
         why = f"--max-poses {limits.max_poses} allows more poses"
-    elif reason == "budget" and (limits.budget_h is None or limits.budget_h > last.hours):
+    elif reason == "budget" and (limits.budget_h is None
+                                 or limits.budget_h > (state["finished"].get("budget_h") or last.hours)):
         why = "the budget allows more hours"
     if why is None:
         return False
@@ -114,9 +216,18 @@ def _reopen(run, state, limits) -> bool:
     return True
 
 
+def _failed_count(run) -> int:
+    """Poses stored as failed (0 without a log)."""
+    if not run.measurements_path.is_file():
+        return 0
+    with run.store() as store:
+        return int(store.counts().get("failed", 0))
+
+
 class _Loop:
-    def __init__(self, run, state, cell, limits, say, progress):
+    def __init__(self, run, state, cell, limits, say, progress, *, retry_failed=False, allow_other_cell=False):
         self.run, self.state, self.cell, self.limits, self.say, self.progress = run, state, cell, limits, say, progress
+        self.retry_failed, self.allow_other_cell = retry_failed, allow_other_cell
         self._space = None
 
     @property
@@ -143,7 +254,9 @@ class _Loop:
             rnd = self.round(metrics, diagnosis)
             self.state["rounds"].append(rnd.as_json())
             if rnd.decision.kind == "stop":
-                self.state["finished"] = {"reason": rnd.decision.reason, "time_unix_s": time.time()}
+                # the limits in force: a later `auto` with larger ones goes on (_reopen)
+                self.state["finished"] = {"reason": rnd.decision.reason, "time_unix_s": time.time(),
+                                          "max_poses": self.limits.max_poses, "budget_h": self.limits.budget_h}
             else:
                 self.state["pending"] = rnd.decision.as_json()
             self.save()
@@ -169,9 +282,17 @@ class _Loop:
         from campaign.measure.session import measure_run
 
         c = self.cell
+        cap, limit = self.measure_cap()
+        if cap is not None and cap <= 0:
+            return  # the limits allow no more poses: the round decides with what is measured
         # the library call of `campaign run RUN --sim | --cell SPEC [--options FILE] | --controller --tracker`
         res = measure_run(self.run.path, sim=c.sim, cell=c.cell, options=c.options, controller=c.controller,
-                          tracker=c.tracker, progress=self.progress, log=lambda msg: self.say(f"  {msg}"))
+                          tracker=c.tracker, progress=self.progress, log=lambda msg: self.say(f"  {msg}"),
+                          max_poses=cap, retry_failed=self.retry_failed, allow_other_cell=self.allow_other_cell)
+        self.retry_failed = False  # once, at the start
+        if res.remaining and limit is not None:
+            self.say(f"  {res.remaining} planned poses left unmeasured: the "
+                     f"{'budget' if limit == 'budget' else 'pose limit'} allows no more")
         if res.measured or res.failed:
             self.say(f"  measured {res.measured} poses" + (f", {res.failed} failed" if res.failed else "")
                      + f"; campaign clock {res.simulated_duration_s / 3600:.2f} h")
@@ -242,6 +363,24 @@ class _Loop:
                      tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
                      diagnosis.verdict, diagnosis.at_floor, depends_on, sig, Decision("stop", ""), importance)
         return replace(base, decision=decide(diagnosis, base, before, self.limits, self))
+
+    def measure_cap(self) -> tuple:
+        """(poses the limits let this round measure, or None for all; the limit that cuts them,
+        or None): --max-poses against the poses stored (measured or failed; without the failed
+        when they are to be retried), --budget against the campaign clock at the plan's estimated
+        time per pose."""
+        stored = self.run.stored_pose_count() - (_failed_count(self.run) if self.retry_failed else 0)
+        cap, limit = self.limits.max_poses - stored, "max_poses"
+        plan = self.state.get("plan") or {}
+        if self.limits.budget_h is not None and plan.get("poses") and plan.get("estimated_h"):
+            per_pose_s = 3600.0 * float(plan["estimated_h"]) / int(plan["poses"])
+            by_budget = int((3600.0 * self.limits.budget_h - self.run.clock_s()) // per_pose_s)
+            if by_budget < cap:
+                cap, limit = by_budget, "budget"
+        ids, _ = self.planned()
+        if cap >= len(ids) - stored:
+            return None, None
+        return max(cap, 0), limit
 
     # -- what decide asks about the run --------------------------------------------------------
     def planned(self):

@@ -23,7 +23,8 @@ The controller and the tracker of this module are cell adapters (docs/cell.md) s
   time per target (``plan.tracker_time_per_reflector_s``).
 
 ``RUN/cell/twin.json`` (written atomically after every motion) counts the motions, steps and
-contacts: ``{"contacts", "max_penetration_m", "motions", "steps", ...}``.
+contacts of this session: ``{"contacts", "max_penetration_m", "motions", "steps", ...}``, and
+keeps every session of the run (``sessions``, earlier ones first, and their sums ``totals``).
 
 Options (``--options FILE.yaml``), SI units; the ``controller:`` section sets up the world:
 ``seed`` (default: ``sim.seed``), ``stiffness_nm_rad`` (one number or one per joint, N·m/rad or
@@ -202,6 +203,7 @@ class Twin:
                       "lost_beams": {},
                       "timestep_s": self.timestep_s, "simulated_s": 0.0}
         self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.earlier_sessions = self._earlier_sessions()
         self.tracker_truth = None
         self.write_truth()
         self.write_stats()
@@ -269,12 +271,37 @@ class Twin:
 
         atomic_write(self.run_dir / "cell" / "truth.yaml", yaml.safe_dump(self.truth_doc(), sort_keys=False))
 
+    def _earlier_sessions(self) -> list:
+        """The sessions an earlier twin of this run wrote to ``cell/twin.json`` (each its stats)."""
+        if self.run_dir is None:
+            return []
+        try:
+            doc = json.loads((self.run_dir / "cell" / "twin.json").read_text())
+        except (OSError, ValueError):
+            return []
+        if not isinstance(doc, dict):
+            return []
+        if isinstance(doc.get("sessions"), list):
+            return [d for d in doc["sessions"] if isinstance(d, dict)]
+        return [doc]  # written before the file kept its sessions
+
     def write_stats(self):
+        """``cell/twin.json``: this session's counts at the top level (as they always were), every
+        session's (earlier ones first) under ``sessions``, and their sums under ``totals``."""
         if self.run_dir is None:
             return
         from campaign.fileio import atomic_write
 
-        atomic_write(self.run_dir / "cell" / "twin.json", json.dumps(self.stats, indent=2) + "\n")
+        sessions = self.earlier_sessions + [self.stats]
+        totals = {k: sum(int(d.get(k, 0)) for d in sessions) for k in ("contacts", "motions", "steps", "collisions")}
+        lost = {}
+        for d in sessions:
+            for why, n in (d.get("lost_beams") or {}).items():
+                lost[why] = lost.get(why, 0) + int(n)
+        totals.update(lost_beams=lost, simulated_s=sum(float(d.get("simulated_s", 0.0)) for d in sessions),
+                      max_penetration_m=max(float(d.get("max_penetration_m", 0.0)) for d in sessions))
+        doc = {**self.stats, "sessions": sessions, "totals": totals}
+        atomic_write(self.run_dir / "cell" / "twin.json", json.dumps(doc, indent=2) + "\n")
 
     # -- the controller's side ------------------------------------------------------------------
     def move(self, q) -> None:
