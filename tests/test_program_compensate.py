@@ -238,3 +238,20 @@ def test_a_calibration_without_domain_json_falls_back_on_the_measured_ranges(tmp
     assert main(["compensate", str(old), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
     said = capsys.readouterr().out
     assert "line 2: target: q1 at 2.5000 is outside the measured range" in said and "no domain.json" in said
+
+
+@pytest.mark.parametrize("fmt, text, listed", [
+    ("rapid", "MODULE M\n  PROC main()\n    MoveL Offs(p1,0,0,10), v100, fine, tool0;\n"
+              "    MoveJ home, v100, z10, tool0;\n  ENDPROC\nENDMODULE\n",
+     [(3, "a target computed when the program runs"), (4, "the target home is not defined in this file")]),
+    ("fanuc-ls", "/PROG X\n/MN\n   1:J PR[1] 100% FINE    ;\n/POS\n/END\n",
+     [(3, "a position register, held by the controller")]),
+    ("urscript", "def a():\n  movej(home)\n  q = [0, 0, 0, 0, 0, 0]\n  movej(q, a=1)\nend\n",
+     [(2, "the target home is not defined in this file")]),
+    ("krl", "DEF a( )\n  PTP XP1\n  PTP $POS_ACT\nEND\n", [(2, "the target XP1 is not defined in this file (compensate its .dat)")]),
+    ("pdl2", "PROGRAM a\nBEGIN\n  MOVE JOINT TO pnt0001j\nEND a\n", [(3, "the target pnt0001j is not defined")]),
+])
+def test_motions_to_targets_held_elsewhere_are_listed(fmt, text, listed):
+    unclear = scan(text, fmt, 6).unclear
+    assert len(unclear) == len(listed)
+    assert [(u.line, u.why[:len(w)]) for u, (_, w) in zip(unclear, listed)] == listed

@@ -301,11 +301,52 @@ DECIMALS = {"urscript": (9, 7, 9), "krl": (4, 4, 5), "rapid": (4, 4, 8), "fanuc-
             "pdl2": (4, 4, 5), "ros2-trajectory": (9, 0, 0), "csv": (15, 0, 0)}
 
 
+#: per format: (a motion statement whose group 1 is the target written, a target's definition in
+#: the text by its name ``{name}``): a motion to a name the text does not define moves to a target
+#: held elsewhere (another file, a register, a computation) that this file cannot rewrite
+MOTIONS = {
+    "krl": (r"^\s*(?:PTP|LIN|CIRC|SPTP|SLIN|SCIRC)\s+([A-Za-z_$][\w$]*(?:\s*\([^)]*\))?)",
+            r"(?:DECL\s+(?:GLOBAL\s+)?\w+\s+{name}\s*=|^\s*{name}\s*=)"),
+    "rapid": (r"^\s*Move\w*\s+(?:\\\w+\s*,?\s*)*([A-Za-z_]\w*(?:\s*\([^)]*\))?)",
+              r"\b(?:robtarget|jointtarget)\s+{name}\s*:="),
+    "urscript": (r"^\s*(?:movej|movel|movep|servoj)\s*\(\s*([A-Za-z_]\w*(?:\s*\([^)]*\))?)",
+                 r"^\s*(?:global\s+)?{name}\s*=\s*p?\["),
+    "pdl2": (r"^\s*MOVE(?:FLY)?\s+(?:JOINT\s+|LINEAR\s+|CIRCULAR\s+)?TO\s+([A-Za-z_$][\w$]*(?:\s*\([^)]*\))?)",
+             r"(?:\bJNT\s*\(\s*{name}\s*,|^\s*{name}\s*:=\s*POS\s*\()"),
+    "fanuc-ls": (r"^\s*\d+:\s*[JLC]\s+(PR\[[^\]]*\])", r"(?!)"),
+}
+
+
+def _unresolved(text: str, fmt: str) -> list:
+    """Motions to targets this text does not hold (MOTIONS): listed, as they cannot be rewritten here."""
+    if fmt not in MOTIONS:
+        return []
+    motion, definition = MOTIONS[fmt]
+    out = []
+    for k, line in enumerate(text.splitlines(), start=1):
+        m = re.match(motion, line, re.I)
+        if not m:
+            continue
+        name = m.group(1)
+        if "(" in name or "[" in name:
+            why = ("a position register, held by the controller: compensate its value there" if fmt == "fanuc-ls"
+                   else "a target computed when the program runs (left as written; its base targets are rewritten)")
+        elif name.startswith("$") or re.search(definition.format(name=re.escape(name)), text, re.I | re.M):
+            continue
+        else:
+            where = "its .dat" if fmt == "krl" else "the file that defines it"
+            why = f"the target {name} is not defined in this file (compensate {where})"
+        out.append(Unclear(k, line.strip()[:60], why))
+    return out
+
+
 def scan(text: str, fmt: str, n_joints: int) -> Scan:
     """The targets of a program text and what looked like a target but could not be read."""
     if fmt not in SCANNERS:
         raise ConfigError(f"--format {fmt!r}: compensate reads {', '.join(FORMATS)}")
-    return SCANNERS[fmt][0](text, n_joints)
+    out = SCANNERS[fmt][0](text, n_joints)
+    out.unclear += _unresolved(text, fmt)
+    return out
 
 
 # -- pose conventions ---------------------------------------------------------------------
