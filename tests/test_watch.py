@@ -139,9 +139,11 @@ def _write_log(run, robot, ids, q, failed, offsets_m, times_s):
 
 
 def test_status_and_poses_agree_with_a_log_written_here_and_the_state_follows_the_lock(tmp_path, robot):
+    from campaign.measure.store import MeasurementStore
     from campaign.run import RunFolder
     from campaign.sim.truth import random_joint_poses
     from campaign.watch.server import WatchServer
+    from campaign.watch.view import RunView, strict_json
 
     run = tmp_path / "run"
     (run / "plan").mkdir(parents=True)
@@ -159,7 +161,7 @@ def test_status_and_poses_agree_with_a_log_written_here_and_the_state_follows_th
         offsets = rng.normal(size=(10, 3)) * 1e-3  # known position errors against the nominal model
         times = np.arange(10) * 36.0 + 100.0
         _write_log(run, robot, ids[:8], q[:8], {502, 506}, offsets, times)
-        time.sleep(0.6)  # the view reads the log at most every 0.5 s
+        time.sleep(0.3)  # the view reads the log at most every 0.25 s
         st = get_json(server.port, "/api/status")
         assert set(st) == {"measured", "failed", "planned", "eta_s", "state", "campaign_h", "last_pose", "drift"}
         assert (st["measured"], st["failed"], st["planned"]) == (6, 2, 10)
@@ -178,11 +180,21 @@ def test_status_and_poses_agree_with_a_log_written_here_and_the_state_follows_th
         assert [p["pose_id"] for p in get_json(server.port, "/api/poses?from=6")] == [506, 507]
 
         with RunFolder(run).lock("run"):  # a driver holds the run (here: this process)
+            time.sleep(0.3)  # the view looks again at most every 0.25 s
             assert get_json(server.port, "/api/status")["state"] == "running"
         _write_remaining(run, robot, ids, q, offsets, times)
-        time.sleep(0.6)
+        time.sleep(0.3)
         st = get_json(server.port, "/api/status")
         assert (st["measured"], st["failed"], st["state"], st["eta_s"]) == (8, 2, "finished", 0.0)
+        # what was read piece by piece is what a watcher opened now reads whole
+        assert server.view.reads["appended"] >= 1
+        assert get_json(server.port, "/api/poses") == json.loads(strict_json(RunView(run).poses()))
+        with MeasurementStore(run / "measurements.sqlite") as store:  # `campaign run --retry-failed` forgets them
+            store.forget_failed()
+        time.sleep(0.3)
+        st = get_json(server.port, "/api/status")
+        assert (st["measured"], st["failed"], st["state"]) == (8, 0, "interrupted")
+        assert [p["pose_id"] for p in get_json(server.port, "/api/poses")] == [500, 501, 503, 504, 505, 507, 508, 509]
 
         # only the reports' folders are served, never the simulator's truth nor anything outside
         (run / "sim").mkdir()
@@ -205,6 +217,42 @@ def _write_remaining(run, robot, ids, q, offsets, times):
         for k in (8, 9):
             store.add_pose(PoseRecord(int(ids[k]), "measured", tuple(q[k]), seq=k, time_s=times[k],
                                       xyz=tuple(T[k, :3, 3] + offsets[k]), rotvec=(0.0, 0.0, 0.0)))
+
+
+def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished(tmp_path):
+    from campaign.auto.state import Decision, Round, load_state, save_state
+    from campaign.cli import build_parser
+    from campaign.run import RunFolder
+    from campaign.watch.server import WatchServer
+
+    run = RunFolder(tmp_path / "run")
+    (run.path / "calibration").mkdir(parents=True)
+    (run.path / "calibration" / "report.html").write_text("<html>the report</html>")
+    state = load_state(run)
+    rnd = Round(1, 120, 120, 0.61, "geometric", (), 0.0213, 0.0100, "ground_compliance", False, (), None,
+                Decision("add_effect", "add ground_compliance", effect="ground_compliance"))
+    state["rounds"].append(rnd.as_json())
+    state["pending"] = rnd.decision.as_json()
+    save_state(run, state)
+    server = WatchServer(run.path, port=0).start()
+    try:
+        d = get_json(server.port, "/api/details")
+        assert d["auto"]["rounds"][0]["decision"] == "add ground_compliance"
+        assert math.isclose(d["auto"]["rounds"][0]["heldout_mm"], 0.0213) and d["auto"]["pending"]
+        assert get_json(server.port, "/api/status")["state"] == "interrupted"  # no auto holds the run, not done
+        [report] = d["reports"]
+        assert report["label"] == "calibration report"
+        assert get(server.port, "/" + report["href"])[2] == b"<html>the report</html>"
+        state["finished"] = {"reason": "at the noise floor", "time_unix_s": time.time()}
+        save_state(run, state)
+        time.sleep(0.3)
+        assert get_json(server.port, "/api/status")["state"] == "finished"
+    finally:
+        server.stop()
+    parser = build_parser()
+    assert parser.parse_args(["auto", "r", "--sim", "--watch"]).watch == 8765
+    assert parser.parse_args(["run", "r", "--sim", "--watch", "9000"]).watch == 9000
+    assert parser.parse_args(["run", "r", "--sim"]).watch is None
 
 
 # -- live, in a real browser ---------------------------------------------------------------------------
@@ -275,7 +323,7 @@ def test_a_watcher_on_a_killed_run_shows_it_interrupted(runs):
         assert get_json(port, "/api/status")["state"] == "running"
         os.killpg(driver.pid, signal.SIGKILL)  # no goodbye: the lock file still names the dead driver
         driver.wait()
-        time.sleep(0.6)
+        time.sleep(0.3)
         st = get_json(port, "/api/status")
         assert st["state"] == "interrupted" and st["measured"] == log_counts(run)[0] < 200
         assert json.loads((run / ".lock").read_text())["command"] == "run"

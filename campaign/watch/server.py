@@ -61,9 +61,13 @@ class WatchServer:
     def __init__(self, run_dir, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, key: bytes | None = None):
         require_token(host, key)
         self.view = RunView(run_dir)
+        self.view.prepare()
         self.key = key
         self.cookie_value = hmac.new(key, b"campaign-watch-cookie-v1", hashlib.sha256).hexdigest() if key else None
         self.last_request = -float("inf")
+        #: what serving has cost: requests answered and the CPU seconds their threads used
+        self.cost = {"requests": 0, "cpu_s": 0.0}
+        self._cost_guard = threading.Lock()
         handler = type("Handler", (_Handler,), {"watch": self})
         server_class = type("Server", (ThreadingHTTPServer,), {
             "address_family": socket.AF_INET6 if ":" in host else socket.AF_INET, "daemon_threads": True,
@@ -120,6 +124,16 @@ class _Handler(BaseHTTPRequestHandler):
     def do_GET(self):  # noqa: N802 (the base class's name)
         w = self.watch
         w.last_request = time.monotonic()
+        cpu0 = time.thread_time()
+        try:
+            self._get()
+        finally:
+            with w._cost_guard:
+                w.cost["requests"] += 1
+                w.cost["cpu_s"] += time.thread_time() - cpu0
+
+    def _get(self):
+        w = self.watch
         url = urlsplit(self.path)
         query = parse_qs(url.query)
         if w.key is not None and not self._authorised(url, query):
@@ -136,7 +150,9 @@ class _Handler(BaseHTTPRequestHandler):
                     return self._send(400, b"from: expected a non-negative integer\n", "text/plain; charset=utf-8")
                 return self._json(w.view.poses(int(start)))
             if path == "/api/details":
-                return self._json(w.view.details())
+                with w._cost_guard:
+                    cost = dict(w.cost)
+                return self._json({**w.view.details(), "watcher": cost})
             if path.startswith("/run/"):
                 file = w.view.served_file(path[len("/run/"):])
                 if file is not None:

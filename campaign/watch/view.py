@@ -95,16 +95,34 @@ class RunView:
         self._read_at = -math.inf
         self._stamp = None
         self._rows: list = []
+        self._ids: set = set()
+        self._max_seq = None
         self._events: list = []
+        self._event_seq = 0
         self._meta: dict = {}
         self._planned = (None, 0, ())
         self._calibration = (None, None)
         self._calibrated = None
+        self._residual_from = 0
         self._residuals: dict = {}
         self._nominal: dict = {}
         self._robot = None
         self._notes: list = []
-        self.reads = 0
+        self._summary = None
+        self._tally = _Tally()
+        self._todo = (None, [], 0)
+        self._state = "planned"
+        self._holder = None
+        #: reads of the log: whole ("full") and of what was appended since the last ("appended")
+        self.reads = {"full": 0, "appended": 0}
+
+    def prepare(self) -> None:
+        """Load what the first poses will need (the robot, the kinematics) now, before a run is
+        watched, rather than during it."""
+        if self.run.has_config:
+            with self._guard:
+                self._robot_model()
+                import campaign.model.kinematics  # noqa: F401
 
     # -- reading ----------------------------------------------------------------------------------
     def _files_stamp(self):
@@ -118,29 +136,36 @@ class RunView:
         return tuple(out)
 
     def refresh(self, *, force: bool = False) -> None:
-        """Read the log again when it changed (and MIN_REFRESH_S has passed since the last read)."""
+        """Read the log again when it changed (and MIN_REFRESH_S has passed since the last read),
+        and who writes the run."""
         with self._guard:
             now = time.monotonic()
             if not force and now - self._read_at < MIN_REFRESH_S:
                 return
             self._read_at = now
-            self._read_plan()
+            changed = self._read_plan()
             stamp = self._files_stamp()
             if stamp != self._stamp:
-                self._read_log()
-                self._stamp = stamp
-            self._read_calibration()
+                changed = True
+                if self._read_log():
+                    self._stamp = stamp
+            changed |= self._read_calibration()
+            if changed or self._summary is None:
+                self._summary = self._summarise()
+            self._holder = lock_holder(self.run)
+            self._state = self._run_state()
 
-    def _read_plan(self):
+    def _read_plan(self) -> bool:
         path = self.run.poses_csv
         try:
             st = path.stat()
         except OSError:
+            changed = self._planned[0] is not None
             self._planned = (None, 0, ())
-            return
+            return changed
         key = (st.st_ino, st.st_mtime_ns, st.st_size)
         if self._planned[0] == key:
-            return
+            return False
         ids = []
         try:
             for line in path.read_text().splitlines()[1:]:
@@ -148,37 +173,62 @@ class RunView:
                 if head:
                     ids.append(int(float(head)))
         except (OSError, ValueError):
-            return  # a plan being rewritten: the previous one stays until it reads whole
+            return False  # a plan being rewritten: the previous one stays until it reads whole
         self._planned = (key, len(ids), tuple(ids))
+        return True
 
-    def _read_log(self):
+    def _read_log(self) -> bool:
+        """Read what the log gained since the last read (all of it when rows were removed or
+        came out of visiting order); False when it could not be read now."""
         path = self.run.measurements_path
         if not path.is_file():
-            self._rows, self._events, self._meta = [], [], {}
-            return
+            self._rows, self._ids, self._max_seq, self._events, self._event_seq, self._meta = [], set(), None, [], 0, {}
+            self._tally = _Tally()
+            return True
         try:
-            db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=1.0,
-                                 check_same_thread=False)
+            db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=1.0)
         except sqlite3.Error:
-            return
+            return False
         try:
             tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
             if "poses" not in tables:
-                return
-            rows = db.execute(f"SELECT {', '.join(_POSE_COLUMNS)} FROM poses ORDER BY seq, pose_id").fetchall()
-            events = db.execute("SELECT kind, pose_id, time_s, wall_time_unix_s, detail FROM events ORDER BY seq"
-                                ).fetchall() if "events" in tables else []
-            meta = dict(db.execute("SELECT key, value FROM meta").fetchall()) if "meta" in tables else {}
+                return False
+            with db:  # one read transaction: the count and the rows of one state of the log
+                db.execute("BEGIN")
+                count = db.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
+                cols = ", ".join(_POSE_COLUMNS)
+                new = db.execute(f"SELECT {cols} FROM poses WHERE seq > ? ORDER BY seq, pose_id",
+                                 (-1 if self._max_seq is None else self._max_seq,)).fetchall()
+                appended = count == len(self._rows) + len(new) and not any(r[0] in self._ids for r in new)
+                if not appended:
+                    new = db.execute(f"SELECT {cols} FROM poses ORDER BY seq, pose_id").fetchall()
+                events = db.execute("SELECT seq, kind, pose_id, time_s, wall_time_unix_s, detail FROM events "
+                                    "WHERE seq > ? ORDER BY seq", (self._event_seq if appended else 0,)
+                                    ).fetchall() if "events" in tables else []
+                meta = dict(db.execute("SELECT key, value FROM meta").fetchall()) if "meta" in tables else {}
         except sqlite3.Error:
-            return  # busy or being created: the previous read stays until the next refresh
+            return False  # busy or being created: what was read stays until the next refresh
         finally:
             db.close()
-        self.reads += 1
-        self._rows = [dict(zip(_POSE_COLUMNS, r)) for r in rows]
-        self._events = [(k, p, t, w, _loads(d, {})) for k, p, t, w, d in events]
+        rows = [dict(zip(_POSE_COLUMNS, r)) for r in new]
+        new_events = [(k, p, t, w, _loads(d, {})) for _, k, p, t, w, d in events]
+        if appended:
+            self.reads["appended"] += 1
+            self._rows += rows
+            self._events += new_events
+            self._ids.update(r["pose_id"] for r in rows)
+        else:
+            self.reads["full"] += 1
+            self._rows, self._events, self._ids = rows, new_events, {r["pose_id"] for r in rows}
+            self._tally = _Tally()
+        seqs = [r["seq"] for r in rows if r["seq"] is not None] + ([self._max_seq] if appended else [])
+        self._max_seq = max((q for q in seqs if q is not None), default=None)
+        self._event_seq = max((e[0] for e in events), default=self._event_seq if appended else 0)
         self._meta = {k: _loads(v, None) for k, v in meta.items() if k in ("frame", "kind", "campaign_clock_s",
-                                                                            "T_LI", "robot")}
-        self._update_residuals()
+                                                                            "robot")}
+        self._tally.add(rows, new_events)
+        self._update_residuals(rows)
+        return True
 
     # -- residuals ----------------------------------------------------------------------------------
     def _robot_model(self):
@@ -208,14 +258,12 @@ class RunView:
         return np.array([json.loads(r["q_json"]) if r["q_json"] else [r[f"q{j}"] for j in range(1, 7)]
                          for r in rows], dtype=float).reshape(len(rows), -1)[:, :n_joints]
 
-    def _update_residuals(self):
-        """Nominal positions (m, of every stored pose: where failures happen too) and the
-        nominal model's error (mm) of the measured ones; new poses only."""
-        import numpy as np
-
+    def _update_residuals(self, rows):
+        """Nominal positions (m) of the poses just read that have none yet (of every stored pose:
+        where failures happen too); /api/poses gives the nominal model's error from them."""
         from campaign.model.kinematics import forward
 
-        new = [r for r in self._rows if r["pose_id"] not in self._nominal]
+        new = [r for r in rows if r["pose_id"] not in self._nominal]
         if not new:
             return
         robot = self._robot_model()
@@ -231,9 +279,9 @@ class RunView:
         for r, pos in zip(new, p):
             self._nominal[r["pose_id"]] = pos
 
-    def _read_calibration(self):
+    def _read_calibration(self) -> bool:
         """The current calibration's residuals of the measured poses (mm): all again when the
-        calibration changes, the new poses only otherwise."""
+        calibration changes, the new poses only otherwise. True when something changed."""
         from campaign.versioned import calibration_folder
 
         try:
@@ -244,27 +292,31 @@ class RunView:
         try:
             key = (str(metrics.resolve()), metrics.stat().st_mtime_ns)
         except OSError:
+            changed = self._calibration[0] is not None
             self._calibration, self._residuals, self._calibrated = (None, None), {}, None
-            return
+            return changed
         if self._calibration[0] != key:
             self._calibration, self._residuals, self._calibrated = (key, None), {}, None
             robot = self._robot_model()
-            if robot is None or self._meta.get("frame", "robot") != "robot":
-                return
+            if robot is None or self._meta.get("frame", "robot") != "robot" or not self._rows:
+                self._calibration = (None, None)  # tried again once there are poses
+                return True
             try:
                 from campaign.identify.use import CalibratedRobot
 
                 self._calibrated = CalibratedRobot(self.run.path)
             except (CampaignError, ValueError, KeyError, OSError) as exc:
                 self._notes.append(f"no calibrated residuals: {' '.join(str(exc).split())}")
-                return
+                return True
             self._calibration = (key, self._calibrated.stage)
+            self._residual_from = 0
         if self._calibrated is None:
-            return
-        todo = [r for r in self._rows if r["status"] == "measured" and r["x"] is not None
+            return False
+        todo = [r for r in self._rows[self._residual_from:] if r["status"] == "measured" and r["x"] is not None
                 and r["pose_id"] not in self._residuals]
+        self._residual_from = len(self._rows)
         if not todo:
-            return
+            return False
         import numpy as np
 
         from campaign.effects.base import effect_context
@@ -279,24 +331,50 @@ class RunView:
         except (CampaignError, ValueError, KeyError) as exc:
             self._notes.append(f"no calibrated residuals: {' '.join(str(exc).split())}")
             self._calibrated = None
-            return
+            return True
         xyz = np.array([[r["x"], r["y"], r["z"]] for r in todo], dtype=float)
         for r, e in zip(todo, np.linalg.norm(p - xyz, axis=1) * 1e3):
             self._residuals[r["pose_id"]] = finite(e)
+        return True
 
     # -- the answers ---------------------------------------------------------------------------------
-    def state(self, measured_or_failed: int, planned: int) -> str:
-        holder = lock_holder(self.run)
-        if holder is not None and holder.get("command") in MEASURING_COMMANDS:
+    def _summarise(self) -> dict:
+        """What status and details show, from the tallies kept as the log is read (no pass over
+        every pose per request, nor per read)."""
+        t, rows = self._tally, self._rows
+        key, planned_ids = self._planned[0], self._planned[2]
+        if self._todo[0] != key or len(self._ids) < self._todo[2]:  # a new plan, or poses forgotten
+            self._todo = (key, [p for p in planned_ids if p not in self._ids], len(self._ids))
+        else:  # the poses stored since leave the list; the plan's order is kept
+            todo = self._todo[1]
+            if len(self._ids) != self._todo[2]:
+                todo = [p for p in todo if p not in self._ids]
+            self._todo = (key, todo, len(self._ids))
+        todo = self._todo[1]
+        clock = max(t.clock_s, finite(self._meta.get("campaign_clock_s")) or 0.0)
+        per_pose = (t.session_max - t.session_min) / (t.session_n - 1) if t.session_n > 1 else None
+        walls = [r["wall_time_unix_s"] for r in rows[-50:] if r["wall_time_unix_s"] is not None]
+        wall_rate = (len(walls) - 1) / (walls[-1] - walls[0]) * 3600 if len(walls) > 2 and walls[-1] > walls[0] \
+            else None
+        threshold = t.drift_threshold if t.drift_threshold is not None else self.drift_threshold_mm()
+        drift = {"checks": t.drift_checks, "last_mm": t.drift_last, "max_mm": t.drift_max,
+                 "threshold_mm": threshold, "over_threshold": t.drift_over}
+        return {"measured": t.measured, "failed": len(rows) - t.measured, "planned": len(planned_ids) or len(rows),
+                "todo": len(todo), "next_pose": todo[0] if todo else None, "per_pose_s": per_pose,
+                "wall_rate": wall_rate, "clock_s": clock, "last_pose": rows[-1]["pose_id"] if rows else None,
+                "drift": drift, "sessions": t.sessions}
+
+    def _run_state(self) -> str:
+        """planned | running | finished | interrupted (DESIGN.md, `campaign watch`)."""
+        s = self._summary
+        if self._holder is not None and self._holder.get("command") in MEASURING_COMMANDS:
             return "running"
         auto = self._auto_state()
         if auto is not None:
             return "finished" if auto.get("finished") else "interrupted"
-        if measured_or_failed == 0 and not any(e[0] == "session_start" for e in self._events):
+        if s["measured"] + s["failed"] == 0 and not s["sessions"]:
             return "planned"
-        planned_ids = set(self._planned[2])
-        stored = {r["pose_id"] for r in self._rows}
-        return "finished" if planned_ids <= stored else "interrupted"
+        return "finished" if s["todo"] == 0 else "interrupted"
 
     def _auto_state(self) -> dict | None:
         try:
@@ -304,32 +382,6 @@ class RunView:
         except (OSError, ValueError):
             return None
         return doc if isinstance(doc, dict) else None
-
-    def _clock_s(self) -> float:
-        times = [r["time_s"] for r in self._rows] + [e[2] for e in self._events] + [self._meta.get("campaign_clock_s")]
-        times = [t for t in times if isinstance(t, (int, float)) and math.isfinite(t)]
-        return max(times, default=0.0)
-
-    def _per_pose_s(self) -> float | None:
-        """Campaign seconds per stored pose over the current (or last) session."""
-        starts = [e[3] for e in self._events if e[0] == "session_start"]
-        since = starts[-1] if starts else -math.inf
-        rows = [r for r in self._rows if r["time_s"] is not None and (r["wall_time_unix_s"] or math.inf) >= since]
-        if len(rows) < 2:
-            return None
-        t = sorted(r["time_s"] for r in rows)
-        return (t[-1] - t[0]) / (len(t) - 1)
-
-    def drift(self) -> dict:
-        checks = [(t, d.get("drift_mm"), bool(d.get("over_threshold"))) for k, _, t, _, d in self._events
-                  if k == "drift_check"]
-        values = [finite(v) for _, v, _ in checks if finite(v) is not None]
-        stored = [d.get("threshold_mm") for k, _, _, _, d in self._events if k == "drift_check"]
-        stored = [finite(v) for v in stored if v is not None]
-        return {"checks": len(checks), "last_mm": finite(checks[-1][1]) if checks else None,
-                "max_mm": max(values) if values else None,
-                "threshold_mm": stored[-1] if stored else self.drift_threshold_mm(),
-                "over_threshold": sum(o for _, _, o in checks)}
 
     def drift_threshold_mm(self):
         """The configured threshold (mm), None when ``auto`` (from the noise floor, stored with
@@ -344,16 +396,11 @@ class RunView:
         """The eight fields of ``/api/status`` (DESIGN.md, `campaign watch`)."""
         self.refresh()
         with self._guard:
-            measured = sum(r["status"] == "measured" for r in self._rows)
-            failed = len(self._rows) - measured
-            planned = self._planned[1] or len(self._rows)
-            state = self.state(measured + failed, planned)
-            remaining = max(len(set(self._planned[2]) - {r["pose_id"] for r in self._rows}), 0)
-            per_pose = self._per_pose_s()
-            eta = 0.0 if remaining == 0 else (remaining * per_pose if per_pose is not None else None)
-            return {"measured": measured, "failed": failed, "planned": planned, "eta_s": finite(eta), "state": state,
-                    "campaign_h": finite(self._clock_s() / 3600.0),
-                    "last_pose": self._rows[-1]["pose_id"] if self._rows else None, "drift": self.drift()}
+            s = self._summary
+            eta = 0.0 if s["todo"] == 0 else (s["todo"] * s["per_pose_s"] if s["per_pose_s"] is not None else None)
+            return {"measured": s["measured"], "failed": s["failed"], "planned": s["planned"], "eta_s": finite(eta),
+                    "state": self._state, "campaign_h": finite(s["clock_s"] / 3600.0), "last_pose": s["last_pose"],
+                    "drift": dict(s["drift"])}
 
     def poses(self, start: int = 0) -> list:
         """Every stored pose from position ``start`` (in visiting order), as JSON-ready dicts:
@@ -361,14 +408,13 @@ class RunView:
         (m) and the nominal and calibrated models' position errors (mm)."""
         self.refresh()
         with self._guard:
+            in_robot_frame = self._meta.get("frame", "robot") == "robot"
             out = []
             for r in self._rows[max(int(start), 0):]:
                 nom = self._nominal.get(r["pose_id"])
                 xyz = [finite(r[c]) for c in ("x", "y", "z")]
                 has_xyz = r["status"] == "measured" and None not in xyz
-                err = None
-                if nom is not None and has_xyz and self._meta.get("frame", "robot") == "robot":
-                    err = finite(1e3 * math.dist(nom, xyz))
+                err = finite(1e3 * math.dist(nom, xyz)) if nom is not None and has_xyz and in_robot_frame else None
                 out.append({"pose_id": r["pose_id"], "seq": r["seq"], "status": r["status"], "reason": r["reason"],
                             "time_s": finite(r["time_s"]), "wall_time_unix_s": finite(r["wall_time_unix_s"]),
                             "xyz_m": xyz if has_xyz else None,
@@ -379,44 +425,37 @@ class RunView:
             return out
 
     def details(self) -> dict:
-        """What changes rarely: the run, the drift checks, warnings and stops, auto's rounds, the
-        calibration the residuals are against, the reports present, notes."""
+        """What the page shows beside the counts: the run, the drift checks, warnings and stops,
+        auto's rounds, the calibration the residuals are against, the reports present, notes."""
         self.refresh()
         with self._guard:
+            s = self._summary
             events = [{"kind": k, "pose_id": p, "time_s": finite(t), "wall_time_unix_s": finite(w),
                        "detail": _jsonable(d)} for k, p, t, w, d in self._events
                       if k in ("drift_check", "warning", "stop", "session_start", "session_end", "retry_failed",
                                "drift_check_skipped")]
             auto = self._auto_state()
             rounds = []
-            if auto is not None:
-                for r in auto.get("rounds") or []:
-                    d = r.get("decision") or {}
-                    rounds.append({"number": r.get("number"), "poses": r.get("poses"), "hours": finite(r.get("hours")),
-                                   "model": r.get("model"), "heldout_mm": finite(r.get("heldout_mm")),
-                                   "floor_mm": finite(r.get("floor_mm")), "verdict": r.get("verdict"),
-                                   "decision": d.get("text"), "kind": d.get("kind")})
+            for r in (auto or {}).get("rounds") or []:
+                d = r.get("decision") or {}
+                rounds.append({"number": r.get("number"), "poses": r.get("poses"), "hours": finite(r.get("hours")),
+                               "model": r.get("model"), "heldout_mm": finite(r.get("heldout_mm")),
+                               "floor_mm": finite(r.get("floor_mm")), "verdict": r.get("verdict"),
+                               "decision": d.get("text"), "kind": d.get("kind")})
             reports = [{"label": label, "href": f"run/{rel}"} for label, rel in REPORTS
                        if (self.run.path / rel).is_file()]
-            per_pose = self._per_pose_s()
-            walls = [r["wall_time_unix_s"] for r in self._rows[-50:] if r["wall_time_unix_s"] is not None]
-            wall_rate = (len(walls) - 1) / (walls[-1] - walls[0]) * 3600 if len(walls) > 2 and walls[-1] > walls[0] \
-                else None
-            holder = lock_holder(self.run)
-            nxt = next((p for p in self._planned[2] if p not in {r["pose_id"] for r in self._rows}), None)
-            robot = self._robot or None
             up = None
-            if robot is not None:
-                g = [float(v) for v in robot.gravity_in_root]
+            if self._robot:
+                g = [float(v) for v in self._robot.gravity_in_root]
                 norm = math.hypot(*g)
                 up = [-v / norm for v in g] if norm > 0 else None
+            per_pose = s["per_pose_s"]
             return {"run": self.run.path.name, "path": str(self.run.path), "robot": self._meta.get("robot"),
-                    "up": up,
-                    "frame": self._meta.get("frame", "robot"), "kind": self._meta.get("kind", "pose"),
-                    "holder": holder, "next_pose": nxt, "events": events,
-                    "drift_threshold_mm": self.drift_threshold_mm(),
+                    "up": up, "frame": self._meta.get("frame", "robot"), "kind": self._meta.get("kind", "pose"),
+                    "state": self._state, "holder": self._holder, "next_pose": s["next_pose"], "events": events,
+                    "drift_threshold_mm": s["drift"]["threshold_mm"],
                     "rate_poses_per_campaign_h": finite(3600.0 / per_pose) if per_pose else None,
-                    "rate_poses_per_wall_h": finite(wall_rate),
+                    "rate_poses_per_wall_h": finite(s["wall_rate"]),
                     "calibration_stage": self._calibration[1],
                     "auto": None if auto is None else {"rounds": rounds, "finished": _jsonable(auto.get("finished")),
                                                        "pending": (auto.get("pending") or {}).get("text")},
@@ -435,6 +474,46 @@ class RunView:
         if root not in path.parents or not path.is_file():
             return None
         return path
+
+
+class _Tally:
+    """Running sums over the poses and events read so far (campaign clock in s, drift in mm)."""
+
+    def __init__(self):
+        self.measured = self.sessions = self.drift_checks = self.drift_over = 0
+        self.clock_s = 0.0
+        self.session_since = -math.inf
+        self.session_n, self.session_min, self.session_max = 0, math.inf, -math.inf
+        self.drift_last = self.drift_max = None
+        #: the threshold the driver applied at the last check (mm; it follows the noise floor under
+        #: ``run.drift_threshold_mm: auto``), None before a check that stores it
+        self.drift_threshold = None
+
+    def add(self, rows, events) -> None:
+        for kind, _, t, wall, detail in events:
+            if t is not None and math.isfinite(t):
+                self.clock_s = max(self.clock_s, t)
+            if kind == "session_start":  # the rate is the current session's
+                self.sessions += 1
+                self.session_since = wall if wall is not None else -math.inf
+                self.session_n, self.session_min, self.session_max = 0, math.inf, -math.inf
+            elif kind == "drift_check":
+                self.drift_checks += 1
+                self.drift_over += bool(detail.get("over_threshold"))
+                self.drift_last = finite(detail.get("drift_mm"))
+                if finite(detail.get("threshold_mm")) is not None:
+                    self.drift_threshold = finite(detail.get("threshold_mm"))
+                if self.drift_last is not None:
+                    self.drift_max = max(self.drift_max or 0.0, self.drift_last)
+        for r in rows:
+            self.measured += r["status"] == "measured"
+            t = r["time_s"]
+            if t is None or not math.isfinite(t):
+                continue
+            self.clock_s = max(self.clock_s, t)
+            if (r["wall_time_unix_s"] if r["wall_time_unix_s"] is not None else math.inf) >= self.session_since:
+                self.session_n += 1
+                self.session_min, self.session_max = min(self.session_min, t), max(self.session_max, t)
 
 
 def _loads(text, default):

@@ -20,7 +20,8 @@ async function tick() {
     const st = await getJSON("api/status");
     const total = st.measured + st.failed;
     const now = Date.now();
-    if (!S.details || st.state !== S.status.state || now - S.detailsAt > DETAILS_MS) {
+    const drifted = S.status && st.drift.checks !== S.status.drift.checks;  // the drift plot's points come with details
+    if (!S.details || st.state !== S.status.state || drifted || now - S.detailsAt > DETAILS_MS) {
       S.details = await getJSON("api/details");
       S.detailsAt = now;
       if (S.details.calibration_stage !== S.stage) { S.stage = S.details.calibration_stage; S.poses = []; }
@@ -65,11 +66,12 @@ function render() {
   const planned = Math.max(st.planned, 1);
   $("bar-measured").style.width = `${(100 * st.measured) / planned}%`;
   $("bar-failed").style.width = `${(100 * st.failed) / planned}%`;
-  const holder = d.holder && d.holder.command ? `; written by \`campaign ${d.holder.command}\` (pid ${d.holder.pid})` : "";
+  const holder = d.holder && d.holder.command ? `; being written by campaign ${d.holder.command} (pid ${d.holder.pid})` : "";
   const next = st.state === "running" && d.next_pose !== null && d.next_pose !== undefined ? `; next pose ${d.next_pose}` : "";
   const wall = d.rate_poses_per_wall_h ? `; ${(d.rate_poses_per_wall_h / 60).toFixed(1)} poses per wall-clock minute` : "";
   $("where").textContent = `${d.path || ""}${holder}${next}${wall}`;
-  $("updated").textContent = `last update ${new Date().toLocaleTimeString()}`;
+  const cost = d.watcher ? `; the server answered ${d.watcher.requests} requests in ${d.watcher.cpu_s.toFixed(1)} s of CPU` : "";
+  $("updated").textContent = `last update ${new Date().toLocaleTimeString()}${cost}`;
   renderResiduals();
   renderSpace();
   renderDrift(d);
@@ -88,21 +90,30 @@ function renderResiduals() {
   const series = [{ pts: nom, color: COLOURS.nominal, label: `nominal model (median ${fmt(median(nom.map((q) => q[1])))} mm)` }];
   if (cal.length) series.push({ pts: cal, color: COLOURS.calibrated, label: `calibrated: ${S.stage} (median ${fmt(median(cal.map((q) => q[1])))} mm)` });
   plot($("residuals"), { series, xlabel: "campaign clock (h)", ylabel: "‖Δt‖ (mm)", ymin: 0 });
+  $("residuals-note").textContent = cal.length
+    ? `‖Δt‖: the distance between the measured point and the model's; calibrated: RUN/calibration's current model (${S.stage}), for every pose measured, those measured after it too`
+    : "‖Δt‖: the distance between the measured point and the nominal model's; against the calibrated model too once `campaign calibrate` has run";
 }
 
 function renderDrift(d) {
   const checks = (d.events || []).filter((e) => e.kind === "drift_check" && e.detail.drift_mm !== null && e.time_s !== null);
   const ok = checks.filter((e) => !e.detail.over_threshold).map((e) => [e.time_s / 3600, e.detail.drift_mm]);
   const over = checks.filter((e) => e.detail.over_threshold).map((e) => [e.time_s / 3600, e.detail.drift_mm]);
+  // each check's own threshold when the driver stored it (run.drift_threshold_mm: auto follows the
+  // noise floor), else the configured one
+  const own = checks.filter((e) => typeof e.detail.threshold_mm === "number").map((e) => [e.time_s / 3600, e.detail.threshold_mm]);
   const thr = d.drift_threshold_mm;
+  const series = [{ pts: ok, color: COLOURS.nominal, label: "within the threshold", line: true },
+                  { pts: over, color: COLOURS.bad, label: "over the threshold" }];
+  if (own.length) series.push({ pts: own, color: COLOURS.bad, label: "threshold", line: true, dashed: true, marks: false });
   plot($("drift"), {
-    series: [{ pts: ok, color: COLOURS.nominal, label: "within the threshold", line: true },
-             { pts: over, color: COLOURS.bad, label: "over the threshold" }],
-    hline: thr === null || thr === undefined ? null : { y: thr, label: `threshold ${thr} mm` },
+    series,
+    hline: own.length || thr === null || thr === undefined ? null : { y: thr, label: `threshold ${thr} mm` },
     xlabel: "campaign clock (h)", ylabel: "drift (mm)", ymin: 0,
   });
   const dr = S.status.drift || {};
-  $("drift-note").textContent = dr.checks ? `${dr.checks} checks, last ${fmt(dr.last_mm)} mm, largest ${fmt(dr.max_mm)} mm; ${dr.over_threshold} over the threshold`
+  $("drift-note").textContent = dr.checks ? `${dr.checks} checks, last ${fmt(dr.last_mm)} mm, largest ${fmt(dr.max_mm)} mm; ${dr.over_threshold} over the threshold` +
+                                            (dr.threshold_mm !== null ? ` (now ${fmt(dr.threshold_mm)} mm)` : "")
                                           : "no drift check yet (run.drift_check_every in campaign.yaml)";
 }
 
@@ -153,7 +164,7 @@ function renderEvents(d) {
     const li = document.createElement("li");
     const h = e.time_s === null ? "" : `${(e.time_s / 3600).toFixed(2)} h: `;
     const text = e.detail.message || e.detail.reason || e.detail.why || (e.kind === "session_end" ? `measured ${e.detail.measured}, failed ${e.detail.failed}` : "");
-    li.textContent = `${h}${e.kind.replace(/_/g, " ")}${text ? " — " + text : ""}`;
+    li.textContent = e.kind === "warning" ? `${h}${text}` : `${h}${e.kind.replace(/_/g, " ")}${text ? " — " + text : ""}`;
     if (e.kind === "warning" || e.kind === "stop") li.className = "warn";
     ev.append(li);
   }
@@ -210,6 +221,8 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null }) {
   if (!all.length) { x0 = 0; x1 = 1; y0 = 0; y1 = hline ? hline.y * 1.5 : 1; }
   if (ymin !== null) y0 = Math.min(ymin, y0);
   if (x1 - x0 < 1e-9) { x0 -= 0.5; x1 += 0.5; }
+  const pad = (x1 - x0) * 0.02;  // no point on the frame
+  x0 -= pad; x1 += pad;
   if (y1 - y0 < 1e-12) y1 = y0 + 1;
   y1 += (y1 - y0) * 0.05;
   const X = (v) => m.l + ((v - x0) / (x1 - x0)) * (W - m.l - m.r);
@@ -239,9 +252,11 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null }) {
   for (const s of series) {
     ctx.fillStyle = s.color; ctx.strokeStyle = s.color;
     if (s.line && s.pts.length > 1) {
+      ctx.save(); if (s.dashed) ctx.setLineDash([6, 4]);
       ctx.beginPath(); s.pts.forEach((p, i) => (i ? ctx.lineTo(X(p[0]), Y(p[1])) : ctx.moveTo(X(p[0]), Y(p[1])))); ctx.stroke();
+      ctx.restore();
     }
-    for (const p of s.pts) { ctx.beginPath(); ctx.arc(X(p[0]), Y(p[1]), r, 0, 2 * Math.PI); ctx.fill(); }
+    if (s.marks !== false) for (const p of s.pts) { ctx.beginPath(); ctx.arc(X(p[0]), Y(p[1]), r, 0, 2 * Math.PI); ctx.fill(); }
   }
   let lx = m.l + 6;
   ctx.textAlign = "left"; ctx.textBaseline = "middle";
