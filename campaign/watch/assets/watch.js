@@ -97,14 +97,19 @@ function renderResiduals() {
 
 function renderDrift(d) {
   const checks = (d.events || []).filter((e) => e.kind === "drift_check" && e.detail.drift_mm !== null && e.time_s !== null);
-  const ok = checks.filter((e) => !e.detail.over_threshold).map((e) => [e.time_s / 3600, e.detail.drift_mm]);
-  const over = checks.filter((e) => e.detail.over_threshold).map((e) => [e.time_s / 3600, e.detail.drift_mm]);
+  // what the driver compared with the threshold: the move against the reference's earlier readings
+  // (moved_mm) where it stored one, else the distance from the first reading
+  const judged = (e) => [e.time_s / 3600, typeof e.detail.moved_mm === "number" ? e.detail.moved_mm : e.detail.drift_mm];
+  const ok = checks.filter((e) => !e.detail.over_threshold).map(judged);
+  const over = checks.filter((e) => e.detail.over_threshold).map(judged);
+  const fromFirst = checks.map((e) => [e.time_s / 3600, e.detail.drift_mm]);
   // each check's own threshold when the driver stored it (run.drift_threshold_mm: auto follows the
   // noise floor), else the configured one
   const own = checks.filter((e) => typeof e.detail.threshold_mm === "number").map((e) => [e.time_s / 3600, e.detail.threshold_mm]);
   const thr = d.drift_threshold_mm;
-  const series = [{ pts: ok, color: COLOURS.nominal, label: "within the threshold", line: true },
-                  { pts: over, color: COLOURS.bad, label: "over the threshold" }];
+  const series = [{ pts: fromFirst, color: "#9aa8b6", label: "from the 1st reading", line: true, marks: false },
+                  { pts: ok, color: COLOURS.nominal, label: "moved" },
+                  { pts: over, color: COLOURS.bad, label: "over" }];
   if (own.length) series.push({ pts: own, color: COLOURS.bad, label: "threshold", line: true, dashed: true, marks: false });
   plot($("drift"), {
     series,
@@ -112,7 +117,7 @@ function renderDrift(d) {
     xlabel: "campaign clock (h)", ylabel: "drift (mm)", ymin: 0,
   });
   const dr = S.status.drift || {};
-  $("drift-note").textContent = dr.checks ? `${dr.checks} checks, last ${fmt(dr.last_mm)} mm, largest ${fmt(dr.max_mm)} mm; ${dr.over_threshold} over the threshold` +
+  $("drift-note").textContent = dr.checks ? `${dr.checks} checks; from the first reading: last ${fmt(dr.last_mm)} mm, largest ${fmt(dr.max_mm)} mm; ${dr.over_threshold} moved over the threshold` +
                                             (dr.threshold_mm !== null ? ` (now ${fmt(dr.threshold_mm)} mm)` : "")
                                           : "no drift check yet (run.drift_check_every in campaign.yaml)";
 }
