@@ -11,7 +11,9 @@ what it printed on standard output. The pages include them with ``<!-- output: N
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -54,6 +56,10 @@ def main(argv=None) -> int:
     only = set(args.only.split(",")) if args.only else None
     OUT.mkdir(exist_ok=True)
     env = {**os.environ, "COLUMNS": "100", "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
+    try:
+        timings = json.loads((OUT / "timings.json").read_text())
+    except (OSError, ValueError):
+        timings = {}
     with tempfile.TemporaryDirectory(prefix="campaign-docs-") as tmp:
         (Path(tmp) / "joints.csv").write_text(JOINTS_CSV)
         for name, command in STEPS:
@@ -64,9 +70,15 @@ def main(argv=None) -> int:
             if done.returncode != 0:
                 print(f"{name}: `{command}` failed ({done.returncode}): {done.stderr.strip()}", file=sys.stderr)
                 return 1
+            wall = time.perf_counter() - t0
             if only is None or name in only:
                 (OUT / f"{name}.txt").write_text(f"$ {command}\n{done.stdout}")
-            print(f"{name:<26} {time.perf_counter() - t0:6.1f} s", file=sys.stderr)
+                # the children's peak so far: the first step's own, a bound for the later ones
+                peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+                timings[name] = {"wall_s": round(wall, 1), "load": round(os.getloadavg()[0], 1),
+                                 "peak_rss_mb": round(peak) if name == STEPS[0][0] else None}
+            print(f"{name:<26} {wall:6.1f} s", file=sys.stderr)
+    (OUT / "timings.json").write_text(json.dumps(timings, indent=1) + "\n")
     return 0
 
 

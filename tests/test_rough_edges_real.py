@@ -385,3 +385,37 @@ def test_no_network_is_said_once_and_help_names_any_serial_arm(comau_run, capsys
 
     said = " ".join(build_parser().format_help().split())
     assert "6-axis" not in said and "any serial robot arm" in said
+
+
+# -- item 19: a label off the UR10 tour plot -----------------------------------------------------------
+def test_the_tour_plots_labels_stay_inside_their_axes(tmp_path):
+    from campaign.plan.plot import tour_figure, tour_positions
+    from campaign.run import RunFolder
+    from campaign.sim.truth import random_joint_poses
+
+    (tmp_path / "campaign.yaml").write_text("robot: ur10\n")
+    run = RunFolder(tmp_path)
+    robot, scene = run.robot(), run.scene()
+    Q = random_joint_poses(robot, 40, seed=15)
+    T = np.eye(4) if getattr(scene, "T_cell_I", None) is None else np.asarray(scene.T_cell_I)
+    t = tour_positions(robot, Q) @ T[:3, :3].T + T[:3, 3]
+    far = int(np.argmax(t[:, 2]))  # the pose nearest the tracker: at the right edge of both views
+    Q[[far, 20]] = Q[[20, far]]
+    front = np.arange(40) >= 20  # the front group begins at the edge, as in the UR10's plan
+    fig = tour_figure(robot, scene, Q, front)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    labels = 0
+    for ax in fig.axes[:2]:
+        box = ax.get_window_extent(renderer)
+        for text in ax.texts:
+            if "#" not in text.get_text():
+                continue
+            labels += 1
+            t = text.get_window_extent(renderer)
+            assert box.x0 - 1 <= t.x0 and t.x1 <= box.x1 + 1 and box.y0 - 1 <= t.y0 and t.y1 <= box.y1 + 1, \
+                (text.get_text(), t, box)
+    assert labels == 6  # start, end and the group's beginning in each view
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

@@ -208,7 +208,9 @@ def resolve_adapter(spec: str, role: str, base_dir=None):
             except Exception as exc:  # the adapter's imports (a vendor SDK, mujoco): one line
                 raise ConfigError(f"{where}: cannot import {name} ({exc.__class__.__name__}: {exc})") from None
         cls_name = cls_name or DEFAULT_CLASS[role]
-        where = f"--{role} {getattr(module, '__file__', None) or src}:{cls_name}"
+        # a built-in cell is named as the user named it, not by the package's own file
+        where = (f"--{role} {spec}" if src in BUILTIN_CELLS else
+                 f"--{role} {getattr(module, '__file__', None) or src}:{cls_name}")
     cls = getattr(module, cls_name, None)
     if cls is None:
         defined = sorted(k for k, v in vars(module).items() if isinstance(v, type) and not k.startswith("_")
@@ -273,6 +275,8 @@ def load_adapters(controller_spec, tracker_spec, robot, options=None, base_dir=N
             except Exception as exc:  # the user's __init__: one line, whatever it raised
                 for other in built.values():
                     close_quietly(other)
+                if isinstance(exc, ConfigError):  # an adapter's own one-line refusal, said as it is
+                    raise ConfigError(f"{where}: {exc}") from None
                 raise ConfigError(f"{where}: {cls.__name__}(robot, options) failed "
                                   f"({exc.__class__.__name__}: {exc})") from None
     finally:

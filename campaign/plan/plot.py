@@ -12,6 +12,16 @@ from __future__ import annotations
 import numpy as np
 
 
+
+def toward_centre(point, lo, hi, dx: float, dy: float) -> dict:
+    """Where a label of a marker at ``point`` goes so that it stays inside the axes [lo, hi]:
+    ``xytext`` (points) and the alignment, offset by (dx, dy) towards the axes' centre (left of
+    a point in the right half, below one in the upper half)."""
+    mid = 0.5 * (np.asarray(lo, dtype=float) + np.asarray(hi, dtype=float))
+    right, up = point[0] > mid[0], point[1] > mid[1]
+    return {"xytext": (-dx if right else dx, -dy if up else dy), "ha": "right" if right else "left",
+            "va": "top" if up else "bottom"}
+
 def tour_positions(robot, Q):
     """Tool positions (n, 3) m in F_I of joint vectors Q (n, N) rad, in visiting order."""
     from campaign.model.kinematics import forward
@@ -45,6 +55,15 @@ def _views(scene, tracker, frame):
 
 def plot_tour(path, robot, scene, Q, front) -> None:
     """Write the tour picture. Q (n, N) rad in visiting order; front (n,) bool: pose in front of the wall."""
+    import matplotlib.pyplot as plt
+
+    fig = tour_figure(robot, scene, Q, front)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def tour_figure(robot, scene, Q, front):
+    """The tour picture as a matplotlib Figure (:func:`plot_tour` writes it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -111,17 +130,18 @@ def plot_tour(path, robot, scene, Q, front) -> None:
             edge = np.clip(trk, lo, hi)
             ax.plot(*edge, "k>", ms=9, zorder=8, clip_on=False)
         if n:
-            ends = [(0, "start", "C2", (9, 9), "left")] + ([(n - 1, "end", "C3", (-9, 9), "right")] if n > 1 else [])
-            for k, word, color, off, ha in ends:
+            ends = [(0, "start", "C2")] + ([(n - 1, "end", "C3")] if n > 1 else [])
+            for k, word, color in ends:
                 ax.plot(*xy[k], "o", ms=13, mfc=color, mec="k", zorder=6)
-                ax.annotate(f"{word} #{k + 1}", xy[k], xytext=off, textcoords="offset points", fontsize=9, ha=ha,
-                            weight="bold", zorder=7, bbox=dict(boxstyle="round,pad=0.2", fc="w", ec=color, alpha=0.9))
+                ax.annotate(f"{word} #{k + 1}", xy[k], **toward_centre(xy[k], lo, hi, 9, 9), textcoords="offset points",
+                            fontsize=9, weight="bold", zorder=7,
+                            bbox=dict(boxstyle="round,pad=0.2", fc="w", ec=color, alpha=0.9))
             for k in switch:
                 ax.plot(*xy[k], "D", ms=9, mfc="w", mec="k", zorder=6)
                 if len(switch) == 1:  # several changes (a selected tour) are listed in the legend instead
-                    ax.annotate(f"#{k + 1}: {'front' if front[k] else 'behind'} group begins", xy[k], xytext=(9, -16),
-                                textcoords="offset points", fontsize=8, zorder=7,
-                                bbox=dict(boxstyle="round,pad=0.2", fc="w", ec="0.3", alpha=0.9))
+                    ax.annotate(f"#{k + 1}: {'front' if front[k] else 'behind'} group begins", xy[k],
+                                **toward_centre(xy[k], lo, hi, 9, 12), textcoords="offset points", fontsize=8,
+                                zorder=7, bbox=dict(boxstyle="round,pad=0.2", fc="w", ec="0.3", alpha=0.9))
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
         ax.set_xlabel(la)
@@ -141,5 +161,4 @@ def plot_tour(path, robot, scene, Q, front) -> None:
     fig.suptitle(f"tour of {n} poses: {n_front} in front of the wall, {n - n_front} behind it "
                  f"(colour: order of visits)", fontsize=11)
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=9, frameon=False, bbox_to_anchor=(0.5, 0.0))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig

@@ -20,7 +20,8 @@ def world():
     w = ctx.shared.get("world")
     if w is None:
         if ctx.config is None or ctx.run_dir is None:
-            raise ConfigError("the simulated cell needs a run (--run DIR) and its configuration")
+            raise ConfigError("the simulated cell serves a run: give --run DIR (its campaign.yaml configures the "
+                              "cell: robot, scene, hidden errors)")
         w = ctx.shared["world"] = World(ctx.config, ctx.run_dir, ctx.start_clock_s)
         ctx.shared.setdefault("announce", {})["truth"] = str(w.truth_path)
     return w
