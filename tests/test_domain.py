@@ -201,3 +201,17 @@ def test_export_and_compensate_append_the_columns_and_the_export_reads_back(stil
     assert main(["compensate", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "c.csv")]) == 0
     head = list(_rows(tmp_path / "c.csv")[0])
     assert head[-4:] == ["converged", "within_limits", "in_domain", "sigma_mm"]
+
+
+def test_two_reflectors_seen_name_the_unobserved_tool_rotation(robot):
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 60, seed=4)
+    poses = synthesize(truth, q, seed=5)
+    pts = np.array([[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]])
+    P = np.einsum("nij,kj->nki", poses.T_IE[:, :3, :3], pts) + poses.T_IE[:, None, :3, 3]
+    P[:, 2] = np.nan  # the third reflector never seen
+    make = lambda **kw: CalibrationModel(robot=robot, points=pts, **kw)  # noqa: E731
+    model, ident = hold_unidentified(make, make().fit(q, P), q, P)
+    assert ident.n_unknowns - ident.rank == 1 and np.isfinite(model.condition_number_)
+    msg = ident.findings(robot)[0].message
+    assert "rotation about their line is not observed" in msg and "the tool's rotation about its" in msg

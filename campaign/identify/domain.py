@@ -13,27 +13,30 @@ uncertainty (campaign.identify.uncertainty) and the identifiability on the train
   spread (standard deviation, at least its margin), is at most DOMAIN_NN_FACTOR times the
   largest such distance among the training poses themselves (leave-one-out): a workspace corner
   inside every joint's range but far from every measured pose is outside;
-* and, for every pair of joints, its cell of a b × b grid over the two widened training ranges
-  holds a training pose, b = ⌊√(n / DOMAIN_PAIR_POSES_PER_CELL)⌋ (no grid below 4 cells): a
-  corner of the workspace no measured pose reached (joints 1 and 2 both high) is outside, where
-  the distance in all N joints, dominated by the others, does not see it.
+* and, for every pair of joints, its distance to the nearest training pose in those two joints
+  (scaled by their training ranges) is at most DOMAIN_PAIR_FACTOR times the largest such distance
+  among the training poses (from DOMAIN_PAIR_MIN_POSES training poses on): a corner of the workspace
+  no measured pose reached (joints 1 and 2 both high) is outside, where the distance in all N
+  joints, dominated by the others, does not see it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from campaign.errors import DataError
 from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMAIN_MIN_MARGIN_M,
-                                 DOMAIN_MIN_MARGIN_RAD, DOMAIN_NN_FACTOR, DOMAIN_PAIR_POSES_PER_CELL)
+                                 DOMAIN_MIN_MARGIN_RAD, DOMAIN_NN_FACTOR, DOMAIN_PAIR_FACTOR,
+                                 DOMAIN_PAIR_MIN_POSES)
 
 DOMAIN_FILE = "domain.json"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Domain:
     """Per joint (N,): training ``lower``/``upper``, ``margin``, ``scale`` (rad or m), ``coverage``
     (share of the joint's limit range, in DOMAIN_COVERAGE_BINS bins, holding a training pose);
@@ -60,32 +63,33 @@ class Domain:
         d, _ = tree.query(np.asarray(q, dtype=float).reshape(-1, len(self.scale)) / self.scale, k=1)
         return np.asarray(d, dtype=float)
 
-    @property
-    def pair_bins(self) -> int:
-        """Cells per joint of the pairwise occupancy grids (0: none)."""
-        b = int(np.sqrt(len(self.q_train) / DOMAIN_PAIR_POSES_PER_CELL))
-        return b if b >= 2 else 0
+    @cached_property
+    def _pairs(self) -> list:
+        """[(i, j, KD-tree of the training poses in joints i, j scaled by their training ranges, threshold)]
+        for every pair of joints; empty below DOMAIN_PAIR_MIN_POSES training poses."""
+        from scipy.spatial import cKDTree
 
-    def _cells(self, q) -> np.ndarray:
-        """(n, N) int: each joint's cell of the pair grids."""
-        b = self.pair_bins
-        lo, hi = self.lower - self.margin, self.upper + self.margin
-        return np.clip(((q - lo) / (hi - lo) * b).astype(int), 0, b - 1)
-
-    def pairs_occupied(self, q) -> np.ndarray:
-        """(n,) bool: for every pair of joints, the pose's cell holds a training pose."""
-        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
-        b = self.pair_bins
-        if not b:
-            return np.ones(len(q), dtype=bool)
-        c, ct = self._cells(q), self._cells(self.q_train)
-        ok = np.ones(len(q), dtype=bool)
+        q = self.q_train
+        if len(q) < DOMAIN_PAIR_MIN_POSES:
+            return []
+        span = np.maximum(self.upper - self.lower, self.margin)
+        out = []
         N = len(self.scale)
         for i in range(N):
             for j in range(i + 1, N):
-                occupied = np.zeros((b, b), dtype=bool)
-                occupied[ct[:, i], ct[:, j]] = True
-                ok &= occupied[c[:, i], c[:, j]]
+                pts = q[:, [i, j]] / span[[i, j]]
+                tree = cKDTree(pts)
+                d, _ = tree.query(pts, k=2)
+                out.append((i, j, tree, DOMAIN_PAIR_FACTOR * float(d[:, 1].max()), span[[i, j]]))
+        return out
+
+    def pairs_occupied(self, q) -> np.ndarray:
+        """(n,) bool: for every pair of joints, the pose lies near a training pose in those two joints."""
+        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
+        ok = np.ones(len(q), dtype=bool)
+        for i, j, tree, threshold, span in self._pairs:
+            d, _ = tree.query(q[:, [i, j]] / span, k=1)
+            ok &= np.asarray(d) <= threshold
         return ok
 
     def contains(self, q) -> np.ndarray:

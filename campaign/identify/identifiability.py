@@ -94,6 +94,8 @@ class Identifiability:
     held_words: tuple = ()
     #: (joint index, training span) of the joints that moved less than JOINT_NARROW_FRACTION of their range
     narrow: tuple = ()
+    #: what in the measurement leaves a direction unobserved (raw reflectors: at most two seen a pose)
+    hint: str = ""
 
     @property
     def unidentified(self) -> list:
@@ -117,10 +119,10 @@ class Identifiability:
                                      f"measure poses over q{j + 1}'s range"))
             held = ""
         if self.unidentified and not self.still:
-            out.append(Finding(CODE, f"{len(self.unidentified)} direction(s) of the model are not identified by the "
-                                     f"{self.n_unknowns} unknowns' training poses (rank {self.rank} of "
-                                     f"{self.n_unknowns}): {'; '.join(self.words[:len(self.unidentified)])}{held}; "
-                                     "measure poses that move them"))
+            out.append(Finding(CODE, f"{self.hint + ': ' if self.hint else ''}{len(self.unidentified)} direction(s) "
+                                     f"of the model are not identified by the training poses (rank {self.rank} of "
+                                     f"{self.n_unknowns} unknowns): {'; '.join(self.words[:len(self.unidentified)])}"
+                                     f"{held}; measure poses that move them"))
         if self.weak:
             w = self.words[len(self.unidentified):]
             out.append(Finding(CODE, f"{len(self.weak)} direction(s) barely identified (singular value below "
@@ -228,12 +230,19 @@ def hold_unidentified(make, model, q, Y, context=None, *, frame: str = "robot", 
     its training poses; a least-squares fit with unidentified directions is fitted again with one
     unknown a direction held at nominal (base parameters dropped, effect parameters fixed); a MAP
     fit keeps its prior there. ``make(drop=..., fixed=...)`` gives the unfitted model again."""
+    from dataclasses import replace
+
     say = progress or (lambda msg: None)
     first = analyse(model, q, frame)
+    if model.points is not None and first.unidentified:
+        seen = np.isfinite(np.asarray(Y, dtype=float)).all(axis=2).sum(axis=1)
+        if seen.max(initial=0) <= 2:
+            first = replace(first, hint=f"at most two of the {len(model._points())} reflectors seen in any pose: the "
+                                        "tool's rotation about their line is not observed")
     if not first.unidentified:
         return model, first
     if model.kind_ == "map":
-        return model, analyse(model, q, frame, held_at="prior")
+        return model, replace(first, held_at="prior")
     hold = unknowns_to_hold(model)
     base_names = set(model.base_.names)
     drop = tuple(model.drop or ()) + tuple(n for n in hold if n in base_names)
@@ -242,7 +251,5 @@ def hold_unidentified(make, model, q, Y, context=None, *, frame: str = "robot", 
     say(f"{len(hold)} unknown(s) not identified by the training poses: held at nominal ({', '.join(hold)})")
     refit = make(drop=drop, fixed=fixed or None).fit(q, Y, context, base=model.base_,
                                                      init={k: v for k, v in model.values_.items() if k not in hold})
-    from dataclasses import replace
-
     return refit, replace(first, held=tuple(hold), held_at="nominal",
                           held_words=tuple(parameter_words(model.robot, n, frame) for n in hold))
