@@ -161,6 +161,11 @@ def test_after_calibration_pose_accuracy_falls_to_the_noise_floor(iso, capsys):
         assert p["nominal"]["AP_p_mm"] > 50 * floor
     html = (run / "iso9283" / "report.html").read_text()
     assert "<svg" in html and "noise floor" in html
+    # each compensated pose against the calibration's domain (issue 30), recorded by the plan and reported
+    plan = json.loads((comp / "plan" / "iso9283.json").read_text())["compensated_with"]
+    assert len(plan["in_domain"]) == len(plan["sigma_mm"]) == 5
+    for p, inside, sigma in zip(doc["poses"], plan["in_domain"], plan["sigma_mm"]):
+        assert p["in_domain"] is inside and p["sigma_mm"] == sigma and 0 < sigma < 2 * floor
 
 
 def test_iso9283_bad_input_is_one_line(iso, tmp_path, capsys):
