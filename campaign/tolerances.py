@@ -271,3 +271,11 @@ DOMAIN_PAIR_FACTOR = 1.5
 #: ... from this many training poses on (below, a pair's nearest-neighbour distances scatter too
 #: much: at 48 poses 1.4 flags 6 % of fresh poses at worst, at 16 even 1.6 flags 10 %)
 DOMAIN_PAIR_MIN_POSES = 60
+
+#: `compensate --program`: a target the calibrated model does not reach exactly (beyond the real
+#: robot's reach, beside a singularity) still gets the solver's last iterate, which is never farther
+#: from it than the written joints (the solver takes only improving steps), when no joint moved more
+#: than this (rad; m for a prismatic joint) from the written one: corrections are of the size of the
+#: robot's errors (the paper's Table 4: up to about 1°); a larger step is the solver leaving the
+#: target's branch, so the target is left as written (a program's clearances were planned for it)
+PROGRAM_BEST_EFFORT_STEP_RAD = 0.035

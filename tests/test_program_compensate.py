@@ -255,3 +255,32 @@ def test_motions_to_targets_held_elsewhere_are_listed(fmt, text, listed):
     unclear = scan(text, fmt, 6).unclear
     assert len(unclear) == len(listed)
     assert [(u.line, u.why[:len(w)]) for u, (_, w) in zip(unclear, listed)] == listed
+
+
+def test_a_target_beyond_the_real_reach_gets_the_nearest_or_is_left(tmp_path, robot, calibrated, capsys):
+    """The elbow nearly stretched: the calibrated arm cannot reach some poses the nominal one does.
+    The solver's last iterate is written when it moves no joint more than 2° (never farther from the
+    pose than the written joints: the truth agrees), else the target is left as written."""
+    from campaign.identify.use import CalibratedRobot
+    from campaign.tolerances import PROGRAM_BEST_EFFORT_STEP_RAD
+
+    run, truth, poses = calibrated
+    q = np.tile(np.radians([0.5, 40.0, -90.0, 10.0, 40.0, 20.0]), (81, 1))
+    q[:, 2] = np.radians(np.linspace(-100.0, -80.0, 81))
+    q_new, _, ok = CalibratedRobot(run).compensate(forward(robot, q), q)
+    step = np.abs(q_new - q).max(axis=1)
+    near = np.flatnonzero(~ok & (step < 0.9 * PROGRAM_BEST_EFFORT_STEP_RAD))
+    far = np.flatnonzero(~ok & (step > 1.1 * PROGRAM_BEST_EFFORT_STEP_RAD))
+    assert len(near) and len(far)  # this truth's arm is shorter there: both cases occur
+    chosen = q[[near[0], far[0]]]
+    lines = [f"  movej([{', '.join(f'{v:.9f}' for v in qq)}])" for qq in chosen]
+    (tmp_path / "a.script").write_text("def a():\n" + "\n".join(lines) + "\nend\n")
+    assert main(["compensate", str(run), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
+    said = capsys.readouterr().out
+    assert "line 2: joint target: reached to within" in said and "line 3: joint target: the calibrated model " \
+        "does not reach it" in said
+    new = (tmp_path / "a_compensated.script").read_text().splitlines()
+    assert new[2] == lines[1]  # left as written
+    q_written = np.array([float(v) for v in new[1].split("[")[1].split("]")[0].split(",")])
+    T_meant = forward(robot, chosen[:1])
+    assert _mm(_true_pose(truth, poses, q_written), T_meant)[0] < _mm(_true_pose(truth, poses, chosen[:1]), T_meant)[0]
