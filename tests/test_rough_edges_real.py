@@ -419,3 +419,17 @@ def test_the_tour_plots_labels_stay_inside_their_axes(tmp_path):
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+
+
+@pytest.mark.parametrize("which, said, unsaid", [
+    ("tool", "the measured tool frame is not the URDF's", "joint convention"),
+    ("offset", "check the joint convention (an offset or a sign", "tool frame"),
+])
+def test_a_large_correction_names_the_cause_its_transform_points_to(robot, which, said, unsaid):
+    from campaign.measure.plausibility import check_fit
+
+    p = np.zeros(robot.n_params)
+    k = 6 * (robot.n_joints + 1) + 3 if which == "tool" else robot.joint_offset_index[1]  # pR_6E_x or pq2
+    p[k] = 0.5  # rad: 29 deg
+    (finding,) = [f for f in check_fit(robot, p, noise_sigma_m=1e-5) if f.code == "large_corrections"]
+    assert robot.param_names[k] in finding.message and said in finding.message and unsaid not in finding.message

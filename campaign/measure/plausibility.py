@@ -548,6 +548,23 @@ def _orientation(robot, poses, idx, orientation) -> list:
                     "check the orientation columns and the tool frame")]
 
 
+def _correction_cause(robot, k: int, unit: str) -> str:
+    """What a large correction of parameter k says, by the transform it belongs to: the tool's (a
+    tool frame the URDF does not describe), the base's (the set-up), a joint's zero offset (the
+    joint convention), else any of them."""
+    N = robot.n_joints
+    block = k // 6
+    if block == N + 1:
+        return (f"the measured tool frame is not the URDF's {robot.tool_frame} (a tool mounting calibrate could "
+                "not place, or another --tool-frame)")
+    if block == 0:
+        return "check the base frame set-up (or --frame tracker for data in the tracker's frame)"
+    if k in robot.joint_offset_index:
+        return "check the joint convention (an offset or a sign: robot.yaml's controller)"
+    return ("check the length unit, the joint convention and the tool frame" if unit == "m" else
+            "check the joint convention (signs, offsets) and the tool frame")
+
+
 def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | None = None,
               floor_sigma_m: float | None = None, floor_source: str = "stated") -> list:
     """Warnings on an identified model. params: p_e (6N + 12,) of the minimum-norm solution (m, rad);
@@ -567,16 +584,15 @@ def check_fit(robot, params, *, noise_sigma_m: float, heldout_mean_m: float | No
             out.append(Finding("large_corrections",
                                f"the identified correction {names[k]} = {p[k] * 1e3:,.1f} mm is "
                                f"{abs(p[k]) / size:.0%} of the robot's stretched length ({_mm(size)}): the fit "
-                               "reshapes the robot instead of correcting it; check the length unit, the joint "
-                               "convention and the tool frame"))
+                               f"reshapes the robot instead of correcting it; {_correction_cause(robot, k, 'm')}"))
     rot = units == "rad"
     if rot.any() and not out:
         k = int(np.flatnonzero(rot)[np.argmax(np.abs(p[rot]))])
         if abs(p[k]) > CORRECTION_MAX_RAD:
             out.append(Finding("large_corrections",
                                f"the identified correction {names[k]} = {np.rad2deg(p[k]):.1f} deg is larger than a "
-                               f"real robot's angular errors (≤ {np.rad2deg(CORRECTION_MAX_RAD):.1f} deg): check the "
-                               "joint convention (signs, offsets) and the tool frame"))
+                               f"real robot's angular errors (≤ {np.rad2deg(CORRECTION_MAX_RAD):.1f} deg): "
+                               f"{_correction_cause(robot, k, 'rad')}"))
     if floor_sigma_m is not None and floor_sigma_m > 0:
         if noise_sigma_m * FITTED_NOISE_BELOW_FLOOR_FACTOR < floor_sigma_m:
             where = ("from repeats: if they were measured far apart in time, they measure drift too"
