@@ -165,8 +165,10 @@ STREAM_SWITCH_BLOCKS = 2
 STREAM_SWITCH_S = 2.0
 #: a time step longer than this many blocks' time inside a block makes the block a gap, not still
 STREAM_GAP_BLOCKS = 3.0
-#: a log is one record per stable point when most successive records of one reflector are further
-#: apart than this (m): a continuous log at 10 Hz moves less between most samples (it dwells)
+#: a log is one record per stable point when its records are further apart in time than this (s):
+#: a continuous one samples at 10 Hz or more
+STREAM_POINT_MIN_DT_S = 0.25
+#: records of one reflector within this (m) in a log of stable points are the same point
 STREAM_POINT_STEP_M = 0.5e-3
 #: samples kept of one open window (a long pause is thinned by two: its median is the same)
 STREAM_WINDOW_MAX_SAMPLES = 200_000
@@ -179,6 +181,12 @@ STREAM_DISTANCE_TOL_REL = 0.01
 #: sum to at most this factor of the time between the windows plus STREAM_DWELL_SLACK_S
 STREAM_DWELL_FACTOR = 1.5
 STREAM_DWELL_SLACK_S = 2.0
+#: a reflector belongs to a window of the others when its distances to them are the tool's nominal
+#: ones within this (m): a tool's reflectors sit within a millimetre or two of their drawing
+STREAM_REFLECTOR_TOL_M = 3e-3
+#: a matched window whose reflectors' rigid fit to the tool's layout leaves more than this rms (m)
+#: is not stored as a pose (a reflector's window from elsewhere); a good fit leaves tens of µm
+STREAM_FIT_RMS_MAX_M = 1e-3
 
 #: The smallest error (mm) a log-scaled report figure shows: 1 pm, far below any tracker's
 #: noise; smaller errors (exact data: a nominal model's own predictions, a perfect adapter)

@@ -62,7 +62,7 @@ class LogWriter:
 
     def __init__(self, robot, stops, rng, *, rate_hz=50.0, noise_m=20e-6, p_e_scale=4e-4, lost_rate=0.04,
                  pause_rate=0.05, spike_rate=0.002, short_gaps=4, long_gap_stops=3, switch_s=0.3,
-                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True):
+                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True, dwell_scale=1.0):
         self.robot, self.stops, self.rng = robot, stops, rng
         self.rate, self.noise = rate_hz, noise_m
         self.p_e = rng.normal(0, p_e_scale, robot.n_params)
@@ -77,6 +77,7 @@ class LogWriter:
         self.long_gap = set(measured[measured.index(next(m for m in measured if m >= start)):][:long_gap_stops])
         self.pauses = set(rng.choice(n, int(round(pause_rate * n)), replace=False).tolist())
         self.spike_rate, self.short_gaps, self.switch_s, self.settle_s = spike_rate, short_gaps, switch_s, settle_s
+        self.dwell_scale = dwell_scale
 
     def truth_points(self, q):
         """The reflectors' true positions in the tracker's frame, (n, 3, 3) m."""
@@ -107,7 +108,7 @@ class LogWriter:
             g_list.append(np.zeros(len(qs), int))
             stop_of.append(np.full(len(qs), -1))
             if s.dwell_s > 0:
-                slot = (s.dwell_s - self.settle_s) / len(self.P_E)
+                slot = (s.dwell_s * self.dwell_scale - self.settle_s) / len(self.P_E)
                 segs = [(0, self.settle_s)] + [(k, slot - self.switch_s) for k in range(len(self.P_E))]
                 for k, (code, length) in enumerate(segs):
                     if k > 1:
@@ -353,3 +354,40 @@ def test_import_stream_refuses_what_it_cannot_do_in_one_line(tmp_path, robot, ca
     (run / "program" / "stops.csv").unlink()
     assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run)]) == 1
     assert "campaign program RUN --format csv" in capsys.readouterr().err
+
+
+def test_dwells_shorter_than_the_program_says_and_a_gap_of_eight_stops(tmp_path, robot):
+    """The cell ran the program faster (dwells at 70 %) and the tracker was off for eight stops: the
+    skip bound scales with the log's own windows and stop-to-stop time, so nothing after the gap is
+    shifted."""
+    run, stops, writer = make_run(tmp_path, robot, seed=21, dwell_scale=0.7, switch_s=0.1, long_gap_stops=8)
+    got = writer.write(tmp_path / "log.csv")
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)
+    status = {int(r["stop"]): r["status"] for r in match_rows(run) if r["stop"]}
+    assert all(status[k] == "skipped" for k in writer.long_gap)
+
+
+def test_without_a_program_the_plan_gives_the_stops(tmp_path, robot):
+    """No RUN/program/stops.csv yet: the stops are the plan's, as `campaign program` would write them."""
+    import yaml
+
+    from campaign.program.stops import plan_stops
+
+    run, stops, writer = make_run(tmp_path, robot, n_poses=40, seed=23, lost_rate=0.0)
+    poses = [s for s in stops if s.kind in ("pose", "validation")]
+    (run / "plan").mkdir()
+    (run / "plan" / "poses.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6\n" + "".join(
+        f"{s.pose_id}," + ",".join(repr(v) for v in s.q) + "\n" for s in poses))
+    (run / "campaign.yaml").write_text(yaml.safe_dump({"robot": "comau_racer5_080", "run": {"drift_check_every": 0},
+                                                       "plan": {"settle_time_s": 0.5,
+                                                                "tracker_time_per_reflector_s": 1.0}}))
+    stops_path(run).unlink()
+    planned = plan_stops(run)
+    writer.stops = planned
+    writer.lost, writer.long_gap, writer.pauses = set(), set(), set()
+    got = writer.write(tmp_path / "log.csv")
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, planned, writer, got)

@@ -10,7 +10,10 @@ windows in time order finds the monotone matching of highest score:
 * each pair of successive matches pays half the squared distance residual in tolerances
   (STREAM_DISTANCE_TOL_M + STREAM_DISTANCE_TOL_REL · distance), at most ALIGN_PAIR_CAP;
 * a stop without a window (a lost beam: skipped, the next window is not shifted onto it) pays
-  ALIGN_SKIP_STOP, a window without a stop (an unplanned pause: rejected) ALIGN_REJECT_WINDOW.
+  ALIGN_SKIP_STOP, a window without a stop (an unplanned pause: rejected) ALIGN_REJECT_WINDOW;
+* the stops skipped between two windows must fit in the time between them: their dwells (scaled
+  to the log's, by the windows' median length over the median dwell), or ALIGN_PERIOD_FACTOR stops
+  per typical time between successive windows, whichever allows more.
 
 The chain starts at the first stop not yet imported (skipping stops costs the same there) and may
 end anywhere (a log that ends halfway). A beam of ALIGN_BEAM states per window bounds the work.
@@ -42,6 +45,9 @@ ALIGN_MAX_JUMP = 2000
 #: windows at the start that may begin the chain (before them: a set-up, a warm-up)
 ALIGN_START_WINDOWS = 400
 ALIGN_CONFIRM = 3.0
+#: stops that may be skipped per typical stop-to-stop time of the log (twice the typical rate, and
+#: a margin: motions differ in length)
+ALIGN_PERIOD_FACTOR = 2.5
 
 
 @dataclass(frozen=True)
@@ -86,15 +92,28 @@ def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = N
     m, n = len(windows), len(P)
     if m == 0 or first_stop >= n:
         return []
-    C = np.concatenate([[0.0], np.cumsum(np.asarray(dwell_s, dtype=float))])  # dwell of the stops before k
+    dwell_s = np.asarray(dwell_s, dtype=float)
+    # the dwells as the log keeps them (the clock's rate, a program run slower or faster): scaled by
+    # the windows' median length over the stops' median dwell, never up
+    lengths = np.array([w.t1 - w.t0 for w in windows])
+    scale = float(np.clip(np.median(lengths) / np.median(dwell_s), 0.0, 1.0)) if np.median(dwell_s) > 0 else 0.0
+    C = np.concatenate([[0.0], np.cumsum(dwell_s * scale)])  # dwell of the stops before k
+    # a stop takes the log's typical stop-to-stop time or more (a count bound that holds whatever
+    # the dwells: a log of stable points has windows without length)
+    starts = np.array([w.t0 for w in windows])
+    period = float(np.median(np.diff(starts))) if m > 1 else 0.0
     t_start = windows[0].t0 if t_start is None else t_start
     states = []  # per window: (J, S, back window, back state)
     old = None  # the best state of windows beyond the lookback: (S + reject · i, i, k)
 
     def reach(j_prev_next, dt):
-        """The last stop reachable: stops j_prev_next..j-1 skipped need their dwell in dt."""
-        budget = C[j_prev_next] + max(dt, 0.0) * STREAM_DWELL_FACTOR + STREAM_DWELL_SLACK_S
+        """The last stop reachable: stops j_prev_next..j-1 skipped need their dwell in dt, or at most
+        ALIGN_PERIOD_FACTOR stops per typical period of the log fit in dt."""
+        dt = max(dt, 0.0)
+        budget = C[j_prev_next] + dt * STREAM_DWELL_FACTOR + STREAM_DWELL_SLACK_S
         hi = np.searchsorted(C, budget, side="right") - 1  # C[hi] <= budget: stops < hi fit
+        if period > 0:
+            hi = np.maximum(hi, j_prev_next + int(ALIGN_PERIOD_FACTOR * dt / period) + 1)
         return np.minimum(np.minimum(hi, j_prev_next + ALIGN_MAX_JUMP), n - 1)
 
     for i, w in enumerate(windows):

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from campaign.errors import DataError
+from campaign.tolerances import STREAM_FIT_RMS_MAX_M
 
 MATCH_FILE = "stream_match.csv"
 MATCH_HEADER = ("stop", "pose_id", "kind", "window_start_s", "window_end_s", "samples", "spread_mm", "status", "log")
@@ -31,7 +32,7 @@ META_KEY = "stream_import"
 @dataclass(frozen=True)
 class StreamResult:
     """What an import of a log did: stops matched / skipped (no window) / incomplete (a reflector
-    missing) / unconfirmed (no neighbour confirms the window's distance), windows rejected, poses
+    missing, or the reflectors not as the tool holds them) / unconfirmed (no neighbour confirms the window's distance), windows rejected, poses
     stored (measured, failed), drift checks, the log's samples, rate (Hz) and noise (m), and the
     next stop a further log starts at."""
 
@@ -81,7 +82,7 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     {column in the file: name used}; progress: callable receiving the fraction read (0..1)."""
     from campaign.measure.driver import measured_robot
     from campaign.measure.plausibility import measured_point
-    from campaign.program.stops import read_stops_csv, stops_path
+    from campaign.program.stops import stops_path
     from campaign.program.stream.align import align
     from campaign.program.stream.logread import iter_log, read_layout
     from campaign.program.stream.windows import WindowFinder
@@ -92,7 +93,7 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     run = RunFolder(run_dir)
     if not run.path.is_dir():
         raise DataError(f"{run.path}: no such run folder")
-    stops = read_stops_csv(stops_path(run.path))
+    stops = run_stops(run)
     robot = measured_robot(run.robot())
     if len(stops[0].q) != robot.n_joints:
         raise DataError(f"{stops_path(run.path)}: {len(stops[0].q)} joints, the run's robot {robot.name} "
@@ -102,19 +103,18 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     state = _previous(run, frame, layout)
     first_stop = int(state.get("next_stop", 0))
 
-    finder = WindowFinder()
-    for chunk in iter_log(layout, progress=progress):
-        finder.feed(chunk)
-    windows = finder.finish()
-    if finder.samples == 0:
-        raise DataError(f"{layout.path}: no measured rows (every x, y, z empty)")
-
     if layout.target_col is not None:
         P_E = robot.reflector_positions_in_E
         kind = "pose" if len(names) >= 3 else "markers" if len(names) == 2 else "point"
     else:
         P_E = measured_point(robot, "point")[None]
         kind, names = "point", (names[0] if len(names) == 1 else "tool",)
+    finder = WindowFinder(np.linalg.norm(P_E[:, None] - P_E[None], axis=-1))
+    for chunk in iter_log(layout, progress=progress):
+        finder.feed(chunk)
+    windows = finder.finish()
+    if finder.samples == 0:
+        raise DataError(f"{layout.path}: no measured rows (every x, y, z empty)")
     measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
     mstops = [stops[k] for k in measured_idx]
     P = nominal_points(robot, mstops, P_E)
@@ -129,11 +129,26 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     result = _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot)
     status = Counter(r[7] for r in rows)
     stored = Counter(r.status for r in records)
-    return StreamResult(status["matched"], status["skipped"], status["incomplete"], status["unconfirmed"],
+    return StreamResult(status["matched"], status["skipped"], status["incomplete"] + status["inconsistent"],
+                        status["unconfirmed"],
                         status["rejected"], stored["measured"], stored["failed"],
                         sum(1 for e in events if e[0] == "drift_check"), finder.samples,
                         1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
                         next_stop, len(stops), bool(finder.point_mode), result)
+
+
+def run_stops(run) -> list:
+    """The run's program stops: RUN/program/stops.csv, else (no program written yet) the stops of
+    its plan (campaign.program.stops.plan_stops: what `campaign program` would write)."""
+    from campaign.program.stops import plan_stops, read_stops_csv, stops_path
+
+    path = stops_path(run.path)
+    if path.is_file() or not run.poses_csv.is_file():
+        if not path.is_file():
+            raise DataError(f"{path}: no such stops file and no plan (write it with `campaign program RUN "
+                            "--format csv` after `campaign plan`)")
+        return read_stops_csv(path)
+    return plan_stops(run.path, run=run)
 
 
 def _previous(run, frame, layout) -> dict:
@@ -185,12 +200,15 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
         elif len(w.position) < len(P_E):
             missing = [names[c] for c in range(len(P_E)) if c not in w.position]
             status, reason = "incomplete", f"{log_name}: reflector {', '.join(missing)} not measured in the window"
-        t_s = None if w is None else clock0 + 0.5 * (w.t0 + w.t1) - t_first
-        rows.append([s.stop, s.pose_id, s.kind, "" if w is None else f"{w.t0:.6f}", "" if w is None else f"{w.t1:.6f}",
-                     0 if w is None else w.samples, "" if w is None else f"{w.spread_m() * 1e3:.6f}", status, log_name])
         if status == "matched":
             P_L = np.array([w.position[c] for c in range(len(P_E))])
             xyz, rotvec, rms = _derive(eye, P_E, P_L)
+            if rms is not None and rms > STREAM_FIT_RMS_MAX_M:
+                status, reason = "inconsistent", (f"{log_name}: the window's reflectors are {rms * 1e3:.2f} mm rms "
+                                                  "from the tool's layout")
+        t_s = None if w is None else clock0 + 0.5 * (w.t0 + w.t1) - t_first
+        rows.append([s.stop, s.pose_id, s.kind, "" if w is None else f"{w.t0:.6f}", "" if w is None else f"{w.t1:.6f}",
+                     0 if w is None else w.samples, "" if w is None else f"{w.spread_m() * 1e3:.6f}", status, log_name])
         if s.kind == "drift":
             ref = refs.get(s.pose_id)
             drift = None

@@ -6,13 +6,14 @@ measured on that row, one of the robot's reflector names). Other columns are ign
 maps a file's own names (``{column in the file: name used}``, campaign.measure.csvio.parse_columns).
 Rows with an empty or non-finite coordinate are no measurement (the beam was lost) and are dropped.
 
-A block of all-numeric rows is parsed by numpy in C (target names are replaced by their codes
-first); anything else (ISO time stamps, a malformed row) goes line by line, and a bad value is one
+A block of rows whose time and coordinates are numbers is parsed by numpy in C (loadtxt; a last
+``target`` column by comparing each line's end with the names); anything else (ISO time stamps, a malformed row) goes line by line, and a bad value is one
 :class:`DataError` naming the file, the row and the column.
 """
 
 from __future__ import annotations
 
+import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,7 +150,7 @@ def _parse(layout: LogLayout, data: bytes, row0: int) -> LogChunk | None:
     """One block of whole lines (row0: the file row before its first line)."""
     if b"\r" in data:
         data = data.replace(b"\r", b"")
-    fast = None if layout.time_iso else _parse_numeric(layout, data)
+    fast = _parse_numeric(layout, data)
     if fast is None:
         t, vals, g = _parse_lines(layout, data, row0)
     else:
@@ -165,42 +166,97 @@ def _parse(layout: LogLayout, data: bytes, row0: int) -> LogChunk | None:
 
 
 def _parse_numeric(layout: LogLayout, data: bytes):
-    """numpy's C parser on a block whose every field is a number once target names are codes;
-    None when the block is anything else (then it is read line by line)."""
-    d = layout.delimiter.encode()
-    buf = data if d == b"," else data.replace(d, b",")
-    if b" " in buf and not any(" " in name for name in layout.targets):
-        buf = buf.replace(b" ", b"")  # fixed-width fields (campaign.program.stream.logwrite)
-    if b",," in buf or b",\n" in buf or buf.startswith(b",") or b"\n\n" in buf:
-        return None  # an empty field or line: the line reader knows what it means
+    """numpy's C parser (loadtxt) on a block of whole lines whose time and x, y, z are numbers, the
+    target column (when it is the last) decoded by comparing each line's end with the reflector
+    names; None when the block is anything else (then it is read line by line)."""
+    n_lines = data.count(b"\n")
+    if b"\n\n" in data or data.startswith(b"\n") or n_lines == 0:
+        return None  # an empty line: the line reader knows what it means
+    cols = [*layout.xyz_cols] if layout.time_iso else [layout.time_col, *layout.xyz_cols]
+    buf = data
+    g = np.zeros(n_lines, dtype=np.int16)
     if layout.target_col is not None:
-        last = layout.target_col == layout.n_cols - 1
-        first = layout.target_col == 0
-        for code, name in enumerate(layout.targets):
-            nb = name.encode()
-            if first:
-                buf = (b"\n" + buf).replace(b"\n" + nb + b",", b"\n" + str(code).encode() + b",")[1:]
-            elif last:
-                buf = buf.replace(b"," + nb + b"\n", b"," + str(code).encode() + b"\n")
-            else:
-                buf = buf.replace(b"," + nb + b",", b"," + str(code).encode() + b",")
+        if layout.target_col == layout.n_cols - 1:
+            g = _target_codes(np.frombuffer(data, dtype=np.uint8), layout)
+            if g is None:
+                return None
+        else:  # names to their codes, then a number like the others
+            d = layout.delimiter.encode()
+            for code, name in enumerate(layout.targets):
+                nb, cb = name.encode(), str(code).encode()
+                buf = (b"\n" + buf).replace(b"\n" + nb + d, b"\n" + cb + d)[1:] if layout.target_col == 0 \
+                    else buf.replace(d + nb + d, d + cb + d)
+            cols.append(layout.target_col)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         try:
-            flat = np.fromstring(buf.replace(b"\n", b","), sep=",")
-        except (DeprecationWarning, ValueError):
+            a = np.loadtxt(io.BytesIO(buf), delimiter=layout.delimiter, usecols=cols, dtype=float, ndmin=2,
+                           comments=None, encoding="utf-8")
+        except (ValueError, Warning):
             return None
-    n_lines = buf.count(b"\n")
-    if flat.size != n_lines * layout.n_cols:
+    if a.shape[0] != n_lines:
         return None
-    a = flat.reshape(n_lines, layout.n_cols)
-    g = np.zeros(n_lines, dtype=np.int16)
-    if layout.target_col is not None:
-        codes = a[:, layout.target_col]
-        if not (np.isin(codes, np.arange(len(layout.targets)))).all():
+    if layout.time_iso:
+        t = _iso_block(layout, buf, n_lines)
+        if t is None:
+            return None
+        a = np.column_stack([t, a])
+    if a.shape[1] == 5:
+        codes = a[:, 4]
+        if not np.isin(codes, np.arange(len(layout.targets))).all():
             return None
         g = codes.astype(np.int16)
-    return a[:, layout.time_col].copy(), a[:, list(layout.xyz_cols)].copy(), g
+    return a[:, 0].copy(), a[:, 1:4].copy(), g
+
+
+def _iso_block(layout: LogLayout, buf: bytes, n_lines: int):
+    """The block's ISO 8601 time stamps as s since 1970 (UTC when they say their offset), all at
+    once when they share one form (``Z``, one ``+HH:MM`` or none); None otherwise."""
+    try:
+        stamps = np.loadtxt(io.BytesIO(buf), delimiter=layout.delimiter, usecols=[layout.time_col], dtype="U40",
+                            comments=None, encoding="utf-8", ndmin=1)
+    except ValueError:
+        return None
+    if len(stamps) != n_lines:
+        return None
+    stamps = np.char.strip(stamps)
+    first = str(stamps[0])
+    offset = 0.0
+    if first.endswith(("Z", "z")):
+        suffix = first[-1]
+    elif len(first) > 6 and first[-6] in "+-" and first[-3] == ":" and first[-5:-3].isdigit() and first[-2:].isdigit():
+        suffix = first[-6:]
+        offset = (1.0 if suffix[0] == "+" else -1.0) * (int(suffix[1:3]) * 3600 + int(suffix[4:6]) * 60)
+    else:
+        suffix = ""
+    if suffix:
+        if not np.char.endswith(stamps, suffix).all():
+            return None
+        lengths = np.char.str_len(stamps)
+        stamps = np.array([s[:-len(suffix)] for s in stamps]) if (lengths != lengths[0]).any() \
+            else stamps.astype(f"U{int(lengths[0]) - len(suffix)}")
+    try:
+        return np.char.replace(stamps, " ", "T").astype("datetime64[ns]").astype("int64") * 1e-9 - offset
+    except ValueError:
+        return None
+
+
+def _target_codes(arr: np.ndarray, layout: LogLayout):
+    """Each line's reflector code from its last field (the name ends the line, spaces before it
+    allowed), (n_lines,) int16; None when a line ends in none of the names."""
+    nl = np.flatnonzero(arr == 10)
+    codes = np.full(len(nl), -1, dtype=np.int16)
+    before = (ord(layout.delimiter), ord(" "))
+    for code, name in enumerate(sorted(layout.targets, key=len, reverse=True)):
+        nb = name.encode()
+        at = nl - len(nb)
+        if len(at) == 0 or at.min() < 1:
+            return None
+        ok = (codes < 0) & np.isin(arr[at - 1], before)
+        for i, ch in enumerate(nb):
+            ok &= arr[at + i] == ch
+        codes[ok] = layout.targets.index(name)
+    return None if (codes < 0).any() else codes
 
 
 def _parse_lines(layout: LogLayout, data: bytes, row0: int):

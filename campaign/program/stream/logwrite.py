@@ -44,7 +44,7 @@ def fixed_width_t(v, int_digits: int, decimals: int) -> np.ndarray:
 def format_rows(t, P, target=None, names=(), *, scale: float = 1.0, time_digits: int = 7, length_digits: int = 5,
                 time_decimals: int = 4, length_decimals: int = 6) -> bytes:
     """The log's rows for t (n,) s, P (n, 3) m (written times ``scale``: 1000 for mm) and, when
-    given, target (n,) codes into ``names`` (written last, padded with spaces the reader ignores)."""
+    given, target (n,) codes into ``names`` (written last, right-aligned after spaces the reader ignores)."""
     n = len(t)
     comma = np.full((1, n), ord(","), dtype=np.uint8)
     parts = [fixed_width_t(t, time_digits, time_decimals)]
@@ -53,8 +53,9 @@ def format_rows(t, P, target=None, names=(), *, scale: float = 1.0, time_digits:
     if target is not None:
         width = max(len(s) for s in names)
         table = np.full((width + 1, len(names)), ord(" "), dtype=np.uint8)
-        for c, name in enumerate(names):
-            table[:len(name) + 1, c] = np.frombuffer(b"," + name.encode(), dtype=np.uint8)
+        table[0] = ord(",")
+        for c, name in enumerate(names):  # right-aligned: the name ends the line
+            table[width + 1 - len(name):, c] = np.frombuffer(name.encode(), dtype=np.uint8)
         parts.append(table[:, np.asarray(target, dtype=np.int64)])
     parts.append(np.full((1, n), ord("\n"), dtype=np.uint8))
     return np.ascontiguousarray(np.vstack(parts).T).tobytes()

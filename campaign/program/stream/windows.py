@@ -6,12 +6,13 @@ not move it) stays below STREAM_STILL_FACTOR times the log's own noise level, es
 data (the STREAM_NOISE_QUANTILE quantile of the blocks' spreads: the still blocks are the quiet
 ones). Still blocks that follow each other at one position make a window; a change of reflector
 (``target``) between them continues the window when the tool did not move in between (at most
-STREAM_SWITCH_BLOCKS moving blocks, or a short gap); a reflector measured again after another starts
+STREAM_SWITCH_BLOCKS moving blocks, or a short gap) and the reflector lies from the others as the
+tool holds them; a reflector measured again after another starts
 the next window (the reflectors' cycle of a stop repeated in place). A window keeps, per reflector, the median of
 its samples (the position) and their robust standard deviation (the spread, a quality figure).
 
-A log with one record per stable point (``point`` mode: successive records of one reflector are
-apart, not within the noise) makes a window of each group of records at one position.
+A log with one record per stable point (``point`` mode: records further apart in time than a
+continuous log's) makes a window of each group of records at one position.
 Memory: the samples of the open window only.
 """
 
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from campaign.tolerances import (STREAM_BLOCK_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M, STREAM_NOISE_QUANTILE,
-                                 STREAM_POINT_STEP_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
+                                 STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M, STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
                                  STREAM_SWITCH_BLOCKS, STREAM_SWITCH_S, STREAM_WINDOW_MAX_SAMPLES)
 
 #: robust standard deviation from the median absolute deviation of a normal sample
@@ -72,21 +73,13 @@ def block_spreads(p: np.ndarray, B: int) -> tuple:
     return med, np.sqrt(np.sum(mad * mad, axis=1))
 
 
-def is_point_log(t, p, g) -> bool:
-    """A log of stable points (one record per point) rather than a continuous one: most
-    successive records of one reflector are further apart than STREAM_POINT_STEP_M."""
-    if len(t) < 3:
-        return True
-    same = g[1:] == g[:-1]
-    if same.sum() < 2:
-        # reflectors in turn, each once a stop: successive records of one reflector are a stop apart
-        order = np.argsort(g, kind="stable")
-        gs, ps = g[order], p[order]
-        same = gs[1:] == gs[:-1]
-        step = np.linalg.norm(np.diff(ps, axis=0), axis=1)[same]
-    else:
-        step = np.linalg.norm(np.diff(p, axis=0), axis=1)[same]
-    return bool(np.mean(step <= STREAM_POINT_STEP_M) < 0.25) if len(step) else True
+def is_point_log(t) -> bool:
+    """A log of stable points (one record per point) rather than a continuous one: its records
+    are further apart in time than STREAM_POINT_MIN_DT_S (a continuous log samples at 10 Hz or
+    more; a tracker takes longer than that to settle on a point and move to the next reflector)."""
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    return bool(len(dt) == 0 or np.median(dt) > STREAM_POINT_MIN_DT_S)
 
 
 class WindowFinder:
@@ -94,7 +87,9 @@ class WindowFinder:
     :meth:`finish`: the still windows in time order. The noise level and the block size come from
     the first chunk (a 100 Hz log's first block of bytes holds hours)."""
 
-    def __init__(self):
+    def __init__(self, reflector_distances=None):
+        #: (k, k) m: the nominal distances between the reflectors (codes) on the tool, or None
+        self.D = None if reflector_distances is None else np.asarray(reflector_distances, dtype=float)
         self.windows: list = []
         self.B = None
         self.tau = None
@@ -110,7 +105,7 @@ class WindowFinder:
 
     # -- set-up from the first data ---------------------------------------------------------
     def _calibrate(self, t, p, g):
-        self.point_mode = is_point_log(t, p, g)
+        self.point_mode = is_point_log(t)
         dt = np.diff(t)
         self.dt_s = float(np.median(dt[dt > 0])) if (dt > 0).any() else 1.0
         if self.point_mode:
@@ -156,13 +151,23 @@ class WindowFinder:
         still = (s <= self.tau) & _uniform(g, B) & (tb[:, -1] - tb[:, 0] <= gap_s)
         codes = g[::B]
         idx = np.flatnonzero(still)
-        # whole runs of moving blocks between still ones are counted at once
-        prev = -1
-        for b in idx:
-            self._moving += b - prev - 1
-            prev = b
-            self._still_block(b, tb[b, 0], tb[b, -1], int(codes[b]), med[b], p[b * B:(b + 1) * B])
-        self._moving += nb - 1 - prev
+        if len(idx) == 0:
+            self._moving += nb
+        else:
+            # runs of still blocks that follow each other (one reflector, at one place, no gap) go
+            # to the window at once: one call a run, not a block
+            new_run = np.ones(len(idx), dtype=bool)
+            new_run[1:] = (np.diff(idx) > 1) | (codes[idx[1:]] != codes[idx[:-1]]) \
+                | (np.linalg.norm(med[idx[1:]] - med[idx[:-1]], axis=1) > STREAM_SAME_PLACE_FACTOR * self.tau) \
+                | (tb[idx[1:], 0] - tb[idx[:-1], -1] > gap_s)
+            starts = np.flatnonzero(new_run)
+            ends = np.append(starts[1:], len(idx)) - 1
+            prev = -1
+            for a, e in zip(idx[starts], idx[ends]):
+                self._moving += a - prev - 1
+                prev = e
+                self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a], p[a * B:(e + 1) * B])
+            self._moving += nb - 1 - prev
         if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS:
             self._close()
 
@@ -173,7 +178,8 @@ class WindowFinder:
             near = code in w.ref and np.linalg.norm(med - w.ref[code]) <= STREAM_SAME_PLACE_FACTOR * self.tau
             quiet = self._moving == 0 and gap <= STREAM_GAP_BLOCKS * self.B * self.dt_s
             switch = code != w.last_code and code not in w.ref and \
-                (self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_SWITCH_S) and gap <= STREAM_SWITCH_S
+                (self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_SWITCH_S) and gap <= STREAM_SWITCH_S \
+                and self._on_the_same_tool(w, code, med)
             # a reflector measured again after another: the next measurement (a repeat in place)
             again = code != w.last_code and code in w.ref
             if near and not again and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch:
@@ -184,6 +190,13 @@ class WindowFinder:
         self._open = _Open(t0=t0, t1=t1)
         self._extend(self._open, t1, code, med, samples)
         self._moving = 0
+
+    def _on_the_same_tool(self, w, code, med) -> bool:
+        """Whether reflector ``code`` at ``med`` lies from the window's other reflectors as the tool
+        holds them (STREAM_REFLECTOR_TOL_M; always, without the nominal distances)."""
+        if self.D is None:
+            return True
+        return all(abs(np.linalg.norm(med - p) - self.D[code, c]) <= STREAM_REFLECTOR_TOL_M for c, p in w.ref.items())
 
     def _extend(self, w, t1, code, med, samples):
         w.t1 = t1
@@ -216,7 +229,8 @@ class WindowFinder:
             w = self._open
             if w is not None:
                 same_place = code in w.ref and np.linalg.norm(p[k] - w.ref[code]) <= self.tau
-                if same_place or (code not in w.ref and t[k] - w.t1 <= STREAM_SWITCH_S * 5):
+                if same_place or (code not in w.ref and t[k] - w.t1 <= STREAM_SWITCH_S * 5
+                                  and self._on_the_same_tool(w, code, p[k])):
                     self._extend(w, float(t[k]), code, p[k], p[k:k + 1])
                     continue
                 self._close()
