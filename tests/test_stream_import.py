@@ -216,6 +216,19 @@ def test_a_continuous_log_in_mm_in_the_tracker_frame_is_matched_with_every_fault
             assert r["status"] == "skipped", r
     # the unplanned pauses are windows matched to no stop
     assert sum(r["status"] == "rejected" for r in rows) >= len(writer.pauses) - 2
+    # the drift stops are drift checks as `campaign run` stores them: the reference re-read, its distance
+    # from the first reading (the generator's cell does not drift: noise only)
+    import json
+
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        checks = [json.loads(d) for (d,) in db.execute("SELECT detail FROM events WHERE kind = 'drift_check'")]
+    drift_rows = [r for r in rows if r["kind"] == "drift"]
+    reference_measured = next(r for r in rows if r["pose_id"] == "5000")["status"] == "matched"
+    assert reference_measured  # else the first drift reading is the reference's first, not a check
+    assert len(checks) == len(drift_rows)
+    read = [c for c in checks if c["drift_mm"] is not None]
+    assert len(read) == sum(r["status"] == "matched" for r in drift_rows) and len(read) >= 5
+    assert all(c["reference_pose_id"] == 5000 and c["drift_mm"] < 0.02 and "xyz_m" in c for c in read)
     assert n >= 0.9 * len([s for s in stops if s.kind not in ("via", "drift")]) - len(writer.lost)
 
 

@@ -132,7 +132,7 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     return StreamResult(status["matched"], status["skipped"], status["incomplete"] + status["inconsistent"],
                         status["unconfirmed"],
                         status["rejected"], stored["measured"], stored["failed"],
-                        sum(1 for e in events if e[0] == "drift_check"), finder.samples,
+                        len(events), finder.samples,
                         1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
                         next_stop, len(stops), bool(finder.point_mode), result)
 
@@ -171,7 +171,7 @@ def _previous(run, frame, layout) -> dict:
 
 
 def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout, finder, first_m, state):
-    """(stream_match rows, PoseRecords, drift events) of the stops from ``first_m`` (index among
+    """(stream_match rows, PoseRecords, DriftReadings) of the stops from ``first_m`` (index among
     the measured stops) to the last one matched."""
     from campaign.measure.driver import _derive
     from campaign.measure.store import PoseRecord
@@ -184,9 +184,7 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
     t_first = finder.t_first
     rows, records, events = [], [], []
     seq0 = int(state.get("seq", 0))
-    refs = {int(k): v for k, v in (state.get("drift_reference") or {}).items()}
     eye = np.eye(4)
-    threshold_mm = run.config.run.drift_threshold_mm
     for mi in range(first_m, last + 1):
         s = stops[measured_idx[mi]]
         m = by_stop.get(mi)
@@ -209,23 +207,12 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
         t_s = None if w is None else clock0 + 0.5 * (w.t0 + w.t1) - t_first
         rows.append([s.stop, s.pose_id, s.kind, "" if w is None else f"{w.t0:.6f}", "" if w is None else f"{w.t1:.6f}",
                      0 if w is None else w.samples, "" if w is None else f"{w.spread_m() * 1e3:.6f}", status, log_name])
-        if s.kind == "drift":
-            ref = refs.get(s.pose_id)
-            drift = None
-            if status == "matched" and ref is not None:
-                drift = float(np.linalg.norm(np.array(xyz) - np.array(ref)))
-            over = drift is not None and drift * 1e3 > threshold_mm
-            events.append(("drift_check", {"reference_pose_id": s.pose_id,
-                                           "drift_mm": None if drift is None else drift * 1e3,
-                                           "over_threshold": over, "stop": s.stop}, s.pose_id, t_s))
-            if over:
-                events.append(("warning", {"message": f"warning: drift check at stop {s.stop}: reference pose "
-                                                      f"{s.pose_id} moved {drift * 1e3:.3f} mm (threshold "
-                                                      f"{threshold_mm} mm)"}, s.pose_id, t_s))
+        if s.kind == "drift":  # stored as `campaign run` stores its drift checks (_store)
+            events.append(DriftReading(s.stop, s.pose_id, s.q, xyz if status == "matched" else None, t_s,
+                                       seq0 + len(records)))
             continue
         seq = seq0 + len(records)
         if status == "matched":
-            refs.setdefault(s.pose_id, list(xyz))
             refl = {names[c]: (tuple(map(float, w.position[c])), "ok") for c in range(len(P_E))}
             records.append(PoseRecord(s.pose_id, "measured", s.q, seq=seq, time_s=t_s, xyz=xyz, rotvec=rotvec,
                                       fit_rms_m=rms, reflectors=refl))
@@ -235,8 +222,55 @@ def _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layo
         if i not in matched_windows:
             rows.append(["", "", "", f"{w.t0:.6f}", f"{w.t1:.6f}", w.samples, f"{w.spread_m() * 1e3:.6f}",
                          "rejected", log_name])
-    state["drift_reference"] = {str(k): v for k, v in refs.items()}
     return rows, records, events
+
+
+@dataclass(frozen=True)
+class DriftReading:
+    """A drift stop's outcome: its stop, reference pose id and q, the tool point it read (3,) m in
+    the log's frame or None, its campaign time (s), the poses stored before it."""
+
+    stop: int
+    pose_id: int
+    q: tuple
+    xyz: tuple | None
+    time_s: float | None
+    n_stored: int
+
+
+def _drift_checks(store, run, readings, records, P_E) -> int:
+    """Store the drift stops' readings as `campaign run` stores its drift checks
+    (campaign.measure.driver._record_drift_check: ``drift_check`` events, warnings over the run's
+    threshold). The reference is the log's ``drift_reference`` or, the first time, the drift stops'
+    pose as measured (the program returns to the tour's first pose), else the first drift reading.
+    Returns the warnings."""
+    from dataclasses import replace
+
+    from campaign.measure.driver import RunOptions, _record_drift_check
+
+    cfg = run.config
+    opts = replace(RunOptions.from_config(cfg.run), tracker_noise_m=cfg.tracker.noise_m)
+    reference = store.get_meta("drift_reference")
+    earlier = [] if reference is None else [reference["xyz"]] + [
+        d["xyz_m"] for _, _, _, d in store.events("drift_check") if isinstance(d, dict) and d.get("xyz_m")]
+    measured = {r.pose_id: r.xyz for r in records if r.status == "measured"}
+    warned = 0
+    for d in readings:
+        if reference is None:
+            first = measured.get(d.pose_id) or d.xyz
+            if first is None:
+                store.add_event("drift_check", {"reference_pose_id": d.pose_id, "drift_mm": None,
+                                                "over_threshold": False}, pose_id=d.pose_id, time_s=d.time_s)
+                continue
+            reference = {"pose_id": d.pose_id, "q": list(map(float, d.q)), "xyz": list(map(float, first))}
+            store.set_meta("drift_reference", reference)
+            earlier = [reference["xyz"]]
+            if d.pose_id not in measured:  # this reading is the reference's first
+                continue
+        xyz = None if d.xyz is None else np.asarray(d.xyz, dtype=float)
+        warned += _record_drift_check(store, reference, xyz, earlier, opts, P_E, d.n_stored, d.pose_id, d.time_s,
+                                      lambda msg: None)
+    return warned
 
 
 def _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot) -> Path:
@@ -275,19 +309,17 @@ def _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, 
                                         "repeats stops an earlier log imported")
                 if records:
                     store.add_poses(records)
-                for kind_, detail, pid, t in events:
-                    store.add_event(kind_, detail, pose_id=pid, time_s=t)
+                _drift_checks(store, run, events, records, P_E)
                 src = store.get_meta("source", {})
                 src.setdefault("logs", []).append(str(layout.path.resolve()))
                 store.set_meta("source", src)
                 clock = max([state.get("clock_s", 0.0)] + [r.time_s for r in records if r.time_s is not None]
-                            + [e[3] for e in events if e[3] is not None])
+                            + [e.time_s for e in events if e.time_s is not None])
                 store.set_meta("campaign_clock_s", clock)
                 store.add_event("stream_import", {"log": str(layout.path.resolve()), "samples": finder.samples,
                                                   "next_stop": next_stop}, time_s=clock)
                 seq = int(state.get("seq", 0)) + len(records)
-                store.set_meta(META_KEY, {"next_stop": next_stop, "clock_s": clock + 1.0, "seq": seq,
-                                          "drift_reference": state.get("drift_reference", {})})
+                store.set_meta(META_KEY, {"next_stop": next_stop, "clock_s": clock + 1.0, "seq": seq})
             if new:
                 path.replace(target)
         finally:
