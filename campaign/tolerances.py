@@ -280,10 +280,13 @@ DOMAIN_PAIR_FACTOR = 1.5
 #: much: at 48 poses 1.4 flags 6 % of fresh poses at worst, at 16 even 1.6 flags 10 %)
 DOMAIN_PAIR_MIN_POSES = 60
 
-#: `compensate --program`: a target the calibrated model does not reach exactly (beyond the real
-#: robot's reach, beside a singularity) still gets the solver's last iterate, which is never farther
-#: from it than the written joints (the solver takes only improving steps), when no joint moved more
-#: than this (rad; m for a prismatic joint) from the written one: corrections are of the size of the
-#: robot's errors (the paper's Table 4: up to about 1°); a larger step is the solver leaving the
-#: target's branch, so the target is left as written (a program's clearances were planned for it)
-PROGRAM_BEST_EFFORT_STEP_RAD = 0.035
+#: `compensate --program`: the largest joint step (rad; m for a prismatic joint) a target's correction
+#: may take and be written. Corrections are of the size of the robot's errors (the paper's Table 4:
+#: joint offsets of up to about 1°, tool errors of about 1.6°), amplified for the wrist's outer
+#: joints near its singularity (joint 4 by 12.7° at q5 = 16° in tests/test_program_compensate.py,
+#: joint 6 turning back as much); another configuration differs by far more (a wrist flip by 180°,
+#: the shoulder beside its singularity swung joint 1 by 44°), and the program's clearances were
+#: planned for the written joints. It also bounds the solver's last iterate written for a target the
+#: model does not reach exactly (never farther from it than the written joints: the solver takes
+#: only improving steps)
+PROGRAM_BEST_EFFORT_STEP_RAD = 0.52

@@ -257,30 +257,62 @@ def test_motions_to_targets_held_elsewhere_are_listed(fmt, text, listed):
     assert [(u.line, u.why[:len(w)]) for u, (_, w) in zip(unclear, listed)] == listed
 
 
-def test_a_target_beyond_the_real_reach_gets_the_nearest_or_is_left(tmp_path, robot, calibrated, capsys):
-    """The elbow nearly stretched: the calibrated arm cannot reach some poses the nominal one does.
-    The solver's last iterate is written when it moves no joint more than 2° (never farther from the
-    pose than the written joints: the truth agrees), else the target is left as written."""
+def test_a_target_beyond_the_real_reach_gets_the_nearest_and_another_configuration_is_left(
+        tmp_path, robot, calibrated, capsys):
+    """The elbow nearly stretched: the calibrated arm cannot reach a pose the nominal one does; the
+    solver's nearest iterate is written (never farther from the pose than the written joints: the
+    truth agrees). A target whose correction would swing a joint by tens of degrees (the shoulder
+    beside its singularity) is left as written."""
     from campaign.identify.use import CalibratedRobot
     from campaign.tolerances import PROGRAM_BEST_EFFORT_STEP_RAD
 
     run, truth, poses = calibrated
     q = np.tile(np.radians([0.5, 40.0, -90.0, 10.0, 40.0, 20.0]), (81, 1))
     q[:, 2] = np.radians(np.linspace(-100.0, -80.0, 81))
-    q_new, _, ok = CalibratedRobot(run).compensate(forward(robot, q), q)
-    step = np.abs(q_new - q).max(axis=1)
-    near = np.flatnonzero(~ok & (step < 0.9 * PROGRAM_BEST_EFFORT_STEP_RAD))
-    far = np.flatnonzero(~ok & (step > 1.1 * PROGRAM_BEST_EFFORT_STEP_RAD))
-    assert len(near) and len(far)  # this truth's arm is shorter there: both cases occur
-    chosen = q[[near[0], far[0]]]
+    cal = CalibratedRobot(run)
+    q_new, _, ok = cal.compensate(forward(robot, q), q)
+    near = np.flatnonzero(~ok & (np.abs(q_new - q).max(axis=1) < PROGRAM_BEST_EFFORT_STEP_RAD))
+    assert len(near)  # this truth's arm is shorter there
+    swing = poses.q[1].copy()
+    swing[0] = 2.5
+    q_swing, _, _ = cal.compensate(forward(robot, swing[None]), swing[None])
+    assert np.abs(q_swing - swing).max() > 2 * PROGRAM_BEST_EFFORT_STEP_RAD
+    chosen = np.vstack([q[near[0]], swing])
     lines = [f"  movej([{', '.join(f'{v:.9f}' for v in qq)}])" for qq in chosen]
     (tmp_path / "a.script").write_text("def a():\n" + "\n".join(lines) + "\nend\n")
     assert main(["compensate", str(run), "--program", str(tmp_path / "a.script"), "--format", "urscript"]) == 0
     said = capsys.readouterr().out
-    assert "line 2: joint target: reached to within" in said and "line 3: joint target: the calibrated model " \
-        "does not reach it" in said
+    assert "line 2: joint target: reached to within" in said
+    assert "line 3: joint target: the correction would move q" in said
     new = (tmp_path / "a_compensated.script").read_text().splitlines()
     assert new[2] == lines[1]  # left as written
     q_written = np.array([float(v) for v in new[1].split("[")[1].split("]")[0].split(",")])
     T_meant = forward(robot, chosen[:1])
     assert _mm(_true_pose(truth, poses, q_written), T_meant)[0] < _mm(_true_pose(truth, poses, chosen[:1]), T_meant)[0]
+
+
+def test_joint_limits_and_strict_with_a_program(tmp_path, robot, calibrated, capsys):
+    """A written joint target past a joint limit is named and left (--limit-slack reads it); --strict
+    refuses a program with a target outside the calibrated domain, writing nothing."""
+    run, _, poses = calibrated
+    q_past = poses.q[2].copy()
+    q_past[4] = robot.q_upper[4] + np.radians(0.5)  # half a degree past joint 5's limit
+    q_out = poses.q[1].copy()
+    q_out[0] = 2.5  # joint 1 where no pose was measured
+    lines = [f"  movej([{', '.join(f'{v:.9f}' for v in qq)}])" for qq in (poses.q[0], q_past, q_out)]
+    prog = tmp_path / "a.script"
+    prog.write_text("def a():\n" + "\n".join(lines) + "\nend\n")
+    assert main(["compensate", str(run), "--program", str(prog), "--format", "urscript"]) == 0
+    said = capsys.readouterr().out
+    assert "line 3: joint target: q5 = " in said and "is past its limit" in said
+    assert (tmp_path / "a_compensated.script").read_text().splitlines()[2] == lines[1]
+    assert main(["compensate", str(run), "--program", str(prog), "--format", "urscript", "--limit-slack", "1",
+                 "--out", str(tmp_path / "b.script")]) == 0
+    said = capsys.readouterr().out
+    assert "line 3: joint target: q5 = " not in said  # read within the slack: compensated or named as corrected
+    assert (tmp_path / "b.script").read_text().splitlines()[2] != lines[1] or "line 3: joint target: corrected" in said
+    assert main(["compensate", str(run), "--program", str(prog), "--format", "urscript", "--strict",
+                 "--out", str(tmp_path / "c.script")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "1 target(s) outside the calibrated domain with --strict (line 4): nothing written" in err
+    assert not (tmp_path / "c.script").exists()

@@ -449,10 +449,16 @@ def _compensate_program(args):
         raise ConfigError("--program needs --format (urscript, krl, rapid, fanuc-ls, pdl2, ros2-trajectory, csv)")
     if args.columns is not None or args.angle_unit != "rad":
         raise ConfigError("--columns and --angle-unit go with --csv; a program's units are its language's")
+    from campaign.identify.use import CalibratedRobot, run_joint_slack
+
+    calibrated = CalibratedRobot(args.run, stage=args.stage)
+    slack = run_joint_slack(args.run, calibrated.robot, args.limit_slack)[0]
     out, res = compensate_program_file(args.run, args.program, args.format, out=args.out, stage=args.stage,
-                                       progress=sys.stderr.isatty())
+                                       slack=slack, strict=args.strict, progress=sys.stderr.isatty(),
+                                       calibrated=calibrated)
     print(f"wrote {out}: {res.joints} joint and {res.poses} Cartesian targets compensated ({res.stage}), "
-          f"{len(res.unclear)} not understood, {len(res.outside)} outside the calibrated domain or not reached")
+          f"{len(res.unclear)} not understood, {len(res.outside_domain)} outside the calibrated domain, "
+          f"{len(res.outside) - len(res.outside_domain)} left as written or not reached exactly")
     for line, text, why in res.unclear:
         print(f"  line {line}: not understood, left as written: {why}: {text}")
     for line, why in res.outside:

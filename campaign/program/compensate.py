@@ -430,6 +430,8 @@ class ProgramCompensation:
     unclear: tuple
     outside: tuple
     stage: str
+    #: the lines of the targets outside the calibrated domain (`--strict` refuses them)
+    outside_domain: tuple = ()
 
 
 def measured_ranges(run_dir, robot):
@@ -472,30 +474,60 @@ def _outside_domain(cal, run_dir, checked) -> list:
     return out
 
 
-def _best_effort(t, step, residual, outside) -> bool:
-    """For a target the calibrated model does not reach exactly: True (rewritten, named with how
-    near it comes) when the solver's last iterate moved no joint more than
-    PROGRAM_BEST_EFFORT_STEP_RAD; else False (named, left as written)."""
+def _acceptable(t, robot, step, residual, converged, q_new, outside) -> bool:
+    """Whether a target's corrected joints q_new (N,) are written; what is not, is named. They are
+    when no joint moves more than PROGRAM_BEST_EFFORT_STEP_RAD for them (corrections are of the size
+    of the robot's errors; a larger step is another configuration, or the solver wandering beside a
+    singularity, where the program's clearances were planned for the written joints) and they lie
+    within the joint limits. A target the model does not reach exactly (beyond the real robot's
+    reach, beside a singularity) gets the solver's last iterate, never farther from it than the
+    written joints (the solver takes only improving steps), named with how near it comes."""
     from campaign.tolerances import PROGRAM_BEST_EFFORT_STEP_RAD
 
     what = t.name or ("joint target" if t.kind == "joint" else "Cartesian target")
     mm, mrad = np.linalg.norm(residual[:3]) * 1e3, np.linalg.norm(residual[3:]) * 1e3
-    if np.max(np.abs(step)) <= PROGRAM_BEST_EFFORT_STEP_RAD:
+    big = int(np.argmax(np.abs(step)))
+    if abs(step[big]) > PROGRAM_BEST_EFFORT_STEP_RAD:
+        unit, f = ("mm", 1e3) if robot.prismatic[big] else ("deg", 180.0 / np.pi)
+        reached = "" if converged else f", {mm:.3f} mm off"
+        outside.append((t.line, f"{what}: the correction would move q{big + 1} by {step[big] * f:.1f} {unit}{reached} "
+                                "(another configuration, beyond the real robot's reach or beside a singularity; "
+                                "left as written)"))
+        return False
+    j = _beyond_limits(robot, q_new)
+    if j is not None:
+        outside.append((t.line, f"{what}: corrected, {_limit_words(robot, q_new, j)} (left as written)"))
+        return False
+    if not converged:
         outside.append((t.line, f"{what}: reached to within {mm:.3f} mm, {mrad:.3f} mrad only (beyond the real "
                                 "robot's reach or beside a singularity; rewritten, nearer than as written)"))
-        return True
-    outside.append((t.line, f"{what}: the calibrated model does not reach it (beyond the real robot's reach or "
-                            f"beside a singularity: {mm:.3f} mm off after a joint step of "
-                            f"{np.degrees(np.max(np.abs(step))):.1f} deg; left as written)"))
-    return False
+    return True
+
+
 #: joint targets solved together (one progress step)
 BLOCK = 500
 
 
-def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=None,
+def _beyond_limits(robot, q, slack=0.0) -> int | None:
+    """The first joint (0-based) of q (N,) past its limit by more than ``slack`` (N,) or None."""
+    limited = np.array([t != "continuous" for t in robot.joint_types], dtype=bool)
+    bad = np.flatnonzero(((q < robot.q_lower - slack) | (q > robot.q_upper + slack)) & limited)
+    return int(bad[0]) if len(bad) else None
+
+
+def _limit_words(robot, q, j) -> str:
+    unit, f = ("mm", 1e3) if robot.prismatic[j] else ("deg", 180.0 / np.pi)
+    lim = robot.q_lower[j] if q[j] < robot.q_lower[j] else robot.q_upper[j]
+    return f"q{j + 1} = {q[j] * f:.3f} {unit} is past its limit {lim * f:.3f} {unit}"
+
+
+def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=None, slack=None,
                        progress: bool = False) -> ProgramCompensation:
     """Rewrite the targets of a program ``text`` of format ``fmt`` through the calibration of
-    ``run_dir`` (module docstring). ``progress``: a bar on stderr."""
+    ``run_dir`` (module docstring). ``slack`` (N,) rad/m: how far past the joint limits a written
+    joint target is still read (campaign.identify.use.run_joint_slack; default: what the run's import
+    accepted); beyond, and where the corrected joints would pass a limit, a target is named and left
+    as written. ``progress``: a bar on stderr."""
     from campaign.progress import Progress
 
     from campaign.identify.use import CalibratedRobot
@@ -504,6 +536,10 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
 
     cal = calibrated or CalibratedRobot(run_dir, stage=stage)
     robot = cal.robot
+    if slack is None:
+        from campaign.identify.use import run_joint_slack
+
+        slack = run_joint_slack(run_dir, robot)[0]
     if cal.context_keys:
         raise ConfigError(f"the calibrated model ({cal.stage}) needs per-pose context ({', '.join(cal.context_keys)}) "
                           "that a program does not give; compensate with --stage geometric or a stage without it")
@@ -533,9 +569,14 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
         new_ctrl = np.atleast_2d(robot.to_controller_q(q_new)) * scale
         for k, (t, qn, qc, good) in enumerate(zip(joints, q_new, new_ctrl, ok)):
             solved[id(t)] = q[k]
-            if not good and not _best_effort(t, qn - q[k], res[k], outside):
+            what = t.name or "joint target"
+            j = _beyond_limits(robot, q[k], slack)
+            if j is not None:
+                outside.append((t.line, f"{what}: {_limit_words(robot, q[k], j)} (left as written)"))
                 continue
             note_domain(t, qn, q[k])
+            if not _acceptable(t, robot, qn - q[k], res[k], good, qn, outside):
+                continue
             edits += _write(text, t.spans, qc, [least_joint] * len(qc))
             n_joint += 1
     previous = robot.q_mid.copy()
@@ -548,12 +589,14 @@ def compensate_program(run_dir, text: str, fmt: str, *, stage=None, calibrated=N
             previous, n_pose = q_t, n_pose + 1
         bar.update(1)
     bar.close()
-    outside += _outside_domain(cal, run_dir, checked)
+    domain = _outside_domain(cal, run_dir, checked)
+    outside += domain
     new = text
     for s, e, tok in sorted(edits, reverse=True):
         new = new[:s] + tok + new[e:]
     unclear = tuple((u.line, u.text, u.why) for u in sorted(found.unclear, key=lambda u: u.line))
-    return ProgramCompensation(new, n_joint, n_pose, unclear, tuple(sorted(outside)), cal.stage)
+    return ProgramCompensation(new, n_joint, n_pose, unclear, tuple(sorted(outside)), cal.stage,
+                               tuple(sorted(line for line, _ in domain)))
 
 
 def nominal_solutions(robot, T, previous, config=None, n_starts: int = 24):
@@ -597,18 +640,20 @@ def _compensate_pose(text, t, cal, previous, edits, outside, note_domain, least)
         outside.append((t.line, f"{what}: the nominal robot does not reach it{why} (left as written)"))
         return None
     q, res, ok = cal.compensate(T[None], sols[:1])
-    if not ok[0] and not _best_effort(t, q[0] - sols[0], res[0], outside):
-        return None
     note_domain(t, q[0], sols[0])
+    if not _acceptable(t, robot, q[0] - sols[0], res[0], ok[0], q[0], outside):
+        return None
     values = T_to_pose(forward(robot, q)[0], t.convention, t.values)
     dec = [least[0]] * 3 + [least[1]] * (len(values) - 3)
     edits += _write(text, t.spans, values, dec)
     return q[0]
 
 
-def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None, progress: bool = False) -> tuple:
+def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None, slack=None, strict: bool = False,
+                            progress: bool = False, calibrated=None) -> tuple:
     """Read ``program``, rewrite it (:func:`compensate_program`), write ``out`` (default: beside
-    it, ``<stem>_compensated<suffix>``; never the program itself). Returns (out path, result)."""
+    it, ``<stem>_compensated<suffix>``; never the program itself). ``strict``: DataError, nothing
+    written, when a target lies outside the calibrated domain. Returns (out path, result)."""
     from campaign.fileio import atomic_write
 
     program = Path(program)
@@ -621,8 +666,12 @@ def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None,
     out = Path(out) if out is not None else program.with_name(program.stem + "_compensated" + program.suffix)
     if out.resolve() == program.resolve():
         raise ConfigError(f"--out {out}: is the program itself; write the filtered program to another file")
-    res = compensate_program(run_dir, text, fmt, stage=stage, progress=progress)
-    if not res.joints and not res.poses and not res.unclear:
+    res = compensate_program(run_dir, text, fmt, stage=stage, slack=slack, progress=progress, calibrated=calibrated)
+    if not res.joints and not res.poses and not res.unclear and not res.outside:
         raise DataError(f"{program}: no {fmt} targets found (is --format right?)")
+    if strict and res.outside_domain:
+        lines = res.outside_domain
+        raise DataError(f"{program}: {len(lines)} target(s) outside the calibrated domain with --strict (line "
+                        f"{', '.join(map(str, lines[:10]))}{', ...' if len(lines) > 10 else ''}): nothing written")
     atomic_write(out, res.text)
     return out, res
