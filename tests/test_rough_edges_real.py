@@ -302,14 +302,18 @@ def test_export_says_the_joint_convention_the_gravity_and_what_it_leaves_out(com
     assert main(["export", str(run), "--urdf", str(tmp_path / "cal.urdf")]) == 0
     out = capsys.readouterr().out
     text = (tmp_path / "cal.urdf").read_text()
-    for said in ("joints: the URDF's own convention", "gravity in the root frame 'I': (0, 9.81, 0) m/s^2",
+    for said in ("joints: the URDF's own convention", "gravity in the base frame 'I': (0, 9.81, 0) m/s^2",
                  "left out: the effects ground_compliance"):
         assert said in out and said in text
-    g = [float(v) for v in re.search(r"gravity in the root frame 'I': \(([^)]*)\)", text).group(1).split(",")]
     from campaign.model.robot import RobotModel
 
-    np.testing.assert_allclose(g, RobotModel.load().gravity_in_I, atol=1e-9)  # robot.yaml's, not -z
     pin.buildModelFromUrdf(str(tmp_path / "cal.urdf"))  # still a URDF
+    import xml.etree.ElementTree as ET
+
+    ET.parse(tmp_path / "cal.urdf")  # and well-formed XML: no "--" in the comment
+    # the exported URDF loaded as a robot (a bare URDF, no robot.yaml) has the COMAU's gravity, not -z
+    exported = RobotModel.load(str(tmp_path / "cal.urdf"), tool_frame="E")
+    np.testing.assert_allclose(exported.gravity_in_I, RobotModel.load().gravity_in_I, atol=1e-12)
 
 
 # -- item 17: each held-out figure named by what it is ---------------------------------------------

@@ -230,9 +230,11 @@ def export_notes(run_dir, robot: RobotModel) -> list:
         mm = ", ".join(f"{v * 1e3:.1f}" for v in robot.tool_point)
         notes.append(f"the measured point: frame '{measured_point_link(robot)}' ({mm}) mm in '{robot.tool_frame}', "
                      "where `campaign predict` gives the calibrated poses (one-reflector data)")
-    g = ", ".join(f"{v:.4g}" for v in robot.gravity_in_I)
-    notes.append(f"gravity in the root frame '{robot.base_frame}': ({g}) m/s^2 (a URDF cannot state it: give it to "
-                 "Pinocchio or a simulator, whose default is (0, 0, -9.81))")
+    from campaign.model.robot import EXPORTED_GRAVITY
+
+    g = ", ".join(f"{v:.6g}" for v in robot.gravity_in_I)
+    notes.append(EXPORTED_GRAVITY.format(base=robot.base_frame, g=g) + " (a URDF cannot state it: give it to Pinocchio "
+                 "or a simulator, whose default is (0, 0, -9.81); campaign reads it back from this line)")
     effects = list((params.get("effects") or {}))
     left = [f"the effects {', '.join(effects)} (identified with the geometry; the URDF holds the geometric-only "
             "identification)"] if effects else []

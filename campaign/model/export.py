@@ -143,7 +143,9 @@ def _with_comment(text: str, notes) -> str:
     """``notes`` as one XML comment after the declaration of the XML ``text``."""
     if not notes:
         return text
-    body = "\n".join(f"  {n}" for n in notes).replace("--", "- -")
+    body = "\n".join(f"  {n}" for n in notes)
     head, sep, rest = text.partition("?>")
-    comment = f"\n<!--\n  The calibrated geometric model written by `campaign export --urdf`.\n{body}\n-->"
-    return head + sep + comment + rest if sep else f"<!--\n{body}\n-->\n" + text
+    inner = f"\n  The calibrated geometric model, as `campaign export` writes it.\n{body}\n"
+    while "--" in inner:  # a comment may not hold "--" (XML 1.0, 2.5)
+        inner = inner.replace("--", "- -")
+    return head + sep + f"\n<!--{inner}-->" + rest if sep else f"<!--{inner}-->\n" + text

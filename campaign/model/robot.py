@@ -853,6 +853,8 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
 
     # -- robot.yaml's extras ---------------------------------------------------------------
     g = _gravity_field(meta, src, base)
+    if not any(k in meta for k in GRAVITY_FIELDS):  # a URDF written by `campaign export --urdf` states its own
+        g = exported_gravity(urdf_path, base, g)
 
     def vecN(keys, default, what):
         for key in keys:
@@ -944,6 +946,32 @@ def _gravity_field(meta, src, base) -> np.ndarray:
                                           np.asarray(meta[given[1]], dtype=float), rtol=0, atol=1e-12):
         raise ConfigError(f"{src}: fields '{given[0]}' and '{given[1]}' are the same field and disagree; give one")
     return np.asarray(meta[given[0]] if given else DEFAULT_GRAVITY, dtype=float)
+
+
+#: how `campaign export --urdf` states the gravity in its header comment (read back by :func:`exported_gravity`)
+EXPORTED_GRAVITY = "gravity in the base frame '{base}': ({g}) m/s^2"
+
+
+def exported_gravity(urdf_path, base: str, default) -> np.ndarray:
+    """The gravity (3,) m/s² that the header comment of a URDF written by `campaign export --urdf`
+    states for the base frame ``base`` (:data:`EXPORTED_GRAVITY`), else ``default``: a URDF cannot
+    state gravity, and the exported COMAU's is +y, not the -z a bare URDF gets."""
+    import re
+
+    try:
+        with open(urdf_path, encoding="utf-8", errors="replace") as fh:
+            head = fh.read(4000)
+    except OSError:
+        return default
+    pattern = re.escape(EXPORTED_GRAVITY.format(base=base, g="@")).replace("@", r"([^)]*)")
+    m = re.search(pattern, head)
+    if m is None or "<!--" not in head[:m.start()]:
+        return default
+    try:
+        g = np.array([float(v) for v in m.group(1).split(",")])
+    except ValueError:
+        return default
+    return g if g.shape == (3,) and np.all(np.isfinite(g)) and np.linalg.norm(g) > 1e-6 else default
 
 
 def _frame_field(which: str, given) -> str:
