@@ -75,3 +75,12 @@ def test_every_page_is_in_the_sites_navigation():
     missing = [str(p.relative_to(ROOT / "docs")) for p in sorted((ROOT / "docs").rglob("*.md"))
                if "generated" not in p.parts and str(p.relative_to(ROOT / "docs")) not in listed]
     assert not missing, missing
+
+
+def test_the_readmes_demo_excerpt_quotes_the_demos_numbers():
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"\*\*1\. The demo.*?```text\n(.*?)```", readme, re.DOTALL).group(1)
+    demo = (ROOT / "docs" / "generated" / "demo.txt").read_text()
+    number = re.compile(r"(?<![\w.])\d+(?:\.\d+)?")
+    missing = [n for n in number.findall(block) if not re.search(rf"(?<![\w.]){re.escape(n)}(?![\d])", demo)]
+    assert not missing, missing  # the excerpt went stale: copy the lines from docs/generated/demo.txt
