@@ -80,7 +80,8 @@ def test_predict_and_compensate_read_the_files_own_column_names_as_import_does(n
     assert main([cmd, str(run), "--csv", str(tmp_path / "plain.csv"), *out["plain"]]) == 0
     assert main([cmd, str(run), "--csv", str(tmp_path / "yaml.csv"), *out["yaml"]]) == 0
     assert main([cmd, str(run), "--csv", str(tmp_path / "flag.csv"), *out["flag"]]) == 1
-    assert "column(s) J1, J2, J3, J4, J5, J6, which the header does not have" in capsys.readouterr().err
+    err = capsys.readouterr().err  # the mapping robot.yaml gave, named as robot.yaml's (no --columns was given)
+    assert "robot.yaml: columns: names column(s) J1, J2, J3, J4, J5, J6, which the header does not have" in err
     assert main([cmd, str(run), "--csv", str(tmp_path / "flag.csv"), *out["flag"],
                  "--columns", ",".join(f"q{j}=A{j}" for j in range(1, 7))]) == 0
     ref_header, ref = _read(tmp_path / "plain_out.csv")

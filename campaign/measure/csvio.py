@@ -107,8 +107,8 @@ def _rename_header(path, header, rename, optional=None) -> list:
     missing = [src for src, name in rename.items()
                if src not in header and name not in header and not (optional and optional(name))]
     if missing:
-        raise DataError(f"{path}: --columns names column(s) {', '.join(missing)}, which the header does not have "
-                        f"(it has {', '.join(header)})")
+        raise DataError(f"{path}: {getattr(rename, 'source', '--columns')} names column(s) {', '.join(missing)}, "
+                        f"which the header does not have (it has {', '.join(header)})")
     return [rename.get(h, h) for h in header]
 
 
@@ -367,6 +367,15 @@ def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> 
     known = {"pose_id", "time_s", *joints, *layout.measure_columns, *EXPORTED_DOMAIN_COLUMNS}
     return CsvLayout(kind, joints, k, tuple(h for h in header if h not in known), "time_s" in hs, rotation,
                      "pose_id" in hs)
+
+
+class ColumnMap(dict):
+    """{column in the file: name used}, and where the mapping was given (``source``: ``--columns``
+    or a robot.yaml's ``columns:``), for the messages."""
+
+    def __init__(self, mapping=(), source: str = "--columns"):
+        super().__init__(mapping)
+        self.source = source
 
 
 def parse_columns(text) -> dict:

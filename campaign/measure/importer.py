@@ -113,11 +113,11 @@ def column_mapping(robot, columns=None) -> dict:
     """The file's column names as {column in the file: name used}: ``columns`` (``--columns``
     text or a parsed mapping) when given, else robot.yaml's ``columns:``. import, predict and
     compensate read their CSVs through it."""
-    from campaign.measure.csvio import parse_columns
+    from campaign.measure.csvio import ColumnMap, parse_columns
 
     if not columns:
-        return robot_yaml_columns(robot)
-    return dict(columns) if isinstance(columns, dict) else parse_columns(columns)
+        return ColumnMap(robot_yaml_columns(robot), f"{robot.meta_path}: columns:")
+    return ColumnMap(columns if isinstance(columns, dict) else parse_columns(columns), "--columns")
 
 
 def robot_yaml_columns(robot) -> dict:
