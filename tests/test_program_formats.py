@@ -1,5 +1,8 @@
 """`campaign program`: every format checked by its structural checker, against golden files of a
-small plan, and read back to the joint values of RUN/program/stops.csv in the format's units."""
+small plan, and read back to the joint values of RUN/program/stops.csv in the format's units.
+
+The golden files (tests/data/program/golden/) are rewritten by running this file with
+CAMPAIGN_UPDATE_GOLDEN=1 after a deliberate change of a format; review their diff."""
 
 import os
 import shutil
