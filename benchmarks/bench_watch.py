@@ -65,6 +65,7 @@ class Client(threading.Thread):
     def __init__(self, port: int):
         super().__init__(daemon=True)
         self.base, self.stop, self.requests, self.errors, self.seen = f"http://127.0.0.1:{port}/", False, 0, 0, 0
+        self.cost = None
 
     def get(self, path):
         with urllib.request.urlopen(self.base + path, timeout=5) as r:
@@ -76,8 +77,10 @@ class Client(threading.Thread):
         while not self.stop:
             try:
                 st = self.get("api/status")
-                if time.monotonic() - details_at > 3.0:
-                    self.get("api/details")
+                # details every 3 s, as the page; every time once the run is over, so that the last
+                # answer before a --watch run's process exits holds the watcher's whole cost
+                if time.monotonic() - details_at > 3.0 or st["state"] != "running":
+                    self.cost = self.get("api/details")["watcher"]
                     details_at = time.monotonic()
                 if st["measured"] + st["failed"] > self.seen:
                     self.seen += len(self.get(f"api/poses?from={self.seen}"))
@@ -127,16 +130,18 @@ def one(template: Path, work: Path, config: str) -> dict:
             c.start()
     driver.wait()
     wall = time.perf_counter() - t0
-    watcher_cost = None
-    if clients:  # what serving cost, as the server counts it (--watch: still serving while pages poll)
-        try:
-            watcher_cost = clients[0].get("api/details")["watcher"]
-        except OSError:
-            watcher_cost = None
     for c in clients:
         c.stop = True
     for c in clients:
         c.join()
+    # what serving cost, as the server counts it: its last answer (`campaign watch` still serves)
+    costs = [c.cost for c in clients if c.cost]
+    if watcher is not None and clients:
+        try:
+            costs.append(clients[0].get("api/details")["watcher"])
+        except OSError:
+            pass
+    watcher_cost = max(costs, key=lambda c: c["requests"]) if costs else None
     if watcher is not None:
         watcher.terminate()
         watcher.wait()

@@ -104,8 +104,8 @@ def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
     try:
         for path in ("/", "/api/status", "/api/poses", "/?token=wrong-token-0123456789"):
             assert get(server.port, path)[0] == 401
-        status, headers, _ = get(server.port, f"/api/status?token={TOKEN}")
-        assert status == 303 and headers["Location"] == "/api/status"  # the token leaves the address bar
+        status, headers, body = get(server.port, f"/api/status?token={TOKEN}")
+        assert status == 200 and json.loads(body)["state"] == "planned"
         cookie = headers["Set-Cookie"]
         assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and TOKEN not in cookie
         jar = {"Cookie": cookie.split(";")[0]}
@@ -253,6 +253,39 @@ def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished
     assert parser.parse_args(["auto", "r", "--sim", "--watch"]).watch == 8765
     assert parser.parse_args(["run", "r", "--sim", "--watch", "9000"]).watch == 9000
     assert parser.parse_args(["run", "r", "--sim"]).watch is None
+
+
+def test_the_nominal_residuals_follow_pinocchio_and_the_calibrated_ones_calibrates_own_metrics(measured, robot):
+    import pinocchio as pin
+
+    from campaign.watch.view import RunView
+
+    run, _, _ = measured.make(n=40, seed=4)
+    view = RunView(run)
+    before = view.poses()
+    assert all(p["error_calibrated_mm"] is None for p in before)  # no calibration yet
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    time.sleep(0.3)
+    rows = view.poses()
+    model = robot.pinocchio_model
+    data = model.createData()
+    frame = model.getFrameId(robot.tool_frame)
+    with sqlite3.connect(f"file:{run / 'measurements.sqlite'}?mode=ro", uri=True) as db:
+        q = {p: r for p, *r in db.execute("SELECT pose_id, q1, q2, q3, q4, q5, q6 FROM poses")}
+    for p in rows:  # the nominal point by Pinocchio, not by the package's kinematics
+        pin.framesForwardKinematics(model, data, robot.pinocchio_q(np.array([q[p["pose_id"]]]))[0])
+        T_IE = np.linalg.inv(robot.T_root_base) @ data.oMf[frame].homogeneous
+        assert np.allclose(p["nominal_xyz_m"], T_IE[:3, 3], atol=1e-9)
+        assert math.isclose(p["error_nominal_mm"], 1e3 * np.linalg.norm(T_IE[:3, 3] - p["xyz_m"]), rel_tol=1e-6)
+    # the calibrated residuals average to what calibrate reported for its train and test sets
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    stage = metrics["stages"][metrics["order"][-1]]
+    n = {k: stage[k]["n_poses"] for k in ("train", "test")}
+    expected = sum(n[k] * stage[k]["position_mm"]["mean"] for k in n) / sum(n.values())
+    got = [p["error_calibrated_mm"] for p in rows]
+    assert len(got) == sum(n.values()) and math.isclose(np.mean(got), expected, rel_tol=1e-6)
+    assert np.median(got) < 0.2 * np.median([p["error_nominal_mm"] for p in rows])
+    assert view.details()["calibration_stage"] == metrics["order"][-1]
 
 
 # -- live, in a real browser ---------------------------------------------------------------------------

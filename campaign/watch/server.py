@@ -9,9 +9,9 @@ Routes (GET only):
 * ``/run/<folder>/<file>``: the reports' files (calibration, diagnose, iso9283, auto, plan only).
 
 Beyond loopback a shared secret is required (``--token-file``, as for `campaign serve`): the
-browser gives it once as ``?token=...``, is answered with a cookie (HttpOnly, SameSite=Strict)
-and redirected to the same address without the token; every request without that cookie is
-refused (401). Every answer is strict JSON or a file of the package or the run: nothing from a
+browser gives it once as ``?token=...`` and is answered with a cookie (HttpOnly, SameSite=Strict,
+a keyed hash of the token, not the token); the page then takes the token out of its address
+(``history.replaceState``). Every request with neither is refused (401). Every answer is strict JSON or a file of the package or the run: nothing from a
 request is evaluated.
 """
 
@@ -162,8 +162,9 @@ class _Handler(BaseHTTPRequestHandler):
             pass
 
     def _authorised(self, url, query) -> bool:
-        """True with the cookie; a right ?token= gets the cookie and a redirect without it."""
+        """True with the cookie, or with the right ?token= (the answer then sets the cookie)."""
         w = self.watch
+        self._set_cookie = False
         try:
             jar = SimpleCookie(self.headers.get("Cookie") or "")
         except CookieError:
@@ -172,14 +173,8 @@ class _Handler(BaseHTTPRequestHandler):
             return True
         token = query.get("token", [""])[0]
         if token and hmac.compare_digest(hashlib.sha256(token.strip().encode()).digest(), w.key):
-            rest = "&".join(f"{k}={v}" for k, vs in query.items() if k != "token" for v in vs)
-            self.send_response(303)
-            self.send_header("Set-Cookie", f"{COOKIE}={w.cookie_value}; HttpOnly; SameSite=Strict; Path=/")
-            self.send_header("Location", url.path + (f"?{rest}" if rest else ""))
-            self.send_header("Content-Length", "0")
-            self.send_header("Referrer-Policy", "no-referrer")
-            self.end_headers()
-            return False
+            self._set_cookie = True
+            return True
         self._send(401, b"campaign watch: open this page once as http://HOST:PORT/?token=<the text of the token "
                         b"file>; the browser then keeps a cookie\n", "text/plain; charset=utf-8")
         return False
@@ -196,6 +191,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Referrer-Policy", "no-referrer")
         if csp:
             self.send_header("Content-Security-Policy", _CSP)
+        if getattr(self, "_set_cookie", False) and code == 200:
+            self.send_header("Set-Cookie", f"{COOKIE}={self.watch.cookie_value}; HttpOnly; SameSite=Strict; Path=/")
         self.end_headers()
         self.wfile.write(body)
 

@@ -365,5 +365,10 @@ function dragToTurn() {
   $("colour").addEventListener("change", renderSpace);
 }
 
-window.addEventListener("DOMContentLoaded", () => { dragToTurn(); tick(); });
+window.addEventListener("DOMContentLoaded", () => {
+  // opened once as ?token=...: the server answered with a cookie; the token leaves the address bar
+  if (new URLSearchParams(location.search).has("token")) history.replaceState(null, "", location.pathname);
+  dragToTurn();
+  tick();
+});
 window.addEventListener("resize", () => { if (S.status) render(); });
