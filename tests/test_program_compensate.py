@@ -45,11 +45,6 @@ def _mm(T_a, T_b):
     return np.linalg.norm(pose_error(T_a, T_b)[:, :3], axis=1) * 1e3
 
 
-def _joints_inside(robot, n, seed):
-    q = random_joint_poses(robot, n, seed=seed, margin=0.3)
-    return q
-
-
 @pytest.mark.parametrize("fmt", ["urscript", "krl", "rapid", "fanuc-ls", "pdl2", "ros2-trajectory", "csv"])
 def test_joint_targets_of_every_program_reach_the_nominal_poses(tmp_path, robot, calibrated, fmt):
     run, truth, poses = calibrated
