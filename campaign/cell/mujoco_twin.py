@@ -54,6 +54,7 @@ from campaign.config import check_int, check_number, load_config
 from campaign.errors import ConfigError
 from campaign.measure.protocol import SETUP_TARGETS
 from campaign.measure.reflectors import transform_points
+from campaign.tolerances import REFLECTOR_RADIUS_M
 
 #: key of the twin in the cell's shared dict
 SHARED_KEY = "campaign.cell.mujoco_twin"
@@ -73,8 +74,8 @@ DEFAULT_TIMESTEP_S = 1e-3
 MAX_OMEGA_DT = 1.0
 #: random configurations in which a pair of chain frames must always touch to be excluded from contacts
 EXCLUDE_SAMPLES = 100
-#: radius of a 1.5" spherically mounted reflector (m): the beam ends at its surface
-DEFAULT_NEST_RADIUS_M = 0.01905
+#: radius of a 1.5" spherically mounted reflector (m): the beam ends at its surface (as the plan's)
+DEFAULT_NEST_RADIUS_M = REFLECTOR_RADIUS_M
 DEFAULT_RESOLUTION_M = 1e-6
 #: how far from where it is aimed (m) the tracker finds a reflector (its search spiral)
 DEFAULT_SEARCH_RADIUS_M = 0.05

@@ -16,13 +16,21 @@ import numpy as np
 
 from campaign.plan.geometry import (RobotSpheres, fcl_geometry, frame_spheres, hull_geometry,
                                     point_primitive_distance, robot_primitives, robot_spheres, to_world)
+from campaign.tolerances import REFLECTOR_RADIUS_M
 
 
 def occludes(robot, prim) -> bool:
-    """Whether a robot primitive may occlude the tracker's beams: the links before the last
-    joint (COMAU: frames 0-5). The last link and the tool carry the reflectors and lie behind
-    their nests' cones, so they cannot block a beam that passed the cone test."""
-    return prim.frame < robot.n_joints
+    """Whether a robot primitive may occlude the tracker's beams: every link, the last one and
+    what hangs from the tool frame (a hand, its fingers) too, checked against the beam from the
+    reflector's sphere on (:func:`beam_starts`): the tool right around a nest lies within it."""
+    return True
+
+
+def beam_starts(scene, P):
+    """Where each beam leaves its reflector: the point of the reflector's sphere
+    (tolerances.REFLECTOR_RADIUS_M) towards the tracker, (n, k, 3) for centres P (n, k, 3)."""
+    to = scene.tracker_position - P
+    return P + REFLECTOR_RADIUS_M * to / np.linalg.norm(to, axis=-1, keepdims=True)
 
 
 def reflector_geometry(robot, R_E, t_E):
@@ -95,8 +103,10 @@ def robot_beam_hits(robot, scene, P, R, t):
     """The beams each robot link (:func:`occludes`) may block, by its bounding box widened by the
     beam radius: yields (primitive index, (n, k) bool, the beams' ends (reflector, tracker) in the
     primitive's frame (n, k, 3) each). P (n, k, 3) reflector centres; R, t: frames (n, N+2, ...).
-    Conservative: a beam it does not flag is clear of that link."""
+    Conservative: a beam it does not flag is clear of that link. The beams start at the
+    reflectors' spheres (:func:`beam_starts`)."""
     o = scene.tracker_position
+    P = beam_starts(scene, P)
     for i, prim in enumerate(robot_primitives(robot)):
         if not occludes(robot, prim):
             continue
@@ -323,11 +333,12 @@ class ClearanceChecker:
 
         o, radius = self.scene.tracker_position, self.scene.beam_radius_m
         flagged = {}  # pose -> [(primitive, reflector)] whose box, spheres and hull may stop the beam
+        S = beam_starts(self.scene, P)  # the beams leave the reflectors' spheres
         for i, hits, p0, p1 in robot_beam_hits(self.robot, self.scene, P, R, t):
             k, r = np.nonzero(hits)
             if len(k) == 0:
                 continue
-            near = ~self._spheres_clear_beams(i, R[k], t[k], P[k, r], o, radius)
+            near = ~self._spheres_clear_beams(i, R[k], t[k], S[k, r], o, radius)
             if self.prims[i].mesh is not None and near.any():
                 near[near] = segments_meet_hull(self.prims[i].mesh, p0[k[near], r[near]], p1[k[near], r[near]], radius)
             for kk, rr in zip(k[near], r[near]):
@@ -337,7 +348,7 @@ class ClearanceChecker:
             beams = {}
             self._place(R[k], t[k], sorted({i for i, _ in pairs}))
             for i, r in pairs:
-                beam = beams.get(r) or beams.setdefault(r, _beam_object(fcl, P[k, r], o, radius))
+                beam = beams.get(r) or beams.setdefault(r, _beam_object(fcl, S[k, r], o, radius))
                 if fcl.collide(beam, self.robot_objs[i], fcl.CollisionRequest(), fcl.CollisionResult()) > 0:
                     out[k] = (i, r)
                     break
@@ -584,10 +595,15 @@ def why_no_pose(robot, scene, grid, checker, removed, hidden, near, seed=0) -> s
         (i, r), n = max(found.items(), key=lambda kv: kv[1]) if found else ((0, 0), 0)
         ref = robot.reflectors[r]
         where = ", ".join(f"{v:g}" for v in np.round(ref.position_in_E, 4))
-        return (f"a link of the robot hides a reflector in each of the {len(hidden):,} poses the tracker could see "
-                f"(in {n} of {len(sample)} sampled: link '{checker.prims[i].link}' hides reflector {ref.name} at "
-                f"({where}) m in {tool}): the reflectors sit too near the arm; name a tool frame at the tip of the "
-                "tool (--tool-frame) or the reflectors where they are mounted (robot.yaml, docs/robot_yaml.md)")
+        own = checker.prims[i].frame >= robot.n_joints  # the last link, or a hand / fingers beyond the tool frame
+        what = "the robot itself hides" if own else "a link of the robot hides"
+        link = f"its {'hand ' if checker.prims[i].frame > robot.n_joints else ''}link '{checker.prims[i].link}'"
+        return (f"{what} a reflector in each of the {len(hidden):,} poses the tracker could see "
+                f"(in {n} of {len(sample)} sampled: {link} hides reflector {ref.name} at "
+                f"({where}) m in {tool}): the reflectors sit "
+                + ("inside or behind the robot's own tool side; " if own else "too near the arm; ")
+                + "name a tool frame at the tip of the tool (--tool-frame) or the reflectors where they are mounted "
+                  "(robot.yaml reflectors, docs/robot_yaml.md)")
     names = [o.name for o in scene.obstacles]
     for k in range(len(sample)):
         d_scene, d_self = checker.pair_distances(R[k], t[k])
@@ -716,16 +732,17 @@ class ExactChecker:
         self._fcl = fcl
 
     def line_of_sight_clear(self, R, t, P) -> bool:
-        """FCL distance from each beam (a capsule of the beam radius) to the scene and the occluding links > 0."""
+        """FCL distance from each beam (a capsule of the beam radius) to the scene, and from each
+        beam leaving its reflector's sphere (:func:`beam_starts`) to the occluding links, > 0."""
         fcl = self._fcl
         o = self.scene.tracker_position
         self.clearance._place(R, t)
-        others = list(self.clearance.scene_objs) + [obj for obj, p in zip(self.clearance.robot_objs, self.clearance.prims)
-                                                   if occludes(self.robot, p)]
-        for p in P:
-            beam = _beam_object(fcl, p, o, self.scene.beam_radius_m)
-            for obj in others:
-                res = fcl.DistanceResult()
-                if fcl.distance(beam, obj, fcl.DistanceRequest(), res) <= 0.0:
-                    return False
+        links = [obj for obj, p in zip(self.clearance.robot_objs, self.clearance.prims) if occludes(self.robot, p)]
+        for p, start in zip(P, beam_starts(self.scene, np.asarray(P)[None])[0]):
+            for beam, others in ((_beam_object(fcl, p, o, self.scene.beam_radius_m), self.clearance.scene_objs),
+                                 (_beam_object(fcl, start, o, self.scene.beam_radius_m), links)):
+                for obj in others:
+                    res = fcl.DistanceResult()
+                    if fcl.distance(beam, obj, fcl.DistanceRequest(), res) <= 0.0:
+                        return False
         return True
