@@ -297,7 +297,7 @@ SCANNERS = {"urscript": (_scan_urscript, "rad"), "krl": (_scan_krl, "deg"), "rap
             "fanuc-ls": (_scan_fanuc, "deg"), "pdl2": (_scan_pdl2, "deg"), "ros2-trajectory": (_scan_ros2, "rad"),
             "csv": (_scan_csv, "rad")}
 #: decimals written at least, by format (joint values; poses: length, angle/quaternion)
-DECIMALS = {"urscript": (9, 7, 9), "krl": (4, 4, 5), "rapid": (4, 4, 8), "fanuc-ls": (3, 3, 3),
+DECIMALS = {"urscript": (9, 7, 9), "krl": (4, 4, 5), "rapid": (4, 4, 8), "fanuc-ls": (4, 4, 4),
             "pdl2": (4, 4, 5), "ros2-trajectory": (9, 0, 0), "csv": (15, 0, 0)}
 
 

@@ -12,7 +12,9 @@ letters, digits and ``_``, starting with a letter; a comment line (``!``) at mos
 The number of lines and positions a TP program may hold is bounded by the controller's TP memory
 (FANUC gives no single figure; large programs also load slowly through the ASCII loader), so we
 split at MAX_STOPS_PER_PART stops (positions P[1..500], about 2,500 lines) a program; the program
-``NAME`` calls the parts in order. Positions are written with 3 decimals, as the LS format does.
+``NAME`` calls the parts in order. Positions are written with 4 decimals: the pendant shows 3, but
+the controller keeps 32-bit reals and the ASCII loader reads more digits (generated LS files carry
+6); 3 would leave up to 0.0005° a joint, about 10 µm at the tool, the size of a tracker's noise.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from campaign.program import common as C
 
 EXTENSION = ".ls"
 UNITS = "deg"
-DECIMALS = 3
+DECIMALS = 4
 MAX_NAME = 8
 MAX_COMMENT = 32
 MAX_LINE = 255
