@@ -131,7 +131,7 @@ def runs_full(robot):
     truth = make_truth(robot, seed=8)
     poses = synthesize(truth, random_joint_poses(robot, 150, seed=9), seed=10)
     model = CalibrationModel(robot=robot).fit(poses.q, poses.T_IE)
-    unc = model_uncertainty(model, poses.q, poses.T_IE)
+    unc = model_uncertainty(model)
     return model, calibrated_domain(robot, poses.q), unc, truth, poses.T_LI, robot
 
 

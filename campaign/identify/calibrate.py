@@ -579,8 +579,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                  stage=stage_name(effects) if effects else "geometric", fix=fix))
     result = with_checks(result, robot, poses, geo, stage_name(effects))
     models = {"geometric": geo, **({stage_name(effects): model} if effects else {})}
-    record = domain_record(robot, models, poses.q[tr], Y[tr], ctx_tr, poses.q, context, floor.as_json(), is_test,
-                           ident)
+    record = domain_record(robot, models, poses.q[tr], poses.q, context, floor.as_json(), is_test, ident)
     result = replace(result, domain=record, warnings=tuple(result.warnings) + tuple(ident.findings(robot)))
     if strict and result.warnings:
         raise Implausible(f"{run_dir}: {len(result.warnings)} plausibility warning(s) with --strict "

@@ -36,11 +36,41 @@ from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMA
 DOMAIN_FILE = "domain.json"
 
 
+def encode_array(a) -> dict:
+    """A float64 array as strict JSON: {"dtype": "<f8", "shape", "base64"} (little-endian, C order):
+    exact, and a 14,000-pose campaign's joints are written in milliseconds, not as 84,000 numbers."""
+    import base64
+
+    a = np.ascontiguousarray(a, dtype="<f8")
+    return {"dtype": "<f8", "shape": list(a.shape), "base64": base64.b64encode(a.tobytes()).decode("ascii")}
+
+
+def decode_array(d) -> np.ndarray:
+    """The array of :func:`encode_array` (or a plain nested list)."""
+    import base64
+    import binascii
+
+    if isinstance(d, dict):
+        if d.get("dtype") != "<f8":
+            raise ValueError(f"dtype {d.get('dtype')!r}, expected '<f8'")
+        try:
+            raw = base64.b64decode(d["base64"], validate=True)
+        except binascii.Error as exc:
+            raise ValueError(f"base64: {exc}") from None
+        a = np.frombuffer(raw, dtype="<f8")
+        shape = tuple(int(v) for v in d["shape"])
+        if a.size != int(np.prod(shape)):
+            raise ValueError(f"{a.size} values for shape {shape}")
+        return a.reshape(shape).astype(float)
+    return np.asarray(d, dtype=float)
+
+
 @dataclass(frozen=True, eq=False)
 class Domain:
     """Per joint (N,): training ``lower``/``upper``, ``margin``, ``scale`` (rad or m), ``coverage``
     (share of the joint's limit range, in DOMAIN_COVERAGE_BINS bins, holding a training pose);
-    the training poses ``q_train`` (n, N) and the nearest-pose ``threshold`` (scaled units)."""
+    the training poses ``q_train`` (n, N); the nearest-pose ``threshold`` (scaled units) follows from
+    them, computed when first asked (a calibration that only writes its domain does not pay for it)."""
 
     lower: np.ndarray
     upper: np.ndarray
@@ -48,7 +78,20 @@ class Domain:
     scale: np.ndarray
     coverage: np.ndarray
     q_train: np.ndarray
-    threshold: float
+
+    @cached_property
+    def _tree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.q_train / self.scale)
+
+    @cached_property
+    def threshold(self) -> float:
+        """DOMAIN_NN_FACTOR × the largest leave-one-out nearest-pose distance of the training poses."""
+        if len(self.q_train) < 2:
+            return 1.0
+        d, _ = self._tree.query(self.q_train / self.scale, k=2)
+        return max(DOMAIN_NN_FACTOR * float(d[:, 1].max()), 1e-9)
 
     def within_ranges(self, q) -> np.ndarray:
         """(n, N) bool: each joint within its widened training range."""
@@ -57,10 +100,7 @@ class Domain:
 
     def nearest_distance(self, q) -> np.ndarray:
         """(n,) the scaled distance to the nearest training pose."""
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(self.q_train / self.scale)
-        d, _ = tree.query(np.asarray(q, dtype=float).reshape(-1, len(self.scale)) / self.scale, k=1)
+        d, _ = self._tree.query(np.asarray(q, dtype=float).reshape(-1, len(self.scale)) / self.scale, k=1)
         return np.asarray(d, dtype=float)
 
     @cached_property
@@ -126,20 +166,19 @@ class Domain:
                             "upper": float(self.upper[j]), "margin": float(self.margin[j]),
                             "scale": float(self.scale[j]), "coverage": float(self.coverage[j])}
                            for j in range(len(self.scale))],
-                "nearest_pose_threshold": float(self.threshold), "n_train": int(len(self.q_train)),
-                "training_q": [[float(v) for v in row] for row in self.q_train]}
+                "n_train": int(len(self.q_train)),
+                "training_q": encode_array(self.q_train)}
 
     @classmethod
     def from_json(cls, d, where) -> "Domain":
         try:
             joints = d["joints"]
             get = lambda key: np.array([float(j[key]) for j in joints])  # noqa: E731
-            q = np.asarray(d["training_q"], dtype=float).reshape(-1, len(joints))
-            out = cls(get("lower"), get("upper"), get("margin"), get("scale"), get("coverage"), q,
-                      float(d["nearest_pose_threshold"]))
+            q = decode_array(d["training_q"]).reshape(-1, len(joints))
+            out = cls(get("lower"), get("upper"), get("margin"), get("scale"), get("coverage"), q)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"{where}: malformed domain ({exc.__class__.__name__}: {exc})") from None
-        if not len(q) or not np.all(out.scale > 0):
+        if not len(q) or not np.all(out.scale > 0) or not np.all(np.isfinite(q)):
             raise DataError(f"{where}: the domain needs training poses and positive scales")
         return out
 
@@ -152,7 +191,6 @@ class Domain:
 
 def calibrated_domain(robot, q_train) -> Domain:
     """The :class:`Domain` of the training poses q_train (n, N) of ``robot``."""
-    from scipy.spatial import cKDTree
 
     q = np.asarray(q_train, dtype=float)
     n = len(q)
@@ -168,37 +206,37 @@ def calibrated_domain(robot, q_train) -> Domain:
             lo, hi = lower[j], upper[j] + 1e-12
         b = np.clip(((q[:, j] - lo) / (hi - lo) * DOMAIN_COVERAGE_BINS).astype(int), 0, DOMAIN_COVERAGE_BINS - 1)
         coverage[j] = len(np.unique(b)) / DOMAIN_COVERAGE_BINS
-    qs = q / scale
-    if n > 1:
-        d, _ = cKDTree(qs).query(qs, k=2)
-        loo = d[:, 1]
-        threshold = DOMAIN_NN_FACTOR * float(loo.max())
-    else:
-        threshold = 1.0
-    return Domain(lower, upper, margin, scale, coverage, q, max(threshold, 1e-9))
+    return Domain(lower, upper, margin, scale, coverage, q)
 
 
 def domain_path(folder) -> Path:
     return Path(folder) / DOMAIN_FILE
 
 
-def domain_record(robot, models: dict, q_train, Y_train, ctx_train, q_all, ctx_all, noise_floor, is_test,
-                  identifiability) -> dict:
+def domain_record(robot, models: dict, q_train, q_all, ctx_all, noise_floor, is_test, identifiability) -> dict:
     """What ``domain.json`` holds (without its calibration_id) and what metrics.json says of it
     (``over_domain``), with ``sigma_all`` {stage: (n,) mm at every measured pose} for the report.
 
     models: {stage: fitted CalibrationModel} (the geometric model and the current physical one);
-    q_train, Y_train, ctx_train: their training data; q_all, ctx_all: every measured pose (the
-    uncertainty over the domain); is_test (n,) bool of those; identifiability: the current
+    q_train: their training poses; q_all, ctx_all: every measured pose (the uncertainty over the
+    domain), the training ones those of q_train in order; is_test (n,) bool of those; identifiability: the current
     model's :class:`campaign.identify.identifiability.Identifiability`."""
     from campaign.identify.uncertainty import model_uncertainty
 
     domain = calibrated_domain(robot, q_train)
     unc, over, sigma_all = {}, {}, {}
+    train = ~np.asarray(is_test, dtype=bool)
     for stage, m in models.items():
-        u = model_uncertainty(m, q_train, Y_train, ctx_train if m.effect_set_.effects else None, noise_floor)
+        u = model_uncertainty(m, noise_floor)
         unc[stage] = u
-        s = 1e3 * u.sigma_m(robot, m.effect_set_, m.params_, m.effect_params_, q_all, ctx_all)
+        s = np.empty(len(q_all))
+        if m.points is None and len(q_all[train]) == len(m.jacobian_at_fit_):  # the fit's own rows at its poses
+            s[train] = 1e3 * u.sigma_from_jacobian(m.jacobian_at_fit_[:, :3, :], m)
+            rest = ~train
+        else:
+            rest = np.ones(len(q_all), dtype=bool)
+        s[rest] = 1e3 * u.sigma_m(robot, m.effect_set_, m.params_, m.effect_params_, q_all[rest],
+                                  {k: np.asarray(v)[rest] for k, v in (ctx_all or {}).items()})
         sigma_all[stage] = s
         over[stage] = {"sigma_mm_mean": float(np.mean(s)), "sigma_mm_q95": float(np.quantile(s, 0.95)),
                        "test_sigma_mm_mean": float(np.mean(s[is_test])) if np.any(is_test) else None,
@@ -211,8 +249,7 @@ def domain_metrics(record: dict, robot, stages: dict, current: str) -> dict:
     """metrics.json's ``domain`` and ``uncertainty``: per-joint ranges and coverage; the current
     model's sigma_mm over the measured poses (mean, 95th percentile) beside its held-out error."""
     joints = [{k: j[k] for k in ("joint", "unit", "lower", "upper", "coverage")} for j in record["domain"]["joints"]]
-    out = {"domain": {"joints": joints, "n_train": record["domain"]["n_train"],
-                      "nearest_pose_threshold": record["domain"]["nearest_pose_threshold"], "file": DOMAIN_FILE}}
+    out = {"domain": {"joints": joints, "n_train": record["domain"]["n_train"], "file": DOMAIN_FILE}}
     unc = {}
     for stage, over in record["over_domain"].items():
         test = stages.get(stage, {}).get("test", {}).get("position_mm", {})

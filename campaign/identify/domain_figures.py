@@ -1,5 +1,6 @@
 """The calibrated domain drawn (campaign.identify.svgplot): per joint, the training range with its
-margin (shaded), the measured poses' sigma_mm (markers) and sigma_mm along a sweep of that joint
+margin (shaded), the measured poses' sigma_mm (binned along the joint: mean and 5-95 % band) and
+sigma_mm along a sweep of that joint
 over its whole limit range, the other joints at the training poses' median (line): the model's
 uncertainty rising where the data end. And the page section of the report that shows it."""
 
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from campaign.identify.report import binned_quantiles
 from campaign.identify.svgplot import LABEL_PX, Svg, SvgPanels, colour
 
 #: points of each joint's sweep
@@ -47,14 +49,15 @@ def svg_domain(robot, domain, sweeps, q_measured, sigma_measured, out: Path, nam
         a, b = (domain.lower[j] - domain.margin[j]) * f[j], (domain.upper[j] + domain.margin[j]) * f[j]
         grid.band(0, j, [a, b], [lo_y, lo_y], [hi_y, hi_y], color="#2ca02c", alpha=0.15)
         grid.line(0, j, x * f[j], np.log10(np.maximum(s, 1e-6)), color=colour(0), width=1.6)
-        order = np.argsort(q[:, j])
-        grid.line(0, j, q[order, j] * f[j], s_meas[order], color=colour(1), width=0.0, marker=True)
+        b = binned_quantiles(q[:, j] * f[j], s_meas)  # the measured poses, aggregated along the joint
+        grid.band(0, j, b["x"], b["q05"], b["q95"], color=colour(1), alpha=0.35)
+        grid.line(0, j, b["x"], b["mean"], color=colour(1), width=1.0, marker=True)
     svg = Svg(grid.width, grid.height)
     unit = ["mm" if p else "deg" for p in robot.prismatic]
     grid.finish(svg, xlabels=[f"q{j + 1} [{unit[j]}]" for j in range(N)], ylabels=["log10 sigma_mm"], zero_line=False)
     svg.text(grid.width / 2, 18, title or "the model's 1-σ position uncertainty at the tool point: along each "
-             "joint's range (line, the others at the training median) and at the measured poses (dots); shaded: "
-             "the calibrated domain", size=LABEL_PX, anchor="middle")
+             "joint's range (line, the others at the training median) and at the measured poses (dots: bin mean, "
+             "band 5-95 %); green: the calibrated domain", size=LABEL_PX, anchor="middle")
     return svg.save(Path(out) / name)
 
 

@@ -1,13 +1,15 @@
 """How well the calibrated model is known, pose by pose: ``sigma_mm`` at the tool point.
 
-The unknowns' posterior covariance is carried to all 6N + 12 error parameters and the effects'
-parameters ``[p_e, θ]``: ``Σ = (JᵀWJ / s² + P)⁺`` with J the training rows' Jacobian in every one
-of them (the tracker pose is the base transform's six), W the fitted rows' weights, s² the a
-posteriori variance factor and P the prior's precision (campaign.model.priors, the tolerances)
-on what the fit did not determine from the data: a least-squares fit's held and dependent
-parameters (the fitted ones carry no prior, so their σ is least squares'), a MAP fit's every
-parameter at its fitted strength. A direction the training poses do not see (a joint that never
-moved) thus keeps its tolerance, and shows at the poses that move it.
+The fit's unknowns (base parameters, or every error parameter of a MAP fit on the redundant model;
+the effects' parameters; the tracker pose is the base transform's six) have the posterior covariance
+``Σ = (JᵀWJ / s² + P)⁺``, J the training rows' Jacobian at the optimum in every unknown (held ones
+too), W the fitted rows' weights, s² the a posteriori variance factor and P the prior's precision
+(campaign.model.priors, the tolerances) on what the fit did not determine from the data: a
+least-squares fit's held unknowns only (the fitted ones carry no prior, so their σ is least
+squares'), a MAP fit's every unknown at its fitted strength. A direction the training poses do not
+see (a joint that never moved) thus keeps its tolerance, and shows at the poses that move it. It is
+carried to all 6N + 12 error parameters and the effects' ``[p_e, θ]`` (the dependent parameters at
+zero: the predictions depend on the base parameters only).
 
 At a pose q the model's position covariance is ``J_t(q) Σ J_t(q)ᵀ`` (J_t the tool point's rows),
 plus, per axis, the model's systematic error beyond the noise, ``s_sys² = σ_fit² − σ_floor²``
@@ -43,39 +45,53 @@ def full_jacobian(robot, effect_set, q, p_e, theta, context=None, *, T_meas=None
     return m._jacobian(q, p_e, theta, context, T_meas)
 
 
-def posterior_covariance(model, q, Y, context=None) -> tuple:
-    """(Σ (6N + 12 + k, 6N + 12 + k), names): the covariance of ``[p_e, θ]`` of a fitted
-    CalibrationModel on its training data (q, Y as given to ``fit``), in SI units."""
+def unknowns_covariance(model) -> np.ndarray:
+    """(r + k, r + k): the covariance of a fitted CalibrationModel's unknowns (its ``unknown_names_``:
+    base parameters, or every error parameter for MAP on the redundant model, then the effects'),
+    from the fit's own Jacobian at the optimum on its training rows (``jacobian_at_fit_``, every
+    unknown, held ones too): ``(JᵀWJ / s² + P)⁺``, P the fit's prior on its free unknowns (none for
+    least squares) and the tolerance prior on the held ones (a base parameter's marginal prior
+    variance, ``C Σ₀ Cᵀ``)."""
+    from campaign.identify.solver import _normal_equations
+    from campaign.model.priors import make_prior
+
     robot, es = model.robot, model.effect_set_
-    n_p = robot.n_params
-    points = model._points()
-    J = full_jacobian(robot, es, q, model.params_, model.effect_params_, context, points=points,
-                      T_meas=None if points is not None else np.asarray(Y, dtype=float))
+    n_p, r = robot.n_params, len(model.cols_)
     sig = model.row_sigma_
-    if points is None:
-        J = J[:, model._rows(), :]
-    else:
-        J = J * np.repeat(np.isfinite(np.asarray(Y)).all(axis=2), 3, axis=1)[:, :, None]
-    Jw = (J / sig[None, :, None]).transpose(2, 1, 0).reshape(J.shape[2], -1)
-    H = Jw @ Jw.T
+    J = model.jacobian_at_fit_
+    H, _ = _normal_equations(J / sig[None, :, None], np.zeros(J.shape[:2]))
     e = model.residual_at_fit_ / sig
     dof = max(model.n_equations_ - model.n_effective_, 1.0)
     s2 = float(np.sum(e ** 2)) / dof  # the variance factor at the fit's final weights
-    from campaign.model.priors import make_prior
-
     prior = make_prior(robot, es.effects)
-    precision = prior.precision().copy()
-    if model.kind_ == "map":
-        precision *= float(model.prior_strength)
-    else:  # least squares: no prior on what the fit determined from the data
-        fitted = [model.cols_[i] if i < len(model.cols_) else n_p + i - len(model.cols_) for i in model.free_]
-        precision[fitted] = 0.0
-    A = H / s2 + np.diag(precision)
+    strength = float(model.prior_strength) if model.kind_ == "map" else 1.0
+    if r == n_p and model.kind_ == "map" and model.physical:  # the redundant model: every physical parameter
+        geometric = prior.precision()[:n_p]
+    else:
+        var = np.diag(prior.base_covariance(model.base_))
+        geometric = np.where(var > 0, 1.0 / np.where(var > 0, var, 1.0), 0.0)
+    held = np.full(r + es.n_params, strength)
+    held *= np.concatenate([geometric, prior.precision()[n_p:]])
+    P = np.diag(held)
+    free = np.asarray(model.free_, dtype=int)
+    P[np.ix_(free, free)] = model.fit_prior_precision_ if model.kind_ == "map" else 0.0
+    A = H / s2 + P
     w, V = np.linalg.eigh(A)
     keep = w > max(w.max(), 1e-300) * 1e-14
     cov = (V[:, keep] / w[keep]) @ V[:, keep].T
-    names = tuple(robot.param_names) + tuple(es.param_names)
-    return 0.5 * (cov + cov.T), names
+    return 0.5 * (cov + cov.T)
+
+
+def posterior_covariance(model) -> tuple:
+    """(Σ (6N + 12 + k, 6N + 12 + k), names): the unknowns' covariance (:func:`unknowns_covariance`)
+    carried to ``[p_e, θ]`` (the error parameters outside the unknowns, dependent on the base
+    parameters, at zero: the model's predictions do not depend on them), SI units."""
+    robot, es = model.robot, model.effect_set_
+    n_p = robot.n_params
+    idx = list(model.cols_) + [n_p + i for i in range(es.n_params)]
+    cov = np.zeros((n_p + es.n_params, n_p + es.n_params))
+    cov[np.ix_(idx, idx)] = unknowns_covariance(model)
+    return cov, tuple(robot.param_names) + tuple(es.param_names)
 
 
 def systematic_sigma(model, noise_floor: dict | None) -> tuple:
@@ -123,6 +139,16 @@ class Uncertainty:
             out[s:s + 4096] = np.sqrt(np.sum((J @ L) ** 2, axis=(1, 2)) + 3 * self.systematic_sigma_m ** 2)
         return out
 
+    def sigma_from_jacobian(self, J, model) -> np.ndarray:
+        """(n,) m: the same from the tool point's position rows J (n, 3, r + k) in a fitted model's
+        unknowns (its ``jacobian_at_fit_[:, :3]`` at its own poses: no kinematics again)."""
+        n_p = model.robot.n_params
+        idx = list(model.cols_) + [n_p + i for i in range(model.effect_set_.n_params)]
+        w, V = np.linalg.eigh(self.covariance[np.ix_(idx, idx)])
+        L = V[:, w > 0] * np.sqrt(w[w > 0])
+        JL = np.asarray(J, dtype=float).reshape(-1, J.shape[-1]) @ L
+        return np.sqrt(np.sum(JL.reshape(len(J), -1) ** 2, axis=1) + 3 * self.systematic_sigma_m ** 2)
+
     def as_json(self) -> dict:
         return {"names": list(self.names), "covariance": [[float(v) for v in row] for row in self.covariance],
                 "systematic_sigma_m": float(self.systematic_sigma_m), "basis": self.basis}
@@ -142,8 +168,8 @@ class Uncertainty:
         return cls(names, cov, sys_m, str(d.get("basis", "")))
 
 
-def model_uncertainty(model, q, Y, context=None, noise_floor=None) -> Uncertainty:
-    """The :class:`Uncertainty` of a fitted CalibrationModel (q, Y, context: its training data)."""
-    cov, names = posterior_covariance(model, q, Y, context)
+def model_uncertainty(model, noise_floor=None) -> Uncertainty:
+    """The :class:`Uncertainty` of a fitted CalibrationModel (noise_floor: NoiseFloor.as_json() or None)."""
+    cov, names = posterior_covariance(model)
     sys_m, basis = systematic_sigma(model, noise_floor)
     return Uncertainty(names, cov, sys_m, basis)
