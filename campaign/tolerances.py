@@ -292,19 +292,6 @@ DOMAIN_PAIR_MIN_POSES = 60
 #: only improving steps)
 PROGRAM_BEST_EFFORT_STEP_RAD = 0.52
 
-#: `compensate --program`: a target the calibrated model does not reach exactly (beyond the real
-#: robot's reach, beside a singularity) still gets the solver's last iterate, which is never farther
-#: from it than the written joints (the solver takes only improving steps), when no joint moved more
-#: than this (rad; m for a prismatic joint) from the written one: corrections are of the size of the
-#: robot's errors (the paper's Table 4: up to about 1°); a larger step is the solver leaving the
-#: target's branch, so the target is left as written (a program's clearances were planned for it)
-PROGRAM_BEST_EFFORT_STEP_RAD = 0.035
-
-#: Training poses per cell of the pairwise occupancy grids: a cell the training spread reaches stays
-#: empty with probability about exp(-this) (0.1 % at 7), over 15-21 joint pairs under 1 % for a
-#: uniform spread; denser and sparser parts of a real plan take the rest of the 5 % budget
-DOMAIN_PAIR_POSES_PER_CELL = 7.0
-
 #: A tracker's beam ends at the surface of the reflector's sphere (a 1.5" spherically mounted
 #: reflector, 19.05 mm radius; the MuJoCo twin's nest_radius_m): the plan checks the robot's links
 #: (the last link, the hand and fingers beyond the tool frame too) against the beam from there on,
