@@ -4,7 +4,6 @@ its tool frame 'panda_hand'). The twin (MuJoCo's ray cast) is the independent re
 
 import json
 
-import pytest
 import yaml
 
 from campaign.cli import main
@@ -21,14 +20,34 @@ def _robot_yaml(tmp_path, erd, reflectors=None):
 
 
 def test_the_plan_refuses_in_one_line_reflectors_the_pandas_own_hand_hides(tmp_path, erd, capsys):
-    """Without reflectors in robot.yaml the default triad sits on the tool frame, inside the hand."""
-    robot = _robot_yaml(tmp_path, erd)
+    """A 5 cm triad on the tool frame 'panda_hand' sits inside the hand: no beam leaves it."""
+    robot = _robot_yaml(tmp_path, erd, [{"name": f"m{i + 1}", "position_m": p}
+                                        for i, p in enumerate([[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]])])
     assert main(["plan", "--run", str(tmp_path / "r"), "--robot", str(robot), "--grid-scale", "0.5", "--select", "30",
                  "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the robot itself hides a reflector" in err[0] and "'panda_hand'" in err[0], err
     assert "robot.yaml reflectors" in err[0]
     assert not (tmp_path / "r" / "plan" / "poses.csv").exists()
+
+
+def test_the_pandas_default_reflectors_sit_beyond_its_fingers_and_the_twin_sees_every_one(tmp_path, erd, capsys):
+    """`--robot panda` (example-robot-data's, tool frame panda_hand): the default triad is mounted
+    beyond the hand and fingers the tool frame carries; planned, every pose measures on the twin."""
+    from campaign.run import load_robot
+
+    erd("panda_description/urdf/panda.urdf")  # skips without the test extra
+    robot = load_robot("panda")
+    lifted = robot.with_default_reflectors().reflectors
+    # the fingers' tips: the finger joints' origin (5.84 cm) plus the finger's own length (~5.4 cm)
+    assert 0.10 < robot.default_reflector_lift_m - 0.01905 - 0.01 < 0.12
+    assert all(r.position_in_E[2] >= robot.default_reflector_lift_m for r in lifted)
+    run = tmp_path / "r"
+    assert main(["plan", "--run", str(run), "--robot", "panda", "--grid-scale", "0.5", "--select", "30", "--quiet"]) == 0
+    assert main(["run", str(run), "--cell", "mujoco", "--quiet"]) == 0
+    assert "failed 0" in capsys.readouterr().out
+    stats = json.loads((run / "cell" / "twin.json").read_text())
+    assert stats["lost_beams"] == {} and stats["contacts"] == 0
 
 
 def test_reflectors_beside_the_pandas_fingers_plan_only_poses_the_twin_sees(tmp_path, erd, capsys):

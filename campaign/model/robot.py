@@ -64,6 +64,17 @@ DEFAULT_REFLECTOR_POSITIONS = ((0.05, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.
 DEFAULT_HALF_ANGLE_DEG = 30.0
 DEFAULT_REFLECTORS = tuple(Reflector(f"m{i + 1}", "smr", p, (0.0, 0.0, 1.0), float(np.deg2rad(DEFAULT_HALF_ANGLE_DEG)))
                            for i, p in enumerate(DEFAULT_REFLECTOR_POSITIONS))
+#: the default triad of a robot whose tool frame carries a hand sits this far (m) beyond the
+#: reflectors' spheres' clearance of the hand's farthest point along +z: a centimetre of bracket
+DEFAULT_REFLECTOR_GAP_M = 0.01
+
+
+def default_reflectors(lift_m: float = 0.0) -> tuple:
+    """:data:`DEFAULT_REFLECTORS`, moved ``lift_m`` (m) along the tool frame's +z."""
+    if lift_m == 0.0:
+        return DEFAULT_REFLECTORS
+    return tuple(Reflector(r.name, r.kind, (r.position_in_E[0], r.position_in_E[1], r.position_in_E[2] + float(lift_m)),
+                           r.axis_in_E, r.half_angle) for r in DEFAULT_REFLECTORS)
 
 
 def _read_only(a):
@@ -316,17 +327,29 @@ class RobotModel:
 
     def with_default_reflectors(self) -> "RobotModel":
         """This robot, or, when robot.yaml names no reflector, the same robot carrying
-        :data:`DEFAULT_REFLECTORS` (what `plan`, `run` and the simulated cell measure). Cached:
-        the same object on every call."""
+        :data:`DEFAULT_REFLECTORS` (what `plan`, `run` and the simulated cell measure), moved
+        along the tool frame's +z beyond what the tool frame carries (a hand and its fingers,
+        campaign.model.tool_side; by the reflector's radius and DEFAULT_REFLECTOR_GAP_M more),
+        not inside it. Cached: the same object on every call."""
         if self.reflectors:
             return self
         cached = self.__dict__.get("_with_default_reflectors")
         if cached is None:
             import dataclasses
 
-            cached = dataclasses.replace(self, reflectors=DEFAULT_REFLECTORS)
+            cached = dataclasses.replace(self, reflectors=default_reflectors(self.default_reflector_lift_m))
             self.__dict__["_with_default_reflectors"] = cached
         return cached
+
+    @functools.cached_property
+    def default_reflector_lift_m(self) -> float:
+        """How far (m) the default triad sits along the tool frame's +z: 0 for a bare flange,
+        else beyond the collision geometry the tool frame carries (a hand, its fingers)."""
+        from campaign.model.tool_side import tool_side_reach_m
+        from campaign.tolerances import REFLECTOR_RADIUS_M
+
+        reach = tool_side_reach_m(self)
+        return 0.0 if reach <= 0.0 else reach + REFLECTOR_RADIUS_M + DEFAULT_REFLECTOR_GAP_M
 
     @functools.cached_property
     def link_frames(self) -> dict:

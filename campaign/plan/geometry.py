@@ -32,6 +32,7 @@ import numpy as np
 
 from campaign.errors import ConfigError
 from campaign.model.rotations import urdf_rpy
+from campaign.model.tool_side import resolve_mesh_path  # noqa: F401  (re-exported: the planner resolves its meshes)
 
 #: kinds of collision geometry the planner checks (URDF elements of the same names)
 SUPPORTED = ("box", "cylinder", "sphere", "capsule", "mesh")
@@ -161,17 +162,6 @@ def _numbers(el, attr, n, where):
     if len(v) != n or not np.all(np.isfinite(v)):
         raise ConfigError(f"{where}: <{el.tag} {attr}=\"{text}\"> must be {n} number{'s' if n > 1 else ''}")
     return v
-
-
-def resolve_mesh_path(filename: str, urdf_path) -> Path:
-    """The file a URDF's ``<mesh filename>`` names: ``package://``, ``file://``, absolute or
-    relative to the URDF (yourdfpy's resolution: the package's name dropped, then the URDF's
-    folder and its parents searched)."""
-    import yourdfpy
-
-    if filename.startswith("file://"):
-        filename = filename[len("file://"):]
-    return Path(yourdfpy.filename_handler_magic(filename, dir=str(Path(urdf_path).parent)))
 
 
 #: bump when what :func:`_load_mesh` stores changes (the on-disk cache's entries then miss)
