@@ -187,6 +187,12 @@ STREAM_REFLECTOR_TOL_M = 3e-3
 #: a matched window whose reflectors' rigid fit to the tool's layout leaves more than this rms (m)
 #: is not stored as a pose (a reflector's window from elsewhere); a good fit leaves tens of µm
 STREAM_FIT_RMS_MAX_M = 1e-3
+#: a log of one reflector: a window longer than this many times the median of the recent windows
+#: (STREAM_SPLIT_RECENT_WINDOWS, once STREAM_SPLIT_AFTER_WINDOWS are known) is that many stops at
+#: one place (the program's dwells are equal; a window is a dwell less its edges)
+STREAM_SPLIT_FACTOR = 1.6
+STREAM_SPLIT_RECENT_WINDOWS = 200
+STREAM_SPLIT_AFTER_WINDOWS = 5
 
 #: The smallest error (mm) a log-scaled report figure shows: 1 pm, far below any tracker's
 #: noise; smaller errors (exact data: a nominal model's own predictions, a perfect adapter)

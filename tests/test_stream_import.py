@@ -17,9 +17,10 @@ from campaign.program.stops import Stop, stops_path, write_stops_csv
 REFLECTORS = ("rrr1", "rrr2", "brr")
 
 
-def make_stops(robot, n_poses, rng, *, dwell_s=3.5, via_every=9, drift_every=15, repeat_every=20):
+def make_stops(robot, n_poses, rng, *, dwell_s=3.5, via_every=9, drift_every=15, repeat_every=20, tail_repeats=3):
     """A program's stops: poses (some validation), a repeat of every ``repeat_every``-th pose after the
-    next one, a via before every ``via_every``-th pose, a drift check after every ``drift_every``-th."""
+    next one, a via before every ``via_every``-th pose, a drift check after every ``drift_every``-th,
+    and the last pose measured ``tail_repeats`` more times back to back (at one place: no motion)."""
     lo, hi = robot.q_lower, robot.q_upper
     mid, half = (lo + hi) / 2, (hi - lo) / 2
     Q = mid + 0.55 * half * rng.uniform(-1, 1, (n_poses, robot.n_joints))
@@ -42,6 +43,8 @@ def make_stops(robot, n_poses, rng, *, dwell_s=3.5, via_every=9, drift_every=15,
             pending = (pid, Q[k])
         if drift_every and (k + 1) % drift_every == 0 and k + 1 < n_poses:
             add(5000, "drift", Q[0])
+    for r in range(1, tail_repeats + 1):
+        add(5000 + n_poses - 1 + r * 10**9, "repeat", Q[-1])
     return stops
 
 
@@ -92,7 +95,7 @@ class LogWriter:
         q_prev = np.array(self.stops[0].q)
         for s in self.stops:
             q = np.array(s.q)
-            move_s = 0.8 + float(np.max(np.abs(q - q_prev))) / 0.8
+            move_s = 0.0 if np.array_equal(q, q_prev) else 0.8 + float(np.max(np.abs(q - q_prev))) / 0.8
             n_move = int(move_s * self.rate)
             tau = np.arange(n_move) / max(n_move, 1)
             prof = 3 * tau ** 2 - 2 * tau ** 3
@@ -185,7 +188,7 @@ def check_found_and_right(run, stops, writer, got, *, min_found=0.98):
     lies where the truth put that stop (within 0.3 mm)."""
     rows = [r for r in match_rows(run) if r["stop"]]
     status = {int(r["stop"]): r["status"] for r in rows}
-    complete = [k for k, n in got.items() if min(n) >= 10]
+    complete = [k for k, n in got.items() if min(n) >= 20]  # two blocks (0.4 s at 50 Hz) a reflector
     found = [k for k in complete if status.get(k) == "matched"]
     assert len(found) >= min_found * len(complete), (len(found), len(complete),
                                                      [(k, status.get(k)) for k in complete if k not in found])
@@ -321,7 +324,7 @@ def test_a_log_without_target_is_one_point_per_stop(tmp_path, robot):
     assert main(["import", "--stream", str(tmp_path / "one.csv"), "--run", str(run), "--length-unit", "mm",
                  "--frame", "tracker", "--quiet"]) == 0
     status = {int(r["stop"]): r["status"] for r in match_rows(run) if r["stop"]}
-    complete = [k for k, n in got.items() if min(n) >= 10]
+    complete = [k for k, n in got.items() if min(n) >= 20]  # two blocks (0.4 s at 50 Hz) a reflector
     assert sum(status.get(k) == "matched" for k in complete) >= 0.98 * len(complete)
     with sqlite3.connect(run / "measurements.sqlite") as db:
         kind = db.execute("SELECT value FROM meta WHERE key = 'kind'").fetchone()[0]

@@ -17,7 +17,9 @@ windows in time order finds the monotone matching of highest score:
 
 The chain starts at the first stop not yet imported (skipping stops costs the same there) and may
 end anywhere (a log that ends halfway). A beam of ALIGN_BEAM states per window bounds the work.
-A match is kept only when a neighbouring match in the chain confirms it (its distance residual
+A second pass adds a time cost (TimeModel: dwells and nominal motion times, scaled to the log by
+the first pass's matches), which tells apart stops at one place (a repeat); a match is kept only
+when a neighbouring match in the chain confirms it (its distance residual
 within ALIGN_CONFIRM tolerances): no isolated guess is stored.
 """
 
@@ -48,6 +50,13 @@ ALIGN_CONFIRM = 3.0
 #: stops that may be skipped per typical stop-to-stop time of the log (twice the typical rate, and
 #: a margin: motions differ in length)
 ALIGN_PERIOD_FACTOR = 2.5
+#: the second pass's time cost: half the squared log of observed over expected time, in units of
+#: ALIGN_TIME_LOG_SIGMA (a stop's time varies by tens of per cent: pauses, a motion's profile), at
+#: most ALIGN_TIME_CAP / 2, well below a match's gain (time breaks ties of distance; never overrules it)
+ALIGN_TIME_LOG_SIGMA = 0.3
+ALIGN_TIME_CAP = 4.0
+#: successive matches needed to fit the time model
+ALIGN_TIME_MIN_PAIRS = 5
 
 
 @dataclass(frozen=True)
@@ -85,14 +94,78 @@ def _pair_cost(r):
     return np.where(np.isnan(r), ALIGN_PAIR_UNKNOWN, cost)
 
 
-def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = None) -> list:
+@dataclass(frozen=True)
+class TimeModel:
+    """The log's time between two stops: ``dwell_scale`` · (their dwells) + ``motion_scale`` ·
+    (the nominal motion times between them), both cumulative over the stops (n + 1,) s, fitted to
+    the first pass's matches of successive stops."""
+
+    dwell_scale: float
+    motion_scale: float
+    cum_dwell: np.ndarray
+    cum_motion: np.ndarray
+
+    def expected_s(self, ja, jb) -> np.ndarray:
+        """Expected start-to-start time (s) from stop ja to stop jb (arrays): the dwells of ja..jb-1
+        and the motions into ja+1..jb."""
+        return self.dwell_scale * (self.cum_dwell[jb] - self.cum_dwell[ja]) \
+            + self.motion_scale * (self.cum_motion[jb + 1] - self.cum_motion[ja + 1])
+
+    def cost(self, dt_s, ja, jb) -> np.ndarray:
+        expected = np.maximum(self.expected_s(ja, jb), 1e-3)
+        z = np.log(max(dt_s, 1e-3) / expected) / ALIGN_TIME_LOG_SIGMA
+        return 0.5 * np.minimum(z * z, ALIGN_TIME_CAP)
+
+
+def fit_time_model(matches, windows, dwell_s, motion_s):
+    """A :class:`TimeModel` from confirmed matches of successive stops (robust least squares:
+    one refit without the pairs beyond three median deviations); None with fewer than
+    ALIGN_TIME_MIN_PAIRS or a degenerate fit."""
+    cum_dwell = np.concatenate([[0.0], np.cumsum(dwell_s)])
+    cum_motion = np.concatenate([[0.0], np.cumsum(motion_s)])
+    rows, obs = [], []
+    for a, b in zip(matches[:-1], matches[1:]):
+        if a.confirmed and b.confirmed and b.stop == a.stop + 1 and b.window == a.window + 1:
+            rows.append((cum_dwell[b.stop] - cum_dwell[a.stop], cum_motion[b.stop + 1] - cum_motion[a.stop + 1]))
+            obs.append(windows[b.window].t0 - windows[a.window].t0)
+    if len(rows) < ALIGN_TIME_MIN_PAIRS:
+        return None
+    A, y = np.array(rows), np.array(obs)
+    keep = np.ones(len(y), bool)
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        res = y - A @ coef
+        mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-9
+        keep = np.abs(res) <= 3 * 1.4826 * mad + 1e-6
+    if not np.all(np.isfinite(coef)) or coef[0] < 0 or coef[1] <= 0:
+        return None
+    return TimeModel(float(coef[0]), float(coef[1]), cum_dwell, cum_motion)
+
+
+def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = None, motion_s=None) -> list:
     """The matches of ``windows`` (campaign.program.stream.windows.Window, time order) to stops
     ``first_stop``.. whose nominal points per reflector code are P (n, k, 3) m and dwells
-    ``dwell_s`` (n,) s; a list of :class:`Match` in order. ``t_start``: the log's first time (s)."""
+    ``dwell_s`` (n,) s; a list of :class:`Match` in order. ``t_start``: the log's first time (s).
+    ``motion_s`` (n,) s: the nominal motion time into each stop from the one before; given, a second
+    pass weighs how well the time between two windows fits the stops between them (a time model
+    fitted to the first pass's matches): stops at one place (a repeat) are told apart by time."""
     m, n = len(windows), len(P)
     if m == 0 or first_stop >= n:
         return []
     dwell_s = np.asarray(dwell_s, dtype=float)
+    chain = _dp(windows, P, dwell_s, first_stop, t_start, None)
+    matches = _confirm(chain, windows, P)
+    if motion_s is None:
+        return matches
+    model = fit_time_model(matches, windows, dwell_s, np.asarray(motion_s, dtype=float))
+    if model is None:
+        return matches
+    return _confirm(_dp(windows, P, dwell_s, first_stop, t_start, model), windows, P)
+
+
+def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
+    """The best chain [(window, stop), ...] (module docstring); ``time_model`` adds its cost."""
+    m, n = len(windows), len(P)
     # the dwells as the log keeps them (the clock's rate, a program run slower or faster): scaled by
     # the windows' median length over the stops' median dwell, never up
     lengths = np.array([w.t1 - w.t0 for w in windows])
@@ -143,6 +216,8 @@ def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = N
             r = pair_residual(windows[ip], w, P, Jp[rep], J)
             S = Sp[rep] + ALIGN_GAIN - ALIGN_SKIP_STOP * (J - Jp[rep] - 1) \
                 - ALIGN_REJECT_WINDOW * (i - ip - 1) - _pair_cost(r)
+            if time_model is not None:
+                S = S - time_model.cost(w.t0 - windows[ip].t0, Jp[rep], J)
             cJ.append(J)
             cS.append(S)
             cB.append(np.full(len(J), ip))
@@ -177,7 +252,7 @@ def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = N
         chain.append((i, int(J[k])))
         at = (int(Bk[k]), int(K[k])) if Bk[k] >= 0 else None
     chain.reverse()
-    return _confirm(chain, windows, P)
+    return chain
 
 
 def _confirm(chain, windows, P) -> list:

@@ -80,12 +80,6 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     length_unit: "m" or "mm" of the log's x, y, z; frame: "robot" (the log is in the robot's base
     frame) or "tracker" (in the tracker's: calibrate identifies the tracker's pose); columns:
     {column in the file: name used}; progress: callable receiving the fraction read (0..1)."""
-    from campaign.measure.driver import measured_robot
-    from campaign.measure.plausibility import measured_point
-    from campaign.program.stops import stops_path
-    from campaign.program.stream.align import align
-    from campaign.program.stream.logread import iter_log, read_layout
-    from campaign.program.stream.windows import WindowFinder
     from campaign.run import RunFolder
 
     if frame not in ("robot", "tracker"):
@@ -93,6 +87,18 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     run = RunFolder(run_dir)
     if not run.path.is_dir():
         raise DataError(f"{run.path}: no such run folder")
+    with run.lock("import --stream"):  # from the state read to the state written: one import at a time
+        return _import_locked(run, log, length_unit, frame, columns, progress)
+
+
+def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamResult:
+    from campaign.measure.driver import measured_robot
+    from campaign.measure.plausibility import measured_point
+    from campaign.program.stops import stops_path
+    from campaign.program.stream.align import align
+    from campaign.program.stream.logread import iter_log, read_layout
+    from campaign.program.stream.windows import WindowFinder
+
     stops = run_stops(run)
     robot = measured_robot(run.robot())
     if len(stops[0].q) != robot.n_joints:
@@ -109,7 +115,7 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     else:
         P_E = measured_point(robot, "point")[None]
         kind, names = "point", (names[0] if len(names) == 1 else "tool",)
-    finder = WindowFinder(np.linalg.norm(P_E[:, None] - P_E[None], axis=-1))
+    finder = WindowFinder(np.linalg.norm(P_E[:, None] - P_E[None], axis=-1), split_long=layout.target_col is None)
     for chunk in iter_log(layout, progress=progress):
         finder.feed(chunk)
     windows = finder.finish()
@@ -120,7 +126,8 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     P = nominal_points(robot, mstops, P_E)
     dwell = np.array([s.dwell_s for s in mstops])
     first_m = int(np.searchsorted(measured_idx, first_stop))
-    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first)
+    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first,
+                    motion_s=motion_times(robot, stops, measured_idx))
 
     rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
                                       finder, first_m, state)
@@ -135,6 +142,21 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
                         len(events), finder.samples,
                         1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
                         next_stop, len(stops), bool(finder.point_mode), result)
+
+
+def motion_times(robot, stops, measured_idx) -> np.ndarray:
+    """(m,) s: the nominal time (Ruckig's rest-to-rest motions at the robot's limits, and the
+    dwells of vias) from the measured stop before each measured stop ``measured_idx`` to it (0 for
+    the first)."""
+    from campaign.plan.timing import rest_to_rest_time
+    from campaign.program.stops import stops_array
+
+    Q = stops_array(stops)
+    step = np.concatenate([[0.0], rest_to_rest_time(robot, Q[:-1], Q[1:])])
+    step += np.array([0.0] + [s.dwell_s if s.kind == "via" else 0.0 for s in stops[:-1]])  # rest at vias
+    cum = np.cumsum(step)
+    out = np.diff(cum[measured_idx], prepend=cum[measured_idx[0]])
+    return out
 
 
 def run_stops(run) -> list:
@@ -278,59 +300,58 @@ def _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, 
     from campaign.fileio import atomic_write
     from campaign.measure.store import MeasurementStore
 
-    ids = [r.pose_id for r in records]
-    if len(set(ids)) != len(ids):
-        dup = sorted({i for i in ids if ids.count(i) > 1})
+    twice = sorted(i for i, n in Counter(r.pose_id for r in records).items() if n > 1)
+    if twice:
+        dup = twice
         raise DataError(f"{run.path}/program/stops.csv: pose_id {dup[0]} is measured at two stops; a run "
                         "stores a pose once (a repeat has an id of its own)")
     match_csv = run.path / "import" / MATCH_FILE
-    with run.lock("import"):
-        new = not run.measurements_path.is_file()
-        target = run.measurements_path
-        path = target.with_name(target.name + ".partial") if new else target
+    new = not run.measurements_path.is_file()
+    target = run.measurements_path
+    path = target.with_name(target.name + ".partial") if new else target
+    if new:
+        path.unlink(missing_ok=True)
+    try:
+        with MeasurementStore(path) as store:
+            if new:
+                store.set_meta("source", {"kind": "stream", "length_unit": "mm" if layout.length_scale != 1 else "m",
+                                          "logs": []})
+                store.record_robot(robot)
+                store.set_meta("frame", frame)
+                store.set_meta("T_LI", np.eye(4).tolist())
+                store.set_meta("kind", kind)
+                if kind == "markers":
+                    store.set_meta("marker_positions", np.asarray(P_E, dtype=float).tolist())
+                    store.set_meta("marker_names", list(names))
+            else:
+                stored = store.stored_ids() & {r.pose_id for r in records}
+                if stored:
+                    raise DataError(f"{run.path}: pose {min(stored)} is already stored; {layout.path} "
+                                    "repeats stops an earlier log imported")
+            if records:
+                store.add_poses(records)
+            _drift_checks(store, run, events, records, P_E)
+            src = store.get_meta("source", {})
+            src.setdefault("logs", []).append(str(layout.path.resolve()))
+            store.set_meta("source", src)
+            clock = max([state.get("clock_s", 0.0)] + [r.time_s for r in records if r.time_s is not None]
+                        + [e.time_s for e in events if e.time_s is not None])
+            store.set_meta("campaign_clock_s", clock)
+            store.add_event("stream_import", {"log": str(layout.path.resolve()), "samples": finder.samples,
+                                              "next_stop": next_stop}, time_s=clock)
+            seq = int(state.get("seq", 0)) + len(records)
+            store.set_meta(META_KEY, {"next_stop": next_stop, "clock_s": clock + 1.0, "seq": seq})
+        if new:
+            path.replace(target)
+    finally:
         if new:
             path.unlink(missing_ok=True)
-        try:
-            with MeasurementStore(path) as store:
-                if new:
-                    store.set_meta("source", {"kind": "stream", "length_unit": "mm" if layout.length_scale != 1 else "m",
-                                              "logs": []})
-                    store.record_robot(robot)
-                    store.set_meta("frame", frame)
-                    store.set_meta("T_LI", np.eye(4).tolist())
-                    store.set_meta("kind", kind)
-                    if kind == "markers":
-                        store.set_meta("marker_positions", np.asarray(P_E, dtype=float).tolist())
-                        store.set_meta("marker_names", list(names))
-                else:
-                    stored = store.stored_ids() & {r.pose_id for r in records}
-                    if stored:
-                        raise DataError(f"{run.path}: pose {min(stored)} is already stored; {layout.path} "
-                                        "repeats stops an earlier log imported")
-                if records:
-                    store.add_poses(records)
-                _drift_checks(store, run, events, records, P_E)
-                src = store.get_meta("source", {})
-                src.setdefault("logs", []).append(str(layout.path.resolve()))
-                store.set_meta("source", src)
-                clock = max([state.get("clock_s", 0.0)] + [r.time_s for r in records if r.time_s is not None]
-                            + [e.time_s for e in events if e.time_s is not None])
-                store.set_meta("campaign_clock_s", clock)
-                store.add_event("stream_import", {"log": str(layout.path.resolve()), "samples": finder.samples,
-                                                  "next_stop": next_stop}, time_s=clock)
-                seq = int(state.get("seq", 0)) + len(records)
-                store.set_meta(META_KEY, {"next_stop": next_stop, "clock_s": clock + 1.0, "seq": seq})
-            if new:
-                path.replace(target)
-        finally:
-            if new:
-                path.unlink(missing_ok=True)
-        text = io.StringIO()
-        w = csv.writer(text, lineterminator="\n")
-        old = match_csv.read_text() if match_csv.is_file() and not new else ""
-        if not old:
-            w.writerow(MATCH_HEADER)
-        w.writerows(rows)
-        match_csv.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(match_csv, old + text.getvalue())
+    text = io.StringIO()
+    w = csv.writer(text, lineterminator="\n")
+    old = match_csv.read_text() if match_csv.is_file() and not new else ""
+    if not old:
+        w.writerow(MATCH_HEADER)
+    w.writerows(rows)
+    match_csv.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(match_csv, old + text.getvalue())
     return match_csv

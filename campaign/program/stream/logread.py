@@ -1,7 +1,7 @@
 """A laser tracker's log read in blocks of bytes, so memory does not grow with the log.
 
 The log is a delimited text file with a header line: a time column (``time_s``, s on any clock,
-or ``time`` / ``timestamp`` in ISO 8601), ``x, y, z`` and optionally ``target`` (the reflector
+or ``time`` / ``timestamp`` in ISO 8601, or in s when it holds numbers), ``x, y, z`` and optionally ``target`` (the reflector
 measured on that row, one of the robot's reflector names). Other columns are ignored; ``columns``
 maps a file's own names (``{column in the file: name used}``, campaign.measure.csvio.parse_columns).
 Rows with an empty or non-finite coordinate are no measurement (the beam was lost) and are dropped.
@@ -96,7 +96,7 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
     if time_col is None:
         for n in TIME_ISO_COLUMNS:
             if col(n) is not None:
-                time_col, iso = col(n), True
+                time_col, iso = col(n), not _first_value_is_number(path, delim, col(n))
                 break
     if time_col is None:
         raise DataError(f"{path}: no time column (time_s in s, or time/timestamp in ISO 8601) in the header "
@@ -110,6 +110,22 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
         raise DataError(f"--length-unit must be m or mm, got {length_unit!r}")
     return LogLayout(path, delim, header, time_col, iso, xyz, col("target"), tuple(targets),
                      1e-3 if length_unit == "mm" else 1.0)
+
+
+def _first_value_is_number(path, delim, column) -> bool:
+    """Whether the first data row's ``column`` is a number (a ``time`` column in s, not ISO 8601)."""
+    with open(path, "rb") as f:
+        f.readline()
+        for raw in f:
+            line = raw.decode("utf-8", errors="replace").strip()
+            if line:
+                cells = line.split(delim)
+                try:
+                    float(cells[column])
+                    return True
+                except (ValueError, IndexError):
+                    return False
+    return False
 
 
 def iter_log(layout: LogLayout, *, block_bytes: int = BLOCK_BYTES, progress=None):

@@ -7,9 +7,12 @@ data (the STREAM_NOISE_QUANTILE quantile of the blocks' spreads: the still block
 ones). Still blocks that follow each other at one position make a window; a change of reflector
 (``target``) between them continues the window when the tool did not move in between (at most
 STREAM_SWITCH_BLOCKS moving blocks, or a short gap) and the reflector lies from the others as the
-tool holds them; a reflector measured again after another starts
-the next window (the reflectors' cycle of a stop repeated in place). A window keeps, per reflector, the median of
-its samples (the position) and their robust standard deviation (the spread, a quality figure).
+tool holds them; a reflector measured again after another, or one the tracker's cycle measures
+before the last (the order of the first window with every reflector), starts the next window (the
+reflectors' cycle of a stop repeated in place). A window keeps, per reflector, the median of
+its samples (the position) and their robust standard deviation (the spread, a quality figure). In a log of one reflector (no ``target``), a window
+STREAM_SPLIT_FACTOR times as long as the typical recent one is cut into that many: stops at one
+place one after another (a repeat measured back to back).
 
 A log with one record per stable point (``point`` mode: records further apart in time than a
 continuous log's) makes a window of each group of records at one position.
@@ -23,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from campaign.tolerances import (STREAM_BLOCK_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M, STREAM_NOISE_QUANTILE,
-                                 STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M, STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
+                                 STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M,
+                                 STREAM_SPLIT_AFTER_WINDOWS, STREAM_SPLIT_FACTOR, STREAM_SPLIT_RECENT_WINDOWS, STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
                                  STREAM_SWITCH_BLOCKS, STREAM_SWITCH_S, STREAM_WINDOW_MAX_SAMPLES)
 
 #: robust standard deviation from the median absolute deviation of a normal sample
@@ -87,9 +91,14 @@ class WindowFinder:
     :meth:`finish`: the still windows in time order. The noise level and the block size come from
     the first chunk (a 100 Hz log's first block of bytes holds hours)."""
 
-    def __init__(self, reflector_distances=None):
+    def __init__(self, reflector_distances=None, *, split_long: bool = False):
         #: (k, k) m: the nominal distances between the reflectors (codes) on the tool, or None
         self.D = None if reflector_distances is None else np.asarray(reflector_distances, dtype=float)
+        #: a log of one reflector: a window several typical windows long is that many stops at one
+        #: place (a repeat measured back to back, with no reflectors' cycle to tell them apart)
+        self.split_long = split_long
+        self._lengths: list = []
+        self._order = None  # reflector code -> its place in the tracker's cycle
         self.windows: list = []
         self.B = None
         self.tau = None
@@ -166,7 +175,8 @@ class WindowFinder:
             for a, e in zip(idx[starts], idx[ends]):
                 self._moving += a - prev - 1
                 prev = e
-                self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a], p[a * B:(e + 1) * B])
+                self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a],
+                                  np.column_stack((t[a * B:(e + 1) * B], p[a * B:(e + 1) * B])))
             self._moving += nb - 1 - prev
         if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS:
             self._close()
@@ -180,9 +190,10 @@ class WindowFinder:
             switch = code != w.last_code and code not in w.ref and \
                 (self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_SWITCH_S) and gap <= STREAM_SWITCH_S \
                 and self._on_the_same_tool(w, code, med)
-            # a reflector measured again after another: the next measurement (a repeat in place)
-            again = code != w.last_code and code in w.ref
-            if near and not again and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch:
+            # a reflector measured again after another, or one the tracker's cycle measures before
+            # the last: the next measurement (a repeat in place)
+            again = code != w.last_code and (code in w.ref or self._before(code, w.last_code))
+            if not again and (near and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch):
                 self._extend(w, t1, code, med, samples)
                 self._moving = 0
                 return
@@ -190,6 +201,11 @@ class WindowFinder:
         self._open = _Open(t0=t0, t1=t1)
         self._extend(self._open, t1, code, med, samples)
         self._moving = 0
+
+    def _before(self, a, b) -> bool:
+        """Whether the tracker's cycle (the order of the reflectors in the first window that has
+        them all) measures reflector ``a`` before ``b``; False before that order is known."""
+        return self._order is not None and a in self._order and b in self._order and self._order[a] < self._order[b]
 
     def _on_the_same_tool(self, w, code, med) -> bool:
         """Whether reflector ``code`` at ``med`` lies from the window's other reflectors as the tool
@@ -214,28 +230,46 @@ class WindowFinder:
         w, self._open = self._open, None
         if w is None:
             return
-        position, spread, counts = {}, {}, {}
-        for code, parts in w.parts.items():
-            pts = np.concatenate(parts)
-            position[code], spread[code] = robust_mean(pts)
-            counts[code] = len(pts)
-        self.windows.append(Window(float(w.t0), float(w.t1), int(sum(counts.values())), position, spread, counts))
+        samples = {code: np.concatenate(parts) for code, parts in w.parts.items()}  # (k, 4): t, x, y, z
+        if self._order is None and self.D is not None and len(self.D) > 1 and len(samples) == len(self.D):
+            self._order = {code: k for k, code in enumerate(samples)}
+        length = w.t1 - w.t0
+        pieces = 1
+        if self.split_long and len(samples) == 1 and len(self._lengths) >= STREAM_SPLIT_AFTER_WINDOWS:
+            typical = float(np.median(self._lengths[-STREAM_SPLIT_RECENT_WINDOWS:]))
+            if typical > 0 and length > STREAM_SPLIT_FACTOR * typical:
+                pieces = int(round(length / typical))
+        self._lengths.append(length)
+        edges = np.linspace(w.t0, w.t1, pieces + 1)
+        for k in range(pieces):
+            position, spread, counts = {}, {}, {}
+            for code, pts in samples.items():
+                if pieces > 1:
+                    pts = pts[(pts[:, 0] >= edges[k]) & ((pts[:, 0] < edges[k + 1]) | (k == pieces - 1))]
+                if len(pts):
+                    position[code], spread[code] = robust_mean(pts[:, 1:])
+                    counts[code] = len(pts)
+            if counts:
+                self.windows.append(Window(float(edges[k]), float(edges[k + 1]), int(sum(counts.values())), position,
+                                           spread, counts))
 
     def _feed_points(self, t, p, g):
         """One record per stable point: a record joins the open group when its reflector is new
-        to the group (reflectors in turn) or it repeats one at the same place; else a new group."""
+        to the group (reflectors in turn, at the tool's distances) or repeats the last one at its
+        place; else it starts a new group."""
         for k in range(len(t)):
             code = int(g[k])
             w = self._open
             if w is not None:
-                same_place = code in w.ref and np.linalg.norm(p[k] - w.ref[code]) <= self.tau
+                # the same point again (not after another reflector: that is the next stop's cycle)
+                same_place = code == w.last_code and np.linalg.norm(p[k] - w.ref[code]) <= self.tau
                 if same_place or (code not in w.ref and t[k] - w.t1 <= STREAM_SWITCH_S * 5
                                   and self._on_the_same_tool(w, code, p[k])):
-                    self._extend(w, float(t[k]), code, p[k], p[k:k + 1])
+                    self._extend(w, float(t[k]), code, p[k], np.append(t[k], p[k])[None])
                     continue
                 self._close()
             self._open = _Open(t0=float(t[k]), t1=float(t[k]))
-            self._extend(self._open, float(t[k]), code, p[k], p[k:k + 1])
+            self._extend(self._open, float(t[k]), code, p[k], np.append(t[k], p[k])[None])
 
     def finish(self) -> list:
         if not self.point_mode and self._carry is not None and len(self._carry[0]) and self._open is not None:
@@ -244,7 +278,7 @@ class WindowFinder:
             if (g == code).all() and code in self._open.ref and self._moving == 0:
                 med = np.median(p, axis=0)
                 if np.linalg.norm(med - self._open.ref[code]) <= self.tau:
-                    self._extend(self._open, float(t[-1]), code, med, p)
+                    self._extend(self._open, float(t[-1]), code, med, np.column_stack((t, p)))
         self._close()
         return self.windows
 
