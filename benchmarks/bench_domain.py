@@ -14,6 +14,8 @@ fresh poses used:
   ratio of the mean `sigma_mm` to the mean true model error (‖model − truth‖ at the tool point,
   noise-free; target 0.5-2), the share of true errors inside 2σ, and the share of the fresh poses
   flagged outside the domain (target at most 5 %);
+* a model that lacks an effect of the truth (a typical ground compliance, COMAU, 6-D), with the
+  tracker's noise stated (the noise floor: the fit's error beyond it enters sigma) and without;
 * out of the domain (the COMAU and the UR10, 6-D): a campaign with joint 1 never moved (fresh poses
   at other q1), one over the lower half of joint 2's range (fresh poses beyond it) and one that never
   reached a workspace corner (joints 1 and 2 both in the upper 35 % of their ranges; fresh poses
@@ -64,12 +66,14 @@ def load(which) -> RobotModel:
     return RobotModel.load() if not args else RobotModel.load(args[1], tool_frame=args[3])
 
 
-def calibrated_case(tmp: Path, which, robot, kind, q, seed):
+def calibrated_case(tmp: Path, which, robot, kind, q, seed, hidden=None, stated_noise=False):
     """Generate, import and calibrate one campaign at joint vectors q; returns (CalibratedRobot,
-    truth, T_LI measured, P_E the measured point or None, metrics)."""
+    truth, T_LI measured, P_E the measured point or None, metrics). hidden: {effect: parameters} in
+    the truth, not in the model; stated_noise: the tracker's noise stated in campaign.yaml (as from its
+    data sheet: `tracker: {noise_m: ...}`), the noise floor of the calibration."""
     from campaign.identify.use import CalibratedRobot
 
-    truth = make_truth(robot, seed=seed, position_only=kind == "point")
+    truth = make_truth(robot, seed=seed, position_only=kind == "point", effects=hidden)
     poses = synthesize_kind(truth, q, kind=kind, frame="robot", seed=seed + 2)
     csv = tmp / "m.csv"
     write_measured_csv(csv, poses, robot)
@@ -80,6 +84,10 @@ def calibrated_case(tmp: Path, which, robot, kind, q, seed):
     run = tmp / "run"
     if cli(["import", str(csv), "--run", str(run), "--quiet", *robot_args(which), *extra]) != 0:
         raise SystemExit(f"import failed: {which} {kind} {len(q)}")
+    if stated_noise:
+        cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+        cfg["tracker"] = {**(cfg.get("tracker") or {}), "noise_m": float(truth.noise_m)}
+        (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
     if cli(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) != 0:
         raise SystemExit(f"calibrate failed: {which} {kind} {len(q)}")
     metrics = json.loads((run / "calibration" / "metrics.json").read_text())
@@ -114,6 +122,26 @@ def in_distribution(which, kind, n, seed) -> dict:
             "ratio": float(sigma.mean() / err.mean()), "inside_2sigma": float(np.mean(err < 2 * sigma)),
             "fresh_flagged": float(np.mean(~inside)), "heldout_mean_mm": test,
             "unidentifiable_warnings": sum(w["code"] == "unidentifiable" for w in metrics["warnings"])}
+
+
+def unmodelled(which, n, seed, stated_noise) -> dict:
+    """A truth with a typical ground compliance the model lacks: sigma against the true error with and
+    without a noise floor (the stated tracker noise)."""
+    from campaign.effects.base import make_effect
+
+    robot = load(which)
+    hidden = {"ground_compliance": make_effect("ground_compliance", robot).typical_params(seed)}
+    q = random_joint_poses(robot, n, seed=seed + 1)
+    with tempfile.TemporaryDirectory(prefix="bench-domain-") as tmp:
+        cal, truth, T_LI, P_E, metrics = calibrated_case(Path(tmp), which, robot, "pose", q, seed, hidden, stated_noise)
+        fresh = random_joint_poses(robot, FRESH, seed=seed + 1000)
+        sigma = cal.sigma_mm(fresh)
+        err = true_error_mm(cal, truth, T_LI, P_E, fresh)
+    u = metrics["uncertainty"]["stages"][metrics["uncertainty"]["stage"]]
+    return {"robot": which, "case": "unmodelled ground_compliance", "stated_noise": stated_noise, "poses": n,
+            "seed": seed, "mean_sigma_mm": float(sigma.mean()), "mean_true_error_mm": float(err.mean()),
+            "ratio": float(sigma.mean() / err.mean()), "inside_2sigma": float(np.mean(err < 2 * sigma)),
+            "basis": u["basis"]}
 
 
 def out_of_domain(which, case, n, seed) -> dict:
@@ -189,6 +217,22 @@ def cost(args) -> dict:
             "command": "campaign calibrate RUN --no-ann --quiet (report included)"}
 
 
+def unmodelled_cases() -> list:
+    out = []
+    for stated in (True, False):
+        for n in (60, 300, 1000):
+            r = unmodelled("comau", n, 0, stated)
+            out.append(r)
+            print(f"comau  unmodelled compliance {n:4} {'floor' if stated else 'no floor'}: sigma/true {r['ratio']:.2f} "
+                  f"(sigma {r['mean_sigma_mm']:.4f}, true {r['mean_true_error_mm']:.4f} mm), inside 2σ "
+                  f"{100 * r['inside_2sigma']:.0f} %", flush=True)
+    return out
+
+
+def _unmodelled_ratio(rows) -> dict:
+    return {("floor" if r["stated_noise"] else "no_floor") + f"_{r['poses']}": r["ratio"] for r in rows}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="20,60,300,1000")
@@ -199,6 +243,7 @@ def main():
     ap.add_argument("--poses", type=int, default=14000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--before", default=None)
+    ap.add_argument("--unmodelled-only", action="store_true", help="only the unmodelled-effect cases (entry replaced)")
     args = ap.parse_args()
     out = Path(__file__).parent / "results" / "domain.json"
     doc = json.loads(out.read_text()) if out.is_file() else {}
@@ -209,6 +254,11 @@ def main():
         c = doc["cost"]
         print(f"calibrate --no-ann on {args.poses} poses: +{100 * c['extra_wall']:.1f} % wall, "
               f"+{100 * c['extra_cpu']:.1f} % CPU (load {c['load_average_during']})")
+        out.write_text(json.dumps(doc, indent=2))
+        return
+    if args.unmodelled_only:
+        doc["unmodelled"] = unmodelled_cases()
+        doc.setdefault("summary", {})["unmodelled_ratio"] = _unmodelled_ratio(doc["unmodelled"])
         out.write_text(json.dumps(doc, indent=2))
         return
     t0 = time.perf_counter()
@@ -231,6 +281,7 @@ def main():
                 ood.append(r)
                 print(f"{which:6} {case:18} {n:4}: flagged {100 * r['flagged']:.0f} %, sigma/true {r['ratio']:.2f} "
                       f"(sigma {r['mean_sigma_mm']:.3f}, true {r['mean_true_error_mm']:.3f} mm)", flush=True)
+    unmod = unmodelled_cases()
     ratios = [r["ratio"] for r in rows]
     summary = {"ratio_min": min(ratios), "ratio_max": max(ratios),
                "ratio_by_size": {str(n): [min(r["ratio"] for r in rows if r["poses"] == n),
@@ -241,8 +292,9 @@ def main():
                "fresh_flagged_mean": float(np.mean([r["fresh_flagged"] for r in rows])),
                "out_of_domain_flagged": {c: [r["flagged"] for r in ood if r["case"] == c]
                                          for c in ("joint_never_moved", "half_joint_range", "workspace_corner")},
+               "unmodelled_ratio": _unmodelled_ratio(unmod),
                "targets": {"ratio": [0.5, 2.0], "fresh_flagged_max": 0.05}}
-    doc.update({"in_distribution": rows, "out_of_domain": ood, "summary": summary,
+    doc.update({"in_distribution": rows, "out_of_domain": ood, "unmodelled": unmod, "summary": summary,
                 "elapsed_s": time.perf_counter() - t0, "load_average_end": os.getloadavg()})
     out.write_text(json.dumps(doc, indent=2))
     print(json.dumps(summary, indent=1))

@@ -215,3 +215,28 @@ def test_two_reflectors_seen_name_the_unobserved_tool_rotation(robot):
     assert ident.n_unknowns - ident.rank == 1 and np.isfinite(model.condition_number_)
     msg = ident.findings(robot)[0].message
     assert "rotation about their line is not observed" in msg and "the tool's rotation about its" in msg
+
+
+def test_with_a_noise_floor_sigma_covers_an_unmodelled_effect_and_without_one_says_so(robot):
+    from campaign.effects.base import make_effect
+
+    c = make_effect("ground_compliance", robot).typical_params(0)
+    truth = make_truth(robot, seed=3, effects={"ground_compliance": c})
+    q = random_joint_poses(robot, 120, seed=4)
+    poses = synthesize(truth, q, seed=5)
+    model = CalibrationModel(robot=robot).fit(q, poses.T_IE)  # geometric only: the compliance is unmodelled
+    # the floor as repeats would measure it: the noise alone, per axis at the tool point
+    noise = poses.T_IE[:, :3, 3] - truth.pose_in_measured_frame(q, poses.T_LI)[:, :3, 3]
+    floor = {"sigma_position_mm": list(1e3 * noise.std(axis=0)), "relative_uncertainty": 0.1}
+    with_floor, without = model_uncertainty(model, floor), model_uncertainty(model)
+    assert "parameter uncertainty only (no noise floor" in without.basis
+    assert with_floor.systematic_sigma_m > 0 and "beyond the noise floor" in with_floor.basis
+    fresh = random_joint_poses(robot, 400, seed=9)
+    true = np.linalg.norm(model.predict(fresh)[:, :3, 3] - truth.pose_in_measured_frame(fresh, poses.T_LI)[:, :3, 3],
+                          axis=1)
+    sigma = with_floor.sigma_m(robot, model.effect_set_, model.params_, model.effect_params_, fresh)
+    assert 0.5 <= sigma.mean() / true.mean() <= 2.0 and np.mean(true < 2 * sigma) >= 0.9
+    # a geometric truth at the floor adds nothing
+    geo = synthesize(make_truth(robot, seed=3), q, seed=5)
+    m0 = CalibrationModel(robot=robot).fit(q, geo.T_IE)
+    assert model_uncertainty(m0, floor).systematic_sigma_m == 0.0

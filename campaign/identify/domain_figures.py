@@ -44,7 +44,7 @@ def svg_domain(robot, domain, sweeps, q_measured, sigma_measured, out: Path, nam
     s_meas = np.log10(np.maximum(np.asarray(sigma_measured, dtype=float), 1e-6))
     s_all = np.concatenate([s_meas] + [np.log10(np.maximum(s, 1e-6)) for _, s in sweeps])
     lo_y, hi_y = float(np.min(s_all)), float(np.max(s_all))
-    grid = SvgPanels(1, N, pw=min(200.0, 1180.0 / N - 10), ph=200, gx=10, gy=10, left=80, top=44)
+    grid = SvgPanels(1, N, pw=min(200.0, 1180.0 / N - 10), ph=200, gx=10, gy=10, left=80, top=58)
     for j, (x, s) in enumerate(sweeps):
         a, b = (domain.lower[j] - domain.margin[j]) * f[j], (domain.upper[j] + domain.margin[j]) * f[j]
         grid.band(0, j, [a, b], [lo_y, lo_y], [hi_y, hi_y], color="#2ca02c", alpha=0.15)
@@ -55,9 +55,9 @@ def svg_domain(robot, domain, sweeps, q_measured, sigma_measured, out: Path, nam
     svg = Svg(grid.width, grid.height)
     unit = ["mm" if p else "deg" for p in robot.prismatic]
     grid.finish(svg, xlabels=[f"q{j + 1} [{unit[j]}]" for j in range(N)], ylabels=["log10 sigma_mm"], zero_line=False)
-    svg.text(grid.width / 2, 18, title or "the model's 1-σ position uncertainty at the tool point: along each "
-             "joint's range (line, the others at the training median) and at the measured poses (dots: bin mean, "
-             "band 5-95 %); green: the calibrated domain", size=LABEL_PX, anchor="middle")
+    svg.text(grid.width / 2, 16, title or "sigma_mm, the model's 1-σ position uncertainty at the tool point: along "
+             "each joint's range (line; the other joints at the training median)\nand at the measured poses (dots: "
+             "bin mean, band 5-95 %); green: the calibrated domain", size=LABEL_PX, anchor="middle")
     return svg.save(Path(out) / name)
 
 
