@@ -1,10 +1,11 @@
 """Benchmark of the MuJoCo twin (issue 21, item 3): plan, measure on the twin, calibrate, diagnose.
 
-    python benchmarks/bench_twin.py [--robot comau|ur10|both] [--grid-scale S]
+    python benchmarks/bench_twin.py [--robot comau|ur10|panda|both] [--grid-scale S]
 
 For each robot (the default COMAU in the default cell; example-robot-data's UR10, tool0, with its
 STL meshes, in the same cell): `campaign plan` (the default short campaign), `campaign run RUN
---cell mujoco` (timed: the goal is <= 3 min on 2 cores; the twin's simulated time is the campaign
+--cell mujoco` (``--robot panda``: example-robot-data's Panda, tool frame panda_hand, the default
+reflectors beyond its hand and fingers; timed: the goal is <= 3 min on 2 cores; the twin's simulated time is the campaign
 clock), then `campaign calibrate --no-ann` and `campaign diagnose --json`; the effect diagnose names
 is added to RUN/campaign.yaml's effects, and calibrate + diagnose run again, until diagnose names
 none (at most three rounds). Reported: poses measured and failed (with the reasons), the twin's
@@ -29,7 +30,9 @@ from pathlib import Path
 import yaml
 
 #: example-robot-data's arms by short name: (URDF under robots/, tool frame)
-EXAMPLE_ROBOTS = {"ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0")}
+EXAMPLE_ROBOTS = {"ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
+                  # 7R; its tool frame carries the hand and fingers: the default reflectors sit beyond them
+                  "panda": ("panda_description/urdf/panda.urdf", "panda_hand")}
 
 
 def _cli(*args, capture=True):
@@ -102,7 +105,7 @@ def bench(name, tmp, grid_scale):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--robot", choices=("comau", "ur10", "both"), default="both")
+    ap.add_argument("--robot", choices=("comau", "ur10", "panda", "both"), default="both")
     ap.add_argument("--grid-scale", type=float, default=1.0)
     args = ap.parse_args()
     names = ["comau", "ur10"] if args.robot == "both" else [args.robot]
