@@ -240,3 +240,18 @@ def test_with_a_noise_floor_sigma_covers_an_unmodelled_effect_and_without_one_sa
     geo = synthesize(make_truth(robot, seed=3), q, seed=5)
     m0 = CalibrationModel(robot=robot).fit(q, geo.T_IE)
     assert model_uncertainty(m0, floor).systematic_sigma_m == 0.0
+
+
+def test_a_map_fit_holds_the_unidentified_directions_at_the_prior_and_says_so(still_run, tmp_path, capsys):
+    d, _, _ = still_run
+    run = tmp_path / "run"
+    shutil.copytree(d / "run", run, ignore=shutil.ignore_patterns("calibration*"))
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report", "--model", "map"]) == 0
+    out = capsys.readouterr()
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["identifiability"]["held_at"] == "prior"
+    msg = next(w["message"] for w in metrics["warnings"] if w["code"] == "unidentifiable")
+    assert "joint 1 never moved" in msg and "at their prior" in msg
+    line = next(x for x in out.out.splitlines() if x.startswith("estimated"))
+    assert "inf" not in line and "4 direction(s) of them from the prior alone" in line

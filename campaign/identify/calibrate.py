@@ -720,10 +720,12 @@ def summary_text(result: CalibrationResult) -> str:
     ident = (result.domain or {}).get("identifiability") or {}
     held = len(ident.get("held") or ())
     n_fit = m.base_.n_base - sum(1 for n in m.held_ if n in set(m.base_.names))
+    n_prior = ident.get("n_unknowns", 0) - ident.get("rank", 0) if ident.get("held_at") == "prior" else 0
     cond = (f"condition number {m.condition_number_:.3g}" if np.isfinite(m.condition_number_) else
-            "condition number inf: some directions are not identified")
+            "no finite condition number: directions not identified by the training poses, held at the prior")
     lines.append((f"identified {n_fit} of {m.base_.n_base} base parameters" if n_fit < m.base_.n_base else
-                  f"identified {m.base_.n_base} base parameters")
+                  f"estimated {m.base_.n_base} base parameters, {n_prior} direction(s) of them from the prior alone"
+                  if n_prior else f"identified {m.base_.n_base} base parameters")
                  + (f" + {m.effect_set_.n_params} effect parameters" if m.effect_set_.n_params else "")
                  + f" in {m.n_iter_} iterations; {cond}; "
                  f"noise σ {m.noise_sigma_['position_m'] * 1e6:.2f} µm"
