@@ -55,8 +55,9 @@ ALIGN_PERIOD_FACTOR = 2.5
 #: most ALIGN_TIME_CAP / 2, well below a match's gain (time breaks ties of distance; never overrules it)
 ALIGN_TIME_LOG_SIGMA = 0.3
 ALIGN_TIME_CAP = 4.0
-#: successive matches needed to fit the time model
+#: successive matches needed to fit the time model, and the windows of the first pass that fits it
 ALIGN_TIME_MIN_PAIRS = 5
+ALIGN_TIME_FIT_WINDOWS = 400
 
 
 @dataclass(frozen=True)
@@ -112,8 +113,9 @@ class TimeModel:
             + self.motion_scale * (self.cum_motion[jb + 1] - self.cum_motion[ja + 1])
 
     def cost(self, dt_s, ja, jb) -> np.ndarray:
+        """The time cost of observing dt_s (s, scalar or array) from stop ja to stop jb."""
         expected = np.maximum(self.expected_s(ja, jb), 1e-3)
-        z = np.log(max(dt_s, 1e-3) / expected) / ALIGN_TIME_LOG_SIGMA
+        z = np.log(np.maximum(dt_s, 1e-3) / expected) / ALIGN_TIME_LOG_SIGMA
         return 0.5 * np.minimum(z * z, ALIGN_TIME_CAP)
 
 
@@ -153,77 +155,100 @@ def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = N
     if m == 0 or first_stop >= n:
         return []
     dwell_s = np.asarray(dwell_s, dtype=float)
-    chain = _dp(windows, P, dwell_s, first_stop, t_start, None)
-    matches = _confirm(chain, windows, P)
     if motion_s is None:
-        return matches
-    model = fit_time_model(matches, windows, dwell_s, np.asarray(motion_s, dtype=float))
+        return _confirm(_dp(windows, P, dwell_s, first_stop, t_start, None), windows, P)
+    # the time model from a first pass over the log's beginning (the program's speed is one), else
+    # over all of it
+    model = None
+    for part in ([windows[:ALIGN_TIME_FIT_WINDOWS]] if m > ALIGN_TIME_FIT_WINDOWS else []) + [windows]:
+        matches = _confirm(_dp(part, P, dwell_s, first_stop, t_start, None), part, P)
+        model = fit_time_model(matches, part, dwell_s, np.asarray(motion_s, dtype=float))
+        if model is not None:
+            break
     if model is None:
         return matches
     return _confirm(_dp(windows, P, dwell_s, first_stop, t_start, model), windows, P)
 
 
 def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
-    """The best chain [(window, stop), ...] (module docstring); ``time_model`` adds its cost."""
-    m, n = len(windows), len(P)
+    """The best chain [(window, stop), ...] (module docstring); ``time_model`` adds its cost. Each
+    window's candidates from all its predecessors' states are scored at once (arrays)."""
+    m, n, k = len(windows), len(P), P.shape[1]
+    # the windows' positions per reflector code (NaN where a window has none)
+    W = np.full((m, k, 3), np.nan)
+    for i, w in enumerate(windows):
+        for c, pos in w.position.items():
+            W[i, c] = pos
+    has = np.isfinite(W[:, :, 0])
+    t0 = np.array([w.t0 for w in windows])
+    t1 = np.array([w.t1 for w in windows])
     # the dwells as the log keeps them (the clock's rate, a program run slower or faster): scaled by
     # the windows' median length over the stops' median dwell, never up
-    lengths = np.array([w.t1 - w.t0 for w in windows])
-    scale = float(np.clip(np.median(lengths) / np.median(dwell_s), 0.0, 1.0)) if np.median(dwell_s) > 0 else 0.0
+    scale = float(np.clip(np.median(t1 - t0) / np.median(dwell_s), 0.0, 1.0)) if np.median(dwell_s) > 0 else 0.0
     C = np.concatenate([[0.0], np.cumsum(dwell_s * scale)])  # dwell of the stops before k
     # a stop takes the log's typical stop-to-stop time or more (a count bound that holds whatever
     # the dwells: a log of stable points has windows without length)
-    starts = np.array([w.t0 for w in windows])
-    period = float(np.median(np.diff(starts))) if m > 1 else 0.0
-    t_start = windows[0].t0 if t_start is None else t_start
+    period = float(np.median(np.diff(t0))) if m > 1 else 0.0
+    t_start = t0[0] if t_start is None else t_start
+    tol = STREAM_DISTANCE_TOL_M
     states = []  # per window: (J, S, back window, back state)
     old = None  # the best state of windows beyond the lookback: (S + reject · i, i, k)
 
     def reach(j_prev_next, dt):
         """The last stop reachable: stops j_prev_next..j-1 skipped need their dwell in dt, or at most
         ALIGN_PERIOD_FACTOR stops per typical period of the log fit in dt."""
-        dt = max(dt, 0.0)
+        dt = np.maximum(dt, 0.0)
         budget = C[j_prev_next] + dt * STREAM_DWELL_FACTOR + STREAM_DWELL_SLACK_S
         hi = np.searchsorted(C, budget, side="right") - 1  # C[hi] <= budget: stops < hi fit
         if period > 0:
-            hi = np.maximum(hi, j_prev_next + int(ALIGN_PERIOD_FACTOR * dt / period) + 1)
+            hi = np.maximum(hi, j_prev_next + (ALIGN_PERIOD_FACTOR * dt / period).astype(np.int64) + 1)
         return np.minimum(np.minimum(hi, j_prev_next + ALIGN_MAX_JUMP), n - 1)
 
-    for i, w in enumerate(windows):
+    empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    for i in range(m):
         cJ, cS, cB, cK = [], [], [], []
         if i < ALIGN_START_WINDOWS:
-            hi = int(reach(np.int64(first_stop), w.t0 - t_start))
+            hi = int(reach(np.int64(first_stop), np.float64(t0[i] - t_start)))
             J = np.arange(first_stop, hi + 1)
             cJ.append(J)
             cS.append(ALIGN_GAIN - ALIGN_REJECT_WINDOW * i - ALIGN_SKIP_STOP * (J - first_stop))
             cB.append(np.full(len(J), -1))
             cK.append(np.full(len(J), -1))
-        preds = [(ip, None) for ip in range(max(0, i - ALIGN_LOOKBACK), i)]
+        # every predecessor's states at once: the last ALIGN_LOOKBACK windows', and the best older one
+        parts = [(ip, states[ip][0], states[ip][1], np.arange(len(states[ip][0])))
+                 for ip in range(max(0, i - ALIGN_LOOKBACK), i) if len(states[ip][0])]
         if old is not None:
-            preds.append((old[1], old[2]))
-        for ip, only in preds:
-            Jp, Sp, _, _ = states[ip]
-            if len(Jp) == 0:
-                continue
-            ks = np.arange(len(Jp)) if only is None else np.array([only])
-            Jp, Sp = Jp[ks], Sp[ks]
-            hi = reach(Jp + 1, w.t0 - windows[ip].t1)
+            Jo, So = states[old[1]][0], states[old[1]][1]
+            parts.append((old[1], Jo[old[2]:old[2] + 1], So[old[2]:old[2] + 1], np.array([old[2]])))
+        if parts:
+            Jp = np.concatenate([p[1] for p in parts])
+            Sp = np.concatenate([p[2] for p in parts])
+            Bp = np.concatenate([np.full(len(p[1]), p[0]) for p in parts])
+            Kp = np.concatenate([p[3] for p in parts])
+            hi = reach(Jp + 1, t0[i] - t1[Bp])
             cnt = np.maximum(hi - Jp, 0)
-            if cnt.sum() == 0:
-                continue
-            rep = np.repeat(np.arange(len(Jp)), cnt)
-            J = Jp[rep] + 1 + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-            r = pair_residual(windows[ip], w, P, Jp[rep], J)
-            S = Sp[rep] + ALIGN_GAIN - ALIGN_SKIP_STOP * (J - Jp[rep] - 1) \
-                - ALIGN_REJECT_WINDOW * (i - ip - 1) - _pair_cost(r)
-            if time_model is not None:
-                S = S - time_model.cost(w.t0 - windows[ip].t0, Jp[rep], J)
-            cJ.append(J)
-            cS.append(S)
-            cB.append(np.full(len(J), ip))
-            cK.append(ks[rep])
+            total = int(cnt.sum())
+            if total:
+                rep = np.repeat(np.arange(len(Jp)), cnt)
+                Ja, Ba = Jp[rep], Bp[rep]
+                J = Ja + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+                # the distance residual on the first reflector both windows hold (NaN: none)
+                common = has[Ba] & has[i][None, :]
+                c = np.argmax(common, axis=1)
+                d_obs = np.linalg.norm(W[i, c] - W[Ba, c], axis=1)
+                d_pred = np.linalg.norm(P[J, c] - P[Ja, c], axis=1)
+                r = (d_obs - d_pred) / (tol + STREAM_DISTANCE_TOL_REL * d_pred)
+                r[~common.any(axis=1)] = np.nan
+                S = Sp[rep] + ALIGN_GAIN - ALIGN_SKIP_STOP * (J - Ja - 1) \
+                    - ALIGN_REJECT_WINDOW * (i - Ba - 1) - _pair_cost(r)
+                if time_model is not None:
+                    S = S - time_model.cost(t0[i] - t0[Ba], Ja, J)
+                cJ.append(J)
+                cS.append(S)
+                cB.append(Ba)
+                cK.append(Kp[rep])
         if not cJ:
-            states.append((np.zeros(0, int), np.zeros(0), np.zeros(0, int), np.zeros(0, int)))
+            states.append(empty)
         else:
             J, S, Bk, K = (np.concatenate(a) for a in (cJ, cS, cB, cK))
             order = np.lexsort((-S, J))
@@ -234,23 +259,23 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
             states.append((J[keep], S[keep], Bk[keep], K[keep]))
         leaving = i - ALIGN_LOOKBACK
         if leaving >= 0 and len(states[leaving][0]):
-            k = int(np.argmax(states[leaving][1]))
-            v = states[leaving][1][k] + ALIGN_REJECT_WINDOW * leaving
+            kk = int(np.argmax(states[leaving][1]))
+            v = states[leaving][1][kk] + ALIGN_REJECT_WINDOW * leaving
             if old is None or v > old[0]:
-                old = (v, leaving, k)
+                old = (v, leaving, kk)
     best, at = -np.inf, None
     for i, (J, S, _, _) in enumerate(states):
         if len(J):
-            k = int(np.argmax(S))
-            v = S[k] - ALIGN_REJECT_WINDOW * (m - 1 - i)
+            kk = int(np.argmax(S))
+            v = S[kk] - ALIGN_REJECT_WINDOW * (m - 1 - i)
             if v > best:
-                best, at = v, (i, k)
+                best, at = v, (i, kk)
     chain = []
     while at is not None and at[0] >= 0:
-        i, k = at
+        i, kk = at
         J, _, Bk, K = states[i]
-        chain.append((i, int(J[k])))
-        at = (int(Bk[k]), int(K[k])) if Bk[k] >= 0 else None
+        chain.append((i, int(J[kk])))
+        at = (int(Bk[kk]), int(K[kk])) if Bk[kk] >= 0 else None
     chain.reverse()
     return chain
 

@@ -77,6 +77,22 @@ def block_spreads(p: np.ndarray, B: int) -> tuple:
     return med, np.sqrt(np.sum(mad * mad, axis=1))
 
 
+def quick_block_spreads(p: np.ndarray, B: int, quiet_range: float) -> tuple:
+    """:func:`block_spreads` where it matters: a block whose positions span at most ``quiet_range``
+    (the norm of the per-axis ranges) has a robust spread of at most half that (a median absolute
+    deviation is at most half the range), so its mean and that bound stand in for the medians; the
+    others (moving, spiky) get the medians. Same stillness verdicts at ``quiet_range`` = 2 · tau."""
+    nb = len(p) // B
+    blocks = p[:nb * B].reshape(nb, B, 3)
+    span = np.linalg.norm(blocks.max(axis=1) - blocks.min(axis=1), axis=1)
+    med = blocks.mean(axis=1)
+    s = 0.5 * span
+    loud = np.flatnonzero(span > quiet_range)
+    if len(loud):
+        med[loud], s[loud] = block_spreads(blocks[loud].reshape(-1, 3), B)
+    return med, s
+
+
 def is_point_log(t) -> bool:
     """A log of stable points (one record per point) rather than a continuous one: its records
     are further apart in time than STREAM_POINT_MIN_DT_S (a continuous log samples at 10 Hz or
@@ -153,7 +169,7 @@ class WindowFinder:
         if nb == 0:
             return
         t, p, g = t[:nb * B], p[:nb * B], g[:nb * B]
-        med, s = block_spreads(p, B)
+        med, s = quick_block_spreads(p, B, 2.0 * self.tau)
         tb = t.reshape(nb, B)
         gap_s = STREAM_GAP_BLOCKS * B * self.dt_s
         # a block is still: quiet, one reflector, no gap inside
