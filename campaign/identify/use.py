@@ -274,7 +274,9 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
 
     Header: ``q1..qN`` (rad, or deg with ``angle_unit``; m for prismatic joints; in the
     controller's convention, converted by robot.yaml's ``controller``), optionally ``pose_id``
-    and any context columns (``time_s``, ``temperature_c``, ...). columns: the file's own
+    and any context columns (``time_s``, ``temperature_c``, ...); the columns neither the joints,
+    ``pose_id`` nor ``context_keys`` are not checked (a measured file's empty reflector cells, a
+    text label). columns: the file's own
     names (``--columns`` text or {column in the file: name used}; default robot.yaml's
     ``columns:``), as `import` reads them; a mapped measurement column may be absent. slack:
     (N,) rad or m, how far past the URDF's limits readings are accepted (default: round-off,
@@ -286,8 +288,9 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
 
     cols = joint_columns(robot.n_joints)
     scale = joint_scale(robot, angle_unit)
+    used = {*cols, "pose_id", *context_keys}
     header, col, lines = read_numeric_table(path, cols, rename=column_mapping(robot, columns),
-                                            rename_optional=not_joint_name)
+                                            rename_optional=not_joint_name, unused=lambda h: h not in used)
     missing = [k for k in context_keys if k not in col]
     if missing:
         raise DataError(f"{path}: the calibrated model needs the column(s) {', '.join(missing)} "

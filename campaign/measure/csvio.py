@@ -149,7 +149,7 @@ def not_joint_name(name: str) -> bool:
 
 def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = CHUNK_ROWS, progress=None,
                         delimiter: str | None = None, rename=None, names=None, expected: str | None = None,
-                        rename_optional=None):
+                        rename_optional=None, unused=None):
     """Stream a CSV of numbers with a header, ``chunk_rows`` rows at a time.
 
     Yields (header, values (m, columns) float64, source line numbers (m,), 1-based). ``required``
@@ -160,7 +160,9 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
     columns of a file without a header line (``--header``); expected: the header an empty file
     is told to have (default: the required columns); rename_optional: a callable, true for the
     names used whose mapped column may be absent (robot.yaml's measurement columns in a file of
-    joints: :func:`not_joint_name`). A file without a header, or
+    joints: :func:`not_joint_name`); unused: a callable, true for the columns the reader does not
+    use (a measurement column in a file given to predict), whose cells are NaN unless they are
+    finite numbers, never an error. A file without a header, or
     separated by another delimiter than asked, is one line naming it. Every error names the
     file, and where it applies the line and column.
     """
@@ -185,6 +187,7 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
                 dup = sorted({h for h in header if header.count(h) > 1})
                 raise DataError(f"{path}: duplicate column(s) {', '.join(dup)}")
             empty_ok = [bool(may_be_empty and may_be_empty(h)) for h in header]
+            skip = [bool(unused and unused(h)) for h in header]
             ncol = len(header)
             values = np.empty((chunk_rows, ncol))
             lines = np.empty(chunk_rows, dtype=np.int64)
@@ -201,14 +204,14 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
                     try:
                         v = float(cell)
                     except ValueError:
-                        if empty_ok[j] and not cell.strip():
+                        if skip[j] or (empty_ok[j] and not cell.strip()):
                             row[j] = np.nan
                             continue
                         hint = " (a decimal comma? write decimal points)" if _is_number(cell.replace(",", ".")) \
                             else ""
                         raise DataError(f"{path}: line {line}, column {header[j]}: '{cell.strip()}' "
                                         f"is not a number{hint}") from None
-                    if not math.isfinite(v):
+                    if not math.isfinite(v) and not skip[j]:
                         raise DataError(f"{path}: line {line}, column {header[j]}: {cell.strip()} "
                                         "is not a finite number")
                     row[j] = v
@@ -231,15 +234,15 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
 
 
 def read_numeric_table(path, required, *, may_be_empty=None, delimiter: str | None = None, rename=None,
-                       rename_optional=None) -> tuple:
+                       rename_optional=None, unused=None) -> tuple:
     """Read a whole CSV of numbers with a header; every cell finite.
 
     Returns (header, {column: values (n,)}, source line numbers (n,), 1-based). ``required``
     columns must be present; every error names the file, and where it applies the line and
-    column. delimiter, rename, rename_optional: as :func:`iter_numeric_chunks`.
+    column. delimiter, rename, rename_optional, unused: as :func:`iter_numeric_chunks`.
     """
     chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty, delimiter=delimiter,
-                                      rename=rename, rename_optional=rename_optional))
+                                      rename=rename, rename_optional=rename_optional, unused=unused))
     header = chunks[0][0]
     values = np.concatenate([c[1] for c in chunks])
     lines = np.concatenate([c[2] for c in chunks])
