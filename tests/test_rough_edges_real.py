@@ -438,3 +438,42 @@ def test_a_large_correction_names_the_cause_its_transform_points_to(robot, which
     p[k] = 0.5  # rad: 29 deg
     (finding,) = [f for f in check_fit(robot, p, noise_sigma_m=1e-5) if f.code == "large_corrections"]
     assert robot.param_names[k] in finding.message and said in finding.message and unsaid not in finding.message
+
+
+# Variants checked from outside (issue 29's 'Done means'): files of a user's own
+
+
+@pytest.fixture(scope="module")
+def markers_ur10(tmp_path_factory):
+    """A UR10 raw-reflector run (a reflector missed now and then: empty cells), calibrated."""
+    tmp = tmp_path_factory.mktemp("markers")
+    src = tmp / "m.csv"
+    assert main(["synth", "--csv", str(src), "--robot", "ur10", "--poses", "50", "--seed", "4", "--kind", "markers",
+                 "--miss-rate", "0.1"]) == 0
+    run = tmp / "run"
+    assert main(["import", str(src), "--run", str(run), "--robot", "ur10", "--markers",
+                 str(tmp / "m.markers.yaml"), "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    return run, src
+
+
+@pytest.mark.parametrize("cmd", ["predict", "compensate"])
+def test_the_measured_file_itself_is_read_by_predict_its_empty_reflector_cells_unread(markers_ur10, tmp_path,
+                                                                                     capsys, cmd):
+    run, src = markers_ur10
+    header, values = _read(src)
+    assert np.isnan(values).any()  # the missed reflectors
+    joints = ["pose_id"] + [f"q{j}" for j in range(1, 7)]
+    _write(tmp_path / "joints.csv", joints, values[:, [header.index(h) for h in joints]])
+    labelled = tmp_path / "labelled.csv"  # and a text label beside them
+    with open(src) as fh, open(labelled, "w") as out:
+        for k, line in enumerate(fh):
+            out.write(("label," if k == 0 else f"P{k},") + line)
+    outs = []
+    for k, path in enumerate((tmp_path / "joints.csv", src, labelled)):
+        outs.append(tmp_path / f"out{k}.csv")
+        assert main([cmd, str(run), "--csv", str(path), "--out", str(outs[-1])]) == 0, capsys.readouterr().err
+    first = _read(outs[0])[1]
+    assert len(first) == len(values)
+    for out in outs[1:]:
+        np.testing.assert_array_equal(_read(out)[1], first)
