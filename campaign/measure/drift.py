@@ -257,10 +257,11 @@ def drift_readings(run_dir, poses) -> dict:
             out["legacy"] = (np.array([float(t) for t, _ in events]) - t_ref,
                              np.array([d["drift_mm"] * 1e-3 for _, d in events]))
     keep = []
-    for lab in np.unique(labels):
-        if lab == ref_label and out["monitor"] is not None:
+    order = np.argsort(labels, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(labels[order]) != 0])
+    for g in np.split(order, starts[1:]):  # the poses measured more than once (one pass, not one per label)
+        if len(g) < 2 or (labels[g[0]] == ref_label and out["monitor"] is not None):
             continue
-        g = np.flatnonzero(labels == lab)
         # measured again later: two successive readings further apart than back to back (the floor's)
         if len(g) > 1 and np.isfinite(t_all[g]).all() and np.diff(np.sort(t_all[g])).max() > REPEAT_CLOSE_S:
             keep.append(g)
