@@ -393,9 +393,9 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         poses = poses.subset(np.flatnonzero(usable))
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
     # the data as calibrate's model sees them: registered from the tracker's frame, at the measured point
-    from campaign.identify.calibrate import prepare_measured
+    from campaign.identify.calibrate import prepare_measured, tracker_to_robot
 
-    poses, robot, _ = prepare_measured(robot, poses, ~is_test)
+    poses, robot, tracker = prepare_measured(robot, poses, ~is_test)
     position_only = not poses.has_orientation
     tr = np.flatnonzero(~is_test)
     from campaign.plan.selection import base_pose_id
@@ -554,5 +554,6 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
                      floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
                      r_out, rule, tuple(skipped), expected,
-                     fold_pose_ids(poses.pose_id[tr], fold, folds), measured_drift(run_dir, poses, floor),
+                     fold_pose_ids(poses.pose_id[tr], fold, folds),
+                     measured_drift(run_dir, poses, floor, tracker_to_robot(tracker)),
                      model_note)

@@ -360,6 +360,14 @@ def register_tracker(robot, poses, train):
     return replace(poses, T_IE=T_I), tracker_block(T_LI0, rms)
 
 
+def tracker_to_robot(tracker):
+    """(4, 4): the map of readings in the tracker's frame into the registered robot frame (the
+    inverse of ``tracker["T_L_I"]``, :func:`register_tracker`), or None without a registration."""
+    from campaign.measure.reflectors import invert
+
+    return None if tracker is None else invert(np.asarray(tracker["T_L_I"], dtype=float))
+
+
 def tracker_block(T_L_I, rms_m: float) -> dict:
     """metrics.json's ``tracker``: ``T_L_I`` (4, 4), the pose of the model's base frame F_I in the
     tracker's frame L, which maps predict's output, compensate's targets and the exported URDF's
@@ -571,7 +579,7 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
         tool_mounting_in_tool=None if mounting is None else mounting_json(mounting),
-        noise_floor=floor.as_json(), drift=measured_drift(run_dir, measured, floor).as_json(),
+        noise_floor=floor.as_json(), drift=measured_drift(run_dir, measured, floor, tracker_to_robot(tracker)).as_json(),
         ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json(), calibration_id=version.id,
         model_choice=choice_json(choice, model, poses.q[te], ctx_te=None if not context else

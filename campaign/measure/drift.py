@@ -229,10 +229,12 @@ def same_pose_groups(q, tol: float = SAME_POSE_TOL_RAD) -> np.ndarray:
     return labels
 
 
-def drift_readings(run_dir, poses) -> dict:
+def drift_readings(run_dir, poses, readings_to_poses=None) -> dict:
     """The reference poses' readings of a run (its MeasuredPoses ``poses``): ``{"monitor": (t
     (k,) s, xyz (k, 3) m) or None, "repeats": (t, xyz, group) or None, "legacy": (Δt (k,) s,
-    d (k,) m) or None}``; legacy: drift checks stored as distances only (no ``xyz_m``)."""
+    d (k,) m) or None}``; legacy: drift checks stored as distances only (no ``xyz_m``).
+    ``readings_to_poses`` (4, 4): maps the drift checks' stored readings into the frame of ``poses``
+    (data measured in the tracker's frame that calibrate registered into the robot's; None: the same)."""
     with open_run(run_dir) as store:
         events = [(t, d) for _, _, t, d in store.events("drift_check")
                   if isinstance(d, dict) and d.get("drift_mm") is not None and t is not None]
@@ -250,7 +252,11 @@ def drift_readings(run_dir, poses) -> dict:
         with_xyz = [(float(t), d["xyz_m"]) for t, d in events if d.get("xyz_m") is not None]
         if with_xyz:
             t = np.r_[t_all[mine], [t for t, _ in with_xyz]]
-            xyz = np.concatenate([poses.xyz[mine], np.array([p for _, p in with_xyz], dtype=float)])
+            read = np.array([p for _, p in with_xyz], dtype=float)
+            if readings_to_poses is not None:
+                T = np.asarray(readings_to_poses, dtype=float)
+                read = read @ T[:3, :3].T + T[:3, 3]
+            xyz = np.concatenate([poses.xyz[mine], read])
             out["monitor"] = (t, xyz)
         else:
             t_ref = np.nanmin(t_all[mine]) if np.isfinite(t_all[mine]).any() else np.nan
@@ -271,11 +277,12 @@ def drift_readings(run_dir, poses) -> dict:
     return out
 
 
-def measured_drift(run_dir, poses, floor: NoiseFloor | None = None) -> Drift:
+def measured_drift(run_dir, poses, floor: NoiseFloor | None = None, readings_to_poses=None) -> Drift:
     """The run's drift (see the module): every reference pose's readings in one fit, and the
     monitor and the repeats each alone. ``floor``: only for runs whose drift checks stored
-    distances (its σ, when known and not an upper bound)."""
-    r = drift_readings(run_dir, poses)
+    distances (its σ, when known and not an upper bound); ``readings_to_poses``: as
+    :func:`drift_readings`."""
+    r = drift_readings(run_dir, poses, readings_to_poses)
     monitor = repeats = legacy = None
     if r["monitor"] is not None:
         monitor = fit_drift(r["monitor"][0], r["monitor"][1], np.full(len(r["monitor"][0]), -1))
