@@ -255,3 +255,15 @@ def test_a_map_fit_holds_the_unidentified_directions_at_the_prior_and_says_so(st
     assert "joint 1 never moved" in msg and "at their prior" in msg
     line = next(x for x in out.out.splitlines() if x.startswith("estimated"))
     assert "inf" not in line and "4 direction(s) of them from the prior alone" in line
+
+
+def test_a_grid_plan_with_repeats_keeps_poses_between_its_nodes_inside(robot):
+    rng = np.random.default_rng(3)
+    levels = np.linspace(0.1, 0.9, 5)  # each joint on 5 values of its range, as a plan's grid
+    q = robot.q_lower + levels[rng.integers(0, 5, size=(300, robot.n_joints))] * (robot.q_upper - robot.q_lower)
+    q = np.concatenate([q, q[:40]])  # repeats: identical joint vectors
+    dom = calibrated_domain(robot, q)
+    lo = robot.q_lower + 0.12 * (robot.q_upper - robot.q_lower)
+    hi = robot.q_upper - 0.12 * (robot.q_upper - robot.q_lower)
+    between = rng.uniform(lo, hi, size=(500, robot.n_joints))
+    assert dom.threshold > 0 and dom.contains(between).mean() >= 0.95

@@ -36,6 +36,19 @@ from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMA
 DOMAIN_FILE = "domain.json"
 
 
+def _largest_nearest_distance(points) -> float:
+    """The largest distance from a point to its nearest other point among the distinct ``points`` (n, d):
+    a plan's repeated poses, and a grid's poses seen in two joints, coincide, and a distance of 0 to
+    a copy would make the threshold 0 (every pose off the grid outside)."""
+    from scipy.spatial import cKDTree
+
+    u = np.unique(np.asarray(points, dtype=float), axis=0)
+    if len(u) < 2:
+        return 1e-9
+    d, _ = cKDTree(u).query(u, k=2)
+    return max(float(d[:, 1].max()), 1e-9)
+
+
 def encode_array(a) -> dict:
     """A float64 array as strict JSON: {"dtype": "<f8", "shape", "base64"} (little-endian, C order):
     exact, and a 14,000-pose campaign's joints are written in milliseconds, not as 84,000 numbers."""
@@ -88,10 +101,7 @@ class Domain:
     @cached_property
     def threshold(self) -> float:
         """DOMAIN_NN_FACTOR × the largest leave-one-out nearest-pose distance of the training poses."""
-        if len(self.q_train) < 2:
-            return 1.0
-        d, _ = self._tree.query(self.q_train / self.scale, k=2)
-        return max(DOMAIN_NN_FACTOR * float(d[:, 1].max()), 1e-9)
+        return DOMAIN_NN_FACTOR * _largest_nearest_distance(self.q_train / self.scale)
 
     def within_ranges(self, q) -> np.ndarray:
         """(n, N) bool: each joint within its widened training range."""
@@ -118,9 +128,7 @@ class Domain:
         for i in range(N):
             for j in range(i + 1, N):
                 pts = q[:, [i, j]] / span[[i, j]]
-                tree = cKDTree(pts)
-                d, _ = tree.query(pts, k=2)
-                out.append((i, j, tree, DOMAIN_PAIR_FACTOR * float(d[:, 1].max()), span[[i, j]]))
+                out.append((i, j, cKDTree(pts), DOMAIN_PAIR_FACTOR * _largest_nearest_distance(pts), span[[i, j]]))
         return out
 
     def pairs_occupied(self, q) -> np.ndarray:

@@ -149,18 +149,8 @@ class Identifiability:
                 "still_joints": [{"joint": j + 1, "value": v, "poses": n} for j, v, n in self.still],
                 "held": list(self.held), "held_at": self.held_at}
 
-    def text(self) -> str:
-        """One line for the summary: the rank on these poses, never ``inf`` beside "identified"."""
-        if self.rank < self.n_unknowns:
-            return (f"on these training poses {self.rank} of {self.n_unknowns} unknowns are identified; "
-                    f"{self.n_unknowns - self.rank} direction(s) are not (held {'at nominal' if self.held_at == 'nominal' else 'at the prior'}; "
-                    "see the unidentifiable warnings)")
-        weak = f", {len(self.weak)} barely" if self.weak else ""
-        return (f"on these training poses all {self.n_unknowns} unknowns are identified{weak} "
-                f"(column-scaled condition number {self.condition_number:.3g})")
 
-
-def _scaled_svd(J):
+def _scaled_directions(J):
     """(singular values, right singular vectors, column norms) of the column-scaled (n·m, f) J, largest
     first: from the eigen-decomposition of its f × f normal matrix (a 14,000-pose campaign's J has
     84,000 rows; its SVD costs a quarter of a second, this a few milliseconds). Round-off leaves a
@@ -189,7 +179,7 @@ def analyse(model, q_train, frame: str = "robot", held=(), held_at: str = "nomin
                    if JOINT_STILL_RAD <= span[j] < JOINT_NARROW_FRACTION * limits[j])
     if J.shape[-1] == 0:
         return Identifiability(0, 0, float("inf"), still=still)
-    s, vt, _ = _scaled_svd(J)
+    s, vt, _ = _scaled_directions(J)
     s_max = s[0] if len(s) and s[0] > 0 else 1.0
     ratio = s / s_max
     n_free = J.shape[-1]
@@ -203,12 +193,10 @@ def analyse(model, q_train, frame: str = "robot", held=(), held_at: str = "nomin
         top = np.argsort(-np.abs(v))[:3]
         top = [t for t in top if abs(v[t]) >= 0.25 * abs(v[top[0]])]
         dirs.append(Direction(kind, float(ratio[i]), tuple((names[t], float(v[t])) for t in top)))
-    for _ in range(n_free - len(s)):  # fewer rows than unknowns: the rest is unidentified too
-        dirs.insert(0, Direction("unidentified", 0.0, ()))
     dirs.sort(key=lambda d: (d.kind != "unidentified", d.ratio))
     for d in dirs:
-        words.append(" with ".join(parameter_words(robot, n, frame) for n, _ in d.parameters) or "more unknowns than rows")
-    cond = float(s_max / s[-1]) if len(s) == n_free and s[-1] > 0 and rank == n_free else float("inf")
+        words.append(" with ".join(parameter_words(robot, n, frame) for n, _ in d.parameters))
+    cond = float(s_max / s[-1]) if s[-1] > 0 and rank == n_free else float("inf")
     return Identifiability(rank=min(rank, n_free), n_unknowns=n_free, condition_number=cond, directions=tuple(dirs),
                            still=still, held=tuple(held), held_at=held_at, words=tuple(words),
                            held_words=tuple(parameter_words(robot, n, frame) for n in held), narrow=narrow)
