@@ -219,6 +219,30 @@ def _write_remaining(run, robot, ids, q, offsets, times):
                                       xyz=tuple(T[k, :3, 3] + offsets[k]), rotvec=(0.0, 0.0, 0.0)))
 
 
+def test_a_watcher_polling_as_fast_as_it_can_never_makes_a_command_find_the_run_busy(tmp_path):
+    from campaign.watch.view import RunView
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".lock").write_text("{}")
+    # another process takes and releases the run's lock 400 times, as commands starting would
+    script = ("import sys; from campaign.run import RunFolder; from campaign.errors import RunBusy\n"
+              "busy = 0\n"
+              "for _ in range(400):\n"
+              "    try:\n"
+              "        with RunFolder(sys.argv[1]).lock('run'): pass\n"
+              "    except RunBusy: busy += 1\n"
+              "print(busy)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    view, looks, states = RunView(run), 0, set()
+    while proc.poll() is None:
+        view.refresh(force=True)  # who holds the lock, looked up every time
+        states.add(view.status()["state"])
+        looks += 1
+    assert proc.communicate()[0].strip() == "0" and looks > 20, looks
+    assert states <= {"planned", "running"}
+
+
 def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished(tmp_path):
     from campaign.auto.state import Decision, Round, load_state, save_state
     from campaign.cli import build_parser

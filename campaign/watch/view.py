@@ -107,7 +107,7 @@ class RunView:
         self._residuals: dict = {}
         self._nominal: dict = {}
         self._robot = None
-        self._notes: list = []
+        self._notes: dict = {}  # what could not be shown and why, once each, in order
         self._summary = None
         self._tally = _Tally()
         self._todo = (None, [], 0)
@@ -115,6 +115,9 @@ class RunView:
         self._holder = None
         #: reads of the log: whole ("full") and of what was appended since the last ("appended")
         self.reads = {"full": 0, "appended": 0}
+
+    def _note(self, text: str) -> None:
+        self._notes[" ".join(str(text).split())] = None
 
     def prepare(self) -> None:
         """Load what the first poses will need (the robot, the kinematics) now, before a run is
@@ -206,8 +209,11 @@ class RunView:
                                     "WHERE seq > ? ORDER BY seq", (self._event_seq if appended else 0,)
                                     ).fetchall() if "events" in tables else []
                 meta = dict(db.execute("SELECT key, value FROM meta").fetchall()) if "meta" in tables else {}
-        except sqlite3.Error:
+        except sqlite3.OperationalError:
             return False  # busy or being created: what was read stays until the next refresh
+        except sqlite3.DatabaseError as exc:  # damaged: said on the page, nothing written
+            self._note(f"{path}: cannot read the measurement log ({exc})")
+            return False
         finally:
             db.close()
         rows = [dict(zip(_POSE_COLUMNS, r)) for r in new]
@@ -239,7 +245,7 @@ class RunView:
                 self._robot = measured_robot(self.run.robot())
             except CampaignError as exc:
                 self._robot = False
-                self._notes.append(f"no residuals: {exc}")
+                self._note(f"no residuals: {exc}")
         return self._robot or None
 
     def _tool_point(self, robot):
@@ -274,7 +280,7 @@ class RunView:
             T = forward(robot, q)
             p = T[:, :3, :3] @ self._tool_point(robot) + T[:, :3, 3]
         except (CampaignError, ValueError) as exc:
-            self._notes.append(f"no nominal positions: {exc}")
+            self._note(f"no nominal positions: {exc}")
             return
         for r, pos in zip(new, p):
             self._nominal[r["pose_id"]] = pos
@@ -306,7 +312,7 @@ class RunView:
 
                 self._calibrated = CalibratedRobot(self.run.path)
             except (CampaignError, ValueError, KeyError, OSError) as exc:
-                self._notes.append(f"no calibrated residuals: {' '.join(str(exc).split())}")
+                self._note(f"no calibrated residuals: {' '.join(str(exc).split())}")
                 return True
             self._calibration = (key, self._calibrated.stage)
             self._residual_from = 0
@@ -329,7 +335,7 @@ class RunView:
             T = self._calibrated.predict(self._q(todo, robot.n_joints), ctx)
             p = T[:, :3, :3] @ self._tool_point(robot) + T[:, :3, 3]
         except (CampaignError, ValueError, KeyError) as exc:
-            self._notes.append(f"no calibrated residuals: {' '.join(str(exc).split())}")
+            self._note(f"no calibrated residuals: {' '.join(str(exc).split())}")
             self._calibrated = None
             return True
         xyz = np.array([[r["x"], r["y"], r["z"]] for r in todo], dtype=float)
@@ -459,7 +465,7 @@ class RunView:
                     "calibration_stage": self._calibration[1],
                     "auto": None if auto is None else {"rounds": rounds, "finished": _jsonable(auto.get("finished")),
                                                        "pending": (auto.get("pending") or {}).get("text")},
-                    "reports": reports, "notes": list(dict.fromkeys(self._notes))[-5:]}
+                    "reports": reports, "notes": list(self._notes)[-5:]}
 
     def served_file(self, rel: str) -> Path | None:
         """RUN/``rel`` when it is a file in one of SERVED_FOLDERS (links resolved: inside RUN), else None."""
