@@ -303,3 +303,9 @@ PROGRAM_BEST_EFFORT_STEP_RAD = 0.52
 #: (the last link, the hand and fingers beyond the tool frame too) against the beam from there on,
 #: as the twin's ray meets them; the nest and the tool right around the sphere lie within it.
 REFLECTOR_RADIUS_M = 0.01905
+
+#: A row of a measured-pose file without pose_id is the planned pose whose joints (rad; m for a
+#: prismatic joint) all lie within this of its own: the commanded joints are the plan's as a
+#: controller writes them (4 decimals in degrees: 1e-6 rad; 3 decimals of KRL, 1e-5 rad; a
+#: reading of the encoders, ~1e-5 rad), while the plan's grid puts its poses 0.1 rad apart or more
+PLAN_MATCH_TOL_RAD = 1e-3

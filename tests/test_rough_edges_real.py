@@ -477,3 +477,42 @@ def test_the_measured_file_itself_is_read_by_predict_its_empty_reflector_cells_u
     assert len(first) == len(values)
     for out in outs[1:]:
         np.testing.assert_array_equal(_read(out)[1], first)
+
+
+def _planned(tmp_path, name, header, values):
+    """A run folder whose plan (written here) lists the synth poses under grid-like ids, the
+    first one measured twice (a repeat), 10 of them as its validation poses."""
+    run = tmp_path / name
+    (run / "plan").mkdir(parents=True)
+    q = values[:, [header.index(f"q{j}") for j in range(1, 7)]]
+    ids = 700_000 + 7 * np.arange(len(q))
+    _write(run / "plan" / "poses.csv", ["pose_id"] + [f"q{j}" for j in range(1, 7)],
+           np.column_stack([np.r_[ids, 1_000_000_000 + ids[0]], np.r_[q, q[:1]]]))
+    (run / "plan" / "validation.csv").write_text("pose_id\n" + "".join(f"{i}\n" for i in ids[-10:]))
+    return run, ids
+
+
+def test_a_planned_runs_file_without_pose_id_finds_the_plans_poses_and_own_ids_get_the_80_20_split(tmp_path,
+                                                                                                      capsys):
+    src = tmp_path / "c.csv"
+    assert main(["synth", "--csv", str(src), "--poses", "50", "--seed", "8"]) == 0
+    header, values = _read(src)
+    values = np.r_[values, values[:1]]  # the first pose measured again: the plan's repeat
+    run, ids = _planned(tmp_path, "noid", header, values)
+    _write(tmp_path / "noid.csv", header[1:], values[:, 1:])
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "noid.csv"), "--run", str(run), "--quiet"]) == 0
+    assert "the 51 rows are the plan's poses by their joints" in capsys.readouterr().out
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["test_pose_ids"] == [int(i) for i in ids[-10:]]  # was: 0 test poses, calibrate refused
+    assert metrics["stages"]["geometric"]["train"]["n_poses"] == 41  # 40 poses and the repeat
+
+    own, _ = _planned(tmp_path, "own", header, values)
+    _write(tmp_path / "own.csv", header, np.column_stack([np.arange(1, 52), values[:, 1:]]))
+    assert main(["import", str(tmp_path / "own.csv"), "--run", str(own), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(own), "--no-ann", "--no-report"]) == 0
+    assert "none of the 51 measured pose ids is one of the plan's" in capsys.readouterr().err
+    n_test = json.loads((own / "calibration" / "metrics.json").read_text())["stages"]["geometric"]["test"]["n_poses"]
+    assert 5 <= n_test <= 15  # the 80/20 split of 51 poses

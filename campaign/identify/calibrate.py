@@ -29,7 +29,7 @@ from campaign.identify.ann_stage import AnnStages
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.model_choice import check_model_options, choice_json, choice_text, fit_model, geometric_fix
 from campaign.identify.solver import CalibrationModel
-from campaign.identify.split import run_split, validation_file
+from campaign.identify.split import not_the_plans, run_split, validation_file
 from campaign.measure import plausibility
 from campaign.measure.drift import Drift, measured_drift
 from campaign.measure.floor import noise_floor, times_the_noise
@@ -453,11 +453,15 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         usable = usable[usable]
     position_only = position_only or not poses.has_orientation
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
+    foreign = not_the_plans(run_dir, poses.pose_id)
+    if foreign:
+        say(foreign)
     tr, te = ~is_test, is_test
     n_effect = sum(make_effect(e, robot).n_params for e in effects)
     points = poses.marker_positions if raw else None
     check_pose_count(run_dir, robot, distinct_poses(poses.q[tr]), int(te.sum()), position_only,
-                     n_effect_params=n_effect, validation=validation_file(run_dir).is_file(), points=points,
+                     n_effect_params=n_effect, validation=validation_file(run_dir).is_file() and not foreign,
+                     points=points,
                      rows_per_pose=informative_equations(n_seen[tr]) if raw else None)
     point = measured_point(robot, poses, tr)
     if point is not None and np.any(point) and len(robot.reflectors) != 1:

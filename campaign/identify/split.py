@@ -140,13 +140,34 @@ def validation_file(run_dir):
     return Path(run_dir) / "plan" / "validation.csv"
 
 
+def not_the_plans(run_dir, pose_id) -> str | None:
+    """The sentence saying that none of the measured pose ids is one of the run's plan
+    (RUN/plan/poses.csv), whose validation poses then cannot be told: the test set is the 80/20
+    split (a file of the user's own ids imported into a planned run); None when some are, or
+    without a plan."""
+    from pathlib import Path
+
+    path = Path(run_dir) / "plan" / "poses.csv"
+    if not path.is_file() or not validation_file(run_dir).is_file():
+        return None
+    with open(path) as fh:
+        next(fh, None)
+        planned = np.array([int(float(ln.split(",", 1)[0])) for ln in fh if ln.strip()], dtype=np.int64)
+    if np.isin(np.asarray(pose_id, dtype=np.int64), planned).any():
+        return None
+    return (f"none of the {len(np.unique(pose_id))} measured pose ids is one of the plan's ({path}): its validation "
+            "poses cannot be told, the test set is the 80/20 split (a file without pose_id imported into the "
+            "planned run finds the plan's poses by their joints)")
+
+
 def run_split(run_dir, pose_id):
     """Boolean mask ``is_test`` (n,) for a run's measured poses.
 
     A plan that chose its poses (`campaign plan --select/--budget/--target-mm`, and the default
     short campaign) drew validation poses at random from the suitable set and listed them in
     ``RUN/plan/validation.csv`` (``pose_id``): they are the test set, so the accuracy claim comes
-    from poses the design did not choose. Otherwise the 80/20 split (:func:`campaign_split`),
+    from poses the design did not choose. Otherwise (or when no measured id is the plan's:
+    :func:`not_the_plans`) the 80/20 split (:func:`campaign_split`),
     where a repeated measurement (pose id ``p + r·10⁹``, when the plan wrote RUN/plan/repeats.csv)
     lies on the side of the pose ``p`` it repeats.
     """
@@ -157,7 +178,7 @@ def run_split(run_dir, pose_id):
 
     pose_id = np.asarray(pose_id, dtype=np.int64)
     path = validation_file(run_dir)
-    if not path.is_file():
+    if not path.is_file() or not_the_plans(run_dir, pose_id):
         if (Path(run_dir) / "plan" / "repeats.csv").is_file():
             return campaign_split(base_pose_id(pose_id))
         return campaign_split(pose_id)

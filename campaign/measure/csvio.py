@@ -428,6 +428,7 @@ class ImportOptions:
     header: tuple | None = None  # the columns of a file without a header line (--header)
     limit_slack_rad: float = 0.0
     limit_slack_m: float = 0.0
+    pose_ids: np.ndarray | None = None  # (n,) the rows' ids of a file without pose_id (the plan's: plan_pose_ids)
 
     def __post_init__(self):
         if self.angle_unit not in ("rad", "deg"):
@@ -470,7 +471,8 @@ def _convert(path, layout, header, values, lines, robot, options, P_nom, first_r
     data rows came before this chunk (the pose ids of a file without ``pose_id``)."""
     col = {h: values[:, j] for j, h in enumerate(header)}
     if not layout.has_pose_id:
-        col["pose_id"] = np.arange(first_row, first_row + len(values), dtype=float)
+        col["pose_id"] = (np.arange(first_row, first_row + len(values), dtype=float) if options.pose_ids is None
+                          else np.asarray(options.pose_ids[first_row:first_row + len(values)], dtype=float))
 
     def fail(mask, name, what, v=None):
         k = int(np.argmax(mask))
@@ -690,12 +692,15 @@ class CsvReading:
     past_limits: PastLimits | None
     chunks: object
     n_rows: int = 0
+    plan_match: str | None = None  # how the rows of a file without pose_id were given the plan's ids
 
     @property
     def numbered(self) -> str | None:
         """The sentence saying the rows were numbered (a file without ``pose_id``), or None."""
         if self.layout.has_pose_id:
             return None
+        if self.plan_match:
+            return f"no pose_id column: the {self.n_rows} rows {self.plan_match}"
         return (f"no pose_id column: the {self.n_rows} rows are numbered 0..{self.n_rows - 1} in file order "
                 "as pose_id")
 

@@ -68,6 +68,11 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         options = replace(options, markers=read_markers_file(markers_file))
     options = replace(options, columns=column_mapping(model, options.columns))
     reading = iter_measured_chunks(csv_path, model, options, progress=progress)
+    match = None
+    if not reading.layout.has_pose_id and run.poses_csv.is_file():  # the plan's ids, by the rows' joints
+        ids, match = plan_pose_ids(reading.chunks, run, model)
+        options = replace(options, pose_ids=ids)
+        reading = replace(iter_measured_chunks(csv_path, model, options, progress=progress), plan_match=match)
     warnings = import_warnings(csv_path, model, options, run.path)
     if strict and warnings:
         raise Implausible(f"{csv_path}: {len(warnings)} plausibility warning(s) with --strict "
@@ -85,6 +90,49 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
         if not run.has_config:
             run.record_robot(spec, tool_frame=tool_frame, base_frame=base_frame)
     return ImportResult(n, tuple(warnings), past, model.name, reading.numbered)
+
+
+def plan_pose_ids(chunks, run, robot) -> tuple:
+    """(ids (n,) int64, what was done in words) for the rows of a file without pose_id imported
+    into a planned run: each row the planned pose (RUN/plan/poses.csv) whose joints all lie within
+    PLAN_MATCH_TOL_RAD of its joints, a pose measured again the plan's next repeat of it (its
+    ids in increasing order), so the plan's validation poses and repeats are found by calibrate.
+    A row matching no planned pose (or measured more often than planned) gets an id of its own
+    after the plan's (another pose id modulo REPEAT_ID_STRIDE than any planned pose's); a file
+    of which no row matches is numbered 0..n-1 in file order."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from campaign.measure.driver import read_plan
+    from campaign.plan.selection import REPEAT_ID_STRIDE, base_pose_id
+    from campaign.tolerances import PLAN_MATCH_TOL_RAD
+
+    q = np.concatenate([c.q for c in chunks])
+    plan_ids, plan_q, _ = read_plan(run.path)
+    if plan_q.shape[1] != q.shape[1]:
+        return None, None
+    poses, group = np.unique(plan_q, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    order = np.lexsort((plan_ids, group))  # each planned pose's ids in increasing order
+    starts = np.searchsorted(group[order], np.arange(len(poses)))
+    counts = np.bincount(group, minlength=len(poses))
+    _, near = cKDTree(poses).query(q, p=np.inf, distance_upper_bound=PLAN_MATCH_TOL_RAD)
+    ids = np.full(len(q), -1, dtype=np.int64)
+    used = np.zeros(len(poses), dtype=np.int64)
+    for k, g in enumerate(near):
+        if g < len(poses) and used[g] < counts[g]:
+            ids[k] = plan_ids[order[starts[g] + used[g]]]
+            used[g] += 1
+    lost = ids < 0
+    if lost.all():
+        return None, None
+    free = (int(plan_ids.max()) // REPEAT_ID_STRIDE + 1) * REPEAT_ID_STRIDE + int(base_pose_id(plan_ids).max()) + 1
+    ids[lost] = free + np.arange(int(lost.sum()))
+    said = f"are the plan's poses by their joints ({run.poses_csv}: {int((~lost).sum())} of {len(plan_ids)} planned)"
+    if lost.any():
+        said += (f"; {int(lost.sum())} row(s) match no planned pose (or one measured more often than planned), "
+                 f"the first data row {int(np.flatnonzero(lost)[0]) + 1}: ids of their own from {free}")
+    return ids, said
 
 
 def import_warnings(csv_path, robot, options, run_dir=None) -> list:
