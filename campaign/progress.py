@@ -13,11 +13,14 @@ class Progress:
         self.t0 = time.perf_counter()
         self._last = 0.0
         self.extra = ""
+        self.eta_s = None  # the caller's own estimate of the time left (s), else done / rate
 
-    def update(self, n: int = 1, extra: str = "") -> None:
+    def update(self, n: int = 1, extra: str = "", eta_s: float | None = None) -> None:
         self.done += n
         if extra:
             self.extra = extra
+        if eta_s is not None:
+            self.eta_s = eta_s
         now = time.perf_counter()
         if self.enabled and (now - self._last > 0.2 or (self.total and self.done >= self.total)):
             self._last = now
@@ -29,8 +32,9 @@ class Progress:
         if self.total:
             frac = min(self.done / self.total, 1.0)
             bar = "#" * int(24 * frac) + "-" * (24 - int(24 * frac))
-            eta = (self.total - self.done) / rate if rate > 0 else float("inf")
-            text = f"\r{self.label:<22} [{bar}] {self.done:,}/{self.total:,}{self.unit} {rate:,.0f}/s ETA {eta:4.0f} s {self.extra}"
+            eta = self.eta_s if self.eta_s is not None else (self.total - self.done) / rate if rate > 0 else float("inf")
+            eta = f"ETA {eta:4.0f} s" if eta < float("inf") else "ETA    ? s"
+            text = f"\r{self.label:<22} [{bar}] {self.done:,}/{self.total:,}{self.unit} {rate:,.0f}/s {eta} {self.extra}"
         else:
             text = f"\r{self.label:<22} {self.done:,}{self.unit} {rate:,.0f}/s {self.extra}"
         sys.stderr.write(text[:160])

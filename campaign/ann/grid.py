@@ -42,6 +42,14 @@ from campaign.errors import ConfigError, DataError
 
 SOLVERS = ("adam", "br-lm")
 
+#: after Ctrl-C, how long terminated worker processes get to exit before they are killed (s)
+ABORT_JOIN_S = 2.0
+
+#: a cross-validated size whose held-out RMSE of normalised Δz in some fold exceeds this (or is not
+#: finite) diverged: a network predicting zero scores about 1, a fitted one below; 100 is a network
+#: whose predictions left the data (BR-LM's weights grown without bound), not a poor fit
+DIVERGED_RMSE_NORMALISED = 100.0
+
 #: expected epochs per member, for the grid's ETA before any task has finished (measured on the
 #: 14,000-pose benchmark: Adam members stop after 300-1,300 epochs, BR-LM after 130-1,400)
 _EPOCH_GUESS = {"adam": 700, "br-lm": 500}
@@ -68,6 +76,10 @@ _PROGRESS_QUEUE = None  # set in local worker processes by the pool's initialize
 def _worker_init(q, threads):
     global _PROGRESS_QUEUE
     _PROGRESS_QUEUE = q
+    import signal
+
+    # Ctrl-C reaches the whole process group: the parent decides (it stops the workers at once)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import torch
 
     torch.set_num_threads(int(threads))
@@ -89,6 +101,8 @@ def run_task(task: dict, report=None) -> dict:
 
     if report is None and _PROGRESS_QUEUE is not None:
         report = lambda units: _PROGRESS_QUEUE.put((task["id"], units))  # noqa: E731
+    if report is not None:
+        report(0.0)  # started: the meter times the task from here
     t0, c0 = time.perf_counter(), time.process_time()
     device = resolve_device(task.get("device", "cpu"))  # "auto": this worker's GPU if it has one
     x, dz_of, hidden = task["x"], task["dz"], tuple(task["hidden"])
@@ -127,6 +141,8 @@ def run_task(task: dict, report=None) -> dict:
             net = ResidualNetwork(hidden=hidden, q_lower=task["q_lower"], q_upper=task["q_upper"], seed=task["seed"],
                                   progress=tick, progress_every=5, **opts)
             net.fit(task["q"][rows], dz_of[m["prior"]][rows])
+            if report is not None:
+                report(("member", int(net.n_epochs_)))  # one member done: the meter learns its length
             W.append(net.weights_.cpu().numpy())
             means.append(net.target_mapping_.mean)
             scales.append(net.target_mapping_.scale)
@@ -173,6 +189,9 @@ class SerialExecutor:
     def close(self):
         pass
 
+    def abort(self):
+        """Stop at once (Ctrl-C): nothing runs elsewhere, the interrupt itself stops this process's task."""
+
 
 class ProcessExecutor:
     """Tasks on N local worker processes (spawned, one torch thread each), progress through a queue."""
@@ -217,6 +236,20 @@ class ProcessExecutor:
     def close(self):
         self._pool.shutdown(wait=True, cancel_futures=True)
 
+    def abort(self):
+        """Stop at once (Ctrl-C): the workers are terminated mid-task (SIGTERM, then SIGKILL after
+        ABORT_JOIN_S), the queued tasks cancelled; a later :meth:`close` returns at once."""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        for p in procs:
+            p.terminate()
+        deadline = time.monotonic() + ABORT_JOIN_S
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
 
 class DaskExecutor:
     """Tasks on a Dask distributed cluster: an existing scheduler (``address``) or a local
@@ -253,6 +286,7 @@ class DaskExecutor:
 
         futures = [self.client.submit(fn, t, key=f"campaign-ann-{t['id']}-{os.getpid()}-{time.time_ns()}",
                                       pure=False) for t in tasks]
+        self._futures = futures
         index = {f.key: i for i, f in enumerate(futures)}
         results = [None] * len(tasks)
         for f in as_completed(futures):
@@ -267,6 +301,13 @@ class DaskExecutor:
         self.client.close()
         if self._cluster is not None:
             self._cluster.close()
+
+    def abort(self):
+        """Stop at once (Ctrl-C): this client's tasks cancelled on the cluster, then closed."""
+        try:
+            self.client.cancel(getattr(self, "_futures", []), force=True)
+        except Exception:  # a cluster that is gone cannot be asked: closing is all that is left
+            pass
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None, dask: bool = False):
@@ -315,7 +356,9 @@ def default_workers() -> int:
 @dataclass(frozen=True)
 class GridProgress:
     """Whole-grid progress (what the progress bar shows): work units (members × epochs ×
-    weights) done and expected in all, tasks finished of all. ``str()`` is one status line."""
+    weights) done and expected in all, tasks finished of all, and the time left (``eta_s``, from
+    the measured seconds per epoch of each training: :class:`GridMeter`). ``str()`` is one
+    status line."""
 
     done: float
     total: float
@@ -323,33 +366,58 @@ class GridProgress:
     tasks: int
     elapsed_s: float
     last: str = ""
-
-    @property
-    def eta_s(self) -> float:
-        return self.elapsed_s * (self.total - self.done) / self.done if self.done > 0 else float("inf")
+    eta_s: float = float("inf")
 
     def __str__(self) -> str:
+        eta = f"ETA {self.eta_s:.0f} s" if np.isfinite(self.eta_s) else "ETA (measuring)"
         return (f"ANN grid: {self.tasks_done}/{self.tasks} trainings, {100 * self.done / max(self.total, 1):.0f} %, "
-                f"ETA {self.eta_s:.0f} s {self.last}")
+                f"{eta} {self.last}")
+
+
+#: before two sizes have been timed, the time per epoch is taken to grow as n_weights^this
+#: (a forward/backward pass grows as n_weights, the LM system as up to its square; measured
+#: 1.2-1.6 on the default grid)
+EPOCH_TIME_EXPONENT = 1.4
 
 
 class GridMeter:
-    """Turns the tasks' unit reports into GridProgress: the expected total is the finished tasks'
-    actual work plus, for the others, members × weights × the mean epochs of finished members
-    (a measured guess per solver before any has finished)."""
+    """Turns the tasks' reports into GridProgress. Work (units of members × epochs × weights):
+    the finished tasks' actual epochs, for the others members × the mean epochs of finished
+    members (a measured guess per solver before any has finished).
 
-    def __init__(self, tasks, solver, progress):
+    Time left (``eta_s``), from what was measured: each running task's own seconds per epoch
+    (since its first report); for tasks not started, seconds per epoch fitted over the timed
+    tasks as c · n_weights^a. Epochs left of a running task: for the member in training, the
+    typical member's epochs (the mean of the task's own finished members, else of all finished
+    members, else the solver's guess) or, when more, as many again as it has run (a quarter more
+    once members of its own task have finished: their length is the better guess; a member past
+    the typical length is not about to stop: sizes differ tenfold in epochs); its members still
+    to train as long as its finished ones, else at least as long as that one has run. The
+    tasks are laid out over the executor's ``workers`` in dispatch order (the largest first).
+    ``clock``: the time source (s), for tests."""
+
+    def __init__(self, tasks, solver, progress, workers: int = 1, clock=time.perf_counter):
         self.progress = progress
-        self.t0 = time.perf_counter()
-        self.size = {t["id"]: len(t["members"]) * t["n_weights"] for t in tasks}
-        self.done_units = {t["id"]: 0.0 for t in tasks}
-        self.finished = {}
+        self.clock = clock
+        self.t0 = clock()
+        self.order = [t["id"] for t in tasks]
+        self.n_w = {t["id"]: float(t["n_weights"]) for t in tasks}
+        self.members = {t["id"]: len(t["members"]) for t in tasks}
+        self.size = {tid: self.members[tid] * self.n_w[tid] for tid in self.order}
+        self.done_units = {tid: 0.0 for tid in self.order}
+        self.member_epochs = {tid: [] for tid in self.order}  # members finished inside a running task
+        self.started = {}  # task -> time of its first report
+        self.finished = {}  # task -> (units, wall s, member epochs)
         self.epochs_seen = []
         self.guess = _EPOCH_GUESS[solver]
+        self.sequential = solver == "br-lm"  # its members train one after another (adam: as one batch)
         self.lock = threading.Lock()
         self.n = len(tasks)
+        self.workers = max(1, int(workers))
 
     def units(self, tid, units):
+        """A report of task ``tid``: work units done since its last report, or ("member", epochs)
+        when one of its members finished; None: nothing to count (a finished Dask task)."""
         # a worker's progress queue is flushed by a feeder thread, so its last report of a task
         # may arrive after the task's result, even during the next grid on the same pool
         # (the final trainings): reports of finished or unknown tasks are late, not news
@@ -358,7 +426,12 @@ class GridMeter:
         with self.lock:
             if tid not in self.done_units or tid in self.finished:
                 return
-            self.done_units[tid] += units
+            self.started.setdefault(tid, self.clock())
+            if isinstance(units, tuple):  # ("member", epochs): the member's whole length, ticks or not
+                self.member_epochs[tid].append(float(units[1]))
+                self.done_units[tid] = sum(self.member_epochs[tid]) * self.n_w[tid]
+            else:
+                self.done_units[tid] += units
         self._emit()
 
     def done(self, result):
@@ -366,9 +439,53 @@ class GridMeter:
             eps = [m["epochs"] for m in result["members"]]
             self.epochs_seen += eps
             n_w = self.size[result["id"]] / max(1, len(eps))
-            self.finished[result["id"]] = sum(eps) * n_w
-            self.done_units[result["id"]] = self.finished[result["id"]]
+            units = sum(eps) * n_w
+            self.finished[result["id"]] = (units, float(result["wall_s"]), float(sum(eps)))
+            self.done_units[result["id"]] = units
         self._emit(last=f"(last: {result['id']}, {result['wall_s']:.0f} s)")
+
+    def _epochs_left(self, tid, typical_all) -> float:
+        """Member epochs task ``tid`` still has to train (see the class)."""
+        done_ep = self.done_units[tid] / self.n_w[tid]
+        own = self.member_epochs[tid]
+        typical = float(np.mean(own)) if own else typical_all
+        members_left = self.members[tid] - len(own)
+        if members_left <= 0:
+            return 0.0
+        if self.sequential:
+            current = done_ep - sum(own)
+            expected = max(typical, (1.25 if own else 2.0) * current)
+            return expected - current + (members_left - 1) * (typical if own else max(typical, current))
+        per_member = done_ep / self.members[tid]  # a batch: every member at the same epoch
+        return self.members[tid] * (max(typical, 2.0 * per_member) - per_member)
+
+    def eta_s(self, now=None) -> float:
+        """Seconds left (inf until a training has been timed)."""
+        now = self.clock() if now is None else now
+        typical_all = float(np.mean(self.epochs_seen)) if self.epochs_seen else self.guess
+        timed = {tid: wall / max(ep, 1.0) for tid, (_, wall, ep) in self.finished.items()}
+        for tid, t_start in self.started.items():
+            ep = self.done_units[tid] / self.n_w[tid]
+            if tid not in self.finished and ep > 0 and now > t_start:
+                timed[tid] = (now - t_start) / ep
+        if not timed:
+            return float("inf")
+        x = np.log([self.n_w[t] for t in timed])
+        y = np.log(list(timed.values()))
+        a = np.polyfit(x, y, 1)[0] if len(timed) >= 2 and np.ptp(x) > 0.1 else EPOCH_TIME_EXPONENT
+        a = float(np.clip(a, 0.5, 2.5))
+        c = float(np.exp(np.mean(y - a * x)))
+        running, queued = [], []
+        for tid in self.order:
+            if tid in self.finished:
+                continue
+            left = self._epochs_left(tid, typical_all) * timed.get(tid, c * self.n_w[tid] ** a)
+            (running if tid in self.started else queued).append(left)
+        free = sorted(running + [0.0] * max(0, self.workers - len(running)))
+        for t in queued:  # the next task goes to the first worker free
+            free[0] += t
+            free.sort()
+        return float(max(free, default=0.0))
 
     def _emit(self, last=""):
         if self.progress is None:
@@ -377,11 +494,12 @@ class GridMeter:
         total = 0.0
         for tid, size in self.size.items():
             if tid in self.finished:
-                total += self.finished[tid]
+                total += self.finished[tid][0]
             else:
                 total += max(size * mean_ep, self.done_units[tid] * 1.05)
         done = sum(self.done_units.values())
-        self.progress(GridProgress(done, total, len(self.finished), self.n, time.perf_counter() - self.t0, last))
+        now = self.clock()
+        self.progress(GridProgress(done, total, len(self.finished), self.n, now - self.t0, last, self.eta_s(now)))
 
 
 #: with the adam solver, sizes with fewer weights than this train both priors' folds in one batch
@@ -426,6 +544,39 @@ def _task(tid, q, x, dz, hidden, members, seed, solver, input_mapping, options, 
             "n_in": int(n_in), "n_out": int(n_out), "n_weights": MLP(n_in, tuple(hidden), n_out).n_weights}
 
 
+def diverged_folds(dz_true, dz_pred, fold, target_scale) -> list:
+    """The folds (0-based) whose held-out RMSE of normalised Δz exceeds DIVERGED_RMSE_NORMALISED
+    or is not finite (dz (n, k), fold (n,), target_scale (k,))."""
+    out = []
+    for k in np.unique(fold):
+        res = (dz_true[fold == k] - dz_pred[fold == k]) / target_scale
+        with np.errstate(over="ignore", invalid="ignore"):
+            rmse = float(np.sqrt(np.mean(res ** 2)))
+        if not rmse <= DIVERGED_RMSE_NORMALISED:
+            out.append(int(k))
+    return out
+
+
+def cv_row_text(row) -> str:
+    """``CV (32, 16): RMSE 0.412, max ‖Δr‖ 0.093 mm``, or that the size diverged (in which folds)."""
+    folds = row.get("diverged_folds") or []
+    if folds:
+        return (f"CV {tuple(row['hidden'])}: diverged in fold{'s' if len(folds) > 1 else ''} "
+                f"{', '.join(str(k + 1) for k in folds)} (held-out error beyond {DIVERGED_RMSE_NORMALISED:g}× the "
+                "residuals' spread): not chosen")
+    return f"CV {tuple(row['hidden'])}: RMSE {row['rmse_normalised']:.3f}, max ‖Δr‖ {row['max_position_mm']:.3f} mm"
+
+
+def best_row(rows, say=None) -> dict:
+    """The size with the lowest held-out RMSE among those that did not diverge (all diverged: the
+    least bad, said through ``say``)."""
+    usable = [row for row in rows if not row.get("diverged_folds")]
+    if not usable and say:
+        say("every size diverged in some fold: the least bad is kept")
+    return min(usable or rows, key=lambda row: row["rmse_normalised"] if np.isfinite(row["rmse_normalised"])
+               else np.inf)
+
+
 def cv_stats(dz_true, dz_pred, target_scale) -> dict:
     """Table 5 statistics of held-out predictions: RMSE of normalised Δz_tot, max ‖Δr‖ mm, max ‖Δφ‖ mrad
     (None for position-only residuals, (n, 3))."""
@@ -435,6 +586,18 @@ def cv_stats(dz_true, dz_pred, target_scale) -> dict:
             "max_orientation_mrad": float(np.max(np.linalg.norm(res[:, 3:], axis=1)) * 1e3) if res.shape[1] == 6
             else None,
             "mean_position_mm": float(np.mean(np.linalg.norm(res[:, :3], axis=1)) * 1e3)}
+
+
+def _interruptible(executor, tasks, meter, say):
+    """``executor.map(run_task, ...)``; on Ctrl-C, says so at once, stops the executor's work
+    (:meth:`abort`: worker processes terminated) and re-raises, within seconds."""
+    try:
+        return executor.map(run_task, tasks, meter.units, meter.done)
+    except KeyboardInterrupt:
+        if say:
+            say(f"interrupted (Ctrl-C): stopping the network's training on {executor.name}; nothing is written")
+        executor.abort()
+        raise
 
 
 def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_lower=None, q_upper=None,
@@ -481,10 +644,10 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
     own = executor is None
     executor = executor or SerialExecutor()
     say = progress if progress is not None else None
-    meter = GridMeter(tasks, solver, say)
+    meter = GridMeter(tasks, solver, say, executor.workers)
     try:
         t0 = time.perf_counter()
-        results = executor.map(run_task, tasks, meter.units, meter.done)
+        results = _interruptible(executor, tasks, meter, say)
         cv_wall = time.perf_counter() - t0
         # (prior, size) -> [(fold, member index in its task, task result)]
         where = {}
@@ -504,13 +667,14 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                 pred = np.empty_like(dz)
                 for k, _, rk in parts:
                     pred[fold == k] = rk["heldout_pred"][f"{prior}/{k}"]
+                diverged = diverged_folds(dz, pred, fold, scale)
                 rows.append({"hidden": list(hidden), **cv_stats(dz, pred, scale),
                              "epochs": [rk["members"][i]["epochs"] for _, i, rk in parts],
+                             "diverged_folds": diverged,
                              "task": r["id"], "task_wall_s": r["wall_s"], "task_cpu_s": r["cpu_s"]})
                 if say:
-                    say(f"[{prior}] CV {tuple(hidden)}: RMSE {rows[-1]['rmse_normalised']:.3f}, "
-                        f"max ‖Δr‖ {rows[-1]['max_position_mm']:.3f} mm ({r['wall_s']:.0f} s)")
-            best = min(rows, key=lambda row: row["rmse_normalised"])
+                    say(f"[{prior}] {cv_row_text(rows[-1])} ({r['wall_s']:.0f} s)")
+            best = best_row(rows, None if say is None else lambda msg: say(f"[{prior}] {msg}"))
             out[prior] = {"sizes": rows, "best": list(best["hidden"]), "folds": folds, "solver": solver,
                           "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall,
                           "devices": sorted({r.get("device", "cpu") for r in results})}
@@ -521,8 +685,8 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                                     {prior: dz}, best["hidden"], members, seed, solver, mapping, options, device))
         nets = {}
         if finals:
-            fmeter = GridMeter(finals, solver, say)
-            for r in executor.map(run_task, finals, fmeter.units, fmeter.done):
+            fmeter = GridMeter(finals, solver, say, executor.workers)
+            for r in _interruptible(executor, finals, fmeter, say):
                 prior = r["id"].split("/")[0]
                 m = r["members"][0]
                 nets[prior] = ResidualNetwork.from_members(

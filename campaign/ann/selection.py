@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.errors import DataError
-from campaign.ann.grid import cv_stats, fold_of
+from campaign.ann.grid import best_row, cv_row_text, cv_stats, diverged_folds, fold_of
 from campaign.ann.network import ResidualNetwork
 from campaign.model.rotations import rotvec_to_matrix
 
@@ -99,11 +99,11 @@ def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None,
             pred[te] = net.predict(q[te])
             epochs.append(net.n_epochs_)
         row = {"hidden": list(hidden), **cv_stats(dz, pred, scale), "epochs": epochs,
-               "wall_s": time.perf_counter() - t0}
+               "diverged_folds": diverged_folds(dz, pred, fold, scale), "wall_s": time.perf_counter() - t0}
         rows.append(row)
         if progress:
-            progress(f"CV {hidden}: RMSE {row['rmse_normalised']:.3f}, max ‖Δr‖ {row['max_position_mm']:.3f} mm")
-    best = min(rows, key=lambda r: r["rmse_normalised"])
+            progress(cv_row_text(row))
+    best = best_row(rows, progress)
     return {"sizes": rows, "best": list(best["hidden"]), "folds": folds}
 
 

@@ -63,6 +63,10 @@ def format_table5(cv: dict) -> str:
             mark = " *" if tuple(row["hidden"]) == tuple(block["best"]) else ""
             phi = row.get("max_orientation_mrad")
             phi = f"{phi:>15.3f}" if phi is not None else f"{'—':>15}"  # position-only data: no Δφ
+            if row.get("diverged_folds"):  # its numbers are the divergence's, not an error
+                folds = ", ".join(str(k + 1) for k in row["diverged_folds"])
+                lines.append(f"{str(tuple(row['hidden'])):<16}{'diverged (fold ' + folds + ')':>43}  {variant:<20}{mark}")
+                continue
             lines.append(f"{str(tuple(row['hidden'])):<16}{row['rmse_normalised']:>14.3f}"
                          f"{row['max_position_mm']:>14.3f}{phi}  {variant:<20}{mark}")
     solvers = {block.get("solver", "br-lm") for block in cv.values()}

@@ -359,8 +359,11 @@ class _CalibrateProgress:
                 self.close()
                 self.task = "grid"
                 self.bar = Progress("ANN grid", total=1000, enabled=True, unit="‰")
-            self.bar.update(max(0, int(1000 * msg.done / max(msg.total, 1e-300)) - self.bar.done),
-                            extra=f"{msg.tasks_done}/{msg.tasks} trainings")
+            # the bar's share: elapsed over elapsed + the time left, once the meter has timed a training
+            share = msg.elapsed_s / (msg.elapsed_s + msg.eta_s) if msg.eta_s < float("inf") else \
+                msg.done / max(msg.total, 1e-300)
+            self.bar.update(max(0, int(1000 * share) - self.bar.done), extra=f"{msg.tasks_done}/{msg.tasks} trainings",
+                            eta_s=msg.eta_s)
             return
         if msg.task != self.task:
             self.close()
