@@ -77,6 +77,14 @@ def test_auto_retry_failed_measures_the_failed_poses_again_and_goes_on(tmp_path,
         assert len(store.events("retry_failed")) == 1
 
 
+def test_a_pose_limit_too_small_for_a_first_campaign_is_one_line_naming_it(tmp_path, capsys):
+    run = tmp_path / "r"
+    assert main(["auto", str(run), "--sim", "--max-poses", "12", *SMALL]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--max-poses 12 is too small for a first campaign" in err[0], err
+    assert not (run / "measurements.sqlite").exists()
+
+
 @pytest.mark.parametrize("flag", ["--retry-failed", "--allow-other-cell"])
 def test_auto_help_names_the_flag(flag, capsys):
     try:

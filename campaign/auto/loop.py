@@ -109,7 +109,8 @@ def _plan(run, state, opts, say, progress):
         if cut is not None:
             selection, what = cut, f"{what}, cut to --max-poses {opts.max_poses}: the {cut.n} most informative poses"
         say(f"plan: {what} (as `campaign plan --run {run.path}{scale}`)")
-        summary = _plan_within(plan_campaign, run, opts, selection, progress, what="--max-poses")
+        summary = _plan_within(plan_campaign, run, opts, selection, progress,
+                               what="--max-poses" if cut is not None else None)
         if opts.budget_h is not None and _hours(summary) + _overhead_h(run, summary) > opts.budget_h:
             left_h = opts.budget_h - _overhead_h(run, summary)
             if left_h <= 0:
@@ -175,14 +176,15 @@ def _selection_within_max_poses(opts, effects):
     return replace(base, n=n, min_validation=0).check()
 
 
-def _plan_within(plan_campaign, run, opts, selection, progress, *, what: str):
+def _plan_within(plan_campaign, run, opts, selection, progress, *, what: str | None):
     """plan_campaign with ``selection``; a selection too small for the unknowns is one line
-    naming the limit (``what``) that made it so."""
+    naming the limit (``what``: "--max-poses", "--budget", or None: the user's own --select)
+    that made it so."""
     try:
         return plan_campaign(None, run.path, grid_scale=opts.grid_scale, progress=progress, selection=selection,
                              all_poses=opts.select == 0 and selection is None)
     except ConfigError as exc:
-        if selection is None or "--select" not in str(exc):
+        if what is None or selection is None or not ("--select" in str(exc) or "--budget" in str(exc)):
             raise
         limit = f"--max-poses {opts.max_poses}" if what == "--max-poses" else f"--budget {opts.budget_h:g}"
         raise ConfigError(f"{limit} is too small for a first campaign: {exc}") from None
