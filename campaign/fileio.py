@@ -24,7 +24,10 @@ from campaign.errors import ConfigError, StorageError
 
 
 def _storage_error(path, exc: OSError) -> StorageError:
-    return StorageError(f"{path}: cannot write ({exc.strerror or exc}); the previous file, if any, is unchanged")
+    err = StorageError(f"{path}: cannot write ({exc.strerror or exc}); the previous file, if any, is unchanged")
+    err.cause_os_error = exc  # a version being written (versioned.py) says it as the version's failure
+    err.filename = str(path)
+    return err
 
 
 def check_writable_file(path, what: str | None = None, example: str = "out") -> Path:

@@ -119,7 +119,12 @@ class VersionedFolder:
         try:
             yield Version(vid, staging)
             ok = True
-        except OSError as exc:  # a full disk, a file too large, ...: one line, the current version kept
+        except (OSError, StorageError) as exc:  # a full disk, a file too large, ...: one line, the current version kept
+            if isinstance(exc, StorageError):  # an atomic write inside the version (fileio): its OSError
+                if getattr(exc, "cause_os_error", None) is None:
+                    raise
+                exc = exc.cause_os_error if exc.cause_os_error.filename else OSError(
+                    exc.cause_os_error.errno, exc.cause_os_error.strerror, exc.filename)
             where = f" writing {Path(exc.filename).name}" if exc.filename else ""
             raise StorageError(f"{self.link}: cannot write the new version ({exc.strerror or exc}{where}); "
                                f"nothing of it was kept, the current one is unchanged") from None

@@ -90,7 +90,7 @@ def test_calibrate_killed_at_random_moments_leaves_one_calibration_and_predict_w
         out = tmp_path / "pred.csv"
         assert main(["predict", str(run), "--csv", str(joints), "--out", str(out)]) == 0
         pred = np.loadtxt(out, delimiter=",", skiprows=1)
-        assert pred.shape == (5, 13) and np.isfinite(pred).all()
+        assert pred.shape == (5, 15) and np.isfinite(pred).all()  # 13 + in_domain, sigma_mm (issue 30)
         outcomes.append((sig.name, round(float(delay), 2), "new" if changed else "old"))
         before = now
     assert "old" in {o[2] for o in outcomes}, outcomes  # killed before the end: the old one whole
