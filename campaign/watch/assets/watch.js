@@ -142,10 +142,17 @@ function renderFailures() {
   }
   const body = $("failures").tBodies[0];
   body.replaceChildren();
+  // a pose refused before it moved has no time of its own: the campaign clock of the pose stored before it
+  const when = new Map();
+  let last = null;
+  for (const p of S.poses) {
+    if (p.status === "failed") when.set(p.pose_id, p.time_s !== null ? (p.time_s / 3600).toFixed(2) : last === null ? "–" : `~${(last / 3600).toFixed(2)}`);
+    if (p.time_s !== null) last = p.time_s;
+  }
   for (const p of failed.slice(-12).reverse()) {
     const tr = body.insertRow();
     const pos = p.nominal_xyz_m ? p.nominal_xyz_m.map((v) => (v * 1e3).toFixed(0)).join(", ") : "–";
-    for (const [text, cls] of [[p.pose_id, "num"], [p.time_s === null ? "–" : (p.time_s / 3600).toFixed(2), "num"],
+    for (const [text, cls] of [[p.pose_id, "num"], [when.get(p.pose_id), "num"],
                                [p.reason || "", ""], [pos, "num"]]) {
       const td = tr.insertCell(); td.textContent = text; td.className = cls;
     }
