@@ -116,7 +116,7 @@ def test_units_and_kinds_from_the_header(tmp_path):
         read_measured_csv(tmp_path / "degmm.csv", robot)
     # a column beyond the robot's joints, and data outside its limits, name the robot
     six = RobotModel.load(_erd(ROBOTS["ur10"][0]), tool_frame="tool0")
-    with pytest.raises(DataError, match=r"column q7: the robot has 6 joints"):
+    with pytest.raises(DataError, match=r"the file has 7 joint columns \(q1..q7\), ur10 has 6 \(q1..q6\): another robot"):
         read_measured_csv(tmp_path / "si.csv", six)
     (tmp_path / "lim.csv").write_text(head + "1," + ",".join(["0"] * 3 + ["0.5"] + ["0"] * 3) + ",0,0,0,21\n")
     with pytest.raises(DataError, match=r"line 2, column q4: 0.5 rad is outside the joint limit .* of panda"):

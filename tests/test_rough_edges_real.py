@@ -516,3 +516,35 @@ def test_a_planned_runs_file_without_pose_id_finds_the_plans_poses_and_own_ids_g
     assert "none of the 51 measured pose ids is one of the plan's" in capsys.readouterr().err
     n_test = json.loads((own / "calibration" / "metrics.json").read_text())["stages"]["geometric"]["test"]["n_poses"]
     assert 5 <= n_test <= 15  # the 80/20 split of 51 poses
+
+
+def test_a_file_of_another_robots_joints_is_named_so_with_both_counts(tmp_path, capsys):
+    src = tmp_path / "ur10.csv"
+    assert main(["synth", "--csv", str(src), "--robot", "ur10", "--poses", "12", "--seed", "1"]) == 0
+    capsys.readouterr()
+    assert main(["import", str(src), "--run", str(tmp_path / "a"), "--robot", "panda"]) == 1
+    err = capsys.readouterr().err  # was: missing column q7 ... --columns q7=COLUMN
+    assert "the file has 6 joint columns (q1..q6), panda has 7 (q1..q7): another robot's data?" in err
+    assert "--columns" not in err
+    header, values = _read(src)
+    _write(tmp_path / "eight.csv", header[:8] + ["q7", "q8"] + header[8:],
+           np.column_stack([values[:, :8], np.zeros((12, 2)), values[:, 8:]]))
+    assert main(["import", str(tmp_path / "eight.csv"), "--run", str(tmp_path / "b")]) == 1
+    assert "the file has 8 joint columns (q1..q8), COMAU Racer5-0.80 has 6" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cmd", ["import", "predict"])
+def test_blank_lines_above_the_header_are_skipped(markers_ur10, tmp_path, capsys, cmd):
+    run, src = markers_ur10
+    blank = tmp_path / "blank.csv"
+    blank.write_text("\n \r\n" + src.read_text())
+    (tmp_path / "none.csv").write_text("\n\n")
+
+    def args(path, k):
+        return (["import", str(path), "--run", str(tmp_path / f"r{k}"), "--robot", "ur10", "--markers",
+                 str(src.with_suffix(".markers.yaml"))] if cmd == "import"
+                else ["predict", str(run), "--csv", str(path), "--out", str(tmp_path / f"p{k}.csv")])
+
+    assert main(args(blank, 0)) == 0, capsys.readouterr().err  # was: 'line 3 has 17 fields, the header has 0'
+    assert main(args(tmp_path / "none.csv", 1)) == 1
+    assert "none.csv: empty file (expected header" in capsys.readouterr().err

@@ -283,21 +283,26 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     JOINT_LIMIT_SLACK; :func:`run_joint_slack` gives a run's), said as from ``slack_source``.
     Returns (pose_id (n,), q (n, N) model, rad and m, context dict).
     """
-    from campaign.measure.csvio import not_joint_name
+    from campaign.measure.csvio import missing_columns, not_joint_name
     from campaign.measure.importer import column_mapping
 
     cols = joint_columns(robot.n_joints)
     scale = joint_scale(robot, angle_unit)
     used = {*cols, "pose_id", *context_keys}
-    header, col, lines = read_numeric_table(path, cols, rename=column_mapping(robot, columns),
+    header, col, lines = read_numeric_table(path, (), rename=column_mapping(robot, columns), expected=",".join(cols),
                                             rename_optional=not_joint_name, unused=lambda h: h not in used)
+    missing = [c for c in cols if c not in col]
+    if missing:
+        raise missing_columns(path, missing, header, robot.name)
     missing = [k for k in context_keys if k not in col]
     if missing:
         raise DataError(f"{path}: the calibrated model needs the column(s) {', '.join(missing)} "
                         f"(context of its effects)")
     extra = [h for h in header if h.startswith("q") and h[1:].isdigit() and h not in cols]
     if extra:
-        raise DataError(f"{path}: column {extra[0]}: {robot.name} has {robot.n_joints} joints (q1..q{robot.n_joints})")
+        from campaign.measure.csvio import joint_count_error
+
+        raise joint_count_error(path, robot.n_joints + len(extra), robot.n_joints, robot.name)
     from campaign.measure.csvio import check_joint_units
 
     written = np.stack([col[c] for c in cols], axis=1)

@@ -112,12 +112,26 @@ def _rename_header(path, header, rename, optional=None) -> list:
     return [rename.get(h, h) for h in header]
 
 
-def missing_columns(path, missing, header) -> DataError:
+def missing_columns(path, missing, header, robot_name: str | None = None) -> DataError:
     """The error of required columns the header lacks: their names, and the ``--columns`` that
-    maps a near-miss in the header (``Q1``, ``q_1``, ``X``)."""
+    maps a near-miss in the header (``Q1``, ``q_1``, ``X``); joints q1..qk of a robot with more
+    (the last ones missing) are another robot's file."""
+    qs = sorted(int(h[1:]) for h in header if h.startswith("q") and h[1:].isdigit())
+    k = len(qs)
+    wanted = sorted(int(m[1:]) for m in missing if m.startswith("q") and m[1:].isdigit())
+    if k and qs == list(range(1, k + 1)) and wanted == list(range(k + 1, k + 1 + len(wanted))):
+        return joint_count_error(path, k, k + len(wanted), robot_name)
     hint = near_miss_hint(missing, header) or (f" (a file naming them otherwise: --columns {missing[0]}=COLUMN,... "
                                                "or robot.yaml's columns:; docs/csv_import.md)")
     return DataError(f"{path}: missing column(s) {', '.join(missing)} in the header{hint}")
+
+
+def joint_count_error(path, in_file: int, n_joints: int, robot_name: str | None = None) -> DataError:
+    """A file of joints q1..q<in_file> read for a robot of ``n_joints``: another robot's data."""
+    robot = robot_name or "the robot"
+    return DataError(f"{path}: the file has {in_file} joint columns (q1..q{in_file}), {robot} has {n_joints} "
+                     f"(q1..q{n_joints}): another robot's data? (import --robot NAME|URDF, `campaign robots`; "
+                     "predict and compensate: a run of that robot)")
 
 
 def near_miss_hint(wanted, header) -> str:
@@ -174,9 +188,13 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
         reader = csv.reader(lines_in, delimiter="," if ch == " " else ch)
         try:
             first_raw = fh.readline()
+            while first_raw and not first_raw.strip() and names is None:  # blank lines above the header
+                first_raw = fh.readline()
             fh.seek(0)
             _check_first_line(path, first_raw.strip("\r\n"), ch, header_given=names is not None)
             first = next(reader, None) if names is None else list(names)
+            while names is None and first is not None and not any(c.strip() for c in first):
+                first = next(reader, None)
             if first is None:
                 raise DataError(f"{path}: empty file (expected header {expected or ','.join(required)})")
             header = _rename_header(path, [h.strip() for h in first], rename, rename_optional)
@@ -234,15 +252,16 @@ def iter_numeric_chunks(path, required, *, may_be_empty=None, chunk_rows: int = 
 
 
 def read_numeric_table(path, required, *, may_be_empty=None, delimiter: str | None = None, rename=None,
-                       rename_optional=None, unused=None) -> tuple:
+                       rename_optional=None, unused=None, expected: str | None = None) -> tuple:
     """Read a whole CSV of numbers with a header; every cell finite.
 
     Returns (header, {column: values (n,)}, source line numbers (n,), 1-based). ``required``
     columns must be present; every error names the file, and where it applies the line and
-    column. delimiter, rename, rename_optional, unused: as :func:`iter_numeric_chunks`.
+    column. delimiter, rename, rename_optional, unused, expected: as :func:`iter_numeric_chunks`.
     """
     chunks = list(iter_numeric_chunks(path, required, may_be_empty=may_be_empty, delimiter=delimiter,
-                                      rename=rename, rename_optional=rename_optional, unused=unused))
+                                      rename=rename, rename_optional=rename_optional, unused=unused,
+                                      expected=expected))
     header = chunks[0][0]
     values = np.concatenate([c[1] for c in chunks])
     lines = np.concatenate([c[2] for c in chunks])
@@ -329,7 +348,8 @@ def _other_rotation(path, hs, rotation) -> None:
                             + (" (or rotvec)" if name == "rpy" else "") + " (docs/csv_import.md)")
 
 
-def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> CsvLayout:
+def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec", robot_name: str | None = None
+               ) -> CsvLayout:
     """Detect the measurement kind from the header: ``x,y,z`` and the orientation columns of
     ``rotation`` (6-D; :data:`ROTATIONS`), ``m1_x,..`` (raw reflectors), ``x,y,z`` (one
     reflector). Joints ``q1..qN``. Orientation columns of another reading are named."""
@@ -339,10 +359,12 @@ def csv_layout(path, header, n_joints: int | None, rotation: str = "rotvec") -> 
     joints = tuple(f"q{j}" for j in range(1, N + 1))
     extra = sorted(set(qs) - set(joints), key=lambda h: int(h[1:]))
     if extra:
-        raise DataError(f"{path}: column {extra[0]}: the robot has {N} joints (q1..q{N})")
+        if sorted(int(h[1:]) for h in qs) == list(range(1, len(qs) + 1)):
+            raise joint_count_error(path, len(qs), N, robot_name)
+        raise DataError(f"{path}: column {extra[0]}: {robot_name or 'the robot'} has {N} joints (q1..q{N})")
     missing = [c for c in joints if c not in hs]
     if missing:
-        raise missing_columns(path, missing, header)
+        raise missing_columns(path, missing, header, robot_name)
     rot_cols = ROTATIONS[rotation][0]
     if {"x", "y", "z", *rot_cols} <= hs:
         kind, k = "pose", 0
@@ -733,7 +755,8 @@ def iter_measured_chunks(path, robot=None, options: ImportOptions | None = None,
                 rename=options.columns, names=options.header, expected=expected_header(robot, options))
     it = iter_numeric_chunks(path, (), progress=lambda b: report(b, 0), **read)
     header, values, lines = next(it)
-    layout = csv_layout(path, header, robot.n_joints if robot is not None else None, options.rotation)
+    layout = csv_layout(path, header, robot.n_joints if robot is not None else None, options.rotation,
+                        robot.name if robot is not None else None)
     P_nom = _marker_positions(path, layout, robot, options)
     ids, id_lines = [], []
     past = None
@@ -783,7 +806,7 @@ def read_check_sample(path, robot, options: ImportOptions | None = None, *, rows
     hdr, vals, lns = next(iter_numeric_chunks(path, (), may_be_empty=_may_be_empty, chunk_rows=rows,
                                               delimiter=options.delimiter, rename=options.columns,
                                               names=options.header))
-    layout = csv_layout(path, hdr, robot.n_joints, options.rotation)
+    layout = csv_layout(path, hdr, robot.n_joints, options.rotation, robot.name)
     P_nom = _marker_positions(path, layout, robot, options)
     c, poses = _chunk_poses(path, layout, hdr, vals, lns, robot, options, P_nom)
     if layout.kind != "pose":
