@@ -68,20 +68,24 @@ def lock_holder(run: RunFolder) -> dict | None:
             table = f.read()
     except OSError:
         return run.lock_holder()
+    try:
+        holder = json.loads(run.lock_path.read_text() or "{}")
+    except (OSError, ValueError):
+        holder = {}
     for line in table.splitlines():
         parts = line.split()
         if len(parts) < 6 or "->" in parts or parts[1] != "FLOCK":  # "->": a waiter, not the holder
             continue
         try:
             major, minor, inode = parts[5].split(":")
-            same = int(inode) == st.st_ino and os.makedev(int(major, 16), int(minor, 16)) == st.st_dev
+            if int(inode) != st.st_ino:
+                continue
+            # the file's device, or (where a layered file system shows another device number
+            # there) the process the lock file names
+            if os.makedev(int(major, 16), int(minor, 16)) == st.st_dev or int(parts[4]) == holder.get("pid"):
+                return holder
         except ValueError:
             continue
-        if same:
-            try:
-                return json.loads(run.lock_path.read_text() or "{}")
-            except (OSError, ValueError):
-                return {}
     return None
 
 
