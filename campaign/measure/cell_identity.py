@@ -34,11 +34,18 @@ def _file_digest(path) -> str | None:
 def _sim_world(cfg) -> dict:
     """What makes the simulated world of ``cfg`` (a CampaignConfig): not its speed or its faults."""
     effects = []
+    here = Path(cfg.path).parent if getattr(cfg, "path", None) else Path.cwd()
     for spec, params in cfg.hidden_effects():
         spec = str(spec)
         file = spec.rpartition(":")[0] if ":" in spec else None
-        effects.append({"effect": spec, "params": None if params is None else [float(v) for v in params],
-                        "file_sha256": _file_digest(file) if file and file.endswith(".py") else None})
+        if file and file.endswith(".py"):  # a user's effect, relative to the campaign.yaml that names it
+            file = Path(file) if Path(file).is_absolute() else here / file
+        else:
+            file = None  # a built-in effect, or a module's (named as it is)
+        # a file's effect by its class and content, not where the file lies (a run folder moved)
+        effects.append({"effect": spec.rpartition(":")[2] if file else spec,
+                        "params": None if params is None else [float(v) for v in params],
+                        "file_sha256": _file_digest(file) if file else None})
     return {"seed": int(cfg.sim.seed), "noise_m": float(cfg.sim.noise_m), "hidden_effects": effects}
 
 
