@@ -92,12 +92,15 @@ def check_str(value, where: str, *, optional=False) -> str | None:
 
 
 def check_names(value, where: str) -> tuple:
-    """A list of strings (effect entries: built-in names or ``file.py:Class``), or a
-    mapping name -> true/false (the enabled ones), or a comma-separated string."""
+    """A list of strings (effect entries: built-in names or ``file.py:Class``, either with a joint
+    list ``name:2,3``) or of mappings ``{effect: NAME, joints: [2, 3]}``, or a mapping name ->
+    true/false (the enabled ones), or a comma-separated string. Returns the specs (strings)."""
+    from campaign.effects.base import effect_entry, parse_effect_list
+
     if value is None:
         return ()
     if isinstance(value, str):
-        value = value.split(",")
+        value = list(parse_effect_list(value, where))
     if isinstance(value, dict):
         for k, v in value.items():
             if not isinstance(v, bool):
@@ -107,8 +110,10 @@ def check_names(value, where: str) -> tuple:
         raise ConfigError(f"{where}: must be a list of names, got {value!r}")
     out = []
     for i, v in enumerate(value):
+        if isinstance(v, dict):
+            v = effect_entry(v, f"{where}[{i}]")
         if not isinstance(v, str):
-            raise ConfigError(f"{where}[{i}]: must be a string, got {v!r}")
+            raise ConfigError(f"{where}[{i}]: must be a string, got {v!r} (or a mapping {{effect: NAME, joints: [...]}})")
         if v.strip():
             out.append(v.strip())
     return refuse_repeats(out, where)
@@ -134,10 +139,13 @@ def check_hidden_effects(value, where: str) -> tuple:
     specs, stated = [], []
     for i, v in enumerate(value):
         if isinstance(v, dict):
-            extra = sorted(set(v) - {"effect", "params"})
+            from campaign.effects.base import effect_entry
+
+            extra = sorted(set(v) - {"effect", "params", "joints"})
             if extra or "effect" not in v:
-                raise ConfigError(f"{where}[{i}]: expected {{effect: NAME, params: [...]}}, got {v!r}")
-            spec = check_str(v["effect"], f"{where}[{i}].effect")
+                raise ConfigError(f"{where}[{i}]: expected {{effect: NAME, joints: [...], params: [...]}}, got {v!r}")
+            check_str(v["effect"], f"{where}[{i}].effect")
+            spec = effect_entry({k: v[k] for k in ("effect", "joints") if k in v}, f"{where}[{i}]")
             params = v.get("params")
             if params is not None:
                 if not isinstance(params, (list, tuple)) or not params:
@@ -386,9 +394,13 @@ class CampaignConfig:
         """``sim.hidden_effects`` as campaign.yaml holds it (``absolute``: user files made absolute)."""
         stated = dict(self.sim.hidden_params)
         out = []
+        from campaign.effects.base import effect_yaml
+
         for (resolved, params), spec in zip(self.hidden_effects(), self.sim.hidden_effects):
-            name = resolved if absolute else spec
-            out.append(name if params is None else {"effect": name, "params": list(params)})
+            entry = effect_yaml(resolved if absolute else spec)
+            if params is not None:
+                entry = {**(entry if isinstance(entry, dict) else {"effect": entry}), "params": list(params)}
+            out.append(entry)
         return out
 
     def as_yaml_dict(self, *, absolute: bool = False) -> dict:
@@ -410,12 +422,9 @@ class CampaignConfig:
             out["tool_frame"] = self.tool_frame
         if self.base_frame is not None:
             out["base_frame"] = self.base_frame
-        if absolute:
-            from campaign.effects.base import resolve_effect_spec
+        from campaign.effects.base import effect_yaml, resolve_effect_spec
 
-            effects = [resolve_effect_spec(e, self.dir) for e in self.effects]
-        else:
-            effects = list(self.effects)
+        effects = [effect_yaml(resolve_effect_spec(e, self.dir) if absolute else e) for e in self.effects]
         out.update({"effects": effects, "plan": plan, "run": asdict(self.run), "sim": sim})
         if self.tracker.noise_m is not None:
             out["tracker"] = asdict(self.tracker)

@@ -315,22 +315,35 @@ class RunFolder:
         return self.write_config(cfg)
 
     def add_effects(self, names) -> tuple:
-        """Enable effects in RUN/campaign.yaml (kept in order, no duplicates); the new list.
+        """Enable effects in RUN/campaign.yaml (kept in order, no duplicates; a joint-indexed effect
+        already there gets the new joints added to its list); the new list.
 
         The rest of the file is kept as it is (only its ``effects:`` key changes)."""
         names = check_names(list(names), "effects")
         if not self.has_config:
             raise ConfigError(f"{self.config_path}: no such file (the run has no configuration to add effects to)")
+        from campaign.effects.base import merge_effects
+
+        cfg = parse_config(read_yaml_mapping(self.config_path), self.config_path)  # refuse an invalid file
+        return self.set_effects(merge_effects(cfg.effects, names, self.robot()))
+
+    def set_effects(self, names) -> tuple:
+        """Write exactly ``names`` as the effects of RUN/campaign.yaml (an effect taken out of the
+        model, or a joint out of its list); the rest of the file is kept. Returns them."""
+        names = check_names(list(names), "effects")
+        if not self.has_config:
+            raise ConfigError(f"{self.config_path}: no such file (the run has no configuration to set effects in)")
+        from campaign.effects.base import effect_yaml
+
         doc = read_yaml_mapping(self.config_path)
-        cfg = parse_config(doc, self.config_path)  # refuse to edit a file that does not validate
-        effects = tuple(dict.fromkeys([*cfg.effects, *names]))
-        doc["effects"] = list(effects)
+        parse_config(doc, self.config_path)
+        doc["effects"] = [effect_yaml(e) for e in names]
         parse_config(doc, self.config_path)
         import yaml
 
         atomic_write(self.config_path, yaml.safe_dump(doc, sort_keys=False))
         self.__dict__.pop("config", None)
-        return effects
+        return names
 
 
 def _has_table(db, name) -> bool:

@@ -309,3 +309,16 @@ REFLECTOR_RADIUS_M = 0.01905
 #: controller writes them (4 decimals in degrees: 1e-6 rad; 3 decimals of KRL, 1e-5 rad; a
 #: reading of the encoders, ~1e-5 rad), while the plan's grid puts its poses 0.1 rad apart or more
 PLAN_MATCH_TOL_RAD = 1e-3
+
+# -- joint-indexed effects (campaign/effects/gravity.py, campaign/diagnose/joints.py) --
+
+#: A joint carries a gravity-load effect by default (joint compliance, backlash) when its RMS
+#: gravity torque over the workspace is at least this share of the most loaded joint's: the
+#: COMAU Racer5's wrist joint 5 (2.6 %) carries the tool's weight on a lever, its joint 4
+#: (1.3 %) and joint 6 (0.4 %) barely any; the Panda's joints 5 and 6 (4-6 %) carry its hand.
+#: Diagnose searches every joint whatever this default (the default only fills a bare name).
+GRAVITY_JOINT_MIN_SHARE = 0.02
+
+#: Poses over which a robot's default loaded joints are judged (random, inside the limits):
+#: the RMS torque of each joint is known to a few per cent from 200.
+GRAVITY_JOINT_POSES = 200

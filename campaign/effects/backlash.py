@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects.gravity import gravity_torques
-from campaign.effects.base import Effect, register
+from campaign.effects.gravity import gravity_torques, loaded_joints
+from campaign.effects.base import Effect, check_effect_joints, register
 
 #: torque (N·m) over which the backlash is taken up: a smooth sign, differentiable for the solver
 TAKE_UP_TORQUE_NM = 1.0
@@ -15,7 +15,8 @@ TAKE_UP_TORQUE_NM = 1.0
 class Backlash(Effect):
     """Δq_i = β_i · tanh(τ_i / 1 N·m): half the backlash, signed by the gravity torque.
 
-    Joints 2, 3 and 5 by default (joint 1 carries no gravity torque). When the per-pose
+    ``joints`` (1-based): by default those with a gravity torque worth identifying
+    (:func:`~campaign.effects.gravity.loaded_joints`; a vertical joint 1 carries none). When the per-pose
     context has ``approach_sign_q<i>`` (±1, the direction of the last motion of joint i),
     that sign is used instead of the torque's.
     """
@@ -23,9 +24,9 @@ class Backlash(Effect):
     name = "backlash"
     description = "backlash: an offset ±β_i signed by the gravity torque (or the approach direction)"
 
-    def __init__(self, robot, joints=(2, 3, 5)):
+    def __init__(self, robot, joints=None):
         super().__init__(robot)
-        self.joints = tuple(int(j) for j in joints)
+        self.joints = check_effect_joints(loaded_joints(robot) if joints is None else joints, robot, self.name)
         self.param_names = tuple(f"beta{j}" for j in self.joints)
         self.param_units = ("rad",) * len(self.joints)
 

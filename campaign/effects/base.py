@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,17 +78,50 @@ def is_file_spec(spec: str) -> bool:
     return bool(sep) and path.endswith(".py") and cls.isidentifier()
 
 
+_JOINTS_SUFFIX = re.compile(r"^(?P<base>.*[^:\s]):(?P<joints>\s*\d+\s*(?:,\s*\d+\s*)*)$")
+
+
+def split_joints(spec: str) -> tuple:
+    """``(base spec, joints or None)`` of an effect spec: ``"joint_compliance:2,3,4"`` ->
+    ``("joint_compliance", (2, 3, 4))``, ``"file.py:Class:4"`` -> ``("file.py:Class", (4,))``,
+    ``"backlash"`` -> ``("backlash", None)``; joints 1-based as written."""
+    spec = str(spec).strip()
+    m = _JOINTS_SUFFIX.match(spec)
+    if m is None:
+        return spec, None
+    return m["base"].strip(), tuple(int(j) for j in m["joints"].split(","))
+
+
+def joint_spec(base: str, joints) -> str:
+    """The spec of effect ``base`` over ``joints`` (1-based): ``"joint_compliance:2,4"``;
+    ``base`` itself for None (the effect's own default joints)."""
+    if joints is None:
+        return str(base)
+    return f"{base}:{','.join(str(int(j)) for j in joints)}"
+
+
+def takes_joints(cls) -> bool:
+    """Whether an effect class is joint-indexed: its ``__init__`` takes ``joints``."""
+    import inspect
+
+    try:
+        return "joints" in inspect.signature(cls.__init__).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 def resolve_effect_spec(spec: str, base_dir=None) -> str:
     """A spec with a relative ``file.py:ClassName`` path made absolute against ``base_dir``
-    (the folder of the campaign.yaml that names it; None: the current directory)."""
-    spec = str(spec).strip()
+    (the folder of the campaign.yaml that names it; None: the current directory); a joint list
+    (``:2,3``) is kept."""
+    spec, joints = split_joints(spec)
     if not is_file_spec(spec):
-        return spec
+        return joint_spec(spec, joints)
     path, _, cls = spec.rpartition(":")
     p = Path(path).expanduser()
     if not p.is_absolute():
         p = (Path(base_dir) if base_dir is not None else Path.cwd()) / p
-    return f"{p.resolve()}:{cls}"
+    return joint_spec(f"{p.resolve()}:{cls}", joints)
 
 
 def _load_file_class(spec: str):
@@ -104,7 +138,7 @@ def _load_file_class(spec: str):
 def effect_class(spec: str):
     """The class of an effect spec: a built-in name, ``path/file.py:ClassName`` (absolute, or
     relative to the current directory) or the name of an entry point of group ``campaign.effects``."""
-    spec = str(spec).strip()
+    spec, _ = split_joints(spec)
     if is_file_spec(spec):
         cls = _load_file_class(resolve_effect_spec(spec))
     else:
@@ -133,6 +167,11 @@ def make_effect(name: str, robot, **options) -> "Effect":
     """Build the effect ``name`` (a spec, see :func:`effect_class`) for ``robot``; a ConfigError
     names what is wrong."""
     cls = effect_class(name)
+    _, joints = split_joints(name)
+    if joints is not None:
+        if not takes_joints(cls):
+            raise ConfigError(f"effect '{name}': {cls.name} takes no joints (write it without ':{','.join(map(str, joints))}')")
+        options = {**options, "joints": check_effect_joints(joints, robot, name)}
     try:
         effect = cls(robot, **options)
     except TypeError as exc:
@@ -154,18 +193,110 @@ def effect_name(spec: str) -> str:
     return effect_class(spec).name
 
 
+def check_effect_joints(joints, robot, where: str) -> tuple:
+    """Joints (1-based) of a joint-indexed effect, checked against the robot: a non-empty list of
+    distinct integers in 1..N; a ConfigError naming ``where`` otherwise. Returns them as a tuple."""
+    joints = tuple(joints)
+    n = getattr(robot, "n_joints", None)
+    if not joints:
+        raise ConfigError(f"effect '{where}': joints: the list is empty (name at least one joint)")
+    for j in joints:
+        if isinstance(j, bool) or not isinstance(j, (int, np.integer)):
+            raise ConfigError(f"effect '{where}': joints: {j!r} is not a joint number")
+        if j < 1 or (n is not None and j > n):
+            raise ConfigError(f"effect '{where}': joint {j} is not a joint of {getattr(robot, 'name', 'the robot')} "
+                              f"(joints 1..{n})")
+    if len(set(joints)) < len(joints):
+        raise ConfigError(f"effect '{where}': joints {list(joints)} name a joint twice")
+    return tuple(int(j) for j in joints)
+
+
 def parse_effect_list(text, where: str = "--effects") -> tuple:
-    """``"a,b"`` or a list -> tuple of specs (empty entries dropped); a spec given twice is a
+    """``"a,b"``, ``"joint_compliance:2,3,4,backlash:5"`` or a list (of specs, or of mappings
+    ``{effect: NAME, joints: [2, 3]}``) -> tuple of specs (empty entries dropped). In a string,
+    a bare number after ``name:j`` continues that effect's joint list. A spec given twice is a
     ConfigError naming ``where``."""
     from campaign.config import refuse_repeats
 
     if text is None:
         return ()
     if isinstance(text, str):
-        items = text.split(",")
+        items = []
+        for part in (s.strip() for s in text.split(",")):
+            if part.isdigit() and items and split_joints(items[-1])[1] is not None:
+                items[-1] = f"{items[-1]},{part}"
+            else:
+                items.append(part)
     else:
-        items = list(text)
+        items = [effect_entry(v, where) if isinstance(v, dict) else v for v in text]
     return refuse_repeats([s.strip() for s in items if str(s).strip()], where)
+
+
+def effect_entry(value: dict, where: str) -> str:
+    """The spec of a mapping entry ``{effect: NAME, joints: [2, 3]}`` (joints optional)."""
+    extra = sorted(set(value) - {"effect", "joints"})
+    if extra or not isinstance(value.get("effect"), str) or not value["effect"].strip():
+        raise ConfigError(f"{where}: expected {{effect: NAME, joints: [j, ...]}}, got {value!r}")
+    joints = value.get("joints")
+    if joints is None:
+        return value["effect"].strip()
+    if isinstance(joints, int) and not isinstance(joints, bool):
+        joints = [joints]
+    if not isinstance(joints, (list, tuple)) or not joints or \
+            any(isinstance(j, bool) or not isinstance(j, int) or j < 1 for j in joints):
+        raise ConfigError(f"{where}: {value['effect']}: joints must be a list of joint numbers (1-based), "
+                          f"got {joints!r}")
+    return joint_spec(value["effect"].strip(), joints)
+
+
+def merge_effects(current, new, robot=None) -> tuple:
+    """``current`` specs with ``new`` ones added in order, no duplicates: a joint-indexed effect
+    already there gets the new joints added to its list (a bare name stands for its default
+    joints, known from ``robot``; without it the bare name stays as it is)."""
+    out = [str(s) for s in current]
+    for spec in new:
+        base, joints = split_joints(spec)
+        at = next((i for i, s in enumerate(out) if split_joints(s)[0] == base), None)
+        if at is None:
+            out.append(str(spec))
+            continue
+        have = split_joints(out[at])[1]
+        if have is None and robot is not None and joints is not None:
+            have = make_effect(base, robot).joints
+        if have is not None and joints is not None:
+            out[at] = joint_spec(base, sorted(set(have) | set(joints)))
+    return tuple(out)
+
+
+def without_joints(spec: str, drop, robot=None):
+    """``spec`` with the joints ``drop`` taken out of its list (a bare name: of its default joints,
+    from ``robot``); None when no joint is left."""
+    base, joints = split_joints(spec)
+    if joints is None:
+        joints = make_effect(base, robot).joints
+    left = [j for j in joints if j not in set(drop)]
+    return joint_spec(base, left) if left else None
+
+
+def effect_yaml(spec: str):
+    """How campaign.yaml writes an effect spec: a joint list as ``{effect: NAME, joints: [...]}``,
+    else the spec itself."""
+    base, joints = split_joints(spec)
+    return base if joints is None else {"effect": base, "joints": list(joints)}
+
+
+def effect_label(spec: str) -> str:
+    """An effect in words for a line: ``joint_compliance:4`` -> "joint_compliance of joint 4"."""
+    base, joints = split_joints(spec)
+    name = base.rpartition(":")[2] if is_file_spec(base) else base
+    if joints is None:
+        return name
+    return f"{name} of joint{'s' if len(joints) > 1 else ''} {_and(joints)}"
+
+
+def _and(items) -> str:
+    items = [str(i) for i in items]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
 class Effect:

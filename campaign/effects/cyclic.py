@@ -4,22 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects.base import Effect, register
+from campaign.effects.base import Effect, check_effect_joints, register
+from campaign.effects.gravity import lever_joints
 
 
 @register
 class Cyclic(Effect):
     """Δq_i = Σ_k a_ik sin(k q_i) + b_ik cos(k q_i), for the chosen joints and harmonics k.
 
-    Default: harmonics 1 and 2 on joints 1, 2 and 3 (the ones with the longest levers).
+    Default: harmonics 1 and 2 on the three joints with the longest levers to the tool
+    (:func:`~campaign.effects.gravity.lever_joints`; the COMAU's 1, 2 and 3).
     """
 
     name = "cyclic"
     description = "cyclic transmission error: harmonics sin/cos(k·q_i) of the joint angles"
 
-    def __init__(self, robot, joints=(1, 2, 3), harmonics=(1, 2)):
+    def __init__(self, robot, joints=None, harmonics=(1, 2)):
         super().__init__(robot)
-        self.joints = tuple(int(j) for j in joints)
+        self.joints = check_effect_joints(lever_joints(robot) if joints is None else joints, robot, self.name)
         self.harmonics = tuple(int(k) for k in harmonics)
         names = []
         for j in self.joints:

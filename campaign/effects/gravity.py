@@ -157,3 +157,54 @@ def overturning_moment(robot, q, payload_kg=None, tool_position=None) -> np.ndar
         lever_p = p - (p @ vertical)[:, None] * vertical
         M = M + np.cross(lever_p, np.asarray(payload_kg, dtype=float)[:, None] * g)
     return M
+
+
+def loaded_joints(robot, min_share: float | None = None) -> tuple:
+    """The joints (1-based) with a gravity torque worth identifying: RMS torque over random poses
+    in the limits at least ``min_share`` (default :data:`~campaign.tolerances.GRAVITY_JOINT_MIN_SHARE`)
+    of the most loaded joint's. The defaults of gravity-load effects (joint compliance, backlash)."""
+    from campaign.tolerances import GRAVITY_JOINT_MIN_SHARE
+
+    rms = _rms_torques(robot)
+    share = GRAVITY_JOINT_MIN_SHARE if min_share is None else min_share
+    if not rms.max() > 0:
+        return ()
+    return tuple(int(j) + 1 for j in np.flatnonzero(rms >= share * rms.max()))
+
+
+def _rms_torques(robot) -> np.ndarray:
+    """RMS gravity torque (N,) N·m of each joint over GRAVITY_JOINT_POSES random poses (fixed seed)."""
+    from campaign.tolerances import GRAVITY_JOINT_POSES
+
+    key = (robot.name, str(getattr(robot, "urdf_path", "")), "rms_tau")
+    if key not in _RMS:
+        rng = np.random.default_rng(20261127)
+        lo, hi = np.asarray(robot.q_lower, dtype=float), np.asarray(robot.q_upper, dtype=float)
+        q = rng.uniform(lo, hi, size=(GRAVITY_JOINT_POSES, robot.n_joints))
+        _RMS[key] = np.sqrt(np.mean(gravity_torques(robot, q) ** 2, axis=0))
+    return _RMS[key]
+
+
+_RMS: dict = {}
+
+
+def lever_joints(robot, k: int = 3) -> tuple:
+    """The ``k`` joints (1-based, in chain order) whose axes lie farthest from the tool point on
+    average over random poses: the joints whose small angle errors move the tool most (the
+    default of the cyclic transmission error)."""
+    from campaign.model.kinematics import frames
+    from campaign.tolerances import GRAVITY_JOINT_POSES
+
+    rng = np.random.default_rng(20261127)
+    lo, hi = np.asarray(robot.q_lower, dtype=float), np.asarray(robot.q_upper, dtype=float)
+    q = rng.uniform(lo, hi, size=(GRAVITY_JOINT_POSES, robot.n_joints))
+    R, p = frames(robot, q)
+    idx = list(robot.joint_frame_index)
+    tool = p[:, -1]
+    lever = np.empty(robot.n_joints)
+    for j, f in enumerate(idx):
+        axis = R[:, f, :, 2]  # the joint's axis: z of its frame after its motion
+        d = tool - p[:, f]
+        lever[j] = np.mean(np.linalg.norm(d - np.sum(d * axis, axis=1)[:, None] * axis, axis=1))
+    best = np.sort(np.argsort(-lever, kind="stable")[:min(k, robot.n_joints)])
+    return tuple(int(j) + 1 for j in best)

@@ -4,29 +4,26 @@ from __future__ import annotations
 
 import numpy as np
 
-from campaign.effects.gravity import gravity_torques
-from campaign.effects.base import Effect, register
-
-#: joints whose gravity torque is large enough to identify a compliance (1-based)
-DEFAULT_JOINTS = (2, 3, 5)
+from campaign.effects.gravity import gravity_torques, loaded_joints
+from campaign.effects.base import Effect, check_effect_joints, register
 
 
 @register
 class JointCompliance(Effect):
     """Δq_i = c_i · τ_i, with τ the gravity torque (N·m) from the URDF's inertias (Pinocchio).
 
-    Joint 1's axis is vertical (τ_1 = 0) and the torques of joints 4 and 6 are tiny, so by
-    default only joints 2, 3 and 5 carry a compliance c_i (rad/(N·m)).
+    ``joints`` (1-based, any of the robot's): by default those with a gravity torque worth
+    identifying (:func:`~campaign.effects.gravity.loaded_joints`; the COMAU's 2, 3 and 5: joint 1's
+    axis is vertical, the torques of its joints 4 and 6 are tiny), each with a compliance c_i
+    (rad/(N·m)).
     """
 
     name = "joint_compliance"
     description = "joint compliance: Δq_i = c_i · τ_gravity,i(q)"
 
-    def __init__(self, robot, joints=DEFAULT_JOINTS):
+    def __init__(self, robot, joints=None):
         super().__init__(robot)
-        self.joints = tuple(int(j) for j in joints)
-        if any(j < 1 or j > 6 for j in self.joints):
-            raise ValueError(f"joints must be in 1..6, got {self.joints}")
+        self.joints = check_effect_joints(loaded_joints(robot) if joints is None else joints, robot, self.name)
         self.param_names = tuple(f"c{j}" for j in self.joints)
         self.param_units = ("rad/(N·m)",) * len(self.joints)
 

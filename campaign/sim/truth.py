@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import EffectSet, effect_context, is_file_spec, make_effect, model_pose
+from campaign.effects.base import EffectSet, effect_context, is_file_spec, make_effect, model_pose, split_joints
 from campaign.measure.data import MeasuredPoses
 from campaign.measure.reflectors import frame_from_setup_points, pose_from_reflectors, transform_points
 from campaign.model.base_params import base_parameters
@@ -121,8 +121,10 @@ class TruthRobot:
             "T_LI": [[float(v) for v in row] for row in self.T_LI],
             "noise_m": float(self.noise_m),
             "resolution_m": float(self.resolution_m),
-            # a user's effect file by its spec (path/file.py:Class), so that read_truth finds it again
-            "effects": {(e.spec if is_file_spec(getattr(e, "spec", "")) else e.name): [float(v) for v in th]
+            # a user's effect file or a joint list by its spec (path/file.py:Class, name:2,3), so that
+            # read_truth finds it again
+            "effects": {(e.spec if is_file_spec(split_joints(getattr(e, "spec", ""))[0]) or split_joints(e.spec)[1]
+                         else e.name): [float(v) for v in th]
                         for e, th in zip(self.effects.effects, self.effects.split(self.theta))},
         }
         return yaml.safe_dump(doc, sort_keys=False)
