@@ -155,7 +155,16 @@ def test_auto_adds_both_hidden_effects_and_ends_at_the_true_noise_floor(referenc
     state = _state(run)
     # at the floor, but the tight target wants more poses than the limit allows: the limit stops it
     assert state["finished"]["reason"] == "max_poses" and "pose limit allows no more" in out
-    assert set(RunFolder(run).config.effects) == set(TWO_EFFECTS)
+    from campaign.effects.base import effect_name, make_effect
+
+    effects = RunFolder(run).config.effects
+    assert {effect_name(e) for e in effects} == set(TWO_EFFECTS) and len(effects) == 2
+    # diagnose names the joints it finds: those the hidden default joints hold (joint 5's compliance moves the
+    # tool by microns, below the noise, so it may stay out)
+    robot = RunFolder(run).robot()
+    for e in effects:
+        assert set(getattr(make_effect(e, robot), "joints", ())) <= set(getattr(make_effect(effect_name(e), robot),
+                                                                               "joints", ())), effects
     kinds = [r["decision"]["kind"] for r in state["rounds"]]
     assert kinds[:2] == ["add_effect", "add_effect"] and kinds[-1] == "stop" and "design" in kinds, kinds
     # one line per round, and the verdict last
@@ -294,7 +303,8 @@ def _diagnosis(verdict, ranking=(), depends_on=(), significant=True):
     floor = NoiseFloor("repeats", np.full(3, 6e-6), 0.0099, 90, 0.05, "test")
     return SimpleNamespace(verdict=verdict, ranking=tuple(ranking), depends_on=list(depends_on),
                            structure_significant=significant, floor=floor, model_to_noise=3.0, signature=None,
-                           at_floor=verdict is None, expected_model_to_noise=1.0)
+                           at_floor=verdict is None, expected_model_to_noise=1.0, structure=None,
+                           worth_a_round=significant, removal=None, round_off=False)
 
 
 def _round(decision_kind="stop", verdict="unexplained", depends_on=()):
@@ -309,7 +319,7 @@ def test_decide_adds_a_significant_candidate_by_its_spec_even_when_it_explains_o
 
     from campaign.auto import Limits, decide
 
-    c = SimpleNamespace(effect="runout", spec="/x/runout.py:Runout", significant=True, description="d",
+    c = SimpleNamespace(effect="runout", spec="/x/runout.py:Runout", label="runout", significant=True, description="d",
                         heldout_mean_position_mm_before=0.2, heldout_mean_position_mm_after=0.1, gain=0.5)
     d = decide(_diagnosis("unexplained", [c], ["q2"]), _round(), [], Limits(312, None, None), _StubLoop())
     assert (d.kind, d.effect) == ("add_effect", "/x/runout.py:Runout") and "part" in d.text

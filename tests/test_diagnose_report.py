@@ -65,7 +65,7 @@ def test_the_ranking_figure_has_a_bar_per_candidate_with_its_held_out_error(diag
     ns = "{http://www.w3.org/2000/svg}"
     effects = [e.text for e in root.iter(ns + "text") if e.get("class") == "effect"]
     values = [e.text for e in root.iter(ns + "text") if e.get("class") == "value"]
-    assert effects == [c.effect for c in d.ranking]
+    assert effects == [c.label for c in d.ranking]  # with the joints a search found ("cyclic of joint 2")
     assert values == [f"{c.heldout_mean_position_mm_after:.4g} mm" for c in d.ranking]
     bars = [float(e.get("width")) for e in root.iter(ns + "rect") if e.get("class") == "bar"]
     after = np.array([c.heldout_mean_position_mm_after for c in d.ranking])

@@ -30,7 +30,7 @@ stored data.
 
 # Lazy: `campaign --help` imports campaign.auto.commands, hence this package, and must not pull
 # numpy in with the loop (tests/test_urdf_chain.py).
-_WHERE = {"decide": "decisions", "time_change_p": "decisions", "weak_structure_inputs": "decisions",
+_WHERE = {"decide": "decisions", "weak_structure_inputs": "decisions",
           "auto": "loop", "plot_rounds": "report", "verdict_text": "report", "write_auto_report": "report",
           "AutoOptions": "state", "AutoResult": "state", "CellSource": "state", "Decision": "state",
           "Limits": "state", "Round": "state", "state_path": "state"}

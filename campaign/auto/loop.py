@@ -7,7 +7,7 @@ import json
 import time
 from dataclasses import asdict, replace
 
-from campaign.auto.decisions import TIME_ALPHA, TIME_INPUTS, decide, inputs_text, time_change_p, weak_structure_inputs
+from campaign.auto.decisions import decide, inputs_text
 from campaign.auto.report import result
 from campaign.auto.state import (MAX_POSES_FACTOR, AutoOptions, AutoResult, CellSource, Decision, Limits, Round,
                                  load_state, save_state)
@@ -271,6 +271,9 @@ class _Loop:
         if d.kind == "add_effect":
             self.run.add_effects([d.effect])
             self.say(f"  added {d.effect} to {self.run.config_path}")
+        elif d.kind == "remove_effect":
+            self.run.set_effects(d.effects)
+            self.say(f"  took out {d.effect} in {self.run.config_path}: effects [{', '.join(d.effects)}]")
         elif d.pose_ids:
             from campaign.plan.extend import append_tour
 
@@ -344,23 +347,11 @@ class _Loop:
         before = [Round.from_json(r) for r in self.state["rounds"]]
         importance = {} if diagnosis.structure is None else \
             {k: float(v) for k, v in diagnosis.structure.importance.items()}
+        # diagnose's own, its time and temperature ranked by its test of the same poses at different
+        # times: auto and diagnose give the same depends_on (one code path)
         depends_on = tuple(diagnosis.depends_on)
-        weak = weak_structure_inputs(diagnosis) if diagnosis.verdict is None else []
-        if not depends_on and weak:
-            depends_on = tuple(weak)
-            if before and before[-1].decision.reason == "probe":  # the same weak structure twice: both tests' ranking
-                both = {k: importance.get(k, 0.0) + before[-1].importance.get(k, 0.0) for k in importance}
-                depends_on = tuple(k for k in sorted(both, key=lambda k: -both[k])
-                                   if k in weak or k in before[-1].depends_on)
-        if not depends_on and diagnosis.verdict == "unexplained":  # the inputs an earlier test of this model named
-            same = [r for r in before if r.effects == tuple(self.run.effects) and r.depends_on]
-            depends_on = same[-1].depends_on if same else ()
-        p_time = time_change_p(self.run, diagnosis.floor) if depends_on and depends_on[0] in TIME_INPUTS else None
-        if p_time is not None and p_time >= TIME_ALPHA:
-            # measured again after a pause, the poses agree within the noise: time is not the cause (the tour
-            # orders poses, so time stands in for the joints the tour sweeps); the joints it depends on remain
-            depends_on = tuple(i for i in depends_on if i not in TIME_INPUTS)
-            sig = None
+        if diagnosis.time_tested is not None and not diagnosis.time_tested.moved:
+            sig = None  # the signature's time growth is the tour's, not the cell's
         base = Round(len(before) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
                      tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
                      diagnosis.verdict, diagnosis.at_floor, depends_on, sig, Decision("stop", ""), importance)

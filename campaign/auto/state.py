@@ -88,7 +88,8 @@ class CellSource:
 
 @dataclass(frozen=True)
 class Decision:
-    """What a round decided. kind: ``add_effect`` (``effect``), ``design``, ``reveal``, ``floor``
+    """What a round decided. kind: ``add_effect`` (``effect``), ``remove_effect`` (``effect`` taken
+    out, or one of its joints: ``effects`` the model's effects after it), ``design``, ``reveal``, ``floor``
     or ``remeasure`` (``pose_ids`` to append and measure; ``reason`` ``probe`` for poses that
     test a structure found below the detection limit at the floor), or ``stop`` (``reason``: ``at_floor``,
     ``unexplained``, ``no_floor``, ``budget``, ``max_poses``, ``no_poses``); text: one line."""
@@ -98,14 +99,15 @@ class Decision:
     effect: str | None = None
     pose_ids: tuple = ()
     reason: str | None = None
+    effects: tuple = ()
 
     def as_json(self) -> dict:
-        return {**asdict(self), "pose_ids": [int(p) for p in self.pose_ids]}
+        return {**asdict(self), "pose_ids": [int(p) for p in self.pose_ids], "effects": list(self.effects)}
 
     @classmethod
     def from_json(cls, doc) -> "Decision":
         return cls(doc["kind"], doc["text"], doc.get("effect"), tuple(int(p) for p in doc.get("pose_ids", ())),
-                   doc.get("reason"))
+                   doc.get("reason"), tuple(doc.get("effects", ())))
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 For a run, the *current model* is the geometric model plus the effects enabled in the run's
 campaign.yaml (or given). On the training part of the fixed 80/20 split, K folds: for each
-fold the current model is fitted on the other folds and predicts the held-out fold. Three
+fold the current model is fitted on the other folds and predicts the held-out fold. Five
 questions are answered on those held-out residuals (the test set is not touched, nothing
 here reads a simulator's truth):
 
@@ -19,6 +19,19 @@ here reads a simulator's truth):
    improves by at least 2 % — or, when the model is already at the noise floor, by more than
    the detection limit (parsimony).
 
+   A joint-indexed candidate named without joints is searched over the robot's joints
+   (:mod:`campaign.diagnose.joints`); the simplest candidate within one standard error of the
+   best (plus one per joint a search added) comes first.
+4. **Does each effect of the model earn its place?** Each (and each joint of a joint-indexed
+   one) taken out on the same folds (:mod:`campaign.diagnose.contribution`).
+5. **Is it time, or the poses the tour sweeps?** When time or temperature ranks among the
+   structure's inputs, the same poses measured at different times decide
+   (:mod:`campaign.diagnose.timing`).
+
+:func:`diagnose` runs these as named steps: :func:`load_data`, :func:`fit_current`,
+:func:`judge_floor`, :func:`find_structure`, :func:`score_candidates`, the contributions,
+:func:`choose_verdict`, :func:`run_time_test`.
+
 The verdict: the best significant candidate when it explains the structure (its held-out
 error is within 5 % of the regressor's, or the regressor finds nothing); ``"unexplained"`` when
 systematic error remains that no candidate explains (the regressor finds it, or the model
@@ -32,22 +45,24 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from campaign.diagnose.candidates import fit_candidate, linearise
-from campaign.effects.base import (available, effect_class, effect_context, entry_point_effects, make_effect,
-                                   parse_effect_list, resolve_effect_spec)
+from campaign.diagnose.contribution import contributions
+from campaign.diagnose.joints import model_joints, paired_p, search_joints, searches_joints
+from campaign.diagnose.timing import TIME_INPUTS, rank_by_time_test, time_test
+from campaign.effects.base import (available, effect_class, effect_context, effect_label,
+                                   entry_point_effects, joint_spec, make_effect, merge_effects, parse_effect_list,
+                                   resolve_effect_spec, split_joints)
 from campaign.errors import DataError
-from campaign.identify.calibrate import (check_pose_count, distinct_poses, equations_per_pose,
-                                         load_robot_for_run, training_poses_needed)
+from campaign.identify.poses import (check_pose_count, distinct_poses, equations_per_pose, prepare_measured,
+                                     tracker_to_robot, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import FoldRule, choose_folds, run_split, train_test_split, validation_file
-from campaign.measure.drift import Drift, measured_drift
-from campaign.measure.floor import NoiseFloor, noise_floor, times_the_noise
-from campaign.measure.store import open_run
+from campaign.measure.drift import Drift, drift_readings, measured_drift
+from campaign.measure.floor import NoiseFloor, floor_from_stated, noise_floor, times_the_noise
 from campaign.model.base_params import base_parameters
 from campaign.run import RunFolder
-from campaign.tolerances import ZERO_NOISE_MODEL_ATOL_M
+from campaign.tolerances import MIN_ROUND_SHARE, ZERO_NOISE_MODEL_ATOL_M
 
 #: family-wise significance level of the candidate ranking and of the structure test
 ALPHA = 0.01
@@ -79,6 +94,18 @@ class CandidateScore:
     absorbed: tuple = ()
     description: str = ""
     spec: str = ""
+    #: the joint search's steps (campaign.diagnose.joints.JointStep), for a joint-indexed candidate
+    joint_steps: tuple = ()
+
+    @property
+    def joints(self):
+        """The joints (1-based) the candidate acts on, or None (not joint-indexed, or its default)."""
+        return split_joints(self.spec)[1] if self.spec else None
+
+    @property
+    def label(self) -> str:
+        """In words: "joint_compliance of joint 4"."""
+        return effect_label(joint_spec(self.effect, self.joints)) if self.joints else self.effect
 
     @property
     def gain(self) -> float:
@@ -95,6 +122,9 @@ class CandidateScore:
             "heldout_residual_variance_explained_r2": self.r2,
             "absorbed_parameters": list(self.absorbed),
             "description": self.description,
+            "joints": None if self.joints is None else list(self.joints),
+            "label": self.label,
+            "joint_search": [st.as_json() for st in self.joint_steps],
         }
 
 
@@ -132,6 +162,39 @@ class Diagnosis:
     drift: Drift = field(default_factory=Drift)
     #: where the current model's effects come from, when the last calibration and campaign.yaml differ
     model_note: str | None = None
+    #: each current effect's (and joint's) cross-validated gain (campaign.diagnose.contribution)
+    contributions: tuple = ()
+    #: the same poses at different times against the noise (campaign.diagnose.timing.TimeTest) or None
+    time_test: object = None
+    #: noise-free measurements that the model fits to round-off: nothing was tested further
+    round_off: bool = False
+
+    @property
+    def removal(self):
+        """The current effect (or joint) that earns its place least, when one does not
+        (campaign.diagnose.contribution.Contribution), else None: taken out before anything is added."""
+        weak = [c for c in self.contributions if not c.earns_place]
+        if not weak:
+            return None
+        return min(weak, key=lambda c: (c.gain_mm - c.gain_se_mm, c.joint is not None))
+
+    def effects_after_removal(self) -> tuple | None:
+        """The current effects once :attr:`removal` is taken out, or None when nothing is."""
+        c = self.removal
+        if c is None:
+            return None
+        return tuple(c.without if s == c.spec else s for s in self.current_effects if s != c.spec or c.without)
+
+    @property
+    def verdict_spec(self) -> str | None:
+        """The verdict as a spec to add (with its joints: "joint_compliance:4"), or None."""
+        return self._verdict_spec()
+
+    @property
+    def worth_a_round(self) -> bool:
+        """Structure significant and above MIN_ROUND_SHARE of the held-out error: worth measuring for."""
+        return bool(self.structure_significant and self.structure is not None
+                    and self.structure.heldout_gain >= MIN_ROUND_SHARE)
 
     @property
     def model_to_noise(self) -> float | None:
@@ -140,9 +203,18 @@ class Diagnosis:
 
     @property
     def depends_on(self) -> list:
-        if self.structure is None:
+        """The inputs the structure depends on, most important first, time and temperature ranked by
+        the time test (campaign.diagnose.timing.rank_by_time_test)."""
+        if self.structure is None or not self.structure_significant:
             return []
-        return self.structure.depends_on(MIN_IMPORTANCE_SHARE) if self.structure_significant else []
+        return rank_by_time_test(self.structure.depends_on(MIN_IMPORTANCE_SHARE), self.time_tested)
+
+    @property
+    def time_tested(self):
+        """The time test when time or temperature ranks among the structure's inputs, else None."""
+        if self.structure is None or not set(self.structure.depends_on(MIN_IMPORTANCE_SHARE)) & set(TIME_INPUTS):
+            return None
+        return self.time_test
 
     def as_json(self) -> dict:
         s = self.structure
@@ -170,6 +242,14 @@ class Diagnosis:
             "current_effects": list(self.current_effects),
             "model_note": self.model_note,
             "config_line": config_line(self.current_effects, self._verdict_spec()),
+            "verdict_spec": self._verdict_spec(),
+            "verdict_label": None if self.verdict in (None, "unexplained") else effect_label(self._verdict_spec()),
+            "contributions": [c.as_json() for c in self.contributions],
+            "remove": None if self.removal is None else {**self.removal.as_json(),
+                                                          "effects_after": list(self.effects_after_removal())},
+            "time_test": None if self.time_test is None else {**self.time_test.as_json(),
+                                                              "ranks_inputs": self.time_tested is not None},
+            "noise_free_round_off": self.round_off,
             "folds": self.folds,
             "fold_rule": None if self.fold_rule is None else self.fold_rule.as_json(),
             "fold_pose_ids": [list(ids) for ids in self.fold_pose_ids],
@@ -215,13 +295,23 @@ class Diagnosis:
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
         for c in self.ranking:
             note = " (absorbed: " + ", ".join(c.absorbed) + ")" if c.absorbed else ""
+            note += (f" (joints {','.join(map(str, c.joints))}: forward search, {len(c.joint_steps)} "
+                     f"step{'s' if len(c.joint_steps) > 1 else ''})") if c.joint_steps else ""
             lines.append(f"{c.effect:<20}{c.heldout_mean_position_mm_before:>11.4f}{c.heldout_mean_position_mm_after:>11.4f}"
                          f"{100 * c.gain:>7.1f}%{c.r2:>7.2f}{c.p_value:>10.2g}  {'yes' if c.significant else 'no'}{note}")
         for effect, reason in self.skipped:
             lines.append(f"{effect:<20}skipped: {reason}")
         lines += ["", self.floor_line(), self.structure_line()]
+        if self.time_tested is not None:
+            lines.append("  " + self.time_tested.text())
         if self.signature is not None and self.structure_significant:
             lines.append("  signature: " + self.signature.text())
+        if self.contributions:
+            lines += ["", "what each current effect earns (taken out on the same folds):"]
+            lines += ["  " + c.text() for c in self.contributions]
+        if self.removal is not None:
+            after = self.effects_after_removal()
+            lines.append(f"  take out {self.removal.label}: effects: [{', '.join(after)}]")
         lines += ["", verdict_text(self)]
         return "\n".join(lines)
 
@@ -240,7 +330,7 @@ def expected_heldout_ratio(model_var, sigma_position_m: float) -> float:
 def config_line(current, verdict_spec) -> str | None:
     if verdict_spec is None:
         return None
-    return f"effects: [{', '.join([*current, verdict_spec])}]"
+    return f"effects: [{', '.join(merge_effects(current, [verdict_spec]))}]"
 
 
 #: the line diagnose ends with when the model is at the noise floor and nothing is found
@@ -248,6 +338,9 @@ AT_NOISE_TEXT = "verdict: at the measurement noise: nothing left to find."
 
 
 def verdict_text(d: Diagnosis) -> str:
+    if d.round_off:
+        return (f"verdict: noise-free measurements, and the model fits them to round-off (held-out mean "
+                f"{d.heldout_mean_position_mm:.2g} mm): nothing left to find, nothing to measure for.")
     if d.verdict is None:
         if d.at_floor:
             return AT_NOISE_TEXT
@@ -266,11 +359,12 @@ def verdict_text(d: Diagnosis) -> str:
                 "candidate nor the regressor finds on which input the rest depends (a pose-to-pose error the inputs "
                 "do not carry, or a floor that is too low)")
     c = next(c for c in d.ranking if c.effect == d.verdict)
-    return (f"verdict: add {c.effect} ({c.description}).\n"
+    merged = merge_effects(d.current_effects, [c.spec or c.effect])
+    return (f"verdict: add {c.label} ({c.description}).\n"
             f"  the held-out residual follows it: R² {c.r2:.2f}; cross-validated mean position error (the folds) "
             f"{c.heldout_mean_position_mm_before:.4f} → {c.heldout_mean_position_mm_after:.4f} mm (p = {c.p_value:.2g}).\n"
             f"  add to {d.run_dir}/campaign.yaml:   {config_line(d.current_effects, c.spec or c.effect)}\n"
-            f"  or run:   campaign calibrate {d.run_dir} --effects {','.join([*d.current_effects, c.spec or c.effect])}")
+            f"  or run:   campaign calibrate {d.run_dir} --effects {','.join(merged)}")
 
 
 def folds_text(k: int, n_train: int, rule=None) -> str:
@@ -333,14 +427,18 @@ def residual_in_joint1_frame(robot, q, dt, R1=None):
     return np.einsum("nji,nj->ni", R1, dt)
 
 
-def candidate_specs(candidates, current, run_dir):
-    """Candidate specs: the built-ins and installed entry points not in the model, or those given."""
+def candidate_specs(candidates, current, run_dir, robot=None):
+    """Candidate specs: the built-ins and installed entry points not in the model, or those given.
+    A joint-indexed effect already in the model stays a candidate (over the joints it lacks) when
+    ``robot`` is given."""
     if candidates is None:
         specs = list(available()) + sorted(set(entry_point_effects()) - set(available()))
     else:
         specs = [resolve_effect_spec(s) for s in parse_effect_list(candidates, "--candidates")]
     current_names = {effect_class(e).name for e in current}
-    return [s for s in specs if s not in current and effect_class(s).name not in current_names]
+    return [s for s in specs if s not in current and (effect_class(s).name not in current_names or (
+        robot is not None and searches_joints(s, robot)
+        and len(model_joints(current, s, robot)) < robot.n_joints))]
 
 
 def current_model_effects(run_dir) -> tuple:
@@ -362,17 +460,52 @@ def current_model_effects(run_dir) -> tuple:
                     f"calibrated model (`campaign calibrate {run_dir}` without --effects fits campaign.yaml's)")
 
 
-def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
-             structure: bool = True) -> Diagnosis:
-    """Diagnose a run's current model: noise floor, model-free structure test, candidate ranking.
+@dataclass(frozen=True)
+class DiagnosisData:
+    """A run's training poses as the current model sees them, and how they are folded."""
 
-    folds: held-out folds of the training poses; None: from the data
-    (:func:`campaign.identify.split.choose_folds`: leave-one-out below 60 training poses, else 5).
-    Too few poses for every fold fit to identify the current model is one line saying how many
-    are needed; a candidate whose parameters the fold fits cannot identify is skipped (and said)."""
-    run_dir = Path(run_dir)
-    say = progress or (lambda msg: None)
-    robot = load_robot_for_run(run_dir)
+    run_dir: Path
+    robot: object
+    poses: object  # MeasuredPoses, registered into F_I at the measured point
+    is_test: np.ndarray
+    tr: np.ndarray  # training-pose indices
+    context: dict
+    rule: FoldRule
+    fit_rule: FoldRule
+    fold: np.ndarray  # (len(tr),) fold index of each training pose
+    base: object  # BaseParameters
+    current: tuple
+    n_current: int
+    model_note: str | None = None
+    #: the candidate specs (:func:`candidate_specs`)
+    candidates: tuple = ()
+    #: the map of readings in the tracker's frame into the registered robot frame, or None
+    tracker_to_robot: np.ndarray | None = None
+
+    @property
+    def position_only(self) -> bool:
+        return not self.poses.has_orientation
+
+    @property
+    def folds(self) -> int:
+        return self.rule.k
+
+    def subset(self, idx):
+        """(q, T_IE, context) of the poses ``idx``."""
+        return self.poses.q[idx], self.poses.T_IE[idx], {key: v[idx] for key, v in self.context.items()}
+
+    def fold_data(self, k):
+        """(q, T_IE, context) of fold k's fitting poses, then of its held-out poses."""
+        return (*self.subset(self.tr[self.fold != k]), *self.subset(self.tr[self.fold == k]))
+
+
+def load_data(run_dir, effects, candidates, folds, say) -> DiagnosisData:
+    """The run's poses (those with a pose), its calibrate split, the current model's effects, the
+    candidates and the folds; one line when the poses are too few for every fold fit."""
+    from campaign.plan.selection import base_pose_id
+
+    run = RunFolder(run_dir)
+    robot = run.robot()
     model_note = None
     if effects is None:
         current, model_note = current_model_effects(run_dir)
@@ -380,8 +513,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         current = tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
     if model_note:
         say(model_note)
-    names = candidate_specs(candidates, current, run_dir)
-    with open_run(run_dir) as store:
+    specs = tuple(candidate_specs(candidates, current, run_dir, robot))  # a bad name: one line before any work
+    with run.store() as store:
         poses = store.load_measured(include_unusable=True)
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     if not usable.any():
@@ -392,168 +525,295 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
             "(diagnose compares fits of poses)")
         poses = poses.subset(np.flatnonzero(usable))
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
-    # the data as calibrate's model sees them: registered from the tracker's frame, at the measured point
-    from campaign.identify.calibrate import prepare_measured, tracker_to_robot
-
-    poses, robot, tracker = prepare_measured(robot, poses, ~is_test)
-    position_only = not poses.has_orientation
+    poses, robot, tracker = prepare_measured(robot, poses, ~is_test)  # as calibrate's model sees them
     tr = np.flatnonzero(~is_test)
-    from campaign.plan.selection import base_pose_id
-
     rule = choose_folds(len(np.unique(base_pose_id(poses.pose_id[tr]))), folds)
-    folds = rule.k
     n_current = sum(make_effect(e, robot).n_params for e in current)
     # every fold fit must identify the model: distinct poses, the smallest fold fit (the same rule)
     n_distinct = distinct_poses(poses.q[tr])
     fit_rule = replace(rule, n_poses=n_distinct, k=n_distinct if rule.leave_one_out else rule.k)
-    check_pose_count(run_dir, robot, n_distinct, int(is_test.sum()), position_only, n_effect_params=n_current,
-                     fold_rule=fit_rule, validation=validation_file(run_dir).is_file())
-    say(f"folds: {folds_text(folds, len(tr), rule)}")
-    context = effect_context(poses.context, poses.time_s)
-    fold = pose_folds(poses.pose_id[tr], folds)
-    base = base_parameters(robot, position_only=position_only)
-    rows = equations_per_pose(position_only)
+    check_pose_count(run_dir, robot, n_distinct, int(is_test.sum()), not poses.has_orientation,
+                     n_effect_params=n_current, fold_rule=fit_rule, validation=validation_file(run_dir).is_file())
+    say(f"folds: {folds_text(rule.k, len(tr), rule)}")
+    return DiagnosisData(Path(run_dir), robot, poses, is_test, tr, effect_context(poses.context, poses.time_s), rule,
+                         fit_rule, pose_folds(poses.pose_id[tr], rule.k),
+                         base_parameters(robot, position_only=not poses.has_orientation), tuple(current), n_current,
+                         model_note, specs, tracker_to_robot(tracker))
 
-    ctx_tr = {key: v[tr] for key, v in context.items()}
+
+@dataclass(frozen=True)
+class CurrentFits:
+    """The current model on the whole training set and on each fold: held-out position errors
+    ``before`` (n,) mm and residuals ``dz`` (n, 3) m, each fold model's own residual at its fitting
+    poses, its held-out position Jacobian, and its position variance at the held-out poses (m²)."""
+
+    full: object
+    models: dict
+    before: np.ndarray
+    dz: np.ndarray
+    fit_residuals: dict
+    heldout_jacobians: dict
+    model_var: np.ndarray
+
+    @property
+    def heldout_mean_mm(self) -> float:
+        return float(self.before.mean())
+
+
+def fit_current(data: DiagnosisData, say) -> CurrentFits:
+    """The current model fitted on all training poses, then on each fold (from the full fit's values
+    and noise weights: a few LM steps each), predicting the held-out fold."""
     say("current model on the whole training set")
-    full = CalibrationModel(robot=robot, effects=list(current), position_only=position_only).fit(
-        poses.q[tr], poses.T_IE[tr], ctx_tr, base=base)
+    full = CalibrationModel(robot=data.robot, effects=list(data.current), position_only=data.position_only).fit(
+        *data.subset(data.tr), base=data.base)
     noise = full.noise_sigma_
-
-    def fold_data(k):
-        """(q, T_IE, context) of fold k's fitting poses, then of its held-out poses."""
-        fit_idx, out_idx = tr[fold != k], tr[fold == k]
-        return (poses.q[fit_idx], poses.T_IE[fit_idx], {key: v[fit_idx] for key, v in context.items()},
-                poses.q[out_idx], poses.T_IE[out_idx], {key: v[out_idx] for key, v in context.items()})
-
-    fold_sets = {k: fold_data(k) for k in range(folds)}
-
-    say(f"current model on {folds} folds")
-    # fold fits start from the full fit and keep its noise weights: a few LM steps each
-    before = np.empty(len(tr))
-    dz_before = np.empty((len(tr), 3))
-    fit_res, fold_models = {}, {}
-    model_var = np.zeros(len(tr))  # each fold model's own position variance at its held-out poses, m²
-    for k in range(folds):
-        q_fit, T_fit, ctx_fit, q_out, T_out, ctx_out = fold_sets[k]
-        m = CalibrationModel(robot=robot, effects=list(current), estimate_noise=False, position_only=position_only,
-                             sigma_position_m=noise["position_m"],
+    say(f"current model on {data.folds} folds")
+    n = len(data.tr)
+    before, dz_before, model_var = np.empty(n), np.empty((n, 3)), np.zeros(n)
+    models, fit_res, jac = {}, {}, {}
+    for k in range(data.folds):
+        q_fit, T_fit, ctx_fit, q_out, T_out, ctx_out = data.fold_data(k)
+        m = CalibrationModel(robot=data.robot, effects=list(data.current), estimate_noise=False,
+                             position_only=data.position_only, sigma_position_m=noise["position_m"],
                              sigma_orientation_rad=noise["orientation_rad"] or 1e-4)
-        m.fit(q_fit, T_fit, ctx_fit, base=base, init=full.values_, init_jacobian=full.jacobian_at_fit_[fold != k])
+        m.fit(q_fit, T_fit, ctx_fit, base=data.base, init=full.values_,
+              init_jacobian=full.jacobian_at_fit_[data.fold != k])
         dz = m.residuals(q_out, T_out, ctx_out)
-        before[fold == k] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
-        dz_before[fold == k] = dz[:, :3]
+        out = data.fold == k
+        before[out] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+        dz_before[out] = dz[:, :3]
         fit_res[k] = m.residual_at_fit_[:, :3]  # m.residuals(q_fit, T_fit, ctx_fit), kept by the fit
-        fold_models[k] = m
+        models[k] = m
         J = m.jacobian(q_out, T_out, ctx_out)[:, :3, :]
+        jac[k] = J
         C = m.covariance_ / max(m.variance_factor_, 1e-300)  # the covariance of the fit's own weights
-        model_var[fold == k] = np.einsum("nap,pq,naq->n", J, C, J)
-    ss_before = float(np.sum((dz_before - dz_before.mean(axis=0)) ** 2))
-    held_mean = float(before.mean())
-    expected = expected_heldout_ratio(model_var, noise["position_m"])
+        model_var[out] = np.einsum("nap,pq,naq->n", J, C, J)
+    return CurrentFits(full, models, before, dz_before, fit_res, jac, model_var)
 
-    floor = noise_floor(run_dir, poses, robot)
-    at_floor = None
-    detection = MIN_RELATIVE_GAIN
-    if floor.known:
-        # a correct model's own estimation error (few poses), then the floor's uncertainty and the
-        # sampling error of the held-out mean, combined
-        held_unc = float(before.std() / max(held_mean, 1e-300) / np.sqrt(len(before)))
-        threshold = max(1.0 + AT_FLOOR_MARGIN, expected) + FLOOR_UNCERTAINTIES * float(
-            np.hypot(floor.relative_uncertainty, held_unc))
-        if floor.mean_position_mm > 0:
-            at_floor = held_mean / floor.mean_position_mm <= threshold
-        else:  # noise-free measurements: at the floor means at the fit's round-off
-            at_floor = held_mean <= ZERO_NOISE_MODEL_ATOL_M * 1e3
-        if at_floor:
-            # at the floor a gain must exceed what the floor's own uncertainty allows
-            detection = max(MIN_RELATIVE_GAIN, 1.0 - 1.0 / threshold)
 
-    X, input_names = regressor_inputs(poses.q[tr], ctx_tr)
-    R1 = joint1_rotation(robot, poses.q[tr])  # each training pose's, for the held-out and the fold fits' residuals
-    r_out = residual_in_joint1_frame(robot, poses.q[tr], dz_before, R1)
-    struct = None
-    struct_sig = False
-    if structure:
-        from campaign.diagnose.structure import structure_test
+@dataclass(frozen=True)
+class FloorVerdict:
+    """How far the current model is from the floor: the floor, at it or not (None: no floor), the
+    detection limit a gain must reach, what a correct model reaches over the noise, and whether the
+    measurements are noise-free and the model fits them to round-off."""
 
-        say("model-free structure test (flexible regressor on the same folds)")
-        q_tr = poses.q[tr]
-        r_fit = {k: residual_in_joint1_frame(robot, q_tr[fold != k], fit_res[k], R1[fold != k]) for k in fit_res}
-        struct = structure_test(X, input_names, fold, r_fit, r_out)
-        struct_sig = bool(struct.p_value < ALPHA and struct.heldout_gain >= detection)
-        if struct_sig and at_floor:  # structure the model-free test finds is above the noise, whatever the ratio
-            at_floor = False
+    floor: NoiseFloor
+    at_floor: bool | None
+    detection: float
+    expected: float
+    round_off: bool = False
 
-    scores, skipped = [], []
-    n_cand = max(len(names), 1)
-    lins = None
-    for i, spec in enumerate(names):
-        cls = effect_class(spec)
-        say(f"candidate {i + 1}/{len(names)}: {cls.name}")
-        lacking = [k for k in getattr(cls, "context_keys", ()) if k not in context
-                   or not np.isfinite(np.asarray(context[k], dtype=float)).all()]  # e.g. data without time_s
-        if lacking:
-            skipped.append((cls.name, f"needs context {', '.join(cls.context_keys)} "
-                                      f"({', '.join(lacking)}: not in the data for every pose)"))
-            say(f"  {cls.name}: skipped ({skipped[-1][1]})")
-            continue
-        n_params = make_effect(spec, robot).n_params
-        need = training_poses_needed(base.n_base + n_current + n_params, position_only)
-        if fit_rule.fit_poses < need:
-            skipped.append((cls.name, f"its {n_params} parameters need {need} poses in every fold fit "
-                                      f"({rows} equations each), the folds have {fit_rule.fit_poses}"))
-            say(f"  {cls.name}: skipped ({skipped[-1][1]})")
-            continue
-        if lins is None:
-            # the current model linearised at each fold's optimum, shared by every candidate
-            lins = {k: linearise(fold_models[k], *fold_sets[k][:3]) for k in range(folds)}
-        effect = make_effect(spec, robot)
-        after = np.empty(len(tr))
-        dz_after = np.empty((len(tr), 3))
-        absorbed = set()
-        for k in range(folds):
-            fit = fit_candidate(lins[k], effect, *fold_sets[k])
-            after[fold == k] = np.linalg.norm(fit.heldout_dz[:, :3], axis=1) * 1e3
-            dz_after[fold == k] = fit.heldout_dz[:, :3]
+
+def judge_floor(data: DiagnosisData, fits: CurrentFits) -> FloorVerdict:
+    """The floor (repeats, else the stated noise) and where the held-out mean stands against it."""
+    floor = noise_floor(data.run_dir, data.poses, data.robot)
+    expected = expected_heldout_ratio(fits.model_var, fits.full.noise_sigma_["position_m"])
+    held_mean = fits.heldout_mean_mm
+    if not floor.known:
+        return FloorVerdict(floor, None, MIN_RELATIVE_GAIN, expected)
+    if not floor.mean_position_mm > 0:  # noise-free measurements: at the floor means at the fit's round-off
+        at = held_mean <= ZERO_NOISE_MODEL_ATOL_M * 1e3
+        return FloorVerdict(floor, at, MIN_RELATIVE_GAIN, expected, round_off=at)
+    # a correct model's own estimation error (few poses), then the floor's uncertainty and the
+    # sampling error of the held-out mean, combined
+    held_unc = float(fits.before.std() / max(held_mean, 1e-300) / np.sqrt(len(fits.before)))
+    threshold = max(1.0 + AT_FLOOR_MARGIN, expected) + FLOOR_UNCERTAINTIES * float(
+        np.hypot(floor.relative_uncertainty, held_unc))
+    at = held_mean / floor.mean_position_mm <= threshold
+    # at the floor a gain must exceed what the floor's own uncertainty allows
+    detection = max(MIN_RELATIVE_GAIN, 1.0 - 1.0 / threshold) if at else MIN_RELATIVE_GAIN
+    return FloorVerdict(floor, at, detection, expected)
+
+
+def find_structure(data: DiagnosisData, fits: CurrentFits, detection: float, run: bool, say) -> tuple:
+    """The model-free test on the held-out residuals (in the frame after joint 1): (inputs X,
+    their names, the held-out residual, the fold fits' residuals, StructureResult or None)."""
+    q_tr = data.poses.q[data.tr]
+    X, input_names = regressor_inputs(q_tr, {key: v[data.tr] for key, v in data.context.items()})
+    R1 = joint1_rotation(data.robot, q_tr)  # each training pose's, for the held-out and the fold fits' residuals
+    r_out = residual_in_joint1_frame(data.robot, q_tr, fits.dz, R1)
+    if not run:
+        return X, input_names, r_out, None, None
+    from campaign.diagnose.structure import structure_test
+
+    say("model-free structure test (flexible regressor on the same folds)")
+    r_fit = {k: residual_in_joint1_frame(data.robot, q_tr[data.fold != k], fits.fit_residuals[k], R1[data.fold != k])
+             for k in fits.fit_residuals}
+    return X, input_names, r_out, r_fit, structure_test(X, input_names, data.fold, r_fit, r_out)
+
+
+def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: float, say) -> tuple:
+    """Every candidate fitted with the current model on the folds, scored on the held-out poses
+    (joint-indexed ones over the joints :func:`campaign.diagnose.joints.search_joints` finds):
+    (scores best first, skipped (effect, reason), the fold linearisations or None)."""
+    scores, skipped, errors = [], [], {}
+    n_cand = max(len(specs), 1)
+    ss_before = float(np.sum((fits.dz - fits.dz.mean(axis=0)) ** 2))
+    lins = {}
+
+    def fit_spec(spec):
+        """(after (n,) mm, dz_after (n, 3), absorbed names, fully absorbed) of one spec on the folds."""
+        if not lins:  # the current model linearised at each fold's optimum, shared by every candidate
+            lins.update({k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)})
+        effect = make_effect(spec, data.robot)
+        after, dz_after, absorbed = np.empty(len(data.tr)), np.empty((len(data.tr), 3)), set()
+        for k in range(data.folds):
+            fit = fit_candidate(lins[k], effect, *data.fold_data(k))
+            after[data.fold == k] = np.linalg.norm(fit.heldout_dz[:, :3], axis=1) * 1e3
+            dz_after[data.fold == k] = fit.heldout_dz[:, :3]
             absorbed |= set(fit.absorbed)
-        absorbed = tuple(sorted(absorbed))
-        d = before - after
-        if np.all(d == 0):
-            p = 1.0
-        else:
-            p = float(stats.ttest_rel(before, after, alternative="greater").pvalue)
-        gain = 1 - after.mean() / max(before.mean(), 1e-300)
-        r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
-        n_params = effect.n_params
-        fully_absorbed = len(absorbed) >= n_params and n_params > 0
-        significant = (p < ALPHA / n_cand) and gain >= detection and not fully_absorbed
-        scores.append(CandidateScore(cls.name, float(before.mean()), float(after.mean()), p, bool(significant),
-                                     float(r2), absorbed, cls.description, spec))
-    scores.sort(key=lambda c: (not c.significant, c.heldout_mean_position_mm_after))
+        return after, dz_after, tuple(sorted(absorbed)), len(absorbed) >= effect.n_params > 0
 
-    verdict = None
+    for i, spec in enumerate(specs):
+        cls = effect_class(spec)
+        say(f"candidate {i + 1}/{len(specs)}: {cls.name}")
+        reason = _cannot_score(data, spec, cls)
+        if reason:
+            skipped.append((cls.name, reason))
+            say(f"  {cls.name}: skipped ({reason})")
+            continue
+        tried, steps = 1, ()
+        if searches_joints(spec, data.robot):
+            exclude = model_joints(data.current, spec, data.robot)
+            spec, _, steps, tried = search_joints(spec, data.robot,
+                                                         lambda s: (lambda r: (r[0], r[3]))(fit_spec(s)),
+                                                         exclude, alpha=ALPHA, detection=detection)
+            if spec is None:
+                skipped.append((cls.name, "no joint's parameters can be identified with the current model"))
+                continue
+        after, dz_after, absorbed, fully = fit_spec(spec)
+        p = paired_p(fits.before, after)
+        gain = 1 - after.mean() / max(fits.before.mean(), 1e-300)
+        r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
+        significant = (p < ALPHA / (n_cand * tried)) and gain >= detection and not fully
+        scores.append(CandidateScore(cls.name, float(fits.before.mean()), float(after.mean()), p, bool(significant),
+                                     float(r2), absorbed, _describe(cls, spec), spec, steps))
+        errors[spec] = (after, make_effect(spec, data.robot).n_params - len(absorbed), max(len(steps), 1))
+    return rank(scores, errors), tuple(skipped), (lins or None)
+
+
+def rank(scores: list, errors: dict) -> tuple:
+    """The candidates, significant ones first, by held-out error; then the simplest first (fewest
+    fitted parameters) among those within the best's selection window of it: one standard error of
+    the paired per-pose difference, plus one for each joint a search added after its first (each
+    step picked the best of the joints left on the same held-out poses, whose error then flatters
+    it by up to about that much; a search over many joints makes a flexible effect fit part of
+    another one: cyclic on joints 1, 4 and 5 mimics an elastic ground's tilt, which turns with q1).
+    ``errors``: spec -> (held-out errors (n,) mm, fitted parameters, search steps)."""
+    scores = sorted(scores, key=lambda c: (not c.significant, c.heldout_mean_position_mm_after))
+    if not scores or not scores[0].significant:
+        return tuple(scores)
+    best, _, steps = errors[scores[0].spec]
+    near = []
+    for c in scores:
+        if not c.significant:
+            break
+        d = errors[c.spec][0] - best
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+        if d.mean() <= steps * se:
+            near.append(c)
+    first = min(near, key=lambda c: (errors[c.spec][1], c.heldout_mean_position_mm_after))
+    return (first, *[c for c in scores if c is not first])
+
+
+def _cannot_score(data: DiagnosisData, spec, cls) -> str | None:
+    """Why a candidate cannot be scored on these data (context it needs, too many parameters), or None."""
+    lacking = [k for k in getattr(cls, "context_keys", ()) if k not in data.context
+               or not np.isfinite(np.asarray(data.context[k], dtype=float)).all()]  # e.g. data without time_s
+    if lacking:
+        return (f"needs context {', '.join(cls.context_keys)} "
+                f"({', '.join(lacking)}: not in the data for every pose)")
+    one = joint_spec(spec, [1]) if searches_joints(spec, data.robot) else spec  # a search starts on one joint
+    n_params = make_effect(one, data.robot).n_params
+    need = training_poses_needed(data.base.n_base + data.n_current + n_params, data.position_only)
+    if data.fit_rule.fit_poses < need:
+        return (f"its {n_params} parameters need {need} poses in every fold fit "
+                f"({equations_per_pose(data.position_only)} equations each), the folds have {data.fit_rule.fit_poses}")
+    return None
+
+
+def _describe(cls, spec) -> str:
+    joints = split_joints(spec)[1]
+    if joints is None:
+        return cls.description
+    return f"{cls.description}, on joint{'s' if len(joints) > 1 else ''} {', '.join(map(str, joints))}"
+
+
+def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict):
+    """The best significant candidate when it explains the structure, else "unexplained" when
+    systematic error remains, else None (module docstring)."""
     best = scores[0] if scores and scores[0].significant else None
     if best is not None:
         reg_after = struct.after.mean() if struct is not None else np.inf
         explains = not struct_sig or best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
-        verdict = best.effect if explains else "unexplained"
-    elif struct_sig:
-        verdict = "unexplained"
-    elif floor.known and not at_floor:
-        verdict = "unexplained"
+        return best.effect if explains else "unexplained"
+    if struct_sig or (fv.floor.known and not fv.at_floor):
+        return "unexplained"
+    return None
 
+
+def run_time_test(data: DiagnosisData, floor: NoiseFloor):
+    """The time test (campaign.diagnose.timing) on every pose of the run, against the noise of
+    readings close in time (or the stated tracker noise); None without either: a floor from
+    readings far apart holds the very changes over time the test looks for."""
+    if floor.known and floor.upper_bound:
+        stated = RunFolder(data.run_dir).config.tracker.noise_m
+        P_E = data.robot.reflector_positions_in_E
+        floor = floor_from_stated(stated, P_E) if stated is not None and len(P_E) >= 3 else NoiseFloor("none")
+    if not floor.known:
+        return None
+    readings = drift_readings(data.run_dir, data.poses, data.tracker_to_robot)
+    xyz, group, t = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
+    if readings["repeats"] is not None:
+        t_r, xyz_r, g_r = readings["repeats"]
+        xyz.append(xyz_r), group.append(np.asarray(g_r, dtype=np.int64)), t.append(t_r)
+    if readings["monitor"] is not None:  # the reference pose, its drift checks among its readings
+        t_m, xyz_m = readings["monitor"]
+        xyz.append(xyz_m), group.append(np.full(len(t_m), -1, dtype=np.int64)), t.append(t_m)
+    legacy = readings["legacy"]
+    return time_test(np.concatenate(xyz), np.concatenate(group), np.concatenate(t), floor.sigma_position_m,
+                     drift_check_m=None if legacy is None else list(legacy[1]), alpha=ALPHA)
+
+
+def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
+             structure: bool = True) -> Diagnosis:
+    """Diagnose a run's current model: noise floor, model-free structure test, time test, candidate
+    ranking over the joints each acts on, and each current effect's contribution.
+
+    folds: held-out folds of the training poses; None: from the data
+    (:func:`campaign.identify.split.choose_folds`: leave-one-out below 60 training poses, else 5).
+    Too few poses for every fold fit to identify the current model is one line saying how many
+    are needed; a candidate whose parameters the fold fits cannot identify is skipped (and said)."""
+    say = progress or (lambda msg: None)
+    data = load_data(Path(run_dir), effects, candidates, folds, say)
+    fits = fit_current(data, say)
+    fv = judge_floor(data, fits)
+    X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
+    struct_sig = bool(struct is not None and struct.p_value < ALPHA and struct.heldout_gain >= fv.detection)
+    at_floor = False if (struct_sig and fv.at_floor) else fv.at_floor  # structure found is above the noise
+    scores, skipped, lins = score_candidates(data, fits, () if fv.round_off else data.candidates, fv.detection, say)
+    if data.current and not fv.round_off:
+        if lins is None:
+            lins = {k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)}
+        say("each current effect's contribution (taken out on the folds)")
+        contrib = contributions(data.current, data.robot, [(lins[k], fits.heldout_jacobians[k])
+                                                            for k in range(data.folds)],
+                                fits.before, fits.dz, data.fold)
+    else:
+        contrib = ()
     signature = None
-    if struct is not None and struct_sig:
+    if struct_sig:
         from campaign.diagnose.signature import describe
 
         say("signature of the structure (periodicity, time, gravity load)")
-        signature = describe(robot, poses.q[tr], X, input_names, struct, struct.depends_on(MIN_IMPORTANCE_SHARE),
-                             r_out, poses.time_s[tr], residual_fit=r_fit)
-    residuals = full.residuals(poses.q, poses.T_IE, context)
-    return Diagnosis(run_dir, tuple(current), tuple(scores), verdict, len(tr), folds, residuals, is_test,
-                     floor, held_mean, struct, struct_sig, detection, at_floor, signature, tr, X,
-                     r_out, rule, tuple(skipped), expected,
-                     fold_pose_ids(poses.pose_id[tr], fold, folds),
-                     measured_drift(run_dir, poses, floor, tracker_to_robot(tracker)),
-                     model_note)
+        signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct,
+                             struct.depends_on(MIN_IMPORTANCE_SHARE), r_out, data.poses.time_s[data.tr],
+                             residual_fit=r_fit)
+    residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
+    return Diagnosis(data.run_dir, data.current, scores, choose_verdict(scores, struct, struct_sig, fv), len(data.tr),
+                     data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
+                     fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
+                     fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
+                     measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot), data.model_note, contrib,
+                     run_time_test(data, fv.floor),
+                     fv.round_off)

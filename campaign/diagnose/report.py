@@ -139,7 +139,7 @@ def svg_ranking(diagnosis, out: Path, name: str = "ranking.svg") -> str:
     ranking's order (green: significant, grey: not), each labelled with its value; a dashed line
     at the current model's."""
     ranking = list(diagnosis.ranking)
-    labels = [c.effect for c in ranking]
+    labels = [c.label for c in ranking]
     after = np.array([c.heldout_mean_position_mm_after for c in ranking], dtype=float)
     before = ranking[0].heldout_mean_position_mm_before if ranking else None
     bar, gap, top = 26.0, 10.0, 40.0  # the legend above the bars (they reach the current model's line)

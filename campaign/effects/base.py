@@ -365,10 +365,11 @@ class EffectSet:
     def __post_init__(self):
         by_name = {}
         for e in self.effects:  # two specs of one effect (a built-in and a file of the same name)
-            if e.name in by_name:
-                raise ConfigError(f"effects '{by_name[e.name]}' and '{e.spec}' are both named '{e.name}': "
+            other = by_name.get(e.name)
+            if other is not None and not _other_joints(other, e):
+                raise ConfigError(f"effects '{other.spec}' and '{e.spec}' are both named '{e.name}': "
                                   "a model holds each effect once")
-            by_name[e.name] = e.spec
+            by_name[e.name] = e
 
     @property
     def n_params(self) -> int:
@@ -467,6 +468,14 @@ class EffectSet:
         for e, th in zip(self.effects, self.split(theta)):
             T_IE = self._hook(e, "pose_map", np.shape(T_IE), False, th, T_IE, q, context)
         return T_IE
+
+
+def _other_joints(a, b) -> bool:
+    """Two instances of one joint-indexed effect class over disjoint joints (their parameters
+    apart: a candidate on new joints beside the model's own, in diagnose)."""
+    ja, jb = getattr(a, "joints", None), getattr(b, "joints", None)
+    return (type(a) is type(b) and takes_joints(type(a)) and ja is not None and jb is not None
+            and not set(ja) & set(jb))
 
 
 #: how each checked hook is called (named in a plug-in's error line)

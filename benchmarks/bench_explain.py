@@ -1,0 +1,229 @@
+"""Benchmark of explaining what is missing (issue 31), driven from outside through the command line.
+
+    nice -n 5 python benchmarks/bench_explain.py [--quick] [--seeds 3] [--cases a,b,...]
+
+For each hidden truth × seed: `campaign auto RUN --sim --no-report` on a cell whose simulator
+hides the truth (``sim.hidden_effects``; user effects from files written here), then `campaign
+diagnose RUN --json` on the finished run. Recorded: the final effects (RUN/campaign.yaml) against
+the truth, auto's stop reason and last verdict, the first inputs of auto's last round and of
+diagnose's, poses measured and campaign hours.
+
+Targets (issue 31's Done-means): where the truth is expressible by the catalogue, no effect (or
+joint) the truth lacks in the final model in ≥ 90 % of runs; otherwise auto stops "unexplained" with
+the right input first in ≥ 9 of 10; auto and diagnose agree on depends_on every time.
+``--quick``: three cases, one seed. Writes benchmarks/results/explain.json (``--out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_auto import RUNOUT, auto_state, cli  # noqa: E402
+
+WARM_UP = '''import numpy as np
+
+from campaign.effects import Effect
+
+
+class WarmUp(Effect):
+    """The arm warms up: positions scale about the base by g (1 - exp(-t / 1 h))."""
+
+    name = "warm_up"
+    description = "warm-up: the arm grows by g (1 - exp(-t / 1 h))"
+    context_keys = ("time_s",)
+    param_names = ("g",)
+    param_units = ("1",)
+    typical_scale = 2e-4
+
+    def pose_map(self, params, T, q, context):
+        s = params[0] * (1.0 - np.exp(-np.asarray(context["time_s"], dtype=float) / 3600.0))
+        out = np.array(T, dtype=float, copy=True)
+        out[:, :3, 3] *= (1.0 + s)[:, None]
+        return out
+'''
+
+WOBBLE5 = '''import numpy as np
+
+from campaign.effects import Effect
+
+
+class Wobble5(Effect):
+    """The wrist's bearing: joint 5's axis tilts about x of its frame by a sin(q5) + b cos(q5)."""
+
+    name = "wobble5"
+    description = "bearing run-out of joint 5"
+    param_names = ("a", "b")
+    param_units = ("rad", "rad")
+    typical_scale = 1e-3
+
+    def joint_twist(self, params, q, context):
+        xi = np.zeros((len(q), q.shape[1], 6))
+        xi[:, 4, 3] = params[0] * np.sin(q[:, 4]) + params[1] * np.cos(q[:, 4])
+        return xi
+'''
+
+COMPLIANT4 = '''import numpy as np
+
+from campaign.effects import Effect
+from campaign.effects.gravity import gravity_torques
+
+
+class Compliant4(Effect):
+    """A user's compliant joint 4: dq4 = c tau4 (the catalogue's joint_compliance can express it)."""
+
+    name = "compliant4"
+    description = "compliance of joint 4"
+    param_names = ("c",)
+    param_units = ("rad/(N m)",)
+    typical_scale = 2e-3
+
+    def joint_offset(self, params, q, context):
+        dq = np.zeros_like(q, dtype=float)
+        dq[:, 3] = params[0] * gravity_torques(self.robot, q)[:, 3]
+        return dq
+'''
+
+USER_FILES = {"runout.py": RUNOUT, "warm_up.py": WARM_UP, "wobble5.py": WOBBLE5, "compliant4.py": COMPLIANT4}
+
+
+def hidden(effect, joints=None, params=None):
+    entry = {"effect": effect}
+    if joints is not None:
+        entry["joints"] = list(joints)
+    if params is not None:
+        entry["params"] = list(params)
+    return entry
+
+
+#: name: (robot, hidden effects (campaign.yaml entries), the truth in catalogue terms {effect: joints}
+#: or None when the catalogue cannot express it, the inputs one of which must come first then)
+CASES = {
+    "none": ("comau_racer5_080", [], {}, None),
+    "compliant_joint_4": ("comau_racer5_080", [hidden("joint_compliance", [4], [2e-3])], {"joint_compliance": {4}},
+                          None),
+    "backlash_joint_5": ("comau_racer5_080", [hidden("backlash", [5], [1e-3])], {"backlash": {5}}, None),
+    "ground_and_joint_4": ("comau_racer5_080", ["ground_compliance", hidden("joint_compliance", [4], [2e-3])],
+                           {"ground_compliance": None, "joint_compliance": {4}}, None),
+    "cyclic_joint_2": ("comau_racer5_080", [hidden("cyclic", [2], [2e-4, -1e-4, 1e-4, 1.5e-4])], {"cyclic": {2}},
+                       None),
+    "panda_two": ("panda", [hidden("joint_compliance", [4], [1e-4]), hidden("backlash", [6], [1e-3])],
+                  {"joint_compliance": {4}, "backlash": {6}}, None),
+    "user_compliant_4": ("comau_racer5_080", ["../compliant4.py:Compliant4"], {"joint_compliance": {4}}, None),
+    "runout_2_3": ("comau_racer5_080", ["../runout.py:Runout"], None, ("q2", "q3")),
+    "warm_up": ("comau_racer5_080", ["../warm_up.py:WarmUp"], None, ("time_s",)),
+    "user_wobble_5": ("comau_racer5_080", ["../wobble5.py:Wobble5"], None, ("q5",)),
+}
+QUICK = ("compliant_joint_4", "runout_2_3", "none")
+
+
+def write_config(run: Path, robot: str, seed: int, hidden_effects):
+    import yaml
+
+    run.mkdir(parents=True)
+    doc = {"robot": robot, "sim": {"seed": seed, "hidden_effects": list(hidden_effects)}}
+    (run / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+def catalogue_terms(specs) -> dict:
+    """{effect name: joints or None} of a model's effect specs (joints None: not joint-indexed)."""
+    from campaign.effects.base import effect_class, split_joints
+
+    out = {}
+    for spec in specs:
+        name = effect_class(spec).name
+        joints = split_joints(spec)[1]
+        out[name] = None if joints is None else set(out.get(name) or ()) | set(joints)
+    return out
+
+
+def lacking(final: dict, truth: dict) -> list:
+    """The effects (or joints) of the final model that the truth lacks."""
+    out = []
+    for name, joints in final.items():
+        if name not in truth:
+            out.append(name)
+        elif joints is not None and truth[name] is not None and not set(joints) <= truth[name]:
+            out.append(f"{name}:{','.join(map(str, sorted(set(joints) - truth[name])))}")
+    return out
+
+
+def one(case: str, seed: int, work: Path) -> dict:
+    from campaign.run import RunFolder
+
+    robot, hidden_effects, truth, inputs = CASES[case]
+    run = work / f"{case}_{seed}"
+    write_config(run, robot, seed, hidden_effects)
+    t0 = time.perf_counter()
+    try:
+        cli("auto", run, "--sim", "--no-report", cwd=work)
+    except RuntimeError as exc:
+        return {"case": case, "seed": seed, "error": str(exc)[-300:]}
+    wall = time.perf_counter() - t0
+    state = auto_state(run)
+    last = state["rounds"][-1]
+    out, _ = cli("diagnose", run, "--json", cwd=work)
+    diag = json.loads(out)
+    folder = RunFolder(run)
+    final = list(folder.config.effects)
+    res = {"case": case, "seed": seed, "robot": robot, "truth": None if truth is None else
+           {k: None if v is None else sorted(v) for k, v in truth.items()},
+           "final_effects": final, "stop": state["finished"]["reason"], "verdict": last["verdict"],
+           "auto_depends_on": last["depends_on"], "diagnose_depends_on": diag["unexplained"]["depends_on"],
+           "time_test": diag.get("time_test"), "decisions": [r["decision"]["kind"] for r in state["rounds"]],
+           "poses": folder.stored_pose_count(), "campaign_h": folder.clock_s() / 3600, "wall_s": wall}
+    res["agree"] = res["auto_depends_on"] == res["diagnose_depends_on"]
+    if truth is not None:
+        res["lacking"] = lacking(catalogue_terms(final), truth)
+        res["ok"] = not res["lacking"]
+    else:
+        res["ok"] = res["stop"] == "unexplained" and res["auto_depends_on"][:1] in [[i] for i in inputs]
+    return res
+
+
+def summary(rows) -> dict:
+    done = [r for r in rows if "error" not in r]
+    expr = [r for r in done if CASES[r["case"]][2] is not None]
+    open_ = [r for r in done if CASES[r["case"]][2] is None]
+    return {"runs": len(rows), "errors": len(rows) - len(done),
+            "expressible_runs": len(expr), "expressible_no_extra_effect": sum(r["ok"] for r in expr),
+            "open_runs": len(open_), "open_unexplained_right_input_first": sum(r["ok"] for r in open_),
+            "depends_on_agree": sum(r["agree"] for r in done), "load_average_end": list(os.getloadavg())}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help=f"cases {', '.join(QUICK)}, one seed")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "explain.json"))
+    args = ap.parse_args()
+    cases = list(QUICK) if args.quick else (args.cases.split(",") if args.cases else list(CASES))
+    seeds = 1 if args.quick else args.seeds
+    results = {"command": "campaign auto RUN --sim; campaign diagnose RUN --json", "cases": cases, "seeds": seeds,
+               "load_average_start": list(os.getloadavg()), "runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for name, text in USER_FILES.items():
+            (work / name).write_text(text)
+        for seed in range(seeds):
+            for case in cases:
+                r = one(case, seed, work)
+                results["runs"].append(r)
+                print(f"{case} seed {seed}: " + (r["error"] if "error" in r else
+                      f"{'ok' if r['ok'] else 'WRONG'}: final {r['final_effects']}, stop {r['stop']}, depends on "
+                      f"{r['auto_depends_on'][:2]} (diagnose {r['diagnose_depends_on'][:2]}), {r['poses']} poses "
+                      f"{r['campaign_h']:.2f} h, {r['wall_s']:.0f} s"), flush=True)
+                results["summary"] = summary(results["runs"])
+                Path(args.out).write_text(json.dumps(results, indent=2))
+    print(json.dumps(results["summary"], indent=2))
+
+
+if __name__ == "__main__":
+    main()
