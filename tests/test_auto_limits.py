@@ -92,3 +92,17 @@ def test_auto_help_names_the_flag(flag, capsys):
     except SystemExit:
         pass
     assert flag in capsys.readouterr().out
+
+
+def test_the_runs_own_plan_is_measured_only_as_far_as_the_pose_limit(tmp_path, capsys):
+    run = tmp_path / "r"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--select", "40", "--quiet"]) == 0
+    planned = len(read_plan(run)[0])
+    capsys.readouterr()
+    assert main(["auto", str(run), "--sim", "--max-poses", "45", *SMALL]) == 0
+    out = capsys.readouterr().out
+    with open_run(run) as store:
+        stored = len(store.stored_ids())
+    assert planned > 45 and stored == 45, (planned, stored)
+    assert "measured as far as the limits allow" in out and f"{planned - 45} planned poses left unmeasured" in out
+    assert _state(run)["finished"]["reason"] == "max_poses"
