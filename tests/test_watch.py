@@ -243,7 +243,7 @@ def test_a_watcher_polling_as_fast_as_it_can_never_makes_a_command_find_the_run_
     assert states <= {"planned", "running"}
 
 
-def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished(tmp_path):
+def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished(tmp_path, capsys):
     from campaign.auto.state import Decision, Round, load_state, save_state
     from campaign.cli import build_parser
     from campaign.run import RunFolder
@@ -274,6 +274,14 @@ def test_auto_rounds_and_the_reports_present_are_shown_and_auto_decides_finished
     finally:
         server.stop()
     parser = build_parser()
+    taken = WatchServer(run.path, port=0)  # a port another watcher serves: refused in one line, nothing measured
+    try:
+        assert main(["run", str(run.path), "--sim", "--watch", str(taken.port)]) == 1
+    finally:
+        taken.stop()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--watch {taken.port} on 127.0.0.1: cannot bind" in err[0]
+    assert not (run.path / "measurements.sqlite").exists()
     assert parser.parse_args(["auto", "r", "--sim", "--watch"]).watch == 8765
     assert parser.parse_args(["run", "r", "--sim", "--watch", "9000"]).watch == 9000
     assert parser.parse_args(["run", "r", "--sim"]).watch is None

@@ -67,7 +67,7 @@ def watching(run_dir, port):
 
     if not 0 <= port < 65536:
         raise ConfigError(f"--watch {port}: expected a port in 0..65535")
-    server = WatchServer(run_dir, port=port).start()
+    server = WatchServer(run_dir, port=port, option="--watch").start()
     print(f"watching {run_dir}: {server.url}", file=sys.stderr, flush=True)
     try:
         yield server

@@ -56,9 +56,11 @@ def _asset(name: str) -> bytes:
 
 class WatchServer:
     """The live page of run ``run_dir`` on ``host:port`` (port 0: any free port). ``key``: the
-    shared secret (campaign.measure.auth.read_token) or None; required beyond loopback."""
+    shared secret (campaign.measure.auth.read_token) or None; required beyond loopback.
+    ``option``: the command-line option the port came from, for the error when it is taken."""
 
-    def __init__(self, run_dir, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, key: bytes | None = None):
+    def __init__(self, run_dir, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, key: bytes | None = None,
+                 option: str = "--port"):
         require_token(host, key)
         self.view = RunView(run_dir)
         self.view.prepare()
@@ -75,7 +77,8 @@ class WatchServer:
         try:
             self.httpd = server_class((host, int(port)), handler)
         except OSError as exc:
-            raise ConfigError(f"--port {port} on {host}: cannot bind ({exc.strerror or exc})") from None
+            raise ConfigError(f"{option} {port} on {host}: cannot bind ({exc.strerror or exc}); is another watcher "
+                              "serving there? give another port") from None
         self.host, self.port = host, self.httpd.server_address[1]
         self._thread = None
 
