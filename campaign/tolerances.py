@@ -163,6 +163,9 @@ STREAM_SWITCH_BLOCKS = 2
 #: ... and a gap this long (s) when the next block is another reflector (a tracker moves its beam
 #: between reflectors in about a second)
 STREAM_SWITCH_S = 2.0
+#: a window survives a burst of spikes (or any disturbance) this long (s) when its reflector is then
+#: back at its place: a robot cannot leave and come back to within the noise in that time
+STREAM_BURST_S = 2.0
 #: a time step longer than this many blocks' time inside a block makes the block a gap, not still
 STREAM_GAP_BLOCKS = 3.0
 #: a log is one record per stable point when its records are further apart in time than this (s):

@@ -65,7 +65,7 @@ class LogWriter:
 
     def __init__(self, robot, stops, rng, *, rate_hz=50.0, noise_m=20e-6, p_e_scale=4e-4, lost_rate=0.04,
                  pause_rate=0.05, spike_rate=0.002, short_gaps=4, long_gap_stops=3, switch_s=0.3,
-                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True, dwell_scale=1.0):
+                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True, dwell_scale=1.0, bursts=0):
         self.robot, self.stops, self.rng = robot, stops, rng
         self.rate, self.noise = rate_hz, noise_m
         self.p_e = rng.normal(0, p_e_scale, robot.n_params)
@@ -81,6 +81,7 @@ class LogWriter:
         self.pauses = set(rng.choice(n, int(round(pause_rate * n)), replace=False).tolist())
         self.spike_rate, self.short_gaps, self.switch_s, self.settle_s = spike_rate, short_gaps, switch_s, settle_s
         self.dwell_scale = dwell_scale
+        self.bursts = bursts
 
     def truth_points(self, q):
         """The reflectors' true positions in the tracker's frame, (n, 3, 3) m."""
@@ -139,6 +140,10 @@ class LogWriter:
         spikes = self.rng.random(len(t)) < self.spike_rate
         d = self.rng.normal(size=(spikes.sum(), 3))
         P[spikes] += d / np.linalg.norm(d, axis=1)[:, None] * self.rng.uniform(1e-3, 0.3, (spikes.sum(), 1))
+        for _ in range(self.bursts):  # 0.2-1 s of garbage: every sample within 5 cm of the truth
+            a = int(self.rng.integers(0, len(t) - 100))
+            n = int(self.rng.uniform(0.2, 1.0) * self.rate)
+            P[a:a + n] += self.rng.uniform(-0.05, 0.05, (n, 3))
         got = {}
         for s in self.stops:
             if s.kind != "via":
@@ -407,3 +412,35 @@ def test_without_a_program_the_plan_gives_the_stops(tmp_path, robot):
     assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
                  "--frame", "tracker", "--quiet"]) == 0
     check_found_and_right(run, planned, writer, got)
+
+
+def test_bursts_of_garbage_inside_dwells_do_not_split_a_stop(tmp_path, robot):
+    """Bursts of 0.2-1 s of garbage (every sample up to 5 cm off), forty of them, some inside a
+    reflector's samples: the reflector back at its place continues the window."""
+    run, stops, writer = make_run(tmp_path, robot, seed=31, bursts=40, lost_rate=0.02, pause_rate=0.02)
+    got = writer.write(tmp_path / "log.csv")
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)
+
+
+def test_a_burst_inside_a_reflectors_samples_does_not_split_its_window():
+    """One stop, three reflectors 1.2 s each at 50 Hz, a 0.8 s burst of garbage (4 blocks) in the
+    middle reflector's samples: one window with all three, each at its place."""
+    from campaign.program.stream.logread import LogChunk
+    from campaign.program.stream.windows import WindowFinder
+
+    rng = np.random.default_rng(5)
+    places = np.array([[1.0, 2.0, 0.5], [1.05, 2.0, 0.5], [1.0, 2.05, 0.5]])
+    t = np.arange(180) * 0.02
+    g = np.repeat([0, 1, 2], 60)
+    P = places[g] + rng.normal(0, 10e-6, (180, 3))
+    P[70:110] += rng.uniform(-0.05, 0.05, (40, 3))  # inside reflector 1's samples
+    D = np.linalg.norm(places[:, None] - places[None], axis=-1)
+    finder = WindowFinder(D)
+    finder.feed(LogChunk(t[:90], P[:90], g[:90].astype(np.int16), 91))
+    finder.feed(LogChunk(t[90:], P[90:], g[90:].astype(np.int16), 181))
+    windows = finder.finish()
+    assert len(windows) == 1 and sorted(windows[0].position) == [0, 1, 2], [w.counts for w in windows]
+    for c in range(3):
+        assert np.abs(windows[0].position[c] - places[c]).max() < 2e-5

@@ -25,9 +25,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.tolerances import (STREAM_BLOCK_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M, STREAM_NOISE_QUANTILE,
-                                 STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M,
-                                 STREAM_SPLIT_AFTER_WINDOWS, STREAM_SPLIT_FACTOR, STREAM_SPLIT_RECENT_WINDOWS, STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_STILL_FACTOR,
+from campaign.tolerances import (STREAM_BLOCK_S, STREAM_BURST_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M,
+                                 STREAM_NOISE_QUANTILE, STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M,
+                                 STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_SPLIT_AFTER_WINDOWS,
+                                 STREAM_SPLIT_FACTOR, STREAM_SPLIT_RECENT_WINDOWS, STREAM_STILL_FACTOR,
                                  STREAM_SWITCH_BLOCKS, STREAM_SWITCH_S, STREAM_WINDOW_MAX_SAMPLES)
 
 #: robust standard deviation from the median absolute deviation of a normal sample
@@ -194,7 +195,7 @@ class WindowFinder:
                 self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a],
                                   np.column_stack((t[a * B:(e + 1) * B], p[a * B:(e + 1) * B])))
             self._moving += nb - 1 - prev
-        if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS:
+        if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS and tb[-1, -1] - self._open.t1 > STREAM_BURST_S:
             self._close()
 
     def _still_block(self, b, t0, t1, code, med, samples):
@@ -209,7 +210,10 @@ class WindowFinder:
             # a reflector measured again after another, or one the tracker's cycle measures before
             # the last: the next measurement (a repeat in place)
             again = code != w.last_code and (code in w.ref or self._before(code, w.last_code))
-            if not again and (near and (quiet or self._moving <= STREAM_SWITCH_BLOCKS) or switch):
+            # at its place again after a few moving blocks or a burst of spikes no longer than
+            # STREAM_BURST_S: the tool did not move (it cannot leave and come back to within noise)
+            back = near and (quiet or self._moving <= STREAM_SWITCH_BLOCKS or gap <= STREAM_BURST_S)
+            if not again and (back or switch):
                 self._extend(w, t1, code, med, samples)
                 self._moving = 0
                 return
