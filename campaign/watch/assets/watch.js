@@ -187,6 +187,7 @@ function renderAuto(d) {
   const panel = $("auto-panel");
   panel.hidden = !d.auto;
   if (!d.auto) return;
+  panel.style.order = "-1";  // auto's story first: the rounds are what an auto run is about
   const body = $("rounds").tBodies[0];
   body.replaceChildren();
   for (const r of d.auto.rounds) {
