@@ -548,3 +548,28 @@ def test_blank_lines_above_the_header_are_skipped(markers_ur10, tmp_path, capsys
     assert main(args(blank, 0)) == 0, capsys.readouterr().err  # was: 'line 3 has 17 fields, the header has 0'
     assert main(args(tmp_path / "none.csv", 1)) == 1
     assert "none.csv: empty file (expected header" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cmd", ["predict", "compensate"])
+def test_predict_reads_the_file_as_the_runs_import_did_with_its_columns(tmp_path, capsys, cmd):
+    src = tmp_path / "s.csv"
+    assert main(["synth", "--csv", str(src), "--robot", "ur10", "--poses", "40", "--seed", "6"]) == 0
+    header, values = _read(src)
+    names = {"pose_id": "Nr", **{f"q{j}": f"A{j}" for j in range(1, 7)}, "x": "X", "y": "Y", "z": "Z"}
+    _write(tmp_path / "own.csv", [names.get(h, h) for h in header], values)
+    run = tmp_path / "run"
+    mapping = ",".join(f"{k}={v}" for k, v in names.items())
+    assert main(["import", str(tmp_path / "own.csv"), "--run", str(run), "--robot", "ur10", "--columns", mapping,
+                 "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    joints = [f"A{j}" for j in range(1, 7)]
+    _write(tmp_path / "joints.csv", joints, values[:, [header.index(f"q{j}") for j in range(1, 7)]])
+    plain = tmp_path / "plain.csv"
+    _write(plain, [f"q{j}" for j in range(1, 7)], values[:, [header.index(f"q{j}") for j in range(1, 7)]])
+    outs = [tmp_path / f"{k}.csv" for k in range(3)]
+    for path, out in zip((tmp_path / "own.csv", tmp_path / "joints.csv", plain), outs):
+        assert main([cmd, str(run), "--csv", str(path), "--out", str(out)]) == 0, capsys.readouterr().err
+    ref = _read(outs[2])[1]  # was: 'missing column(s) q1, ..., q6' without --columns given again
+    np.testing.assert_array_equal(_read(outs[1])[1], ref)
+    np.testing.assert_array_equal(_read(outs[0])[1][:, 1:], ref[:, 1:])
+    np.testing.assert_array_equal(_read(outs[0])[1][:, 0], values[:, 0])  # the file's own pose ids, Nr

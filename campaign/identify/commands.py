@@ -120,7 +120,8 @@ def register(sub):
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written (default: rad)")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
-                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
+                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: the mapping the run's import read "
+                        "its file with, else robot.yaml's columns:)")
     p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
                    help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
                         "prismatic ones; default: what the run's import accepted)")
@@ -148,7 +149,8 @@ def register(sub):
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written, dq included (default: rad)")
     p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
-                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: robot.yaml's columns:, as import)")
+                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: the mapping the run's import read "
+                        "its file with, else robot.yaml's columns:)")
     p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
                    help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
                         "prismatic ones; default: what the run's import accepted)")
@@ -383,7 +385,7 @@ def _predict(args):
     calibrated = CalibratedRobot(args.run, stage=args.stage)
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
-                                         columns=args.columns, slack=slack, slack_source=source)
+                                         columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
     header, rows, inside, sigma = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
     _refuse_outside(args, pose_id, inside, "rows")
     write_table(args.out, header, rows)
@@ -429,7 +431,7 @@ def _compensate(args):
     calibrated = CalibratedRobot(args.run, stage=args.stage)
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
-                                         columns=args.columns, slack=slack, slack_source=source)
+                                         columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
     header, rows, ok, inside, in_dom, sigma = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
     _refuse_outside(args, pose_id, in_dom, "corrected commands")
     write_table(args.out, header, rows)

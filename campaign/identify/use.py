@@ -269,7 +269,7 @@ def joint_scale(robot: RobotModel, angle_unit: str = "rad") -> np.ndarray:
 
 
 def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "rad", columns=None,
-                   slack=None, slack_source: str | None = None) -> tuple:
+                   slack=None, slack_source: str | None = None, run_dir=None) -> tuple:
     """Joint coordinates (and the context columns an effect needs) from a CSV.
 
     Header: ``q1..qN`` (rad, or deg with ``angle_unit``; m for prismatic joints; in the
@@ -278,7 +278,9 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     ``pose_id`` nor ``context_keys`` are not checked (a measured file's empty reflector cells, a
     text label). columns: the file's own
     names (``--columns`` text or {column in the file: name used}; default robot.yaml's
-    ``columns:``), as `import` reads them; a mapped measurement column may be absent. slack:
+    ``columns:``), as `import` reads them; a mapped measurement column may be absent. Without
+    ``columns``, a ``run_dir``'s import's mapping (its ``--columns``, recorded) comes before
+    robot.yaml's, and of these mappings only the joints' columns must be in the file. slack:
     (N,) rad or m, how far past the URDF's limits readings are accepted (default: round-off,
     JOINT_LIMIT_SLACK; :func:`run_joint_slack` gives a run's), said as from ``slack_source``.
     Returns (pose_id (n,), q (n, N) model, rad and m, context dict).
@@ -289,8 +291,14 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     cols = joint_columns(robot.n_joints)
     scale = joint_scale(robot, angle_unit)
     used = {*cols, "pose_id", *context_keys}
+    given = bool(columns)
+    if not given and run_dir is not None:
+        from campaign.measure.importer import recorded_columns
+
+        columns = recorded_columns(run_dir) or None
     header, col, lines = read_numeric_table(path, (), rename=column_mapping(robot, columns), expected=",".join(cols),
-                                            rename_optional=not_joint_name, unused=lambda h: h not in used)
+                                            rename_optional=not_joint_name if given else (lambda h: h not in cols),
+                                            unused=lambda h: h not in used)
     missing = [c for c in cols if c not in col]
     if missing:
         raise missing_columns(path, missing, header, robot.name)

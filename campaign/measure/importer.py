@@ -84,6 +84,8 @@ def import_run(csv_path, run_dir, *, robot: str | None = None, tool_frame: str |
                                    "angle_unit": options.angle_unit, "length_unit": options.length_unit,
                                    "rotation": options.rotation, "limit_slack_rad": options.limit_slack_rad,
                                    "limit_slack_m": options.limit_slack_m, "past_limits": past,
+                                   "columns": dict(options.columns or {}),
+                                   "columns_source": getattr(options.columns, "source", "--columns"),
                                    "pose_ids": "file" if reading.numbered is None else "numbered",
                                    "warnings": [w.as_json() for w in warnings]},
                            robot=model)
@@ -165,6 +167,8 @@ def column_mapping(robot, columns=None) -> dict:
 
     if not columns:
         return ColumnMap(robot_yaml_columns(robot), f"{robot.meta_path}: columns:")
+    if isinstance(columns, ColumnMap):  # where it was given, kept (a run's import's, recorded)
+        return columns
     return ColumnMap(columns if isinstance(columns, dict) else parse_columns(columns), "--columns")
 
 
@@ -188,6 +192,20 @@ def recorded_source(run_dir) -> dict:
     """The log's ``source`` meta (what `import` recorded: units, reading, limit slack, warnings), {} if none."""
     src = RunFolder(run_dir).meta("source", {}) or {}
     return src if isinstance(src, dict) else {}
+
+
+def recorded_columns(run_dir) -> dict:
+    """The column mapping ({column in the file: name used}) the run's import read its file with
+    (``--columns``, else robot.yaml's ``columns:``); {} when none or not recorded."""
+    from campaign.measure.csvio import ColumnMap
+
+    src = recorded_source(run_dir)
+    cols = src.get("columns") or {}
+    if not isinstance(cols, dict) or not cols:
+        return {}
+    given = str(src.get("columns_source") or "--columns")
+    return ColumnMap({str(k): str(v) for k, v in cols.items()},
+                     f"the --columns of {run_dir}'s import" if given == "--columns" else given)
 
 
 def joint_slack(run_dir, robot):
