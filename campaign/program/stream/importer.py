@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.errors import DataError
+from campaign.errors import ConfigError, DataError
 from campaign.tolerances import STREAM_FIT_RMS_MAX_M
 
 MATCH_FILE = "stream_match.csv"
@@ -126,8 +126,11 @@ def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamRes
     P = nominal_points(robot, mstops, P_E)
     dwell = np.array([s.dwell_s for s in mstops])
     first_m = int(np.searchsorted(measured_idx, first_stop))
-    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first,
-                    motion_s=motion_times(robot, stops, measured_idx))
+    try:
+        motion = motion_times(robot, stops, measured_idx)
+    except ConfigError:  # a robot without usable joint limits for Ruckig: distances and dwells alone
+        motion = None
+    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first, motion_s=motion)
 
     rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
                                       finder, first_m, state)
