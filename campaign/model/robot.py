@@ -623,25 +623,24 @@ def _tool_choices(link: str, children: dict, locked: dict) -> list:
     return out
 
 
-def check_xml(path: Path) -> None:
-    """A ConfigError naming ``path``, the line and the column when the file is not well-formed
-    XML (yourdfpy would print its parser's lines, then read what it could recover)."""
-    import xml.etree.ElementTree as ET
-
-    try:
-        ET.parse(path)
-    except ET.ParseError as exc:
-        line, column = exc.position
-        why = str(exc).split(": line")[0]
-        raise ConfigError(f"{path}: not valid XML (line {line}, column {column + 1}: {why})") from None
+def _not_xml(path: Path, exc) -> ConfigError:
+    """The one line for a file that is not well-formed XML (an ``xml.etree`` ParseError): the
+    file, the line and the column (yourdfpy would print its parser's lines, then read what it
+    could recover)."""
+    line, column = exc.position
+    why = str(exc).split(": line")[0]
+    return ConfigError(f"{path}: not valid XML (line {line}, column {column + 1}: {why})")
 
 
 def _parse_urdf(urdf_path: Path):
+    import xml.etree.ElementTree as ET
+
     from campaign.model.urdf_chain import read_chain
 
-    check_xml(urdf_path)
     try:  # the chain alone, without importing yourdfpy and trimesh (half a second)
         return read_chain(urdf_path)
+    except ET.ParseError as exc:
+        raise _not_xml(urdf_path, exc) from None
     except Exception:  # a file it does not take: yourdfpy reads it, or words what is wrong as before
         pass
     try:
