@@ -485,3 +485,26 @@ def test_the_grid_eta_holds_from_measured_times_when_the_largest_training_runs_l
     ratios = [g.eta_s / (end - g.elapsed_s) for g in seen if 0.2 * end < g.elapsed_s < 0.95 * end]
     assert len(ratios) > 100 and 0.7 < min(ratios) and max(ratios) < 1.6, (min(ratios), max(ratios))
     assert seen[-1].eta_s == 0.0 and seen[-1].tasks_done == len(spec)
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_diagnose_of_exact_data_without_a_floor_says_round_off_and_finds_nothing(nominal_run, tmp_path, capsys,
+                                                                                  kind):
+    if kind == "pose":
+        run = run_copy(nominal_run, tmp_path / "run")
+    else:  # one reflector at the tool frame's origin, exact
+        q = comau_q(80, seed=3)
+        xyz = nominal_poses(q)[:, :3, 3]
+        (tmp_path / "p.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6,x,y,z\n" + "".join(
+            f"{i + 1}," + ",".join(repr(float(v)) for v in (*q[i], *xyz[i])) + "\n" for i in range(len(q))))
+        run = tmp_path / "run"
+        assert main(["import", str(tmp_path / "p.csv"), "--run", str(run), "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--quiet", "--no-report"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["heldout_mean_position_mm"] < 1e-6 and d["noise_floor_mm"] is None  # no repeats, no stated noise
+    assert d["verdict"] is None and not d["unexplained"]["significant"] and not any(c["significant"]
+                                                                                 for c in d["ranking"])
+    assert main(["diagnose", str(run)]) == 0
+    assert "the model fits them to round-off" in capsys.readouterr().out

@@ -609,6 +609,9 @@ def judge_floor(data: DiagnosisData, fits: CurrentFits) -> FloorVerdict:
     floor = noise_floor(data.run_dir, data.poses, data.robot)
     expected = expected_heldout_ratio(fits.model_var, fits.full.noise_sigma_["position_m"])
     held_mean = fits.heldout_mean_mm
+    if held_mean <= ZERO_NOISE_MODEL_ATOL_M * 1e3:  # exact data (a model's own predictions, a perfect
+        # adapter) at round-off, whatever the floor: no structure can be told from round-off
+        return FloorVerdict(floor, True, MIN_RELATIVE_GAIN, expected, round_off=True)
     if not floor.known:
         return FloorVerdict(floor, None, MIN_RELATIVE_GAIN, expected)
     if not floor.mean_position_mm > 0:  # noise-free measurements: at the floor means at the fit's round-off
