@@ -32,9 +32,9 @@ META_KEY = "stream_import"
 @dataclass(frozen=True)
 class StreamResult:
     """What an import of a log did: stops matched / skipped (no window) / incomplete (a reflector
-    missing, or the reflectors not as the tool holds them) / unconfirmed (no neighbour confirms the window's distance), windows rejected, poses
-    stored (measured, failed), drift checks, the log's samples, rate (Hz) and noise (m), and the
-    next stop a further log starts at."""
+    missing, or the reflectors not as the tool holds them) / unconfirmed (no neighbour confirms the
+    window's distance), windows rejected, poses stored (measured, failed), drift checks, the log's
+    samples, rate (Hz) and noise (m), and the next stop a further log starts at."""
 
     matched: int
     skipped: int
@@ -57,9 +57,10 @@ class StreamResult:
         mode = "one record per stable point" if self.point_mode else \
             f"{self.rate_hz:.0f} Hz, noise {self.noise_m * 1e6:.1f} µm"
         return (f"{log}: matched {self.matched} of {found} stops reached ({self.skipped} without a still window, "
-                f"{self.incomplete} with a reflector missing, {self.unconfirmed} unconfirmed), {self.rejected} windows rejected; {self.samples:,} samples "
-                f"({mode}); stored {self.measured} measured and {self.failed} failed poses, {self.drift_checks} "
-                f"drift checks in {run}/measurements.sqlite; next stop {self.next_stop} of {self.n_stops}")
+                f"{self.incomplete} with a reflector missing or misplaced, {self.unconfirmed} unconfirmed), "
+                f"{self.rejected} windows rejected; {self.samples:,} samples ({mode}); stored {self.measured} "
+                f"measured and {self.failed} failed poses, {self.drift_checks} drift checks in "
+                f"{run}/measurements.sqlite; next stop {self.next_stop} of {self.n_stops}")
 
 
 def nominal_points(robot, stops, codes_in_E) -> np.ndarray:
@@ -92,59 +93,88 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
 
 
 def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamResult:
+    """The import's steps: the stops and the robot, the log's layout, what each row measures, the
+    still windows, their matches to the stops, the outcomes, stored."""
+    from campaign.program.stream.logread import read_layout
+
+    stops, robot = _stops_and_robot(run)
+    layout = read_layout(log, length_unit=length_unit, columns=columns,
+                         targets=tuple(r.name for r in robot.reflectors))
+    state = _previous(run, frame, layout)
+    first_stop = int(state.get("next_stop", 0))
+    P_E, kind, names = measured_points(robot, layout)
+    windows, finder = find_windows(layout, P_E, progress)
+    measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
+    first_m = int(np.searchsorted(measured_idx, first_stop))
+    matches = match_stops(robot, stops, measured_idx, windows, P_E, first_m, finder.t_first)
+    rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
+                                      finder, first_m, state)
+    last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
+    next_stop = max(first_stop, int(last) + 1)
+    match_csv = _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot)
+    status = Counter(r[7] for r in rows)
+    stored = Counter(r.status for r in records)
+    return StreamResult(status["matched"], status["skipped"], status["incomplete"] + status["inconsistent"],
+                        status["unconfirmed"], status["rejected"], stored["measured"], stored["failed"],
+                        len(events), finder.samples, 1.0 / finder.dt_s if finder.dt_s else float("nan"),
+                        finder.noise_m or float("nan"), next_stop, len(stops), bool(finder.point_mode), match_csv)
+
+
+def _stops_and_robot(run) -> tuple:
+    """(the run's stops, its robot with the reflectors a run measures), checked against each other."""
     from campaign.measure.driver import measured_robot
-    from campaign.measure.plausibility import measured_point
     from campaign.program.stops import stops_path
-    from campaign.program.stream.align import align
-    from campaign.program.stream.logread import iter_log, read_layout
-    from campaign.program.stream.windows import WindowFinder
 
     stops = run_stops(run)
     robot = measured_robot(run.robot())
     if len(stops[0].q) != robot.n_joints:
         raise DataError(f"{stops_path(run.path)}: {len(stops[0].q)} joints, the run's robot {robot.name} "
                         f"has {robot.n_joints}")
-    names = tuple(r.name for r in robot.reflectors)
-    layout = read_layout(log, length_unit=length_unit, columns=columns, targets=names)
-    state = _previous(run, frame, layout)
-    first_stop = int(state.get("next_stop", 0))
+    return stops, robot
 
+
+def measured_points(robot, layout) -> tuple:
+    """(P_E (k, 3) m: the points the log's reflector codes measure in the tool frame, the store's
+    kind, their names): the robot's reflectors when the log names them (``target``: three or more a
+    pose, two raw reflectors, one a point), else one point, the robot's single reflector or the tool
+    frame's origin (as a one-reflector CSV import)."""
+    from campaign.measure.plausibility import measured_point
+
+    names = tuple(r.name for r in robot.reflectors)
     if layout.target_col is not None:
-        P_E = robot.reflector_positions_in_E
         kind = "pose" if len(names) >= 3 else "markers" if len(names) == 2 else "point"
-    else:
-        P_E = measured_point(robot, "point")[None]
-        kind, names = "point", (names[0] if len(names) == 1 else "tool",)
+        return robot.reflector_positions_in_E, kind, names
+    return measured_point(robot, "point")[None], "point", (names[0] if len(names) == 1 else "tool",)
+
+
+def find_windows(layout, P_E, progress=None) -> tuple:
+    """(the log's still windows, the WindowFinder that read it: samples, rate, noise), the log read in
+    blocks; DataError for a log without a measured row."""
+    from campaign.program.stream.logread import iter_log
+    from campaign.program.stream.windows import WindowFinder
+
     finder = WindowFinder(np.linalg.norm(P_E[:, None] - P_E[None], axis=-1), split_long=layout.target_col is None)
     for chunk in iter_log(layout, progress=progress):
         finder.feed(chunk)
     windows = finder.finish()
     if finder.samples == 0:
         raise DataError(f"{layout.path}: no measured rows (every x, y, z empty)")
-    measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
+    return windows, finder
+
+
+def match_stops(robot, stops, measured_idx, windows, P_E, first_m, t_first) -> list:
+    """The windows' matches (campaign.program.stream.align.Match) to the measured stops
+    ``measured_idx`` from the ``first_m``-th: their nominal points, dwells and motion times."""
+    from campaign.program.stream.align import align
+
     mstops = [stops[k] for k in measured_idx]
     P = nominal_points(robot, mstops, P_E)
     dwell = np.array([s.dwell_s for s in mstops])
-    first_m = int(np.searchsorted(measured_idx, first_stop))
     try:
         motion = motion_times(robot, stops, measured_idx)
     except ConfigError:  # a robot without usable joint limits for Ruckig: distances and dwells alone
         motion = None
-    matches = align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first, motion_s=motion)
-
-    rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
-                                      finder, first_m, state)
-    last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
-    next_stop = max(first_stop, int(last) + 1)
-    result = _store(run, records, events, rows, kind, frame, P_E, names, layout, finder, next_stop, state, robot)
-    status = Counter(r[7] for r in rows)
-    stored = Counter(r.status for r in records)
-    return StreamResult(status["matched"], status["skipped"], status["incomplete"] + status["inconsistent"],
-                        status["unconfirmed"],
-                        status["rejected"], stored["measured"], stored["failed"],
-                        len(events), finder.samples,
-                        1.0 / finder.dt_s if finder.dt_s else float("nan"), finder.noise_m or float("nan"),
-                        next_stop, len(stops), bool(finder.point_mode), result)
+    return align(windows, P, dwell, first_stop=first_m, t_start=t_first, motion_s=motion)
 
 
 def motion_times(robot, stops, measured_idx) -> np.ndarray:
@@ -158,8 +188,7 @@ def motion_times(robot, stops, measured_idx) -> np.ndarray:
     step = np.concatenate([[0.0], rest_to_rest_time(robot, Q[:-1], Q[1:])])
     step += np.array([0.0] + [s.dwell_s if s.kind == "via" else 0.0 for s in stops[:-1]])  # rest at vias
     cum = np.cumsum(step)
-    out = np.diff(cum[measured_idx], prepend=cum[measured_idx[0]])
-    return out
+    return np.diff(cum[measured_idx], prepend=cum[measured_idx[0]])
 
 
 def run_stops(run) -> list:

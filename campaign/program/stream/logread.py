@@ -1,13 +1,15 @@
 """A laser tracker's log read in blocks of bytes, so memory does not grow with the log.
 
 The log is a delimited text file with a header line: a time column (``time_s``, s on any clock,
-or ``time`` / ``timestamp`` in ISO 8601, or in s when it holds numbers), ``x, y, z`` and optionally ``target`` (the reflector
-measured on that row, one of the robot's reflector names). Other columns are ignored; ``columns``
-maps a file's own names (``{column in the file: name used}``, campaign.measure.csvio.parse_columns).
+or ``time`` / ``timestamp`` in ISO 8601, or in s when it holds numbers), ``x, y, z`` and
+optionally ``target`` (the reflector measured on that row, one of the robot's reflector names).
+Other columns are ignored; ``columns`` maps a file's own names (``{column in the file: name
+used}``, campaign.measure.csvio.parse_columns).
 Rows with an empty or non-finite coordinate are no measurement (the beam was lost) and are dropped.
 
 A block of rows whose time and coordinates are numbers is parsed by numpy in C (loadtxt; a last
-``target`` column by comparing each line's end with the names); anything else (ISO time stamps, a malformed row) goes line by line, and a bad value is one
+``target`` column by comparing each line's end with the names; ISO 8601 stamps of one form at once);
+anything else (a malformed row, empty fields) goes line by line, and a bad value is one
 :class:`DataError` naming the file, the row and the column.
 """
 

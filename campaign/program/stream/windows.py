@@ -4,13 +4,14 @@ A continuous log is cut into blocks of about STREAM_BLOCK_S; a block is still wh
 spread of its positions (the norm of the per-axis median absolute deviations: a spike or two do
 not move it) stays below STREAM_STILL_FACTOR times the log's own noise level, estimated from the
 data (the STREAM_NOISE_QUANTILE quantile of the blocks' spreads: the still blocks are the quiet
-ones). Still blocks that follow each other at one position make a window; a change of reflector
-(``target``) between them continues the window when the tool did not move in between (at most
-STREAM_SWITCH_BLOCKS moving blocks, or a short gap) and the reflector lies from the others as the
-tool holds them; a reflector measured again after another, or one the tracker's cycle measures
-before the last (the order of the first window with every reflector), starts the next window (the
-reflectors' cycle of a stop repeated in place). A window keeps, per reflector, the median of
-its samples (the position) and their robust standard deviation (the spread, a quality figure). In a log of one reflector (no ``target``), a window
+ones). Still blocks that follow each other at one position make a window (also across a burst of
+spikes up to STREAM_BURST_S); a change of reflector (``target``) between them continues the window
+when the tool did not move in between (at most STREAM_SWITCH_BLOCKS moving blocks, or a short gap)
+and the reflector lies from the others as the tool holds them; a reflector measured again after
+another, or one the tracker's cycle measures before the last (the order of the first window with
+every reflector), starts the next window (the reflectors' cycle of a stop repeated in place). A
+window keeps, per reflector, the median of its samples (the position) and their robust standard
+deviation (the spread, a quality figure). In a log of one reflector (no ``target``), a window
 STREAM_SPLIT_FACTOR times as long as the typical recent one is cut into that many: stops at one
 place one after another (a repeat measured back to back).
 
@@ -195,7 +196,8 @@ class WindowFinder:
                 self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a],
                                   np.column_stack((t[a * B:(e + 1) * B], p[a * B:(e + 1) * B])))
             self._moving += nb - 1 - prev
-        if self._open is not None and self._moving > STREAM_SWITCH_BLOCKS and tb[-1, -1] - self._open.t1 > STREAM_BURST_S:
+        w = self._open
+        if w is not None and self._moving > STREAM_SWITCH_BLOCKS and tb[-1, -1] - w.t1 > STREAM_BURST_S:
             self._close()
 
     def _still_block(self, b, t0, t1, code, med, samples):
