@@ -269,21 +269,14 @@ DOMAIN_MARGIN_POSES = 6.0
 DOMAIN_MIN_MARGIN_RAD = 8.7e-3
 DOMAIN_MIN_MARGIN_M = 1e-3
 
-#: A pose farther from its nearest training pose (joint space scaled by the training spread) than
-#: this times the largest nearest-neighbour distance among the training poses is outside. With the
-#: pair test below, fresh poses of a uniform spread over the COMAU's joints (8 seeds) are flagged
-#: 0.7 % on average at 16 and 48 training poses (4.2 % at worst), 0.2 % at 240; at 1.2, 8 % at worst
-#: (benchmarks/bench_domain.py)
-DOMAIN_NN_FACTOR = 1.3
-
 #: Bins of a joint's limit range for its coverage (the share of bins holding a training pose)
 DOMAIN_COVERAGE_BINS = 20
 
-#: A pose is outside when, in some pair of joints, it lies farther from every training pose than this
-#: times the largest nearest-neighbour distance among the training poses in that pair (ranges scaled
-#: to 1). On uniform spreads of the COMAU (15 pairs): 1.0 flags 20 % of fresh poses at 48 training
-#: poses, 1.5 under 1 %; a corner of joints 1-2 (35 % x 35 %) no pose reached is flagged for a
-#: quarter of its poses at 80, 40 % at 240, two thirds at 800
+#: A pose is outside when, in some pair of joints, it lies outside the convex hull of the training
+#: poses and farther from every one than this times the largest nearest-neighbour distance among them
+#: (ranges scaled to 1). On uniform spreads of the COMAU (15 pairs, 8 seeds): 1.0 flags 8 % of fresh
+#: poses at 80 training poses (17 % at worst), 1.2 3 %, 1.5 0.4 % (1.4 % at worst); a corner of joints
+#: 1-2 (35 % x 35 %) no pose reached is flagged for a quarter of its poses at 80, 40 % at 240, half at 800
 DOMAIN_PAIR_FACTOR = 1.5
 
 #: ... from this many training poses on (below, a pair's nearest-neighbour distances scatter too

@@ -266,4 +266,15 @@ def test_a_grid_plan_with_repeats_keeps_poses_between_its_nodes_inside(robot):
     lo = robot.q_lower + 0.12 * (robot.q_upper - robot.q_lower)
     hi = robot.q_upper - 0.12 * (robot.q_upper - robot.q_lower)
     between = rng.uniform(lo, hi, size=(500, robot.n_joints))
-    assert dom.threshold > 0 and dom.contains(between).mean() >= 0.95
+    assert dom.contains(between).mean() >= 0.95
+
+
+def test_the_poses_between_a_d_optimal_plans_extremes_are_inside(robot):
+    rng = np.random.default_rng(4)
+    span = robot.q_upper - robot.q_lower
+    extreme = rng.uniform(0.0, 0.15, size=(200, robot.n_joints))  # each joint near one of its limits
+    q = np.where(rng.uniform(size=extreme.shape) < 0.5, robot.q_lower + 0.05 * span + extreme * span,
+                 robot.q_upper - 0.05 * span - extreme * span)
+    dom = calibrated_domain(robot, q)
+    interior = rng.uniform(robot.q_lower + 0.3 * span, robot.q_upper - 0.3 * span, size=(500, robot.n_joints))
+    assert dom.contains(interior).mean() >= 0.95

@@ -9,15 +9,12 @@ uncertainty (campaign.identify.uncertainty) and the identifiability on the train
   the range (the gap a fresh draw from the same spread leaves beyond the extremes of n poses is
   about range / n; this many of them keeps a fresh pose's chance of falling beyond below 1 %
   a joint), at least DOMAIN_MIN_MARGIN_RAD (m for a prismatic joint);
-* and its distance to the nearest training pose, in joint space scaled by each joint's training
-  spread (standard deviation, at least its margin), is at most DOMAIN_NN_FACTOR times the
-  largest such distance among the training poses themselves (leave-one-out): a workspace corner
-  inside every joint's range but far from every measured pose is outside;
-* and, for every pair of joints, its distance to the nearest training pose in those two joints
-  (scaled by their training ranges) is at most DOMAIN_PAIR_FACTOR times the largest such distance
-  among the training poses (from DOMAIN_PAIR_MIN_POSES training poses on): a corner of the workspace
-  no measured pose reached (joints 1 and 2 both high) is outside, where the distance in all N
-  joints, dominated by the others, does not see it.
+* and, for every pair of joints, it lies inside the convex hull of the training poses in those two
+  joints, or within DOMAIN_PAIR_FACTOR times the largest nearest-neighbour distance among them of a
+  training pose (ranges scaled to 1; from DOMAIN_PAIR_MIN_POSES training poses on): a corner of the
+  workspace no measured pose reached (joints 1 and 2 both high) is outside; the poses between a
+  D-optimal plan's extremes, where the model interpolates, are inside. (A distance over all N joints
+  would flag those, and miss the corner: the other joints dominate it.)
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ import numpy as np
 
 from campaign.errors import DataError
 from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMAIN_MIN_MARGIN_M,
-                                 DOMAIN_MIN_MARGIN_RAD, DOMAIN_NN_FACTOR, DOMAIN_PAIR_FACTOR,
+                                 DOMAIN_MIN_MARGIN_RAD, DOMAIN_PAIR_FACTOR,
                                  DOMAIN_PAIR_MIN_POSES)
 
 DOMAIN_FILE = "domain.json"
@@ -82,8 +79,8 @@ def decode_array(d) -> np.ndarray:
 class Domain:
     """Per joint (N,): training ``lower``/``upper``, ``margin``, ``scale`` (rad or m), ``coverage``
     (share of the joint's limit range, in DOMAIN_COVERAGE_BINS bins, holding a training pose);
-    the training poses ``q_train`` (n, N); the nearest-pose ``threshold`` (scaled units) follows from
-    them, computed when first asked (a calibration that only writes its domain does not pay for it)."""
+    the training poses ``q_train`` (n, N), whose pairwise tests are built when first asked (a
+    calibration that only writes its domain does not pay for them)."""
 
     lower: np.ndarray
     upper: np.ndarray
@@ -92,52 +89,46 @@ class Domain:
     coverage: np.ndarray
     q_train: np.ndarray
 
-    @cached_property
-    def _tree(self):
-        from scipy.spatial import cKDTree
-
-        return cKDTree(self.q_train / self.scale)
-
-    @cached_property
-    def threshold(self) -> float:
-        """DOMAIN_NN_FACTOR × the largest leave-one-out nearest-pose distance of the training poses."""
-        return DOMAIN_NN_FACTOR * _largest_nearest_distance(self.q_train / self.scale)
-
     def within_ranges(self, q) -> np.ndarray:
         """(n, N) bool: each joint within its widened training range."""
         q = np.asarray(q, dtype=float)
         return (q >= self.lower - self.margin) & (q <= self.upper + self.margin)
 
-    def nearest_distance(self, q) -> np.ndarray:
-        """(n,) the scaled distance to the nearest training pose."""
-        d, _ = self._tree.query(np.asarray(q, dtype=float).reshape(-1, len(self.scale)) / self.scale, k=1)
-        return np.asarray(d, dtype=float)
-
     @cached_property
     def _pairs(self) -> list:
-        """[(i, j, KD-tree of the training poses in joints i, j scaled by their training ranges, threshold)]
-        for every pair of joints; empty below DOMAIN_PAIR_MIN_POSES training poses."""
-        from scipy.spatial import cKDTree
+        """[(i, j, span (2,), KD-tree of the distinct training poses in joints i, j scaled by span, threshold,
+        their convex hull's half-planes (k, 3) or None)] for every pair of joints; empty below
+        DOMAIN_PAIR_MIN_POSES training poses."""
+        from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-        q = self.q_train
-        if len(q) < DOMAIN_PAIR_MIN_POSES:
+        if len(self.q_train) < DOMAIN_PAIR_MIN_POSES:
             return []
         span = np.maximum(self.upper - self.lower, self.margin)
         out = []
         N = len(self.scale)
         for i in range(N):
             for j in range(i + 1, N):
-                pts = q[:, [i, j]] / span[[i, j]]
-                out.append((i, j, cKDTree(pts), DOMAIN_PAIR_FACTOR * _largest_nearest_distance(pts), span[[i, j]]))
+                pts = np.unique(self.q_train[:, [i, j]] / span[[i, j]], axis=0)
+                try:
+                    hull = ConvexHull(pts).equations
+                except (QhullError, ValueError):  # on a line (a joint that never moved: the ranges say it)
+                    hull = None
+                out.append((i, j, span[[i, j]], cKDTree(pts), DOMAIN_PAIR_FACTOR * _largest_nearest_distance(pts),
+                            hull))
         return out
 
-    def pairs_occupied(self, q) -> np.ndarray:
-        """(n,) bool: for every pair of joints, the pose lies near a training pose in those two joints."""
+    def pairs_reached(self, q) -> np.ndarray:
+        """(n,) bool: in every pair of joints, the pose lies near a training pose or inside their convex
+        hull (between measured poses: interpolated, as inside a D-optimal plan's extremes)."""
         q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
         ok = np.ones(len(q), dtype=bool)
-        for i, j, tree, threshold, span in self._pairs:
-            d, _ = tree.query(q[:, [i, j]] / span, k=1)
-            ok &= np.asarray(d) <= threshold
+        for i, j, span, tree, threshold, hull in self._pairs:
+            p = q[:, [i, j]] / span
+            d, _ = tree.query(p, k=1)
+            far = np.asarray(d) > threshold
+            if hull is not None and far.any():
+                far &= np.max(p @ hull[:, :2].T + hull[:, 2], axis=1) > 1e-12
+            ok &= ~far
         return ok
 
     def contains(self, q) -> np.ndarray:
@@ -145,23 +136,19 @@ class Domain:
         q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
         if not len(q):
             return np.zeros(0, dtype=bool)
-        return (self.within_ranges(q).all(axis=1) & (self.nearest_distance(q) <= self.threshold)
-                & self.pairs_occupied(q))
+        return self.within_ranges(q).all(axis=1) & self.pairs_reached(q)
 
     def why_outside(self, q, joint_names) -> list:
-        """For each row of q: "" inside, else what puts it outside (the first joint beyond its range,
-        or the distance to the nearest training pose)."""
+        """For each row of q: "" inside, else what puts it outside (the first joint beyond its range, or a
+        corner of two joints no training pose reached)."""
         q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
         ok = self.within_ranges(q)
-        d = self.nearest_distance(q)
-        pairs = self.pairs_occupied(q)
+        pairs = self.pairs_reached(q)
         out = []
         for i in range(len(q)):
             bad = np.flatnonzero(~ok[i])
             if len(bad):
                 out.append(f"{joint_names[bad[0]]} beyond the training range")
-            elif d[i] > self.threshold:
-                out.append(f"far from every training pose ({d[i] / self.threshold:.1f}x the threshold)")
             elif not pairs[i]:
                 out.append("in a corner of two joints' ranges no training pose reached")
             else:
