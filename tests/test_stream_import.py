@@ -149,19 +149,22 @@ class LogWriter:
         for s in self.stops:
             if s.kind != "via":
                 got[s.stop] = [int(np.sum(keep & (stop_of == s.stop) & (g == c))) for c in range(len(self.P_E))]
+        self.moving = (stop_of < 0)[keep]  # in motion or settling: what a tracker may leave unnamed
         return t[keep] + self.clock0, P[keep], g[keep], got
 
-    def write(self, path, *, mm=True, part=None):
-        """The log as the tracker's software exports it; ``part`` (a, b): only rows a..b."""
+    def write(self, path, *, mm=True, part=None, preamble="", unnamed_in_motion=False):
+        """The log as the tracker's software exports it; ``part`` (a, b): only rows a..b; ``preamble``:
+        lines before the header; ``unnamed_in_motion``: no target named while moving or settling."""
         t, P, g, got = self.rows()
+        names = np.array(self.names + ("",), dtype=object)[np.where(self.moving & unnamed_in_motion, -1, g)]
         if part is not None:
-            t, P, g = t[part[0]:part[1]], P[part[0]:part[1]], g[part[0]:part[1]]
+            t, P, names = t[part[0]:part[1]], P[part[0]:part[1]], names[part[0]:part[1]]
         scale = 1e3 if mm else 1.0
         with open(path, "w") as f:
-            f.write("time_s,x,y,z,target\n" if self.targets else "time_s,x,y,z\n")
+            f.write(preamble + ("time_s,x,y,z,target\n" if self.targets else "time_s,x,y,z\n"))
             for k in range(len(t)):
                 row = f"{t[k]:.4f},{P[k, 0] * scale:.5f},{P[k, 1] * scale:.5f},{P[k, 2] * scale:.5f}"
-                f.write(row + (f",{self.names[g[k]]}\n" if self.targets else "\n"))
+                f.write(row + (f",{names[k]}\n" if self.targets else "\n"))
         return got
 
 
@@ -458,6 +461,19 @@ def test_any_serial_arm_a_ur10_log_is_matched(tmp_path, erd):
     (run / "campaign.yaml").write_text(yaml.safe_dump({"robot": erd("ur_description/urdf/ur10_robot.urdf"),
                                                        "tool_frame": "tool0"}))
     got = writer.write(tmp_path / "log.csv")
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)
+
+
+def test_notes_before_the_header_and_no_target_named_in_motion(tmp_path, robot):
+    """The tracker's software writes notes (``#``) before the header and names no reflector while the
+    robot moves or settles: those rows are no reflector's measurement."""
+    run, stops, writer = make_run(tmp_path, robot, n_poses=60, seed=43)
+    got = writer.write(tmp_path / "log.csv", preamble="# exported by the tracker's software\n# units: mm\n\n",
+                       unnamed_in_motion=True)
+    text = (tmp_path / "log.csv").read_text()
+    assert ",\n" in text and text.startswith("# exported")
     assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
                  "--frame", "tracker", "--quiet"]) == 0
     check_found_and_right(run, stops, writer, got)

@@ -5,7 +5,8 @@ or ``time`` / ``timestamp`` in ISO 8601, or in s when it holds numbers), ``x, y,
 optionally ``target`` (the reflector measured on that row, one of the robot's reflector names).
 Other columns are ignored; ``columns`` maps a file's own names (``{column in the file: name
 used}``, campaign.measure.csvio.parse_columns).
-Rows with an empty or non-finite coordinate are no measurement (the beam was lost) and are dropped.
+Rows with an empty or non-finite coordinate (the beam was lost), or an empty ``target``, are no
+measurement of a reflector and are dropped.
 
 A block of rows whose time and coordinates are numbers is parsed by numpy in C (loadtxt; a last
 ``target`` column by comparing each line's end with the names; ISO 8601 stamps of one form at once);
@@ -46,6 +47,8 @@ class LogLayout:
     #: the reflector names a ``target`` value may take, in code order (code = index)
     targets: tuple
     length_scale: float
+    #: the header's row in the file (1-based; comment lines before it)
+    header_row: int = 1
 
     @property
     def n_cols(self) -> int:
@@ -68,12 +71,18 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such log")
+    line, header_row = "", 0
     with open(path, "rb") as f:
-        first = f.readline()
-    try:
-        line = first.decode("utf-8-sig").strip()
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: row 1: not text (expected a header line such as time_s,x,y,z)") from None
+        for raw in f:  # comment lines (``#``) and blank lines before the header are the software's notes
+            header_row += 1
+            try:
+                line = raw.decode("utf-8-sig").strip()
+            except UnicodeDecodeError:
+                raise DataError(f"{path}: row {header_row}: not text (expected a header line such as "
+                                "time_s,x,y,z)") from None
+            if line and not line.startswith("#"):
+                break
+            line = ""
     if not line:
         raise DataError(f"{path}: empty (expected a header line such as time_s,x,y,z)")
     delim = next((d for d in DELIMITERS if d in line), ",")
@@ -98,7 +107,7 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
     if time_col is None:
         for n in TIME_ISO_COLUMNS:
             if col(n) is not None:
-                time_col, iso = col(n), not _first_value_is_number(path, delim, col(n))
+                time_col, iso = col(n), not _first_value_is_number(path, delim, col(n), header_row)
                 break
     if time_col is None:
         raise DataError(f"{path}: no time column (time_s in s, or time/timestamp in ISO 8601) in the header "
@@ -111,19 +120,19 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
     if length_unit not in ("m", "mm"):
         raise DataError(f"--length-unit must be m or mm, got {length_unit!r}")
     return LogLayout(path, delim, header, time_col, iso, xyz, col("target"), tuple(targets),
-                     1e-3 if length_unit == "mm" else 1.0)
+                     1e-3 if length_unit == "mm" else 1.0, header_row)
 
 
-def _first_value_is_number(path, delim, column) -> bool:
+def _first_value_is_number(path, delim, column, header_row) -> bool:
     """Whether the first data row's ``column`` is a number (a ``time`` column in s, not ISO 8601)."""
     with open(path, "rb") as f:
-        f.readline()
+        for _ in range(header_row):
+            f.readline()
         for raw in f:
             line = raw.decode("utf-8", errors="replace").strip()
             if line:
-                cells = line.split(delim)
                 try:
-                    float(cells[column])
+                    float(line.split(delim)[column])
                     return True
                 except (ValueError, IndexError):
                     return False
@@ -135,9 +144,10 @@ def iter_log(layout: LogLayout, *, block_bytes: int = BLOCK_BYTES, progress=None
     receiving the fraction of the file read (0..1)."""
     size = max(layout.path.stat().st_size, 1)
     done = 0
-    row = 1  # the header
+    row = layout.header_row
     with open(layout.path, "rb") as f:
-        done += len(f.readline())
+        for _ in range(layout.header_row):
+            done += len(f.readline())
         tail = b""
         while True:
             data = f.read(block_bytes)
@@ -174,7 +184,7 @@ def _parse(layout: LogLayout, data: bytes, row0: int) -> LogChunk | None:
     else:
         t, vals, g = fast
     p = vals * layout.length_scale
-    ok = np.isfinite(p).all(axis=1) & np.isfinite(t)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(t) & (g >= 0)
     rows = row0 + data.count(b"\n")
     if not ok.all():
         t, p, g = t[ok], p[ok], g[ok]
@@ -261,7 +271,7 @@ def _iso_block(layout: LogLayout, buf: bytes, n_lines: int):
 
 def _target_codes(arr: np.ndarray, layout: LogLayout):
     """Each line's reflector code from its last field (the name ends the line, spaces before it
-    allowed), (n_lines,) int16; None when a line ends in none of the names."""
+    allowed; -1 for an empty field), (n_lines,) int16; None when a line ends in none of the names."""
     nl = np.flatnonzero(arr == 10)
     codes = np.full(len(nl), -1, dtype=np.int16)
     before = (ord(layout.delimiter), ord(" "))
@@ -274,7 +284,8 @@ def _target_codes(arr: np.ndarray, layout: LogLayout):
         for i, ch in enumerate(nb):
             ok &= arr[at + i] == ch
         codes[ok] = layout.targets.index(name)
-    return None if (codes < 0).any() else codes
+    empty = arr[nl - 1] == ord(layout.delimiter)  # no reflector named (in motion): the row is dropped
+    return None if ((codes < 0) & ~empty).any() else codes
 
 
 def _parse_lines(layout: LogLayout, data: bytes, row0: int):
@@ -311,6 +322,10 @@ def _parse_lines(layout: LogLayout, data: bytes, row0: int):
                                 f"({tc!r}; ISO 8601 time stamps go in a column named time or timestamp)") from None
         if layout.target_col is not None:
             name = cells[layout.target_col].strip()
+            if not name:  # no reflector named (the tracker in motion, say): no measurement of one
+                g.append(-1)
+                vals.append(xyz)
+                continue
             if name not in code:
                 raise DataError(f"{path}: row {row}, column {layout.header[layout.target_col]}: {name!r} is not one "
                                 f"of the robot's reflectors ({', '.join(layout.targets)})")
