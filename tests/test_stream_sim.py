@@ -4,6 +4,7 @@ import --stream → calibrate. The simulator's truth is read only after the pipe
 
 import csv
 import json
+import re
 import sqlite3
 
 import numpy as np
@@ -28,7 +29,7 @@ def planned(tmp_path_factory):
     return run
 
 
-def test_plan_program_sim_stream_import_calibrate_end_to_end(planned, tmp_path):
+def test_plan_program_sim_stream_import_calibrate_end_to_end(planned, tmp_path, capsys):
     from campaign.measure.reflectors import transform_points
     from campaign.program.stops import read_stops_csv, stops_path
     from campaign.run import RunFolder
@@ -37,6 +38,7 @@ def test_plan_program_sim_stream_import_calibrate_end_to_end(planned, tmp_path):
     run = planned
     log = tmp_path / "tracker.csv"
     assert main(["sim", str(run), "--stream-out", str(log), "--rate", "20"]) == 0
+    lost_beams = int(re.search(r"(\d+) stops with a lost beam", capsys.readouterr().out).group(1))
     assert main(["import", "--stream", str(log), "--run", str(run), "--frame", "tracker", "--quiet"]) == 0
     assert main(["calibrate", str(run), "--no-ann"]) == 0
     metrics = json.loads((run / "calibration" / "metrics.json").read_text())
@@ -53,8 +55,9 @@ def test_plan_program_sim_stream_import_calibrate_end_to_end(planned, tmp_path):
     with open(run / "import" / "stream_match.csv") as f:
         rows = [r for r in csv.DictReader(f) if r["stop"]]
     assert [int(r["stop"]) for r in rows] == [s.stop for s in stops if s.measured]
-    lost = sum(r["status"] != "matched" for r in rows)
-    assert lost <= 0.08 * len(rows) and all(r["status"] in ("matched", "incomplete") for r in rows)
+    # a lost beam costs its stop only (found again at the next): every other stop is matched
+    assert sum(r["status"] != "matched" for r in rows) == lost_beams
+    assert all(r["status"] in ("matched", "incomplete", "skipped") for r in rows)
     truth = read_truth(run / "sim" / "truth.yaml", RunFolder(run).robot())
     by_id = {s.pose_id: s for s in stops if s.kind not in ("via", "drift")}
     names = ("rrr1", "rrr2", "brr")
