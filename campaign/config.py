@@ -119,6 +119,23 @@ def check_names(value, where: str) -> tuple:
     return refuse_repeats(out, where)
 
 
+def one_spec_per_effect(specs, where: str) -> tuple:
+    """``specs`` (the effects a calibration fits) when no effect comes twice, over two joint lists
+    included (``joint_compliance:2`` and ``joint_compliance:3``: a calibration holds one block per
+    effect); else a ConfigError giving the one spec to write."""
+    from campaign.effects.base import merge_effects, split_joints
+
+    seen = {}
+    for spec in specs:
+        base = split_joints(spec)[0]
+        if base in seen:
+            merged = merge_effects([seen[base]], [spec])[0]
+            raise ConfigError(f"{where}: '{seen[base]}' and '{spec}' are one effect; name it once"
+                              + (f": {merged}" if merged != seen[base] else ""))
+        seen[base] = spec
+    return tuple(specs)
+
+
 def refuse_repeats(names, where: str) -> tuple:
     """``names`` as a tuple, or a ConfigError naming the first entry given twice (an effect
     named twice would be fitted twice over: its parameters undetermined, its stage unusable)."""
@@ -456,9 +473,10 @@ def parse_config(doc: dict, path) -> CampaignConfig:
                               f"(allowed: {', '.join(sorted(SECTION_KEYS[name]))})")
         if name in SECTIONS:
             kw[name] = SECTIONS[name].parse(section, _Where(path, name))
-    effects = check_names(doc.get("effects"), top("effects"))
+    effects = one_spec_per_effect(check_names(doc.get("effects"), top("effects")), top("effects"))
     if not effects and isinstance(doc.get("calibrate"), dict):
-        effects = check_names(doc["calibrate"].get("effects"), top("calibrate.effects"))
+        effects = one_spec_per_effect(check_names(doc["calibrate"].get("effects"), top("calibrate.effects")),
+                                      top("calibrate.effects"))
     kw["effects"] = effects
     return CampaignConfig(**kw)
 

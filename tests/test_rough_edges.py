@@ -508,3 +508,15 @@ def test_diagnose_of_exact_data_without_a_floor_says_round_off_and_finds_nothing
                                                                                  for c in d["ranking"])
     assert main(["diagnose", str(run)]) == 0
     assert "the model fits them to round-off" in capsys.readouterr().out
+
+
+def test_one_joint_indexed_effect_over_two_joint_lists_is_refused_with_the_one_spec(nominal_run, tmp_path, capsys):
+    one_line_error(capsys, ["calibrate", nominal_run, "--no-ann", "--effects", "joint_compliance:2,joint_compliance:3"],
+                   r"'joint_compliance:2' and 'joint_compliance:3' are both 'joint_compliance'.*joint_compliance:2,3\)")
+    run = run_copy(nominal_run, tmp_path / "run")
+    cfg = run / "campaign.yaml"
+    cfg.write_text(cfg.read_text().replace("effects: []", "effects: [joint_compliance:2, joint_compliance:3]"))
+    for argv in (["calibrate", run, "--no-ann"], ["auto", run, "--sim"]):
+        one_line_error(capsys, argv, r"campaign\.yaml: effects: 'joint_compliance:2' and 'joint_compliance:3' are "
+                                     r"one effect; name it once: joint_compliance:2,3$")
+    assert not (run / "calibration").exists() and not (nominal_run / "calibration").exists()

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from campaign.effects.base import (EffectSet, effect_context, effect_name, make_effect, parse_effect_list,
-                                   resolve_effect_spec)
+from campaign.effects.base import (EffectSet, effect_context, effect_name, make_effect, merge_effects,
+                                   parse_effect_list, resolve_effect_spec)
 from campaign.errors import ConfigError, DataError, Implausible
 from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.ann_stage import AnnStages
@@ -159,6 +159,22 @@ class CalibrationResult:
         return "\n".join(lines)
 
 
+def check_once(effects: EffectSet) -> EffectSet:
+    """``effects`` when each effect is named once; a calibration's stages and params.yaml hold
+    one block per effect name, so one joint-indexed effect over two joint lists
+    (``joint_compliance:2,joint_compliance:3``) is one line giving the one spec to write instead."""
+    seen = {}
+    for e in effects.effects:
+        if e.name in seen:
+            first = seen[e.name]
+            merged = merge_effects([first.spec], [e.spec])[0]
+            hint = f" (name it once: {merged})" if merged != first.spec else ""
+            raise ConfigError(f"effects '{first.spec}' and '{e.spec}' are both '{e.name}': a calibration holds each "
+                              f"effect once{hint}")
+        seen[e.name] = e
+    return effects
+
+
 def configured_effects(run_dir) -> tuple:
     """Effects enabled in the run's campaign.yaml (``RunFolder(run_dir).effects``), user effect
     files (``path/file.py:ClassName``) made absolute against that file's folder."""
@@ -218,7 +234,7 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         check_ann_options(ann_options or {})
     robot = robot or run.robot()
     effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
-    EffectSet(tuple(make_effect(name, robot) for name in effects))  # unknown or twice: one line before any fit
+    check_once(EffectSet(tuple(make_effect(name, robot) for name in effects)))  # unknown or twice: before any fit
     fix = check_model_options(robot, effects, model, fix)  # a bad --model or --fix: one line before any fit
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
