@@ -5,6 +5,7 @@ in turn at each stop, lost beams, unplanned pauses, spikes, gaps, an unknown clo
 frame (a random rigid transform) and millimetres. The truth is read only after the import answered."""
 
 import csv
+import re
 import sqlite3
 
 import numpy as np
@@ -168,9 +169,9 @@ class LogWriter:
         return got
 
 
-def make_run(tmp_path, robot, n_poses=150, seed=0, name="run", **kw):
+def make_run(tmp_path, robot, n_poses=150, seed=0, name="run", dwell_s=3.5, **kw):
     rng = np.random.default_rng(seed)
-    stops = make_stops(robot, n_poses, rng)
+    stops = make_stops(robot, n_poses, rng, dwell_s=dwell_s)
     run = tmp_path / name
     stops_path(run).parent.mkdir(parents=True)
     write_stops_csv(stops_path(run), stops)
@@ -476,4 +477,18 @@ def test_notes_before_the_header_and_no_target_named_in_motion(tmp_path, robot):
     assert ",\n" in text and text.startswith("# exported")
     assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
                  "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)
+
+
+@pytest.mark.parametrize("rate_hz, noise_um, dwell_s", [(10.0, 60.0, 8.0), (1000.0, 3.0, 3.5)])
+def test_the_noise_level_and_rate_come_from_the_log(tmp_path, robot, capsys, rate_hz, noise_um, dwell_s):
+    """10 Hz with 60 µm noise, 1,000 Hz with 3 µm: the still threshold follows the log's own noise."""
+    run, stops, writer = make_run(tmp_path, robot, n_poses=40, seed=47, rate_hz=rate_hz, noise_m=noise_um * 1e-6,
+                                  dwell_s=dwell_s)
+    got = writer.write(tmp_path / "log.csv")
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker"]) == 0
+    out = capsys.readouterr().out
+    rate, noise = re.search(r"\((\d+) Hz, noise ([\d.]+) µm\)", out).groups()
+    assert float(rate) == rate_hz and 0.5 * noise_um < float(noise) < 1.5 * noise_um, out
     check_found_and_right(run, stops, writer, got)
