@@ -13,7 +13,9 @@ def register(sub):
                     "sharing one simulated world, until Ctrl-C. The hidden truth goes to RUN/sim/truth.yaml; "
                     "one cell serves a run at a time (it holds RUN/sim/.lock while it serves). "
                     "Drive it with `campaign run RUN --controller HOST:PORT --tracker HOST:PORT`. "
-                    "It is `campaign serve --controller sim --tracker sim` (docs/cell.md) with a default run.")
+                    "It is `campaign serve --controller sim --tracker sim` (docs/cell.md) with a default run. "
+                    "With `campaign sim RUN --stream-out LOG` it serves nothing: the cell runs RUN's program "
+                    "(RUN/program/stops.csv) and writes its tracker's continuous log (docs/stream.md).")
     s.add_argument("run_dir", metavar="RUN", nargs="?", default=None,
                    help="the run (the same as --run); with --stream-out, the run whose program is driven")
     s.add_argument("--stream-out", metavar="LOG", default=None,
