@@ -520,3 +520,17 @@ def test_one_joint_indexed_effect_over_two_joint_lists_is_refused_with_the_one_s
         one_line_error(capsys, argv, r"campaign\.yaml: effects: 'joint_compliance:2' and 'joint_compliance:3' are "
                                      r"one effect; name it once: joint_compliance:2,3$")
     assert not (run / "calibration").exists() and not (nominal_run / "calibration").exists()
+
+
+@pytest.mark.parametrize("text, match", [
+    ('<?xml version="1.0"?>\n<robt name="x"><link name="a"/></robt>\n', r"root element <robt>, not <robot>: not a URDF$"),
+    ('<robot name="x"><link name="a"/><link name="b"/><joint name="j" type="revolute"><child link="b"/>'
+     '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint></robot>\n',
+     r"cannot read the URDF: joint 'j': no <parent link=\.\.\.>$"),
+    ('<robot name="x"><link name="a"/></robot>\n', r"no moving joint below 'a' in x\.urdf \(1 links, 0 joints")])
+def test_urdfs_that_are_xml_but_not_a_robot_arm_are_one_line_saying_why(tmp_path, capfd, text, match):
+    path = tmp_path / "x.urdf"
+    path.write_text(text)
+    assert main(["model", "chain", "--robot", str(path)]) == 1
+    err = capfd.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(rf"{re.escape(str(path))}: {match}", err), err

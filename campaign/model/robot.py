@@ -635,19 +635,24 @@ def _not_xml(path: Path, exc) -> ConfigError:
 def _parse_urdf(urdf_path: Path):
     import xml.etree.ElementTree as ET
 
-    from campaign.model.urdf_chain import read_chain
+    from campaign.model.urdf_chain import NotReadHere, read_chain
 
+    not_read = None
     try:  # the chain alone, without importing yourdfpy and trimesh (half a second)
         return read_chain(urdf_path)
     except ET.ParseError as exc:
         raise _not_xml(urdf_path, exc) from None
-    except Exception:  # a file it does not take: yourdfpy reads it, or words what is wrong as before
+    except NotReadHere as exc:  # a file it does not take: yourdfpy reads it, or words what is wrong as before
+        if str(exc).startswith("root element"):  # yourdfpy would read some other XML as a robot of one link
+            raise ConfigError(f"{urdf_path}: {exc}: not a URDF") from None
+        not_read = exc
+    except Exception:
         pass
     try:
         return _load_yourdfpy(urdf_path)
     except Exception as exc:  # yourdfpy raises plain exceptions; word them as one line
-        where = _xml_diagnosis(urdf_path)
-        raise ConfigError(f"{urdf_path}: cannot read the URDF: {where or str(exc).splitlines()[0]}") from None
+        where = _xml_diagnosis(urdf_path) or (str(not_read) if not_read is not None else str(exc).splitlines()[0])
+        raise ConfigError(f"{urdf_path}: cannot read the URDF: {where}") from None
 
 
 def _origin(joint) -> np.ndarray:
@@ -810,6 +815,9 @@ def _load_cached(urdf_str, meta_str, tool_frame, base_frame, spec, stamp=()) -> 
     path.reverse()
     moving = [j for j in path if j.type != "fixed" and j.name not in locked]
     if not moving:
+        if tool == base:  # nothing below the base moves
+            raise ConfigError(f"{src}: no moving joint below '{base}' in {urdf_path.name} ({len(links)} links, "
+                              f"{len(joints)} joints, none of them revolute, continuous or prismatic below it)")
         raise ConfigError(f"{src}: no moving joint between '{base}' and '{tool}'")
     for j in moving:
         if j.mimic is not None:

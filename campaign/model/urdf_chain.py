@@ -122,9 +122,12 @@ def read_chain(path) -> URDF:
     for el in root.findall("joint"):
         name, kind = el.get("name"), el.get("type")
         parent, child = el.find("parent"), el.find("child")
-        if name is None or kind not in JOINT_TYPES or parent is None or child is None \
-                or parent.get("link") is None or child.get("link") is None:
-            raise NotReadHere(f"joint {name!r}: incomplete")
+        missing = [what for what, gone in (("a name", name is None),
+                                            (f"a type of {', '.join(JOINT_TYPES)}", kind not in JOINT_TYPES),
+                                            ("<parent link=...>", parent is None or parent.get("link") is None),
+                                            ("<child link=...>", child is None or child.get("link") is None)) if gone]
+        if missing:
+            raise NotReadHere(f"joint {name!r}: no {', no '.join(missing)}")
         axis = el.find("axis")
         limit = el.find("limit")
         mimic = el.find("mimic")
