@@ -492,3 +492,24 @@ def test_the_noise_level_and_rate_come_from_the_log(tmp_path, robot, capsys, rat
     rate, noise = re.search(r"\((\d+) Hz, noise ([\d.]+) µm\)", out).groups()
     assert float(rate) == rate_hz and 0.5 * noise_um < float(noise) < 1.5 * noise_um, out
     check_found_and_right(run, stops, writer, got)
+
+
+def test_a_log_without_target_that_follows_one_reflector_finds_which(tmp_path, robot):
+    """No target column, the tracker following one reflector of the three (not at the tool frame's
+    origin): the reflector whose distances fit is found, its positions stored, and calibrate finds the
+    point on the tool from the data."""
+    run, stops, writer = make_run(tmp_path, robot, n_poses=60, seed=53, targets=False)
+    writer.P_E = writer.P_E[[2]]  # brr
+    got = writer.write(tmp_path / "one.csv")
+    assert main(["import", "--stream", str(tmp_path / "one.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    status = {int(r["stop"]): r["status"] for r in match_rows(run) if r["stop"]}
+    complete = [k for k, n in got.items() if min(n) >= 20]
+    assert sum(status.get(k) == "matched" for k in complete) >= 0.98 * len(complete)
+    with sqlite3.connect(run / "measurements.sqlite") as db:
+        names = {n for (n,) in db.execute("SELECT DISTINCT name FROM reflector_readings")}
+        xyz = dict((p, np.array(v)) for p, *v in db.execute("SELECT pose_id, x, y, z FROM poses WHERE status = 'measured'"))
+    assert names == {writer.names[2]}
+    by_id = {s.pose_id: s for s in stops}
+    for pid, p in xyz.items():
+        assert np.abs(p - writer.truth_points(np.array(by_id[pid].q))[0, 0]).max() < 3e-4

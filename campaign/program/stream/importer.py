@@ -106,6 +106,8 @@ def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamRes
     windows, finder = find_windows(layout, P_E, progress)
     measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
     first_m = int(np.searchsorted(measured_idx, first_stop))
+    if layout.target_col is None:  # one point: which of the tool's (its reflectors, the origin) fits
+        P_E, names = tracked_point(robot, stops, measured_idx, windows, first_m, finder.t_first)
     matches = match_stops(robot, stops, measured_idx, windows, P_E, first_m, finder.t_first)
     rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
                                       finder, first_m, state)
@@ -136,8 +138,9 @@ def _stops_and_robot(run) -> tuple:
 def measured_points(robot, layout) -> tuple:
     """(P_E (k, 3) m: the points the log's reflector codes measure in the tool frame, the store's
     kind, their names): the robot's reflectors when the log names them (``target``: three or more a
-    pose, two raw reflectors, one a point), else one point, the robot's single reflector or the tool
-    frame's origin (as a one-reflector CSV import)."""
+    pose, two raw reflectors, one a point), else one point (kind "point"), first taken as the robot's
+    single reflector or the tool frame's origin (as a one-reflector CSV import; :func:`tracked_point`
+    then finds which it is)."""
     from campaign.measure.plausibility import measured_point
 
     names = tuple(r.name for r in robot.reflectors)
@@ -145,6 +148,33 @@ def measured_points(robot, layout) -> tuple:
         kind = "pose" if len(names) >= 3 else "markers" if len(names) == 2 else "point"
         return robot.reflector_positions_in_E, kind, names
     return measured_point(robot, "point")[None], "point", (names[0] if len(names) == 1 else "tool",)
+
+
+def tracked_point(robot, stops, measured_idx, windows, first_m, t_first) -> tuple:
+    """(P_E (1, 3) m, (its name,)): the point a log without ``target`` follows, among the robot's
+    reflectors and the tool frame's origin (robot.yaml's single reflector, else the origin, first:
+    it wins ties), the one whose distances confirm the most matches over the log's first
+    ALIGN_TIME_FIT_WINDOWS windows (a wrong point's distances are off by centimetres)."""
+    from campaign.measure.plausibility import measured_point
+    from campaign.program.stream.align import ALIGN_TIME_FIT_WINDOWS, align
+
+    first = measured_point(robot, "point")
+    candidates = [(first, robot.reflectors[0].name if len(robot.reflectors) == 1 else "tool")]
+    candidates += [(np.asarray(r.position_in_E, dtype=float), r.name) for r in robot.reflectors]
+    candidates += [(np.zeros(3), "tool")]
+    mstops = [stops[k] for k in measured_idx]
+    dwell = np.array([s.dwell_s for s in mstops])
+    part = windows[:ALIGN_TIME_FIT_WINDOWS]
+    best, best_n, seen = candidates[0], -1, []
+    for point, name in candidates:
+        if any(np.allclose(point, p) for p in seen):
+            continue
+        seen.append(point)
+        matches = align(part, nominal_points(robot, mstops, point[None]), dwell, first_stop=first_m, t_start=t_first)
+        n = sum(m.confirmed for m in matches)
+        if n > best_n:
+            best, best_n = (point, name), n
+    return best[0][None], (best[1],)
 
 
 def find_windows(layout, P_E, progress=None) -> tuple:
