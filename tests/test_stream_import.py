@@ -66,7 +66,7 @@ class LogWriter:
 
     def __init__(self, robot, stops, rng, *, rate_hz=50.0, noise_m=20e-6, p_e_scale=4e-4, lost_rate=0.04,
                  pause_rate=0.05, spike_rate=0.002, short_gaps=4, long_gap_stops=3, switch_s=0.3,
-                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True, dwell_scale=1.0, bursts=0):
+                 settle_s=0.5, clock0_s=None, T_LI=None, targets=True, dwell_scale=1.0, bursts=0, pause_s=2.5):
         self.robot, self.stops, self.rng = robot, stops, rng
         self.rate, self.noise = rate_hz, noise_m
         self.p_e = rng.normal(0, p_e_scale, robot.n_params)
@@ -83,7 +83,7 @@ class LogWriter:
         self.pauses = set(rng.choice(n, int(round(pause_rate * n)), replace=False).tolist())
         self.spike_rate, self.short_gaps, self.switch_s, self.settle_s = spike_rate, short_gaps, switch_s, settle_s
         self.dwell_scale = dwell_scale
-        self.bursts = bursts
+        self.bursts, self.pause_s = bursts, pause_s
 
     def truth_points(self, q):
         """The reflectors' true positions in the tracker's frame, (n, 3, 3) m."""
@@ -105,7 +105,7 @@ class LogWriter:
             qs = q_prev + prof[:, None] * (q - q_prev)
             if s.stop in self.pauses:  # an unplanned pause halfway
                 half = n_move // 2
-                hold = np.repeat(qs[half:half + 1], int(2.5 * self.rate), axis=0)
+                hold = np.repeat(qs[half:half + 1], int(self.pause_s * self.rate), axis=0)
                 qs = np.concatenate([qs[:half], hold, qs[half:]])
             ts = t + dt * np.arange(len(qs))
             t = ts[-1] + dt if len(ts) else t
@@ -513,3 +513,19 @@ def test_a_log_without_target_that_follows_one_reflector_finds_which(tmp_path, r
     by_id = {s.pose_id: s for s in stops}
     for pid, p in xyz.items():
         assert np.abs(p - writer.truth_points(np.array(by_id[pid].q))[0, 0]).max() < 3e-4
+
+
+def test_a_second_log_that_repeats_the_end_of_the_first_and_long_pauses(tmp_path, robot):
+    """The second log starts 200 s before the first ended (about 30 stops already imported: a window
+    of one of those, whose distance to the next stop fits by chance, must not become the next stop),
+    and the robot paused for 5 minutes in three motions."""
+    run, stops, writer = make_run(tmp_path, robot, seed=5, lost_rate=0.03, pause_rate=0.02, pause_s=300.0)
+    got = writer.write(tmp_path / "full.csv")
+    lines = (tmp_path / "full.csv").read_text().splitlines(keepends=True)
+    cut = len(lines) // 2
+    (tmp_path / "a.csv").write_text("".join(lines[:cut]))
+    (tmp_path / "b.csv").write_text(lines[0] + "".join(lines[cut - 10000:]))
+    args = ["--run", str(run), "--length-unit", "mm", "--frame", "tracker", "--quiet"]
+    assert main(["import", "--stream", str(tmp_path / "a.csv"), *args]) == 0
+    assert main(["import", "--stream", str(tmp_path / "b.csv"), *args]) == 0
+    check_found_and_right(run, stops, writer, got)

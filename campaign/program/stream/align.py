@@ -18,9 +18,10 @@ windows in time order finds the monotone matching of highest score:
 The chain starts at the first stop not yet imported (skipping stops costs the same there) and may
 end anywhere (a log that ends halfway). A beam of ALIGN_BEAM states per window bounds the work.
 A second pass adds a time cost (TimeModel: dwells and nominal motion times, scaled to the log by
-the first pass's matches), which tells apart stops at one place (a repeat); a match is kept only
-when a neighbouring match in the chain confirms it (its distance residual
-within ALIGN_CONFIRM tolerances): no isolated guess is stored.
+the first pass's matches), which tells apart stops at one place (a repeat) and refuses windows
+whose time is far off (a second log repeating the first's end); a match is kept only when a
+neighbouring match in the chain confirms it (its distance residual within ALIGN_CONFIRM tolerances,
+its time within ALIGN_CONFIRM standard deviations): no isolated guess is stored.
 """
 
 from __future__ import annotations
@@ -52,9 +53,10 @@ ALIGN_CONFIRM = 3.0
 ALIGN_PERIOD_FACTOR = 2.5
 #: the second pass's time cost: half the squared log of observed over expected time, in units of
 #: ALIGN_TIME_LOG_SIGMA (a stop's time varies by tens of per cent: pauses, a motion's profile), at
-#: most ALIGN_TIME_CAP / 2, well below a match's gain (time breaks ties of distance; never overrules it)
+#: most ALIGN_TIME_CAP / 2: twice a match's gain, so a window whose time is off by more than about
+#: 2.3x is not worth matching on a chance distance (every chain across a long pause pays it alike)
 ALIGN_TIME_LOG_SIGMA = 0.3
-ALIGN_TIME_CAP = 4.0
+ALIGN_TIME_CAP = 16.0
 #: successive matches needed to fit the time model, and the windows of the first pass that fits it
 ALIGN_TIME_MIN_PAIRS = 5
 ALIGN_TIME_FIT_WINDOWS = 400
@@ -167,7 +169,7 @@ def align(windows, P, dwell_s, *, first_stop: int = 0, t_start: float | None = N
             break
     if model is None:
         return matches
-    return _confirm(_dp(windows, P, dwell_s, first_stop, t_start, model), windows, P)
+    return _confirm(_dp(windows, P, dwell_s, first_stop, t_start, model), windows, P, model)
 
 
 def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
@@ -280,13 +282,24 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
     return chain
 
 
-def _confirm(chain, windows, P) -> list:
+def _confirm(chain, windows, P, time_model=None) -> list:
+    """The chain's matches, each confirmed when the distance to its previous or next match fits
+    (ALIGN_CONFIRM tolerances) and, with a time model, so does the time between them (its log
+    ratio within ALIGN_CONFIRM standard deviations): a window chosen among many for one distance
+    that fits by chance is not confirmed."""
     out = []
-    res = [float(pair_residual(windows[a[0]], windows[b[0]], P, np.int64(a[1]), np.int64(b[1])))
-           for a, b in zip(chain[:-1], chain[1:])]
+    res, fits = [], []
+    for a, b in zip(chain[:-1], chain[1:]):
+        res.append(float(pair_residual(windows[a[0]], windows[b[0]], P, np.int64(a[1]), np.int64(b[1]))))
+        if time_model is None:
+            fits.append(True)
+        else:
+            z2 = 2 * float(time_model.cost(windows[b[0]].t0 - windows[a[0]].t0, np.int64(a[1]), np.int64(b[1])))
+            fits.append(z2 <= ALIGN_CONFIRM ** 2)
     for k, (i, j) in enumerate(chain):
         rp = res[k - 1] if k > 0 else np.nan
         rn = res[k] if k < len(res) else np.nan
-        ok = any(np.isfinite(r) and abs(r) <= ALIGN_CONFIRM for r in (rp, rn))
+        ok = any(np.isfinite(r) and abs(r) <= ALIGN_CONFIRM and fit
+                 for r, fit in ((rp, k > 0 and fits[k - 1]), (rn, k < len(res) and fits[k])))
         out.append(Match(i, j, rp, rn, bool(ok)))
     return out
