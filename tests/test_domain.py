@@ -278,3 +278,30 @@ def test_the_poses_between_a_d_optimal_plans_extremes_are_inside(robot):
     dom = calibrated_domain(robot, q)
     interior = rng.uniform(robot.q_lower + 0.3 * span, robot.q_upper - 0.3 * span, size=(500, robot.n_joints))
     assert dom.contains(interior).mean() >= 0.95
+
+
+def test_a_fold_ensembles_rows_add_the_spread_of_its_members(robot, tmp_path, capsys):
+    from campaign.identify.use import CalibratedRobot
+
+    truth = make_truth(robot, seed=7)
+    poses = synthesize(truth, random_joint_poses(robot, 300, seed=8), seed=9)
+    write_measured_csv(tmp_path / "m.csv", poses, robot)
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "m.csv"), "--run", str(run), "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--ann", "--ann-solver", "adam", "--sizes", "8x8", "--folds", "3",
+                 "--epochs", "20", "--quiet", "--no-report"]) == 0
+    q = random_joint_poses(robot, 6, seed=10)
+    _joint_csv(tmp_path / "q.csv", q)
+    capsys.readouterr()
+    assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    assert "spread of the network's 3 cross-validation members" in capsys.readouterr().out
+    got = np.array([float(r["sigma_mm"]) for r in _rows(tmp_path / "p.csv")])
+    # by hand: the physical model's sigma and the members' sample covariance at each pose
+    physical = CalibratedRobot(run, stage="geometric").sigma_mm(q)
+    members = CalibratedRobot(run).network.predict_members(q)[:, :, :3]
+    spread = np.sqrt(np.sum(np.var(members, axis=0, ddof=1), axis=1)) * 1e3
+    assert members.shape[0] == 3 and np.all(spread > 0)
+    assert np.allclose(got, np.sqrt(physical ** 2 + spread ** 2), rtol=1e-3)
+    on_nominal = CalibratedRobot(run, stage="ann")  # the network on the nominal model: its spread alone
+    m0 = on_nominal.network.predict_members(q)[:, :, :3]
+    assert np.allclose(on_nominal.sigma_mm(q), np.sqrt(np.sum(np.var(m0, axis=0, ddof=1), axis=1)) * 1e3, rtol=1e-9)

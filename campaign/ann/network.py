@@ -169,6 +169,15 @@ class ResidualNetwork:
         For an ensemble (weights_ of shape (K, N_w), see :meth:`from_members`) the mean of the
         K members' predictions, each mapped back with its own target mapping.
         """
+        members = self.predict_members(q)
+        out = 0.0
+        for y in members:
+            out = out + y
+        return out / len(members)
+
+    def predict_members(self, q) -> np.ndarray:
+        """(K, n, N_out): each member's predicted residual (K = 1 for a single network), the
+        cross-validation members' spread for an ensemble (campaign.identify.uncertainty)."""
         self._check()
         q = np.asarray(q, dtype=float)
         if q.shape[-1] != self.net_.n_in:
@@ -178,12 +187,12 @@ class ResidualNetwork:
         W = self.weights_ if self.weights_.ndim == 2 else self.weights_[None]
         mean = np.asarray(self.target_mapping_.mean, dtype=float).reshape(len(W), -1)
         scale = np.asarray(self.target_mapping_.scale, dtype=float).reshape(len(W), -1)
-        out = 0.0
+        out = []
         with torch.no_grad(), torch_threads(getattr(self, "n_threads", None)):
             for w, mu, sd in zip(W, mean, scale):
                 y, _ = self.net_.forward(w, x)
-                out = out + (y.cpu().numpy().astype(float) * sd + mu)
-        return out / len(W)
+                out.append(y.cpu().numpy().astype(float) * sd + mu)
+        return np.stack(out)
 
     @classmethod
     def from_members(cls, hidden, weights, input_mapping: Mapping, target_means, target_scales,

@@ -578,8 +578,9 @@ def summary_text(result: CalibrationResult) -> str:
         u = unc["stages"][unc["stage"]]
         lines.append(f"uncertainty of the model over its domain: sigma_mm mean {u['sigma_mm_mean']:.4f}, 95th percentile "
                      f"{u['sigma_mm_q95']:.4f} mm (test-set mean error {u['heldout_mean_position_mm']:.4f} mm); "
-                     f"{u['basis']}" + ("; the network's own uncertainty is not estimated (its stages' rows carry the "
-                                        "physical model's sigma_mm)" if result.ann is not None else ""))
+                     f"{u['basis']}" + ("; a network stage's rows add the spread of its cross-validation members "
+                                        "(a fold ensemble; a single network's own uncertainty is not estimated)"
+                                        if result.ann is not None else ""))
     if m.absorbed_:
         lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "
                      + ", ".join(m.unknown_names_[i] for i in m.absorbed_))

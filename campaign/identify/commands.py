@@ -411,8 +411,10 @@ def _domain_line(calibrated, inside, sigma, what, to_file: bool) -> None:
     from campaign.identify.domain import domain_summary
 
     line = domain_summary(inside, sigma, what)
-    if calibrated.network is not None and sigma is not None:
-        line += " (the physical model's; the network's own uncertainty is not estimated)"
+    if calibrated.network_members > 1 and sigma is not None:
+        line += f" (with the spread of the network's {calibrated.network_members} cross-validation members)"
+    elif calibrated.network is not None and sigma is not None:
+        line += " (the physical model's; a single network's own uncertainty is not estimated)"
     elif sigma is None and inside is not None:
         line += f"; no sigma_mm for stage {calibrated.stage} (no physical model identified in it)"
     print(line, file=sys.stdout if to_file else sys.stderr)

@@ -250,7 +250,9 @@ def domain_metrics(record: dict, robot, stages: dict, current: str) -> dict:
         test = stages.get(stage, {}).get("test", {}).get("position_mm", {})
         unc[stage] = {**over, "heldout_mean_position_mm": test.get("mean")}
     out["uncertainty"] = {"stage": current, "stages": unc,
-                          "network": "a neural stage's own uncertainty is not estimated: its rows carry the physical "
+                          "network": "a network stage's rows (predict, compensate, export) add the spread of its "
+                                     "cross-validation members when it is a fold ensemble (solver adam); a single "
+                                     "network's (br-lm) own uncertainty is not estimated: its rows carry the physical "
                                      "model's sigma_mm"}
     return out
 

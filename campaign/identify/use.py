@@ -160,14 +160,31 @@ class CalibratedRobot:
             return None
         return self.stored_domain.domain.contains(np.asarray(q, dtype=float).reshape(-1, self.robot.n_joints))
 
+    @property
+    def network_members(self) -> int:
+        """Members of the stage's network (0: no network; 1: a single network; K: a fold ensemble)."""
+        if self.network is None:
+            return 0
+        return int(self.network.weights_.shape[0]) if self.network.weights_.ndim == 2 else 1
+
     def sigma_mm(self, q, context=None):
-        """(n,) mm: the physical model's 1-σ position uncertainty at the tool point (√trace of its
-        3×3 covariance); None without domain.json or for a stage without a physical model
-        (``nominal``, ``ann``). A network's own uncertainty is not in it."""
-        unc = None if self.stored_domain is None else self.stored_domain.uncertainty.get(self.model.stage)
-        if unc is None:
+        """(n,) mm: the model's 1-σ position uncertainty at the tool point, √trace of its 3×3 covariance:
+        the physical model's (campaign.identify.uncertainty) and, for a network stage trained as a fold
+        ensemble, the spread of its cross-validation members' position corrections (their covariance
+        added: the members differ by the data each was trained on). None without domain.json, or for a
+        stage with neither (``nominal``; ``ann`` with a single network, whose uncertainty is not
+        estimated)."""
+        if self.stored_domain is None:
             return None
-        return 1e3 * unc.sigma_m(self.robot, self.model.effects, self.model.p_e, self.model.theta, q, context)
+        q = np.asarray(q, dtype=float).reshape(-1, self.robot.n_joints)
+        unc = self.stored_domain.uncertainty.get(self.model.stage)
+        var = None if unc is None else \
+            (1e3 * unc.sigma_m(self.robot, self.model.effects, self.model.p_e, self.model.theta, q, context)) ** 2
+        if self.network_members > 1:
+            members = self.network.predict_members(q)[:, :, :3]  # (K, n, 3) m
+            spread = 1e6 * np.sum(np.var(members, axis=0, ddof=1), axis=1)
+            var = spread if var is None else var + spread
+        return None if var is None else np.sqrt(var)
 
     def compensate(self, T_target, q_start, context=None, *, tol_m: float = 1e-9, tol_rad: float = 1e-8,
                    max_iter: int = 50, step_rad: float = 1e-6, max_step_rad: float = 0.1):
