@@ -529,3 +529,17 @@ def test_a_second_log_that_repeats_the_end_of_the_first_and_long_pauses(tmp_path
     assert main(["import", "--stream", str(tmp_path / "a.csv"), *args]) == 0
     assert main(["import", "--stream", str(tmp_path / "b.csv"), *args]) == 0
     check_found_and_right(run, stops, writer, got)
+
+
+def test_a_log_naming_the_reflectors_its_own_way_is_assigned_by_geometry(tmp_path, robot):
+    """The tracker's software calls the reflectors SMR_A, SMR_B, SMR_C (not robot.yaml's names): which
+    is which comes from the distances, and the robot's names are stored."""
+    run, stops, writer = make_run(tmp_path, robot, n_poses=60, seed=59)
+    got = writer.write(tmp_path / "log.csv")
+    text = (tmp_path / "log.csv").read_text()
+    for own, theirs in zip(writer.names, ("SMR_B", "SMR_C", "SMR_A")):
+        text = text.replace(f",{own}\n", f",{theirs}\n")
+    (tmp_path / "log.csv").write_text(text)
+    assert main(["import", "--stream", str(tmp_path / "log.csv"), "--run", str(run), "--length-unit", "mm",
+                 "--frame", "tracker", "--quiet"]) == 0
+    check_found_and_right(run, stops, writer, got)

@@ -102,10 +102,12 @@ def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamRes
                          targets=tuple(r.name for r in robot.reflectors))
     state = _previous(run, frame, layout)
     first_stop = int(state.get("next_stop", 0))
-    P_E, kind, names = measured_points(robot, layout)
-    windows, finder = find_windows(layout, P_E, progress)
     measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
     first_m = int(np.searchsorted(measured_idx, first_stop))
+    P_E, kind, names = measured_points(robot, layout)
+    if layout.aliases:  # the log's own reflector names: which of the robot's each is
+        P_E, names = assign_aliases(robot, layout, stops, measured_idx, first_m)
+    windows, finder = find_windows(layout, P_E, progress)
     if layout.target_col is None:  # one point: which of the tool's (its reflectors, the origin) fits
         P_E, names = tracked_point(robot, stops, measured_idx, windows, first_m, finder.t_first)
     matches = match_stops(robot, stops, measured_idx, windows, P_E, first_m, finder.t_first)
@@ -145,9 +147,39 @@ def measured_points(robot, layout) -> tuple:
 
     names = tuple(r.name for r in robot.reflectors)
     if layout.target_col is not None:
-        kind = "pose" if len(names) >= 3 else "markers" if len(names) == 2 else "point"
-        return robot.reflector_positions_in_E, kind, names
+        k = len(layout.targets) if layout.aliases else len(names)
+        kind = "pose" if k >= 3 else "markers" if k == 2 else "point"
+        return robot.reflector_positions_in_E[:k], kind, names[:k]
     return measured_point(robot, "point")[None], "point", (names[0] if len(names) == 1 else "tool",)
+
+
+def assign_aliases(robot, layout, stops, measured_idx, first_m) -> tuple:
+    """(P_E (k, 3) m, names): the robot's reflectors the log's own k names stand for, in the log's
+    code order: of every assignment, the one whose distances confirm the most matches over the
+    still windows of the log's first block (each reflector's distances between stops differ)."""
+    from itertools import permutations
+
+    from campaign.program.stream.align import ALIGN_TIME_FIT_WINDOWS, align
+    from campaign.program.stream.logread import iter_log
+    from campaign.program.stream.windows import WindowFinder
+
+    finder = WindowFinder()
+    first = next(iter(iter_log(layout)), None)
+    if first is None:
+        raise DataError(f"{layout.path}: no measured rows (every x, y, z empty)")
+    finder.feed(first)
+    windows = finder.finish()[:ALIGN_TIME_FIT_WINDOWS]
+    mstops = [stops[k] for k in measured_idx]
+    dwell = np.array([s.dwell_s for s in mstops])
+    E = robot.reflector_positions_in_E
+    robot_names = tuple(r.name for r in robot.reflectors)
+    best, best_n = None, -1
+    for perm in permutations(range(len(E)), len(layout.targets)):
+        P = nominal_points(robot, mstops, E[list(perm)])
+        n = sum(m.confirmed for m in align(windows, P, dwell, first_stop=first_m, t_start=finder.t_first))
+        if n > best_n:
+            best, best_n = perm, n
+    return E[list(best)], tuple(robot_names[i] for i in best)
 
 
 def tracked_point(robot, stops, measured_idx, windows, first_m, t_first) -> tuple:

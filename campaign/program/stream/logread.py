@@ -49,6 +49,9 @@ class LogLayout:
     length_scale: float
     #: the header's row in the file (1-based; comment lines before it)
     header_row: int = 1
+    #: ``targets`` are the log's own names (none of them the robot's), in order of appearance:
+    #: campaign.program.stream.importer assigns them to the robot's reflectors
+    aliases: bool = False
 
     @property
     def n_cols(self) -> int:
@@ -119,8 +122,32 @@ def read_layout(path, *, length_unit: str = "m", columns: dict | None = None, ta
                         "map yours with --columns x=COLUMN,...")
     if length_unit not in ("m", "mm"):
         raise DataError(f"--length-unit must be m or mm, got {length_unit!r}")
-    return LogLayout(path, delim, header, time_col, iso, xyz, col("target"), tuple(targets),
-                     1e-3 if length_unit == "mm" else 1.0, header_row)
+    target_col = col("target")
+    targets = tuple(targets)
+    aliases = False
+    if target_col is not None and targets:
+        seen = _first_targets(path, delim, target_col, header_row)
+        if seen and not set(seen) & set(targets) and len(seen) <= len(targets):
+            # the software's own names for the reflectors: which is which comes from the geometry
+            targets, aliases = seen, True
+    return LogLayout(path, delim, header, time_col, iso, xyz, target_col, targets,
+                     1e-3 if length_unit == "mm" else 1.0, header_row, aliases)
+
+
+def _first_targets(path, delim, column, header_row, max_bytes: int = 1 << 20) -> tuple:
+    """The distinct non-empty values of the target ``column`` in the log's first ``max_bytes``, in
+    order of appearance."""
+    seen = {}
+    with open(path, "rb") as f:
+        for _ in range(header_row):
+            f.readline()
+        data = f.read(max_bytes)
+        lines = data.decode("utf-8", errors="replace").splitlines()
+        for raw in lines if len(data) < max_bytes else lines[:-1]:  # not a line cut by the read
+            cells = raw.strip().split(delim)
+            if len(cells) > column and cells[column].strip():
+                seen.setdefault(cells[column].strip(), None)
+    return tuple(seen)
 
 
 def _first_value_is_number(path, delim, column, header_row) -> bool:
@@ -327,8 +354,9 @@ def _parse_lines(layout: LogLayout, data: bytes, row0: int):
                 vals.append(xyz)
                 continue
             if name not in code:
+                whose = "the log's first reflectors" if layout.aliases else "the robot's reflectors"
                 raise DataError(f"{path}: row {row}, column {layout.header[layout.target_col]}: {name!r} is not one "
-                                f"of the robot's reflectors ({', '.join(layout.targets)})")
+                                f"of {whose} ({', '.join(layout.targets)})")
             g.append(code[name])
         else:
             g.append(0)
