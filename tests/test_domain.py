@@ -305,3 +305,24 @@ def test_a_fold_ensembles_rows_add_the_spread_of_its_members(robot, tmp_path, ca
     on_nominal = CalibratedRobot(run, stage="ann")  # the network on the nominal model: its spread alone
     m0 = on_nominal.network.predict_members(q)[:, :, :3]
     assert np.allclose(on_nominal.sigma_mm(q), np.sqrt(np.sum(np.var(m0, axis=0, ddof=1), axis=1)) * 1e3, rtol=1e-9)
+
+
+def test_a_prismatic_joint_that_never_moved_is_named_in_mm():
+    from importlib import metadata
+
+    from campaign.model.robot import RobotModel
+
+    try:
+        metadata.distribution("example-robot-data")
+    except metadata.PackageNotFoundError:
+        pytest.skip("example-robot-data (test extra) is not installed")
+    robot = RobotModel.load("tiago")  # a prismatic torso, then 7 revolute joints
+    q = random_joint_poses(robot, 80, seed=2)
+    q[:, 0] = 0.2
+    poses = synthesize(make_truth(robot, seed=1), q, seed=3)
+    make = lambda **kw: CalibrationModel(robot=robot, **kw)  # noqa: E731
+    model, ident = hold_unidentified(make, make().fit(q, poses.T_IE), q, poses.T_IE)
+    msg = ident.findings(robot)[0].message
+    assert msg.startswith("joint 1 never moved (q1 = 200.0 mm in all 80 training poses): its length offset and axis "
+                          "direction cannot be identified")
+    assert np.isfinite(model.condition_number_) and ident.held

@@ -113,8 +113,9 @@ class Identifiability:
         held = f"; held {where}: {', '.join(self._held_words)}" if self.held else (
             f"; held {where}" if self.unidentified else "")
         for j, value, n in self.still:
+            what = "length offset and axis direction" if robot.prismatic[j] else "zero offset and axis"
             out.append(Finding(CODE, f"joint {j + 1} never moved (q{j + 1} = {_joint_value(robot, j, value)} in all "
-                                     f"{n} training poses): its zero offset and axis cannot be identified, and the "
+                                     f"{n} training poses): its {what} cannot be identified, and the "
                                      f"model holds only at q{j + 1} = {_joint_value(robot, j, value)}{held}; "
                                      f"measure poses over q{j + 1}'s range"))
             held = ""
