@@ -80,13 +80,15 @@ def test_predict_at_other_q1_is_outside_with_a_larger_sigma_and_strict_refuses(s
     sigma = np.array([float(r["sigma_mm"]) for r in rows])
     assert inside[:4].all() and not inside[4:].any()
     assert sigma[4:].min() > 20 * sigma[:4].max()
-    assert "4 of 8 rows outside the calibrated domain" in said
+    assert "4 of 8 rows outside the calibrated domain" in said and "q1 beyond the training range: 4" in said
     # the truth, read after the pipeline answered: the predicted poses are off by more there
     T = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows])
     err_mm = 1e3 * np.linalg.norm(T - truth.pose_in_measured_frame(q, poses.T_LI)[:, :3, 3], axis=1)
     assert err_mm[4:].mean() > 20 * err_mm[:4].mean()
     assert main(["predict", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--strict"]) == 1
-    assert "outside the calibrated domain with --strict" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "outside the calibrated domain with --strict (pose_id 4 (q1 beyond the training range)" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_domain_json_carries_the_calibration_id(still_run):

@@ -387,30 +387,46 @@ def _predict(args):
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
     header, rows, inside, sigma = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
-    _refuse_outside(args, pose_id, inside, "rows")
+    why = _why_outside(calibrated, q, inside)
+    _refuse_outside(args, pose_id, inside, "rows", why)
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} calibrated poses ({calibrated.stage}) to {args.out}")
-    _domain_line(calibrated, inside, sigma, "rows", bool(args.out))
+    _domain_line(calibrated, inside, sigma, "rows", bool(args.out), why)
     return 0
 
 
-def _refuse_outside(args, pose_id, inside, what) -> None:
-    """--strict: one line naming the rows outside the calibrated domain, before anything is written."""
+def _why_outside(calibrated, q, inside) -> list:
+    """What puts each row outside the calibrated domain ("" inside; [] without a domain)."""
+    if inside is None or inside.all():
+        return []
+    return calibrated.stored_domain.domain.why_outside(q, [f"q{j + 1}" for j in range(calibrated.robot.n_joints)])
+
+
+def _refuse_outside(args, pose_id, inside, what, why=()) -> None:
+    """--strict: one line naming the rows outside the calibrated domain (and why), before anything is written."""
+    import numpy as np
+
     from campaign.errors import DataError
 
     if getattr(args, "strict", False) and inside is not None and not inside.all():
-        ids = [int(i) for i in pose_id[~inside]]
-        raise DataError(f"{args.csv}: {len(ids)} of {len(inside)} {what} outside the calibrated domain with --strict "
-                        f"(pose_id {', '.join(map(str, ids[:10]))}{', ...' if len(ids) > 10 else ''}): nothing written")
+        rows = np.flatnonzero(~inside)
+        named = [f"{int(pose_id[k])}" + (f" ({why[k]})" if len(why) else "") for k in rows[:10]]
+        raise DataError(f"{args.csv}: {len(rows)} of {len(inside)} {what} outside the calibrated domain with --strict "
+                        f"(pose_id {', '.join(named)}{', ...' if len(rows) > 10 else ''}): nothing written")
 
 
-def _domain_line(calibrated, inside, sigma, what, to_file: bool) -> None:
+def _domain_line(calibrated, inside, sigma, what, to_file: bool, why=()) -> None:
     """The summary line of in_domain and sigma_mm: beside "wrote ..." on stdout when the CSV went to a
-    file, on stderr when the CSV itself is on stdout."""
+    file, on stderr when the CSV itself is on stdout; why: what puts each row outside, counted."""
+    from collections import Counter
+
     from campaign.identify.domain import domain_summary
 
     line = domain_summary(inside, sigma, what)
+    counts = Counter(w for w in why if w)
+    if counts:
+        line += " (" + "; ".join(f"{w}: {n}" for w, n in counts.most_common(4)) + ")"
     if calibrated.network_members > 1 and sigma is not None:
         line += f" (with the spread of the network's {calibrated.network_members} cross-validation members)"
     elif calibrated.network is not None and sigma is not None:
