@@ -805,18 +805,20 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     else:
         contrib = ()
     signature = None
+    timed = run_time_test(data, fv.floor)
     if struct_sig:
         from campaign.diagnose.signature import describe
 
         say("signature of the structure (periodicity, time, gravity load)")
-        signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct,
-                             struct.depends_on(MIN_IMPORTANCE_SHARE), r_out, data.poses.time_s[data.tr],
-                             residual_fit=r_fit)
+        depends = struct.depends_on(MIN_IMPORTANCE_SHARE)  # time and temperature as the time test ranks them
+        depends = rank_by_time_test(depends, timed if set(depends) & set(TIME_INPUTS) else None)
+        signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct, depends, r_out,
+                             data.poses.time_s[data.tr], residual_fit=r_fit)
     residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
     return Diagnosis(data.run_dir, data.current, scores, choose_verdict(scores, struct, struct_sig, fv), len(data.tr),
                      data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot), data.model_note, contrib,
-                     run_time_test(data, fv.floor),
+                     timed,
                      fv.round_off)

@@ -57,7 +57,7 @@ class TimeTest:
                 "drift_checks": self.drift_checks, "alpha": self.alpha, "moved": self.moved}
 
     def text(self) -> str:
-        what = (f"{self.poses} poses measured again over {self.span_h:.2g} h ({self.readings} readings"
+        what = (f"{self.poses} pose{'' if self.poses == 1 else 's'} measured again over {self.span_h:.2g} h ({self.readings} readings"
                 + (", the drift check" if self.drift_checks else "") + ")")
         if self.moved:
             return f"time test: {what} moved beyond the noise (χ² {self.statistic:.1f} on {self.dof}, p = {self.p_value:.2g})"
