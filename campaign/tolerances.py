@@ -26,6 +26,12 @@ SMALL_ANGLE = 1e-6
 #: (no joint of a 6R arm turns more than 2*pi in one direction).
 RADIANS_MAX_ABS = 2.0 * 3.141592653589793 + 1e-9
 
+#: ... when some joint of the file reads beyond this (3 turns' worth of rad, 19 in degrees: a
+#: campaign in degrees turns some joint farther). Readings a little past 2*pi in a file that
+#: reads no joint beyond it are radians past a limited joint's limit (a joint offset of another
+#: convention, another robot), said by the limit check with its hint, not "looks like degrees"
+DEGREES_EVIDENCE_ABS = 6.0 * 3.141592653589793
+
 #: A position column whose magnitude exceeds this is taken to be in mm, not m
 #: (no point of a cell is 20 m from F_I).
 METRES_MAX_ABS = 20.0

@@ -26,8 +26,8 @@ from campaign.errors import DataError
 from campaign.fileio import atomic_open
 from campaign.measure.data import CSV_COLUMNS, MAX_STORED_POSE_ID, MeasuredPoses
 from campaign.model.rotations import kuka_abc, matrix_to_rotvec, quaternion_to_matrix, rotvec_to_matrix, urdf_rpy
-from campaign.tolerances import (JOINT_LIMIT_SLACK, METRES_MAX_ABS, QUATERNION_NORM_TOL, RADIANS_MAX_ABS,
-                                 ROTVEC_NORM_SLACK)
+from campaign.tolerances import (DEGREES_EVIDENCE_ABS, JOINT_LIMIT_SLACK, METRES_MAX_ABS, QUATERNION_NORM_TOL,
+                                 RADIANS_MAX_ABS, ROTVEC_NORM_SLACK)
 
 
 #: rows parsed and validated together when streaming a CSV (bounds the reader's memory)
@@ -580,7 +580,15 @@ def check_joint_units(path, q, written, lines, robot=None, read_in_deg: bool = F
     DataError naming the line, the column and the option; import, predict and compensate alike."""
     N = q.shape[1]
     prismatic = robot.prismatic if robot is not None else np.zeros(N, dtype=bool)
+    limited = (np.array([t != "continuous" for t in robot.joint_types], dtype=bool) if robot is not None
+               else np.zeros(N, dtype=bool))
+    revolute = ~prismatic
+    # degrees read as rad: some joint's readings beyond DEGREES_EVIDENCE_ABS; below, a limited joint a
+    # little past 2*pi is past its limit (an offset, another robot), which the limit check says
+    deg_like = bool(revolute.any() and np.abs(written[:, revolute]).max() > DEGREES_EVIDENCE_ABS)
     for j in range(N):
+        if not prismatic[j] and (read_in_deg or (limited[j] and not deg_like)):
+            continue  # in degrees already, or no sign of degrees: past the limits is the limit check's to say
         if prismatic[j]:
             big, what, v = np.abs(q[:, j]) > METRES_MAX_ABS, ("m: a prismatic joint's value must be in m (this looks "
                                                               "like mm; --length-unit mm)"), q[:, j]

@@ -436,6 +436,14 @@ class RobotModel:
             where = _row_label(i, pose_ids, lines)
             said = "" if slack_source is None else \
                 f" (limit slack in force: {limit_slack_text(self, np.broadcast_to(slack, (N,))[j], j)}, {slack_source})"
+            from campaign.tolerances import FAR_PAST_LIMIT_M, FAR_PAST_LIMIT_RAD
+
+            excess = (lim - q[i, j]) if lo[i, j] else (q[i, j] - lim)
+            if slack_source is not None and excess > (FAR_PAST_LIMIT_M if self.prismatic[j] else FAR_PAST_LIMIT_RAD):
+                past = f"{excess * 1e3:.3g} mm" if self.prismatic[j] else f"{np.degrees(excess):.3g} deg"
+                said = (f" ({past} past it: no reading slightly past a limit, but joints of another robot, unit or "
+                        f"joint convention: the file is read as {self.name}'s, in the controller's convention of its "
+                        "robot.yaml; --angle-unit)")
             raise DataError(f"{field}: {where}, q{j + 1} = {q[i, j]:.6g} {u} is outside the joint limit "
                             f"{lim:.6g} {u} of {self.name}{said}")
         return q
