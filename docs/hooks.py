@@ -116,14 +116,15 @@ def doc_value(name: str) -> str:
 
 
 def timing_text(name: str) -> str:
-    """``13 s wall at load 2.0`` from docs/generated/timings.json, or "" when not recorded."""
+    """`` (13 s wall at load 2.0 when generated)`` from docs/generated/timings.json, with its leading
+    space (the marker follows a word), or "" when not recorded."""
     path = ROOT / "docs" / "generated" / "timings.json"
     try:
         t = json.loads(path.read_text())[name]
     except (OSError, ValueError, KeyError, TypeError):
         return ""
     peak = f", {t['peak_rss_mb']:.0f} MB peak" if t.get("peak_rss_mb") else ""
-    return f"{t['wall_s']:.0f} s wall{peak} at load {t['load']:.1f} when generated"
+    return f" ({t['wall_s']:.0f} s wall{peak} at load {t['load']:.1f} when generated)"
 
 
 def _value(match) -> str:

@@ -573,3 +573,77 @@ def test_predict_reads_the_file_as_the_runs_import_did_with_its_columns(tmp_path
     np.testing.assert_array_equal(_read(outs[1])[1], ref)
     np.testing.assert_array_equal(_read(outs[0])[1][:, 1:], ref[:, 1:])
     np.testing.assert_array_equal(_read(outs[0])[1][:, 0], values[:, 0])  # the file's own pose ids, Nr
+
+
+def test_the_signature_leaves_out_time_when_the_time_test_says_the_same_poses_did_not_move(tmp_path, capsys):
+    """The tour sweeps joints 2 and 3 over the campaign (time stands in for them); eight poses
+    measured again afterwards did not move: the signature and the verdict say what the time test
+    says, not 'depends on time_s ... grows with time' beside it."""
+    src = _synth(tmp_path, "g", "--poses", "160", "--hidden", "ground_compliance", "--seed", "11")
+    header, values = _read(src)
+    col = {h: j for j, h in enumerate(header)}
+    rank = np.argsort(np.argsort(values[:, col["q2"]] + values[:, col["q3"]]))
+    values[:, col["time_s"]] = 30.0 * rank
+    again = values[::20].copy()  # measured again after the campaign, tracker noise only
+    again[:, col["pose_id"]] += 10 ** 9
+    again[:, col["time_s"]] = 30.0 * len(values) + 60 + 30 * np.arange(len(again))
+    again[:, [col["x"], col["y"], col["z"]]] += np.random.default_rng(0).normal(0, 1e-5, (len(again), 3))
+    _write(tmp_path / "toured.csv", header, np.r_[values, again])
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "toured.csv"), "--run", str(run), "--quiet"]) == 0
+    (run / "campaign.yaml").write_text((run / "campaign.yaml").read_text() + "tracker: {noise_m: 1.0e-5}\n")
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--no-report", "--candidates", "drift"]) == 0
+    said = capsys.readouterr().out
+    out = json.loads((run / "diagnose" / "diagnosis.json").read_text())
+    assert out["time_test"] and not out["time_test"]["moved"], said
+    assert out["unexplained"]["depends_on"] and "time_s" not in out["unexplained"]["depends_on"], said
+    signature = out["unexplained"].get("signature") or out.get("signature")
+    assert "time_s" not in signature["depends_on"] and "time_s" not in signature["growth"], said
+    assert "grows with time" not in said and "depends on time_s" not in said  # was: both, beside the time test
+
+
+def test_readings_a_little_past_2pi_or_in_degrees_already_are_past_a_limit_not_degrees(tmp_path, capsys):
+    """A joint offset of another convention takes UR10's q6 past its ±2π limit, and a reading of
+    400° given with --angle-unit deg is 40° past it: neither 'looks like degrees; --angle-unit deg'."""
+    src = _synth(tmp_path, "u", "--robot", "ur10", "--poses", "20", "--seed", "2")
+    header, values = _read(src)
+    shifted = values.copy()
+    shifted[:, header.index("q6")] = np.where(values[:, header.index("q6")] > 0, 6.5, -6.6)
+    _write(tmp_path / "offset.csv", header, shifted)
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "offset.csv"), "--run", str(tmp_path / "a"), "--robot", "ur10"]) == 1
+    err = capsys.readouterr().err
+    assert "rad is outside the joint limit" in err and "joint convention" in err and "looks like degrees" not in err
+    deg = values.copy()
+    cols = [header.index(f"q{j}") for j in range(1, 7)]
+    deg[:, cols] = np.degrees(values[:, cols])
+    deg[3, header.index("q6")] = 400.0
+    _write(tmp_path / "deg.csv", header, deg)
+    assert main(["import", str(tmp_path / "deg.csv"), "--run", str(tmp_path / "b"), "--robot", "ur10",
+                 "--angle-unit", "deg"]) == 1
+    err = capsys.readouterr().err  # was: '6.98132 exceeds 2*pi ... (this looks like degrees; --angle-unit deg)'
+    assert "q6: 6.98132 rad is outside the joint limit" in err and "40 deg past" in err
+    assert "looks like degrees" not in err
+    deg[3, header.index("q6")] = 700.0  # a file in degrees read as rad is still named so
+    _write(tmp_path / "deg.csv", header, deg)
+    assert main(["import", str(tmp_path / "deg.csv"), "--run", str(tmp_path / "c"), "--robot", "ur10"]) == 1
+    assert "looks like degrees; --angle-unit deg" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cmd", ["predict", "compensate"])
+def test_predict_names_a_reading_far_past_a_limit_without_suggesting_limit_slack(comau_run, tmp_path, capsys, cmd):
+    run, _ = comau_run
+    (tmp_path / "far.csv").write_text("q1,q2,q3,q4,q5,q6\n0.1,0.9,-1.2,0.3,-0.6,0.2\n3.5,0.9,-1.2,0.3,-0.6,0.2\n")
+    (tmp_path / "near.csv").write_text("q1,q2,q3,q4,q5,q6\n2.933,0.9,-1.2,0.3,-0.6,0.2\n")
+    capsys.readouterr()
+    assert main([cmd, str(run), "--csv", str(tmp_path / "far.csv")]) == 1
+    err = capsys.readouterr().err  # was: '(limit slack in force: none, ...; --limit-slack DEG_OR_MM to accept more)'
+    from campaign.model.robot import RobotModel
+
+    far = np.degrees(3.5 - RobotModel.load().q_upper[0])
+    assert f"{far:.3g} deg past it" in err and "another robot, unit or joint convention" in err
+    assert "--limit-slack" not in err
+    assert main([cmd, str(run), "--csv", str(tmp_path / "near.csv")]) == 1
+    assert "--limit-slack DEG_OR_MM to accept more" in capsys.readouterr().err  # slightly past: the slack
