@@ -44,6 +44,9 @@ def register(sub):
     p.add_argument("--limit-slack", type=float, default=0.0, metavar="DEG_OR_MM",
                    help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
                         "prismatic ones); the readings accepted are counted and said")
+    p.add_argument("--targets", default=None, metavar="REFLECTOR=NAME,...",
+                   help="with --stream: the log's names of the robot's reflectors, e.g. rrr1=SMR1,rrr2=SMR2,brr=SMR3 "
+                        "(default: the robot's own names)")
     p.add_argument("--strict", action="store_true",
                    help="refuse the import (exit 1, nothing written) when a plausibility check warns")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -162,6 +165,10 @@ def register(sub):
 def _import(args):
     if args.stream is not None or args.csv is None:
         return _import_stream(args)
+    if args.targets is not None:
+        from campaign.errors import ConfigError
+
+        raise ConfigError("--targets: only with --stream (a measured-pose CSV names its reflectors m1..mk)")
     from campaign.measure.importer import import_run
 
     from campaign.measure.csvio import ImportOptions
@@ -214,12 +221,28 @@ def _import_stream(args):
     bar = Progress("import --stream", total=1000, enabled=not args.quiet and sys.stderr.isatty(), unit="‰")
     try:
         res = import_stream(args.stream, args.run, length_unit=args.length_unit, frame=args.frame,
-                            columns=parse_columns(args.columns), progress=lambda f: bar.update(int(1000 * f) - bar.done))
+                            columns=parse_columns(args.columns), progress=lambda f: bar.update(int(1000 * f) - bar.done),
+                            targets=parse_targets(args.targets))
     finally:
         bar.close()
     print(res.summary(args.stream, args.run))
     print(f"written: {res.match_csv}")
     return 0
+
+
+def parse_targets(text) -> dict:
+    """``--targets rrr1=SMR1,...`` to {reflector: the log's name}; ConfigError on a malformed item."""
+    from campaign.errors import ConfigError
+
+    out = {}
+    for item in (text or "").split(",") if text else []:
+        name, eq, log_name = (v.strip() for v in item.partition("="))
+        if not eq or not name or not log_name:
+            raise ConfigError(f"--targets: expected REFLECTOR=NAME,... (e.g. rrr1=SMR1), got {item.strip()!r}")
+        if name in out:
+            raise ConfigError(f"--targets: {name} named twice")
+        out[name] = log_name
+    return out
 
 
 def print_warnings(warnings) -> None:

@@ -6,7 +6,9 @@ does not matter), and the stops skipped between two windows must have had time f
 (only time differences are used: the clock's offset does not matter). A dynamic programme over the
 windows in time order finds the monotone matching of highest score:
 
-* each matched window gains ALIGN_GAIN;
+* each matched window gains ALIGN_GAIN times the share of the tool's reflectors it holds (a
+  fragment at a stop, such as the reflector the tracker followed into it while the robot settled,
+  gains less than the stop's whole measurement beside it, which is then the one matched);
 * each pair of successive matches pays half the squared distance residual in tolerances
   (STREAM_DISTANCE_TOL_M + STREAM_DISTANCE_TOL_REL · distance), at most ALIGN_PAIR_CAP;
 * a stop without a window (a lost beam: skipped, the next window is not shifted onto it) pays
@@ -60,6 +62,9 @@ ALIGN_TIME_CAP = 16.0
 #: successive matches needed to fit the time model, and the windows of the first pass that fits it
 ALIGN_TIME_MIN_PAIRS = 5
 ALIGN_TIME_FIT_WINDOWS = 400
+#: the time fit's outliers are beyond 3 robust deviations of its residuals, a deviation of at least
+#: this (s): a log's stamps are no finer than its samples (0.1 s at 10 Hz)
+ALIGN_TIME_MIN_MAD_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -139,8 +144,13 @@ def fit_time_model(matches, windows, dwell_s, motion_s):
     for _ in range(2):
         coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
         res = y - A @ coef
-        mad = np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-9
-        keep = np.abs(res) <= 3 * 1.4826 * mad + 1e-6
+        # about the residuals' median, at least a sample's worth of scale: many pairs alike (stops
+        # one joint apart, each the same time) leave a median deviation of zero about a median off zero
+        centre = np.median(res[keep])
+        mad = max(float(np.median(np.abs(res[keep] - centre))), ALIGN_TIME_MIN_MAD_S)
+        keep = np.abs(res - centre) <= 3 * 1.4826 * mad
+        if keep.sum() < ALIGN_TIME_MIN_PAIRS:
+            return None
     if not np.all(np.isfinite(coef)) or coef[0] < 0 or coef[1] <= 0:
         return None
     return TimeModel(float(coef[0]), float(coef[1]), cum_dwell, cum_motion)
@@ -182,6 +192,7 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
         for c, pos in w.position.items():
             W[i, c] = pos
     has = np.isfinite(W[:, :, 0])
+    gain = ALIGN_GAIN * has.sum(axis=1) / k
     t0 = np.array([w.t0 for w in windows])
     t1 = np.array([w.t1 for w in windows])
     # the dwells as the log keeps them (the clock's rate, a program run slower or faster): scaled by
@@ -213,7 +224,7 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
             hi = int(reach(np.int64(first_stop), np.float64(t0[i] - t_start)))
             J = np.arange(first_stop, hi + 1)
             cJ.append(J)
-            cS.append(ALIGN_GAIN - ALIGN_REJECT_WINDOW * i - ALIGN_SKIP_STOP * (J - first_stop))
+            cS.append(gain[i] - ALIGN_REJECT_WINDOW * i - ALIGN_SKIP_STOP * (J - first_stop))
             cB.append(np.full(len(J), -1))
             cK.append(np.full(len(J), -1))
         # every predecessor's states at once: the last ALIGN_LOOKBACK windows', and the best older one
@@ -241,7 +252,7 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
                 d_pred = np.linalg.norm(P[J, c] - P[Ja, c], axis=1)
                 r = (d_obs - d_pred) / (tol + STREAM_DISTANCE_TOL_REL * d_pred)
                 r[~common.any(axis=1)] = np.nan
-                S = Sp[rep] + ALIGN_GAIN - ALIGN_SKIP_STOP * (J - Ja - 1) \
+                S = Sp[rep] + gain[i] - ALIGN_SKIP_STOP * (J - Ja - 1) \
                     - ALIGN_REJECT_WINDOW * (i - Ba - 1) - _pair_cost(r)
                 if time_model is not None:
                     S = S - time_model.cost(t0[i] - t0[Ba], Ja, J)

@@ -75,12 +75,14 @@ def nominal_points(robot, stops, codes_in_E) -> np.ndarray:
 
 
 def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot", columns=None,
-                  progress=None) -> StreamResult:
+                  progress=None, targets=None) -> StreamResult:
     """Match the tracker log ``log`` to RUN's stops and store the result (module docstring).
 
     length_unit: "m" or "mm" of the log's x, y, z; frame: "robot" (the log is in the robot's base
     frame) or "tracker" (in the tracker's: calibrate identifies the tracker's pose); columns:
-    {column in the file: name used}; progress: callable receiving the fraction read (0..1)."""
+    {column in the file: name used}; progress: callable receiving the fraction read (0..1);
+    targets: {the robot's reflector name: the log's name for it} (a tracker's software names its
+    reflectors as its user did: SMR1, P1, ...)."""
     from campaign.run import RunFolder
 
     if frame not in ("robot", "tracker"):
@@ -89,17 +91,17 @@ def import_stream(log, run_dir, *, length_unit: str = "m", frame: str = "robot",
     if not run.path.is_dir():
         raise DataError(f"{run.path}: no such run folder")
     with run.lock("import --stream"):  # from the state read to the state written: one import at a time
-        return _import_locked(run, log, length_unit, frame, columns, progress)
+        return _import_locked(run, log, length_unit, frame, columns, progress, targets)
 
 
-def _import_locked(run, log, length_unit, frame, columns, progress) -> StreamResult:
+def _import_locked(run, log, length_unit, frame, columns, progress, targets=None) -> StreamResult:
     """The import's steps: the stops and the robot, the log's layout, what each row measures, the
     still windows, their matches to the stops, the outcomes, stored."""
     from campaign.program.stream.logread import read_layout
 
     stops, robot = _stops_and_robot(run)
     layout = read_layout(log, length_unit=length_unit, columns=columns,
-                         targets=tuple(r.name for r in robot.reflectors))
+                         targets=log_target_names(robot, targets))
     state = _previous(run, frame, layout)
     first_stop = int(state.get("next_stop", 0))
     measured_idx = np.array([s.stop for s in stops if s.measured], dtype=int)
@@ -237,6 +239,22 @@ def match_stops(robot, stops, measured_idx, windows, P_E, first_m, t_first) -> l
     except ConfigError:  # a robot without usable joint limits for Ruckig: distances and dwells alone
         motion = None
     return align(windows, P, dwell, first_stop=first_m, t_start=t_first, motion_s=motion)
+
+
+def log_target_names(robot, targets) -> tuple:
+    """The names the log gives the robot's reflectors, in the robot's order: ``targets`` {reflector:
+    the log's name} renames some or all of them; DataError naming an unknown reflector or a name
+    given twice."""
+    names = tuple(r.name for r in robot.reflectors)
+    targets = dict(targets or {})
+    unknown = [n for n in targets if n not in names]
+    if unknown:
+        raise DataError(f"--targets: {', '.join(unknown)} is not one of the robot's reflectors ({', '.join(names)}); "
+                        f"give REFLECTOR=LOG_NAME,... e.g. {names[0]}=SMR1")
+    out = tuple(targets.get(n, n) for n in names)
+    if len(set(out)) != len(out):
+        raise DataError(f"--targets: two reflectors with one name in the log ({', '.join(out)})")
+    return out
 
 
 def motion_times(robot, stops, measured_idx) -> np.ndarray:

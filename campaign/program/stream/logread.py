@@ -356,7 +356,8 @@ def _parse_lines(layout: LogLayout, data: bytes, row0: int):
             if name not in code:
                 whose = "the log's first reflectors" if layout.aliases else "the robot's reflectors"
                 raise DataError(f"{path}: row {row}, column {layout.header[layout.target_col]}: {name!r} is not one "
-                                f"of {whose} ({', '.join(layout.targets)})")
+                                f"of {whose} ({', '.join(layout.targets)}); name the log's reflectors with "
+                                f"--targets {layout.targets[0]}={name},...")
             g.append(code[name])
         else:
             g.append(0)
