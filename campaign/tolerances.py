@@ -153,6 +153,9 @@ POINT_REGISTRATION_MIN_TOLERANCES = 10.0
 #: length of a block of samples whose stillness is decided at once (s): short against a stop's
 #: dwell (seconds), long enough for a robust spread (5 to 50 samples at 10 to 1,000 Hz)
 STREAM_BLOCK_S = 0.2
+#: blocks are laid from the start of each run of one reflector; a time gap longer than this many
+#: sample intervals starts a new run (a lost sample or two does not)
+STREAM_RUN_GAP_SAMPLES = 5.0
 #: the still blocks' spread is the log's noise: this quantile of all blocks' spreads is taken as
 #: a still block's (a calibration campaign dwells far more than a tenth of its time)
 STREAM_NOISE_QUANTILE = 0.1

@@ -28,7 +28,7 @@ import numpy as np
 
 from campaign.tolerances import (STREAM_BLOCK_S, STREAM_BURST_S, STREAM_GAP_BLOCKS, STREAM_MIN_NOISE_M,
                                  STREAM_NOISE_QUANTILE, STREAM_POINT_MIN_DT_S, STREAM_POINT_STEP_M,
-                                 STREAM_REFLECTOR_TOL_M, STREAM_SAME_PLACE_FACTOR, STREAM_SPLIT_AFTER_WINDOWS,
+                                 STREAM_REFLECTOR_TOL_M, STREAM_RUN_GAP_SAMPLES, STREAM_SAME_PLACE_FACTOR, STREAM_SPLIT_AFTER_WINDOWS,
                                  STREAM_SPLIT_FACTOR, STREAM_SPLIT_RECENT_WINDOWS, STREAM_STILL_FACTOR,
                                  STREAM_SWITCH_BLOCKS, STREAM_SWITCH_S, STREAM_WINDOW_MAX_SAMPLES)
 
@@ -166,9 +166,10 @@ class WindowFinder:
             ct, cp, cg = self._carry
             t, p, g = np.concatenate([ct, t]), np.concatenate([cp, p]), np.concatenate([cg, g])
         B = self.B
-        start = run_blocks(g, B)
-        # the last reflector's run may go on in the next chunk: its samples past its last whole block wait
-        last = int(np.flatnonzero(np.r_[True, g[1:] != g[:-1]])[-1])
+        new = run_starts(t, g, STREAM_RUN_GAP_SAMPLES * self.dt_s)
+        start = run_blocks(new, len(g), B)
+        # the last run may go on in the next chunk: its samples past its last whole block wait
+        last = int(new[-1])
         rest = last + (len(t) - last) // B * B
         self._carry = (t[rest:], p[rest:], g[rest:])
         start = start[start + B <= rest]
@@ -310,18 +311,25 @@ class WindowFinder:
         return self.windows
 
 
-def run_blocks(g, B) -> np.ndarray:
-    """The first sample of each block of B samples, the blocks laid from the start of each run of
-    one reflector (a block never holds two, and a short run at a low rate is not cut by a block
-    boundary laid from the log's start: 8 samples of a reflector at 10 Hz make one block or none
-    when blocks of 5 are laid from the start, always one when laid from the run's)."""
+def run_starts(t, g, gap_s) -> np.ndarray:
+    """The first sample of each run of one reflector without a time gap longer than ``gap_s`` (s)."""
     if len(g) == 0:
         return np.zeros(0, np.int64)
-    s = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    e = np.r_[s[1:], len(g)]
-    n = (e - s) // B
-    first = np.repeat(s, n)
-    return first + B * (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+    return np.flatnonzero(np.r_[True, (g[1:] != g[:-1]) | (np.diff(t) > gap_s)])
+
+
+def run_blocks(starts, n, B) -> np.ndarray:
+    """The first sample of each block of B samples of n, the blocks laid from the start of each run
+    (``starts``, :func:`run_starts`): a block never holds two reflectors or a gap, and a short run
+    at a low rate is not cut by a block boundary laid from the log's start (8 samples of a reflector
+    at 10 Hz make one block or none when blocks of 5 are laid from the start, always one when laid
+    from the run's; 95 samples after a gap at 1,000 Hz, one block of 50 or none)."""
+    if len(starts) == 0:
+        return np.zeros(0, np.int64)
+    e = np.r_[starts[1:], n]
+    k = (e - starts) // B
+    first = np.repeat(starts, k)
+    return first + B * (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k))
 
 
 def _uniform(g, B) -> np.ndarray:
