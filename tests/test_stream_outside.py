@@ -70,25 +70,28 @@ def test_a_10_hz_vendor_log_with_8_samples_a_reflector(planned, tmp_path):
     vendor_import(planned, tmp_path, 2, rate_hz=10.0)
 
 
-def test_the_logs_own_reflector_names_are_mapped_with_targets(planned, tmp_path, capsys):
+def test_the_logs_own_reflector_names_are_found_or_mapped_with_targets(planned, tmp_path, capsys):
+    """P1..P3: which reflector each is comes from the geometry, or from --targets."""
     run, stops = fresh(planned, tmp_path)
     gen = VendorLog(stops, np.random.default_rng(3), rate_hz=10.0, pause_motion=0, hold=0)
     log, = gen.write(tmp_path / "tracker.csv", names=("P1", "P2", "P3"))
     base = ["import", "--stream", str(log), "--run", str(run), "--length-unit", "mm", "--frame", "tracker",
             "--columns", "time=Time,x=X,y=Y,z=Z,target=Target", "--quiet"]
-    for extra, says in (([], "--targets rrr1=P1"), (["--targets", "rrr1=P1,tcp=P2"], "tcp is not one of the robot's"),
+    for extra, says in ((["--targets", "rrr1=P1,tcp=P2"], "tcp is not one of the robot's"),
                         (["--targets", "rrr1=P1,rrr2=P1"], "two reflectors with one name"),
-                        (["--targets", "rrr1"], "expected REFLECTOR=NAME")):
+                        (["--targets", "rrr1"], "expected REFLECTOR=NAME"),
+                        (["--targets", "rrr1=P1,rrr2=P2,brr=P4"], "'P3' is not one of the robot's reflectors")):
         assert main(base + extra) == 1
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and says in err, err
         assert not (run / "measurements.sqlite").exists()
     assert main(["import", str(log), "--run", str(tmp_path / "other"), "--targets", "rrr1=P1"]) == 1
     assert "only with --stream" in capsys.readouterr().err
-    # a partial mapping: the names not given are the robot's own
-    assert main(base + ["--targets", "rrr1=P1,rrr2=P2,brr=P3"]) == 0
-    found, measured, wrong, _ = check(run, gen)
-    assert found >= 0.98 * measured and not wrong
+    for k, extra in enumerate(([], ["--targets", "rrr1=P1,rrr2=P2,brr=P3"])):
+        run, _ = fresh(planned, tmp_path / str(k))
+        assert main(base[:4] + [str(run)] + base[5:] + extra) == 0
+        found, measured, wrong, _ = check(run, gen)
+        assert found >= 0.98 * measured and not wrong
 
 
 def test_the_time_model_is_fitted_when_many_stops_take_the_same_time():

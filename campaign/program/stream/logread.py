@@ -357,7 +357,7 @@ def _parse_lines(layout: LogLayout, data: bytes, row0: int):
                 whose = "the log's first reflectors" if layout.aliases else "the robot's reflectors"
                 raise DataError(f"{path}: row {row}, column {layout.header[layout.target_col]}: {name!r} is not one "
                                 f"of {whose} ({', '.join(layout.targets)}); name the log's reflectors with "
-                                f"--targets {layout.targets[0]}={name},...")
+                                "--targets REFLECTOR=NAME,...")
             g.append(code[name])
         else:
             g.append(0)
