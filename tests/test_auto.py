@@ -367,3 +367,44 @@ def test_decide_calls_unexplained_a_structure_found_again_below_the_detection_li
     probe = replace(_round("reveal", None, ("q3",)), decision=Decision("reveal", "", reason="probe"))
     got = decide(d, _round(verdict=None, depends_on=("q3", "q2")), [probe], Limits(312, None, None), _StubLoop(30))
     assert (got.kind, got.reason) == ("stop", "unexplained") and "q3 and q2" in got.text
+
+
+def test_decide_takes_out_an_effect_that_does_not_earn_its_place_before_adding_anything():
+    from types import SimpleNamespace
+
+    from campaign.auto import Limits, decide
+    from campaign.diagnose.contribution import Contribution
+
+    weak = Contribution("backlash:4", None, 0.0100, 0.0099, -0.0001, 0.0002, None)
+    assert not weak.earns_place
+    c = SimpleNamespace(effect="cyclic", spec="cyclic:2", label="cyclic of joint 2", significant=True,
+                        description="d", heldout_mean_position_mm_before=0.2, heldout_mean_position_mm_after=0.1,
+                        gain=0.5)
+    d = _diagnosis("cyclic", [c])
+    d.removal = weak
+    d.effects_after_removal = lambda: ("joint_compliance:4",)
+    out = decide(d, _round(), [], Limits(312, None, None), _StubLoop(room=30))
+    assert (out.kind, out.effects, out.effect) == ("remove_effect", ("joint_compliance:4",), "backlash of joint 4")
+    assert out.text.startswith("take out backlash of joint 4") and "-0.1 ± 0.2 µm" in out.text
+
+
+def test_decide_stops_at_once_on_a_noise_free_cell_fitted_to_round_off():
+    from campaign.auto import Limits, decide
+
+    d = _diagnosis(None)
+    d.round_off, d.heldout_mean_position_mm = True, 2.8e-13
+    out = decide(d, _round(verdict=None), [], Limits(312, None, None), _StubLoop(room=30))
+    assert (out.kind, out.reason) == ("stop", "at_floor") and "noise-free" in out.text and "2.8e-13 mm" in out.text
+
+
+def test_no_probe_round_on_a_structure_below_the_stated_share_of_the_error():
+    from types import SimpleNamespace
+
+    from campaign.auto import weak_structure_inputs
+    from campaign.tolerances import MIN_ROUND_SHARE
+
+    d = _diagnosis(None, significant=False)
+    d.structure = SimpleNamespace(p_value=0.078, heldout_gain=0.004, depends_on=lambda share: ["q3"])
+    assert weak_structure_inputs(d) == []  # 0.4 % of the held-out error: no round spent on it
+    d.structure = SimpleNamespace(p_value=0.078, heldout_gain=MIN_ROUND_SHARE, depends_on=lambda share: ["q3"])
+    assert weak_structure_inputs(d) == ["q3"]

@@ -13,7 +13,9 @@ def register(sub):
                    help="effects already in the model: built-in names, path/file.py:ClassName (relative to the "
                         "current directory) or installed entry points (default: those in DIR/campaign.yaml)")
     p.add_argument("--candidates", metavar="NAME,...", default=None,
-                   help="candidate effects, named the same ways (default: every built-in and installed effect)")
+                   help="candidate effects, named the same ways (default: every built-in and installed effect); a "
+                        "joint-indexed one named without joints is searched over the robot's joints, NAME:2,3 "
+                        "scores those joints only")
     p.add_argument("--folds", type=int, default=None,
                    help="held-out folds on the training set (default: from the data, leave-one-out below 60 "
                         "training poses, else 5)")

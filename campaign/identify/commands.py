@@ -66,8 +66,9 @@ def register(sub):
                         "alone, the runs spread over --workers processes or the Dask cluster, one line each")
     p.add_argument("--effects", metavar="NAME,...", default=None,
                    help="physical effects to identify with the geometry: built-in names, path/file.py:ClassName "
-                        "(relative to the current directory) or installed entry points of group campaign.effects "
-                        "(default: those in DIR/campaign.yaml; docs/effects.md)")
+                        "(relative to the current directory) or installed entry points of group campaign.effects; "
+                        "a joint-indexed one over its joints as NAME:2,3,4 (default: those in DIR/campaign.yaml; "
+                        "docs/effects.md)")
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
     p.add_argument("--strict", action="store_true",
                    help="exit 1 and write nothing when a plausibility check warns (the previous calibration stays)")
