@@ -32,40 +32,39 @@ WARM_UP = '''import numpy as np
 from campaign.effects import Effect
 
 
-class WarmUp(Effect):
-    """The arm warms up: positions scale about the base by g (1 - exp(-t / 1 h))."""
+class ForearmWarmUp(Effect):
+    """The forearm warms up: the offset after joint 3 grows along x of its frame by g (1 - exp(-t / 0.5 h))."""
 
-    name = "warm_up"
-    description = "warm-up: the arm grows by g (1 - exp(-t / 1 h))"
+    name = "forearm_warm_up"
+    description = "warm-up of the forearm: its length grows by g (1 - exp(-t / 0.5 h))"
     context_keys = ("time_s",)
     param_names = ("g",)
-    param_units = ("1",)
-    typical_scale = 2e-4
+    param_units = ("m",)
+    typical_scale = 3e-4
 
-    def pose_map(self, params, T, q, context):
-        s = params[0] * (1.0 - np.exp(-np.asarray(context["time_s"], dtype=float) / 3600.0))
-        out = np.array(T, dtype=float, copy=True)
-        out[:, :3, 3] *= (1.0 + s)[:, None]
-        return out
+    def joint_twist(self, params, q, context):
+        xi = np.zeros((len(q), q.shape[1], 6))
+        xi[:, 2, 0] = params[0] * (1.0 - np.exp(-np.asarray(context["time_s"], dtype=float) / 1800.0))
+        return xi
 '''
 
-WOBBLE5 = '''import numpy as np
+WOBBLE4 = '''import numpy as np
 
 from campaign.effects import Effect
 
 
-class Wobble5(Effect):
-    """The wrist's bearing: joint 5's axis tilts about x of its frame by a sin(q5) + b cos(q5)."""
+class Wobble4(Effect):
+    """The forearm's bearing: joint 4's axis tilts about x of its frame by a sin(q4) + b cos(q4)."""
 
-    name = "wobble5"
-    description = "bearing run-out of joint 5"
+    name = "wobble4"
+    description = "bearing run-out of joint 4"
     param_names = ("a", "b")
     param_units = ("rad", "rad")
     typical_scale = 1e-3
 
     def joint_twist(self, params, q, context):
         xi = np.zeros((len(q), q.shape[1], 6))
-        xi[:, 4, 3] = params[0] * np.sin(q[:, 4]) + params[1] * np.cos(q[:, 4])
+        xi[:, 3, 3] = params[0] * np.sin(q[:, 3]) + params[1] * np.cos(q[:, 3])
         return xi
 '''
 
@@ -90,7 +89,7 @@ class Compliant4(Effect):
         return dq
 '''
 
-USER_FILES = {"runout.py": RUNOUT, "warm_up.py": WARM_UP, "wobble5.py": WOBBLE5, "compliant4.py": COMPLIANT4}
+USER_FILES = {"runout.py": RUNOUT, "warm_up.py": WARM_UP, "wobble4.py": WOBBLE4, "compliant4.py": COMPLIANT4}
 
 
 def hidden(effect, joints=None, params=None):
@@ -117,8 +116,9 @@ CASES = {
                   {"joint_compliance": {4}, "backlash": {6}}, None),
     "user_compliant_4": ("comau_racer5_080", ["../compliant4.py:Compliant4"], {"joint_compliance": {4}}, None),
     "runout_2_3": ("comau_racer5_080", ["../runout.py:Runout"], None, ("q2", "q3")),
-    "warm_up": ("comau_racer5_080", ["../warm_up.py:WarmUp"], None, ("time_s",)),
-    "user_wobble_5": ("comau_racer5_080", ["../wobble5.py:Wobble5"], None, ("q5",)),
+    # the simulated cell's temperature follows its clock (20 + 5 sin(2π t / 1 day) °C): either names the time
+    "forearm_warm_up": ("comau_racer5_080", ["../warm_up.py:ForearmWarmUp"], None, ("time_s", "temperature_c")),
+    "user_wobble_4": ("comau_racer5_080", ["../wobble4.py:Wobble4"], None, ("q4",)),
 }
 QUICK = ("compliant_joint_4", "runout_2_3", "none")
 

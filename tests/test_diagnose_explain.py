@@ -163,3 +163,22 @@ def test_a_noise_free_cell_stops_at_once_with_a_clear_line(tmp_path, robot):
     assert d.heldout_mean_position_mm < 1e-6
     assert "noise-free measurements, and the model fits them to round-off" in d.text()
     assert not d.worth_a_round
+
+
+def test_time_test_counts_the_floors_own_sampling_error():
+    """σ estimated from 9 back-to-back differences each time: with the F distribution the p-values of
+    a pose that does not move stay uniform; read as a known σ they would call it moving far too often."""
+    from scipy import stats
+
+    rng = np.random.default_rng(2)
+    q = np.repeat(rng.uniform(-1, 1, (1, 6)), 10, axis=0)
+    t = np.arange(10) * 400.0  # ten visits of one reference pose (drift checks)
+    group = same_pose_groups(q)
+    p_f, p_chi2 = [], []
+    for _ in range(400):
+        sigma_hat = np.sqrt(np.mean(rng.normal(0, 6e-6, (9, 3)) ** 2 * 2 / 2, axis=0))  # 9 differences / √2
+        xyz = rng.normal(0, 6e-6, (10, 3))
+        p_f.append(time_test(xyz, group, t, sigma_hat, sigma_dof=27).p_value)
+        p_chi2.append(time_test(xyz, group, t, sigma_hat).p_value)
+    assert stats.kstest(p_f, "uniform").pvalue > 0.01
+    assert np.mean(np.array(p_chi2) < 0.01) > 3 * np.mean(np.array(p_f) < 0.01) + 0.01

@@ -775,6 +775,7 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor):
         xyz.append(xyz_m), group.append(np.full(len(t_m), -1, dtype=np.int64)), t.append(t_m)
     legacy = readings["legacy"]
     return time_test(np.concatenate(xyz), np.concatenate(group), np.concatenate(t), floor.sigma_position_m,
+                     sigma_dof=3 * floor.dof if floor.source == "repeats" else 0,
                      drift_check_m=None if legacy is None else list(legacy[1]), alpha=ALPHA)
 
 
