@@ -175,15 +175,20 @@ class SerialExecutor:
     def __init__(self, threads: int | None = 1):
         self.threads = threads
 
-    def map(self, fn, tasks, on_units, on_done):
+    def map(self, fn, tasks, on_units, on_done, on_interrupt=None):
         from campaign.ann.mlp import torch_threads
 
         results = []
-        with torch_threads(self.threads):
-            for t in tasks:
-                r = fn(t, on_units and (lambda u, _id=t["id"]: on_units(_id, u)))
-                on_done(r)
-                results.append(r)
+        try:
+            with torch_threads(self.threads):
+                for t in tasks:
+                    r = fn(t, on_units and (lambda u, _id=t["id"]: on_units(_id, u)))
+                    on_done(r)
+                    results.append(r)
+        except KeyboardInterrupt:  # Ctrl-C stopped the training in this process itself
+            if on_interrupt:
+                on_interrupt()
+            raise
         return results
 
     def close(self):
@@ -208,19 +213,25 @@ class ProcessExecutor:
         self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init,
                                          initargs=(self._queue, threads_per_worker))
 
-    def map(self, fn, tasks, on_units, on_done):
+    def map(self, fn, tasks, on_units, on_done, on_interrupt=None):
         from concurrent.futures import FIRST_COMPLETED, wait
 
         futures = {self._pool.submit(fn, t): i for i, t in enumerate(tasks)}
         results = [None] * len(tasks)
         pending = set(futures)
-        while pending:
-            done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-            self._drain(on_units)
-            for f in done:
-                r = f.result()
-                results[futures[f]] = r
-                on_done(r)
+        try:
+            while pending:
+                done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+                self._drain(on_units)
+                for f in done:
+                    r = f.result()
+                    results[futures[f]] = r
+                    on_done(r)
+        except KeyboardInterrupt:  # Ctrl-C: the workers ignore it, so they are stopped here, at once
+            if on_interrupt:
+                on_interrupt()
+            self.abort()
+            raise
         self._drain(on_units)
         return results
 
@@ -281,7 +292,7 @@ class DaskExecutor:
             raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler ({exc})") from None
         self.workers = len(self.client.scheduler_info().get("workers", {})) or int(workers or 1)
 
-    def map(self, fn, tasks, on_units, on_done):
+    def map(self, fn, tasks, on_units, on_done, on_interrupt=None):
         from distributed import as_completed
 
         futures = [self.client.submit(fn, t, key=f"campaign-ann-{t['id']}-{os.getpid()}-{time.time_ns()}",
@@ -289,12 +300,18 @@ class DaskExecutor:
         self._futures = futures
         index = {f.key: i for i, f in enumerate(futures)}
         results = [None] * len(tasks)
-        for f in as_completed(futures):
-            r = f.result()
-            results[index[f.key]] = r
-            if on_units:
-                on_units(r["id"], None)
-            on_done(r)
+        try:
+            for f in as_completed(futures):
+                r = f.result()
+                results[index[f.key]] = r
+                if on_units:
+                    on_units(r["id"], None)
+                on_done(r)
+        except KeyboardInterrupt:  # Ctrl-C: this client's tasks cancelled on the cluster
+            if on_interrupt:
+                on_interrupt()
+            self.abort()
+            raise
         return results
 
     def close(self):
@@ -589,15 +606,13 @@ def cv_stats(dz_true, dz_pred, target_scale) -> dict:
 
 
 def _interruptible(executor, tasks, meter, say):
-    """``executor.map(run_task, ...)``; on Ctrl-C, says so at once, stops the executor's work
-    (:meth:`abort`: worker processes terminated) and re-raises, within seconds."""
-    try:
-        return executor.map(run_task, tasks, meter.units, meter.done)
-    except KeyboardInterrupt:
+    """``executor.map(run_task, ...)``; on Ctrl-C it says so at once, then the executor stops its
+    work (worker processes terminated, cluster tasks cancelled) and the interrupt goes on up."""
+    def stopping():
         if say:
             say(f"interrupted (Ctrl-C): stopping the network's training on {executor.name}; nothing is written")
-        executor.abort()
-        raise
+
+    return executor.map(run_task, tasks, meter.units, meter.done, on_interrupt=stopping)
 
 
 def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_lower=None, q_upper=None,
