@@ -534,3 +534,19 @@ def test_urdfs_that_are_xml_but_not_a_robot_arm_are_one_line_saying_why(tmp_path
     assert main(["model", "chain", "--robot", str(path)]) == 1
     err = capfd.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and re.search(rf"{re.escape(str(path))}: {match}", err), err
+
+
+def test_tracker_readings_name_the_unit_they_look_like():
+    from campaign.measure.plausibility import check_tracker_readings
+
+    P_E = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.06, 0.0]])  # m, in the tool frame
+    T_L = np.array([2.0, 0.5, -0.3])  # the tool 2 m from the tracker
+    names = ("a", "b", "c")
+    assert check_tracker_readings(P_E + T_L, P_E, names) is None  # metres: plausible
+    assert "look like inches" in check_tracker_readings((P_E + T_L) / 0.0254, P_E, names)
+    assert "look like centimetres" in check_tracker_readings((P_E + T_L) * 100, P_E, names)
+    odd = check_tracker_readings((P_E + T_L) * 7, P_E, names, "the default triad: robot.yaml names no reflectors")
+    assert "7× the 0.1166 m" in odd and "the tool's reflectors are not the default triad" in odd
+    # one reflector: the range alone; a reflector 0.2 m away read in mm
+    far = check_tracker_readings(np.array([[0.0, 0.2, 0.0]]) * 1e3, P_E[:1], names[:1])
+    assert "reads 200 m from the tracker" in far and "millimetres (0.2 m)" in far

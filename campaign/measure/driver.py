@@ -345,6 +345,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             if T_LI is None:
                 T_LI = _setup(store, trk, opts, base)
             T_LI = np.array(T_LI, dtype=float)
+            geometry = ("robot.yaml's reflectors" if robot.reflectors else
+                        "the default triad: robot.yaml names no reflectors")
             robot = measured_robot(robot)
             P_E = robot.reflector_positions_in_E
             targets = tuple(r.name for r in robot.reflectors)
@@ -363,7 +365,8 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
             clock = store.clock_s()
             result = _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress,
                            stored_before, clock, targets, aim,
-                           unclear_drift_returns=set() if poses_csv is not None else _unclear_drift_returns(run_dir))
+                           unclear_drift_returns=set() if poses_csv is not None else _unclear_drift_returns(run_dir),
+                           geometry=geometry)
             n_ok, n_fail, clock, drift_warnings, stopped, kind = result
             if kind not in ("unreachable", "robot_fault"):
                 try:  # the clock after the last measurement's tracker time
@@ -428,7 +431,8 @@ def _unclear_drift_returns(run_dir) -> set:
 
 
 def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say, progress, stored_before,
-          clock_start=0.0, targets=REFLECTORS, aim=None, unclear_drift_returns=frozenset()):
+          clock_start=0.0, targets=REFLECTORS, aim=None, unclear_drift_returns=frozenset(),
+          geometry="robot.yaml's reflectors"):
     bar = Progress("measuring", len(todo), progress, " poses")
     n_ok = n_fail = drift_warnings = in_a_row = 0
     clock = clock0 = clock_start
@@ -443,7 +447,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
             rec, c = _measure_pose(pid, stored_before + n, Q[k], vias.get(pid, []), ctrl, trk, opts, T_LI, P_E, base,
                                    targets, aim)
             wrong = None if rec.status != "measured" else check_tracker_readings(
-                [rec.reflectors[t][0] for t in targets], P_E, targets)
+                [rec.reflectors[t][0] for t in targets], P_E, targets, geometry)
             if wrong:  # hours of cell time at stake: stop now, this pose not stored
                 stopped, kind = f"pose {pid}: {wrong} (this pose is not stored)", "implausible"
                 break

@@ -495,13 +495,13 @@ def length_unit_named(ratio: float) -> str | None:
     return None
 
 
-def check_tracker_readings(P_L, P_E, names) -> str | None:
+def check_tracker_readings(P_L, P_E, names, geometry: str = "robot.yaml's reflectors") -> str | None:
     """Readings of one pose that no tracker measuring in metres can give, said in one sentence
     (None when plausible): the reflectors (P_L (k, 3), m in the tracker's frame) farther apart or
     closer together than the tool's reflectors (P_E (k, 3), m in the tool frame; names (k,)) by
     more than READING_SPREAD_RATIO_MAX, or a reading beyond any tracker's range
     (TRACKER_RANGE_MAX_M; P_E None: points of unknown spacing, the range alone). Each names the
-    length unit the readings look like."""
+    length unit the readings look like; ``geometry`` says where P_E comes from."""
     P_L = np.asarray(P_L, dtype=float)
     P_E = np.zeros((0, 3)) if P_E is None else np.asarray(P_E, dtype=float)
     fix = "the tracker adapter's measure() must return metres in the tracker's frame (docs/cell.md)"
@@ -514,9 +514,9 @@ def check_tracker_readings(P_L, P_E, names) -> str | None:
         if not 1 / READING_SPREAD_RATIO_MAX <= ratio <= READING_SPREAD_RATIO_MAX:
             unit = length_unit_named(ratio)
             cause = (f"the readings look like {unit}" if unit else
-                     "the readings are in another unit than metres, or robot.yaml's reflector positions are wrong")
+                     f"the readings are in another unit than metres, or the tool's reflectors are not {geometry}")
             return (f"reflectors {names[i[k]]} and {names[j[k]]} read {d_meas[k]:,.4g} m apart, {ratio:,.4g}× the "
-                    f"{d_nom[k]:.4g} m of the robot's reflector geometry (robot.yaml reflectors): {cause}; {fix}")
+                    f"{d_nom[k]:.4g} m of the robot's reflector geometry ({geometry}): {cause}; {fix}")
     far = np.linalg.norm(P_L, axis=-1)
     k = int(np.argmax(far))
     if far[k] > TRACKER_RANGE_MAX_M:
