@@ -127,6 +127,9 @@ class Chromium:
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.ws = None
         self._id = 0
+        #: the DevTools events received so far (``{"method", "params"}``): what the page requested
+        #: (Network.*), its exceptions and console messages (Runtime.*, Log.*), once enabled
+        self.events = []
         try:
             port = self._port()
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=timeout_s) as r:
@@ -161,6 +164,28 @@ class Chromium:
                 if "error" in msg:
                     raise RuntimeError(f"{method}: {msg['error']}")
                 return msg.get("result", {})
+            if "method" in msg:
+                self.events.append(msg)
+
+    def requested(self) -> list:
+        """The URLs the page requested (after ``call("Network.enable")``)."""
+        return [e["params"]["request"]["url"] for e in self.events if e["method"] == "Network.requestWillBeSent"]
+
+    def problems(self) -> list:
+        """The page's uncaught exceptions, console errors and warnings, and the browser's own
+        error and warning log lines (a resource that failed to load), as text (after
+        ``call("Runtime.enable")`` and ``call("Log.enable")``)."""
+        out = []
+        for e in self.events:
+            m, p = e["method"], e["params"]
+            if m == "Runtime.exceptionThrown":
+                d = p["exceptionDetails"]
+                out.append(f"exception: {(d.get('exception') or {}).get('description') or d.get('text')}")
+            elif m == "Runtime.consoleAPICalled" and p["type"] in ("error", "warning", "assert"):
+                out.append(f"console.{p['type']}: " + " ".join(str(a.get("value", a.get("description"))) for a in p["args"]))
+            elif m == "Log.entryAdded" and p["entry"]["level"] in ("error", "warning"):
+                out.append(f"log: {p['entry']['text']} ({p['entry'].get('url')})")
+        return out
 
     def goto(self, url: str) -> None:
         self.call("Page.navigate", url=url)

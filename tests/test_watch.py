@@ -321,20 +321,25 @@ def test_the_nominal_residuals_follow_pinocchio_and_the_calibrated_ones_calibrat
 
 
 # -- live, in a real browser ---------------------------------------------------------------------------
-@pytest.mark.skipif(find_browser() is None, reason="no Chromium on this machine (apt-get install chromium)")
-def test_a_headless_browser_follows_a_simulated_campaign_live_until_finished(runs):
+def chromium(**kw):
+    """benchmarks/browser.py's headless Chromium."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
         from browser import Chromium
     finally:
         sys.path.pop(0)
+    return Chromium(**kw)
+
+
+@pytest.mark.skipif(find_browser() is None, reason="no Chromium on this machine (apt-get install chromium)")
+def test_a_headless_browser_follows_a_simulated_campaign_live_until_finished(runs):
     run = runs.make(n=24, sim={"time_factor": 0.015}, run={"timeout_s": 2.0})  # ~0.4 s per pose in real time
     proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "run", str(run), "--sim", "--quiet", "--watch", "0"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV,
                             start_new_session=True)
     try:
         port = url_from(proc.stderr)
-        with Chromium(width=1200, height=900) as browser:
+        with chromium(width=1200, height=900) as browser:
             browser.goto(f"http://127.0.0.1:{port}/")
             seen, samples = [], 0
             while proc.poll() is None:
@@ -399,3 +404,57 @@ def test_a_watcher_on_a_killed_run_shows_it_interrupted(runs):
         watcher.wait(timeout=10)
         for pid in runs.cell_pids(run):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_a_folder_that_is_no_run_is_refused_in_one_line_naming_it(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "file").write_text("x")
+    for name, said in (("empty", "not a run folder"), ("file", "not a folder"), ("missing", "no such run folder")):
+        assert main(["watch", str(tmp_path / name), "--port", "0"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{tmp_path / name}: {said}" in err[0], err
+
+
+@pytest.mark.skipif(find_browser() is None, reason="no Chromium on this machine (apt-get install chromium)")
+def test_the_page_asks_only_its_server_shows_no_error_and_follows_each_new_calibration(measured):
+    from campaign.auto.state import Decision, Round, load_state, save_state
+    from campaign.run import RunFolder
+    from campaign.watch.server import WatchServer
+
+    run, _, _ = measured.make(n=40, seed=5)
+    server = WatchServer(run, port=0).start()
+    page_errors = "S.poses.map((p) => p.error_calibrated_mm)"
+    try:
+        with chromium(width=1200, height=900) as browser:
+            for domain in ("Network", "Runtime", "Log"):
+                browser.call(f"{domain}.enable")
+            browser.goto(f"http://127.0.0.1:{server.port}/")
+            browser.wait_for("document.getElementById('measured').textContent === '40'", timeout_s=15)
+            assert browser.evaluate(page_errors) == [None] * 40
+            answers = []
+            for extra in ([], ["--fix", "joint3"]):  # a calibration, then another of the same stage's name
+                assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet", *extra]) == 0
+                time.sleep(0.3)  # the view reads the run again at most every 0.25 s
+                api = [p["error_calibrated_mm"] for p in get_json(server.port, "/api/poses")]
+                assert None not in api and api not in answers
+                answers.append(api)
+                browser.wait_for(f"JSON.stringify({page_errors}) === '{json.dumps(api, separators=(',', ':'))}'",
+                                 timeout_s=15)
+                # calibrated errors a decade below the nominal ones or more: the residual plot's axis is
+                # logarithmic (the first calibration's are a hundredth, the one with joint 3 fixed not)
+                nominal = [p["error_nominal_mm"] for p in get_json(server.port, "/api/poses")]
+                scale = "log" if np.median(nominal) > 10 * np.median(api) else "linear"
+                assert scale == ("log", "linear")[len(answers) - 1]
+                assert browser.evaluate("document.getElementById('residuals').dataset.yscale") == scale
+            # auto between rounds (round 1 decided, its decision applied, nothing pending): says so
+            state = load_state(RunFolder(run))
+            state["rounds"].append(Round(1, 40, 40, 0.2, "geometric", (), 0.02, 0.01, "ground_compliance", False, (),
+                                         None, Decision("add_effect", "add ground_compliance")).as_json())
+            save_state(RunFolder(run), state)
+            note = browser.wait_for("document.getElementById('auto-note').textContent", timeout_s=10)
+            assert note.startswith("round 2 under way"), note
+            origin = f"http://127.0.0.1:{server.port}/"
+            assert [u for u in browser.requested() if not u.startswith(origin)] == []
+            assert browser.problems() == []
+    finally:
+        server.stop()

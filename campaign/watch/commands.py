@@ -36,18 +36,18 @@ def add_watch_argument(p) -> None:
 
 
 def _watch(args):
-    from pathlib import Path
-
     from campaign.errors import ConfigError, DataError
     from campaign.measure.auth import read_token
     from campaign.watch.server import WatchServer, require_token
+    from campaign.watch.view import run_folder_error
 
     if not 0 <= args.port < 65536:
         raise ConfigError(f"--port {args.port}: expected 0..65535")
     key = read_token(args.token_file) if args.token_file else None
     require_token(args.host, key)  # before anything else is looked at
-    if not Path(args.run).is_dir():
-        raise DataError(f"{args.run}: no such run folder")
+    problem = run_folder_error(args.run)
+    if problem:
+        raise DataError(problem)
     server = WatchServer(args.run, host=args.host, port=args.port, key=key)
     auth = "open it once with ?token=<the token file's text>" if key else "loopback, no token"
     print(f"watching {args.run}: {server.url} ({auth}); Ctrl-C stops", flush=True)

@@ -56,6 +56,24 @@ def strict_json(doc) -> bytes:
     return json.dumps(doc, allow_nan=False, separators=(",", ":")).encode()
 
 
+def run_folder_error(path) -> str | None:
+    """Why ``path`` is no run folder to watch (one line), None when it is one: a folder with a
+    campaign.yaml, a plan, a measurement log or auto's state (what `plan`, `import`, `run` and
+    `auto` write first)."""
+    path = Path(path)
+    if not path.exists():
+        return f"{path}: no such run folder"
+    if not path.is_dir():
+        return f"{path}: not a folder (give a run folder, as for `campaign run`)"
+    run = RunFolder(path)
+    if not any(p.is_file() for p in (run.config_path, run.poses_csv, run.measurements_path,
+                                     path / "auto" / "state.json")):
+        return (f"{path}: not a run folder (no campaign.yaml, plan/poses.csv nor measurements.sqlite); plan it "
+                f"with `campaign plan --run {path}`, or `campaign auto {path} --sim --watch` plans, measures and "
+                "serves the page")
+    return None
+
+
 def lock_holder(run: RunFolder) -> dict | None:
     """Who holds RUN/.lock now (``{"pid", "command", "since_unix_s"}``) or None, read from
     /proc/locks without touching the lock; elsewhere a brief non-blocking probe."""
@@ -106,6 +124,9 @@ class RunView:
         self._meta: dict = {}
         self._planned = (None, 0, ())
         self._calibration = (None, None)
+        #: calibrations read so far: a page re-reads the calibrated residuals when it changes (a new
+        #: calibration of the same stage gives other residuals under the same name)
+        self._calibration_count = 0
         self._calibrated = None
         self._residual_from = 0
         self._residuals: dict = {}
@@ -319,6 +340,7 @@ class RunView:
                 self._note(f"no calibrated residuals: {' '.join(str(exc).split())}")
                 return True
             self._calibration = (key, self._calibrated.stage)
+            self._calibration_count += 1
             self._residual_from = 0
         if self._calibrated is None:
             return False
@@ -467,6 +489,8 @@ class RunView:
                     "rate_poses_per_campaign_h": finite(3600.0 / per_pose) if per_pose else None,
                     "rate_poses_per_wall_h": finite(s["wall_rate"]),
                     "calibration_stage": self._calibration[1],
+                    "calibration_id": f"{self._calibration_count}:{self._calibration[1]}"
+                                      if self._calibration[1] else None,
                     "auto": None if auto is None else {"rounds": rounds, "finished": _jsonable(auto.get("finished")),
                                                        "pending": (auto.get("pending") or {}).get("text")},
                     "reports": reports, "notes": list(self._notes)[-5:]}

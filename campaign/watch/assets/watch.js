@@ -5,7 +5,8 @@
 const POLL_MS = 500;
 const DETAILS_MS = 3000;
 const COLOURS = { nominal: "#1f77b4", calibrated: "#ff7f0e", bad: "#d62728", grid: "#e3e8ee", axis: "#5f6b7a" };
-const S = { poses: [], status: null, details: null, detailsAt: 0, stage: undefined, view: { yaw: -0.6, pitch: 0.35 } };
+const S = { poses: [], status: null, details: null, detailsAt: 0, stage: undefined, calibration: undefined,
+            view: { yaw: -0.6, pitch: 0.35 } };
 
 const $ = (id) => document.getElementById(id);
 
@@ -24,7 +25,10 @@ async function tick() {
     if (!S.details || st.state !== S.status.state || drifted || now - S.detailsAt > DETAILS_MS) {
       S.details = await getJSON("api/details");
       S.detailsAt = now;
-      if (S.details.calibration_stage !== S.stage) { S.stage = S.details.calibration_stage; S.poses = []; }
+      // another calibration (even of the same stage): every pose's calibrated residual is new
+      if (S.details.calibration_id !== S.calibration) {
+        S.calibration = S.details.calibration_id; S.stage = S.details.calibration_stage; S.poses = [];
+      }
     }
     if (total < S.poses.length) S.poses = [];  // failed poses forgotten (--retry-failed): read them all again
     if (total > S.poses.length) S.poses = S.poses.concat(await getJSON(`api/poses?from=${S.poses.length}`));
@@ -89,7 +93,11 @@ function renderResiduals() {
   }
   const series = [{ pts: nom, color: COLOURS.nominal, label: `nominal model (median ${fmt(median(nom.map((q) => q[1])))} mm)` }];
   if (cal.length) series.push({ pts: cal, color: COLOURS.calibrated, label: `calibrated: ${S.stage} (median ${fmt(median(cal.map((q) => q[1])))} mm)` });
-  plot($("residuals"), { series, xlabel: "campaign clock (h)", ylabel: "‖Δt‖ (mm)", ymin: 0 });
+  // the calibrated errors are often a hundredth of the nominal ones: on one linear axis they would
+  // all sit on its zero, so the axis turns logarithmic when the medians are a decade apart
+  const mNom = median(nom.map((q) => q[1])), mCal = median(cal.map((q) => q[1]));
+  const log = mNom !== null && mCal !== null && mCal > 0 && mNom / mCal > 10;
+  plot($("residuals"), { series, xlabel: "campaign clock (h)", ylabel: log ? "‖Δt‖ (mm, log scale)" : "‖Δt‖ (mm)", ymin: 0, log });
   $("residuals-note").textContent = cal.length
     ? `‖Δt‖: the distance between the measured point and the model's; calibrated: RUN/calibration's current model (${S.stage}), for every pose measured, those measured after it too`
     : "‖Δt‖: the distance between the measured point and the nominal model's; against the calibrated model too once `campaign calibrate` has run";
@@ -198,8 +206,11 @@ function renderAuto(d) {
       const td = tr.insertCell(); td.textContent = text; td.className = cls;
     }
   }
+  const next = d.auto.rounds.length + 1;
   $("auto-note").textContent = d.auto.finished ? `finished: ${d.auto.finished.reason || ""}`
-                             : d.auto.pending ? `now: ${d.auto.pending}` : "no round yet: the first measurement is under way";
+                             : d.auto.pending ? `now: ${d.auto.pending}`
+                             : d.auto.rounds.length ? `round ${next} under way: measuring, calibrating and diagnosing after round ${next - 1}'s decision`
+                             : "no round yet: the first measurement is under way";
 }
 
 // -- a 2-D plot on a canvas ----------------------------------------------------------------------
@@ -223,8 +234,26 @@ function niceTicks(lo, hi, n = 5) {
   return out;
 }
 
-function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null }) {
+// log10 positions of 1, 2, 5 × each decade between lo and hi (log10 values), the 2 and 5 only
+// when the axis spans at most three decades
+function logTicks(lo, hi) {
+  const out = [];
+  for (let d = Math.floor(lo); d <= Math.ceil(hi); d++) {
+    for (const m of hi - lo <= 3 ? [1, 2, 5] : [1]) {
+      const v = d + Math.log10(m);
+      if (v >= lo - 1e-9 && v <= hi + 1e-9) out.push(v);
+    }
+  }
+  return out;
+}
+
+function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log = false }) {
   const [ctx, W, H] = setup(canvas);
+  canvas.dataset.yscale = log ? "log" : "linear";
+  if (log) {  // plotted as log10 of the values (all positive: distances; a zero at a micrometre's thousandth)
+    series = series.map((s) => ({ ...s, pts: s.pts.map((p) => [p[0], Math.log10(Math.max(p[1], 1e-6))]) }));
+    ymin = null;
+  }
   const m = { l: 56, r: 12, t: 26, b: 38 };
   ctx.clearRect(0, 0, W, H);
   const all = series.flatMap((s) => s.pts);
@@ -238,14 +267,15 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null }) {
   x0 -= pad; x1 += pad;
   if (y1 - y0 < 1e-12) y1 = y0 + 1;
   y1 += (y1 - y0) * 0.05;
+  if (log) y0 -= (y1 - y0) * 0.05;  // no point on the bottom of the frame either
   const X = (v) => m.l + ((v - x0) / (x1 - x0)) * (W - m.l - m.r);
   const Y = (v) => H - m.b - ((v - y0) / (y1 - y0)) * (H - m.t - m.b);
   ctx.font = "11px system-ui, sans-serif";
   ctx.strokeStyle = COLOURS.grid; ctx.fillStyle = COLOURS.axis; ctx.lineWidth = 1;
   ctx.textAlign = "right"; ctx.textBaseline = "middle";
-  for (const v of niceTicks(y0, y1)) {
+  for (const v of log ? logTicks(y0, y1) : niceTicks(y0, y1)) {
     ctx.beginPath(); ctx.moveTo(m.l, Y(v)); ctx.lineTo(W - m.r, Y(v)); ctx.stroke();
-    ctx.fillText(Number(v.toPrecision(4)), m.l - 5, Y(v));
+    ctx.fillText(log ? Number((10 ** v).toPrecision(1)) : Number(v.toPrecision(4)), m.l - 5, Y(v));
   }
   ctx.textAlign = "center"; ctx.textBaseline = "top";
   for (const v of niceTicks(x0, x1, 6)) {
@@ -274,7 +304,10 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null }) {
   let lx = m.l + 6;
   ctx.textAlign = "left"; ctx.textBaseline = "middle";
   for (const s of series) {
-    ctx.fillStyle = s.color; ctx.beginPath(); ctx.arc(lx + 4, m.t - 12, 4, 0, 2 * Math.PI); ctx.fill();
+    if (s.marks === false) {  // a line in the legend for a line, a dot for points
+      ctx.save(); ctx.strokeStyle = s.color; ctx.lineWidth = 2; if (s.dashed) ctx.setLineDash([4, 2]);
+      ctx.beginPath(); ctx.moveTo(lx - 2, m.t - 12); ctx.lineTo(lx + 10, m.t - 12); ctx.stroke(); ctx.restore();
+    } else { ctx.fillStyle = s.color; ctx.beginPath(); ctx.arc(lx + 4, m.t - 12, 4, 0, 2 * Math.PI); ctx.fill(); }
     ctx.fillStyle = COLOURS.axis; ctx.fillText(`${s.label} (${s.pts.length})`, lx + 12, m.t - 12);
     lx += ctx.measureText(`${s.label} (${s.pts.length})`).width + 30;
   }
@@ -348,11 +381,13 @@ function renderSpace() {
       ctx.beginPath(); ctx.arc(x, y, 3, 0, 2 * Math.PI); ctx.fill();
     }
   }
-  // colour bar
+  // colour bar, when there is an error to colour by
   const bx = W - 46, by0 = 20, by1 = H - 40;
-  for (let i = 0; i <= 40; i++) { ctx.fillStyle = colourMap(i / 40); ctx.fillRect(bx, by1 - ((by1 - by0) * (i + 1)) / 41, 10, (by1 - by0) / 40 + 1); }
-  ctx.fillStyle = COLOURS.axis; ctx.textAlign = "left"; ctx.textBaseline = "middle";
-  ctx.fillText(fmt(hi, 2), bx + 13, by0); ctx.fillText(fmt(lo, 2), bx + 13, by1); ctx.fillText("mm", bx - 2, by1 + 14);
+  if (errs.length) {
+    for (let i = 0; i <= 40; i++) { ctx.fillStyle = colourMap(i / 40); ctx.fillRect(bx, by1 - ((by1 - by0) * (i + 1)) / 41, 10, (by1 - by0) / 40 + 1); }
+    ctx.fillStyle = COLOURS.axis; ctx.textAlign = "left"; ctx.textBaseline = "middle";
+    ctx.fillText(fmt(hi, 2), bx + 13, by0); ctx.fillText(fmt(lo, 2), bx + 13, by1); ctx.fillText("mm", bx - 2, by1 + 14);
+  }
   const nFailed = P.filter((p) => p.failed).length;
   $("space-note").textContent = `${P.length - nFailed} measured (colour: ‖Δt‖ against the ${which} model)` +
     (nFailed ? `; × ${nFailed} failed, at their nominal positions` : "") + (errs.length ? "" : "; no error to colour by yet");
