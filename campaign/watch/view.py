@@ -128,6 +128,9 @@ class RunView:
         #: calibration of the same stage gives other residuals under the same name)
         self._calibration_count = 0
         self._calibrated = None
+        #: the tracker's pose against the robot's base (4, 4) that the current calibration found,
+        #: for a run measured in the tracker's frame; None otherwise
+        self._T_L_I = None
         self._residual_from = 0
         self._residuals: dict = {}
         self._nominal: dict = {}
@@ -273,13 +276,20 @@ class RunView:
                 self._note(f"no residuals: {exc}")
         return self._robot or None
 
-    def _tool_point(self, robot):
-        """The point the log's x, y, z measure, in F_E (m): E's origin for 6-D poses, the first
-        reflector otherwise."""
+    def _tool_point(self, robot, *, calibrated: bool = False):
+        """The point the log's x, y, z measure, in the tool frame F_E of ``robot`` (m): E's origin
+        for 6-D poses; for one-reflector data where calibrate takes them (robot.yaml's single
+        reflector, else E's origin: plausibility.measured_point), which is the calibrated robot's
+        own tool frame (``calibrated``: its origin); the first reflector for raw reflectors."""
         import numpy as np
 
-        if self._meta.get("kind", "pose") == "pose":
+        from campaign.measure.plausibility import measured_point
+
+        kind = self._meta.get("kind", "pose")
+        if kind == "pose" or (kind == "point" and calibrated):
             return np.zeros(3)
+        if kind == "point":
+            return np.asarray(measured_point(robot, "point"), dtype=float)
         P = robot.reflector_positions_in_E
         return np.asarray(P[0] if len(P) else np.zeros(3), dtype=float)
 
@@ -328,10 +338,17 @@ class RunView:
             return changed
         if self._calibration[0] != key:
             self._calibration, self._residuals, self._calibrated = (key, None), {}, None
+            self._T_L_I = None
             robot = self._robot_model()
-            if robot is None or self._meta.get("frame", "robot") != "robot" or not self._rows:
+            if robot is None or not self._rows:
                 self._calibration = (None, None)  # tried again once there are poses
                 return True
+            if self._meta.get("frame", "robot") == "tracker":
+                self._T_L_I = _tracker_pose(metrics)  # where calibrate found the tracker
+                if self._T_L_I is None:
+                    self._note(f"no residuals: the run is measured in the tracker's frame and {metrics} holds no "
+                               "tracker pose (tracker.T_L_I)")
+                    return True
             try:
                 from campaign.identify.use import CalibratedRobot
 
@@ -359,7 +376,9 @@ class RunView:
             ctx = {k: np.array([_loads(r["context"], {}).get(k, np.nan) for r in todo], dtype=float) for k in keys}
             ctx = effect_context(ctx, [r["time_s"] if r["time_s"] is not None else np.nan for r in todo])
             T = self._calibrated.predict(self._q(todo, robot.n_joints), ctx)
-            p = T[:, :3, :3] @ self._tool_point(robot) + T[:, :3, 3]
+            p = T[:, :3, :3] @ self._tool_point(robot, calibrated=True) + T[:, :3, 3]
+            if self._T_L_I is not None:  # measured in the tracker's frame: the model's points taken there
+                p = p @ self._T_L_I[:3, :3].T + self._T_L_I[:3, 3]
         except (CampaignError, ValueError, KeyError) as exc:
             self._note(f"no calibrated residuals: {' '.join(str(exc).split())}")
             self._calibrated = None
@@ -440,13 +459,19 @@ class RunView:
         (m) and the nominal and calibrated models' position errors (mm)."""
         self.refresh()
         with self._guard:
-            in_robot_frame = self._meta.get("frame", "robot") == "robot"
+            # a run measured in the tracker's frame is compared with the nominal model once a
+            # calibration found the tracker (the nominal points taken into its frame)
+            to_measured = None if self._meta.get("frame", "robot") == "robot" else self._T_L_I
+            comparable = to_measured is not None or self._meta.get("frame", "robot") == "robot"
             out = []
             for r in self._rows[max(int(start), 0):]:
                 nom = self._nominal.get(r["pose_id"])
                 xyz = [finite(r[c]) for c in ("x", "y", "z")]
                 has_xyz = r["status"] == "measured" and None not in xyz
-                err = finite(1e3 * math.dist(nom, xyz)) if nom is not None and has_xyz and in_robot_frame else None
+                err = None
+                if nom is not None and has_xyz and comparable:
+                    there = nom if to_measured is None else to_measured[:3, :3] @ nom + to_measured[:3, 3]
+                    err = finite(1e3 * math.dist(there, xyz))
                 out.append({"pose_id": r["pose_id"], "seq": r["seq"], "status": r["status"], "reason": r["reason"],
                             "time_s": finite(r["time_s"]), "wall_time_unix_s": finite(r["wall_time_unix_s"]),
                             "xyz_m": xyz if has_xyz else None,
@@ -548,6 +573,18 @@ class _Tally:
             if (r["wall_time_unix_s"] if r["wall_time_unix_s"] is not None else math.inf) >= self.session_since:
                 self.session_n += 1
                 self.session_min, self.session_max = min(self.session_min, t), max(self.session_max, t)
+
+
+def _tracker_pose(metrics: Path):
+    """metrics.json's ``tracker.T_L_I`` (4, 4): the pose of the robot's base frame in the tracker's
+    frame that calibrate found for data measured in the tracker's frame; None when absent."""
+    import numpy as np
+
+    try:
+        T = np.asarray(json.loads(metrics.read_text())["tracker"]["T_L_I"], dtype=float)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return T if T.shape == (4, 4) and np.isfinite(T).all() else None
 
 
 def _loads(text, default):

@@ -97,9 +97,13 @@ function renderResiduals() {
   // all sit on its zero, so the axis turns logarithmic when the medians are a decade apart
   const mNom = median(nom.map((q) => q[1])), mCal = median(cal.map((q) => q[1]));
   const log = mNom !== null && mCal !== null && mCal > 0 && mNom / mCal > 10;
-  plot($("residuals"), { series, xlabel: "campaign clock (h)", ylabel: log ? "‖Δt‖ (mm, log scale)" : "‖Δt‖ (mm)", ymin: 0, log });
+  const inTracker = S.details && S.details.frame === "tracker";
+  const empty = inTracker && S.poses.some((p) => p.status === "measured") ? "no error before a calibration found the tracker" : "nothing yet";
+  plot($("residuals"), { series, xlabel: "campaign clock (h)", ylabel: log ? "‖Δt‖ (mm, log scale)" : "‖Δt‖ (mm)", ymin: 0, log, empty });
   $("residuals-note").textContent = cal.length
-    ? `‖Δt‖: the distance between the measured point and the model's; calibrated: RUN/calibration's current model (${S.stage}), for every pose measured, those measured after it too`
+    ? `‖Δt‖: the distance between the measured point and the model's; calibrated: RUN/calibration's current model (${S.stage}), for every pose measured, those measured after it too` +
+      (inTracker ? "; both in the tracker's frame, where the calibration found the tracker" : "")
+    : inTracker ? "measured in the tracker's frame: the errors against the nominal and the calibrated model appear once `campaign calibrate` has found where the tracker stands"
     : "‖Δt‖: the distance between the measured point and the nominal model's; against the calibrated model too once `campaign calibrate` has run";
 }
 
@@ -234,12 +238,12 @@ function niceTicks(lo, hi, n = 5) {
   return out;
 }
 
-// log10 positions of 1, 2, 5 × each decade between lo and hi (log10 values), the 2 and 5 only
-// when the axis spans at most three decades
+// log10 positions of 1, 2, 5 × each decade between lo and hi (log10 values) over at most two
+// and a half decades, 1 and 3 × over at most five, the decades alone beyond
 function logTicks(lo, hi) {
   const out = [];
   for (let d = Math.floor(lo); d <= Math.ceil(hi); d++) {
-    for (const m of hi - lo <= 3 ? [1, 2, 5] : [1]) {
+    for (const m of hi - lo <= 2.5 ? [1, 2, 5] : hi - lo <= 5 ? [1, 3] : [1]) {
       const v = d + Math.log10(m);
       if (v >= lo - 1e-9 && v <= hi + 1e-9) out.push(v);
     }
@@ -247,7 +251,7 @@ function logTicks(lo, hi) {
   return out;
 }
 
-function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log = false }) {
+function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log = false, empty = "nothing yet" }) {
   const [ctx, W, H] = setup(canvas);
   canvas.dataset.yscale = log ? "log" : "linear";
   if (log) {  // plotted as log10 of the values (all positive: distances; a zero at a micrometre's thousandth)
@@ -311,7 +315,7 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log =
     ctx.fillStyle = COLOURS.axis; ctx.fillText(`${s.label} (${s.pts.length})`, lx + 12, m.t - 12);
     lx += ctx.measureText(`${s.label} (${s.pts.length})`).width + 30;
   }
-  if (!all.length) { ctx.textAlign = "center"; ctx.fillText("nothing yet", (m.l + W) / 2, (m.t + H) / 2); }
+  if (!all.length) { ctx.textAlign = "center"; ctx.fillText(empty, (m.l + W) / 2, (m.t + H) / 2); }
 }
 
 // -- the 3-D view of the tool positions ---------------------------------------------------------------
@@ -339,14 +343,17 @@ function renderSpace() {
   ctx.clearRect(0, 0, W, H);
   const which = $("colour").value;
   const key = which === "calibrated" ? "error_calibrated_mm" : "error_nominal_mm";
+  // measured in the tracker's frame: the points are the tracker's, the nominal ones (where failures
+  // are placed) the robot's, so failures are not drawn among them
+  const inTracker = S.details && S.details.frame === "tracker";
   const pts = [];
   for (const p of S.poses) {
     if (p.status === "measured" && p.xyz_m) pts.push({ x: p.xyz_m, e: p[key], failed: false });
-    else if (p.status === "failed" && p.nominal_xyz_m) pts.push({ x: p.nominal_xyz_m, e: null, failed: true });
+    else if (p.status === "failed" && p.nominal_xyz_m && !inTracker) pts.push({ x: p.nominal_xyz_m, e: null, failed: true });
   }
   ctx.font = "11px system-ui, sans-serif"; ctx.fillStyle = COLOURS.axis;
   if (!pts.length) { ctx.textAlign = "center"; ctx.fillText("nothing yet", W / 2, H / 2); return; }
-  const [a, b, u] = basis(S.details && S.details.up);
+  const [a, b, u] = basis(inTracker ? null : S.details && S.details.up);
   const { yaw, pitch } = S.view;
   const c = [0, 1, 2].map((k) => pts.reduce((s, p) => s + p.x[k], 0) / pts.length);
   const proj = (x) => {
@@ -389,7 +396,7 @@ function renderSpace() {
     ctx.fillText(fmt(hi, 2), bx + 13, by0); ctx.fillText(fmt(lo, 2), bx + 13, by1); ctx.fillText("mm", bx - 2, by1 + 14);
   }
   const nFailed = P.filter((p) => p.failed).length;
-  $("space-note").textContent = `${P.length - nFailed} measured (colour: ‖Δt‖ against the ${which} model)` +
+  $("space-note").textContent = `${P.length - nFailed} measured${inTracker ? ", in the tracker's frame" : ""} (colour: ‖Δt‖ against the ${which} model)` +
     (nFailed ? `; × ${nFailed} failed, at their nominal positions` : "") + (errs.length ? "" : "; no error to colour by yet");
 }
 
