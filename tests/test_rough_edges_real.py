@@ -647,3 +647,38 @@ def test_predict_names_a_reading_far_past_a_limit_without_suggesting_limit_slack
     assert "--limit-slack" not in err
     assert main([cmd, str(run), "--csv", str(tmp_path / "near.csv")]) == 1
     assert "--limit-slack DEG_OR_MM to accept more" in capsys.readouterr().err  # slightly past: the slack
+
+
+def test_two_reflectors_on_an_unknown_plate_are_a_tool_mounting_not_a_joint_convention(mounted_ur10, tmp_path,
+                                                                                       capsys):
+    """Two of the plate's three reflectors: their rotation about their line is not observed, but
+    where they sit is; import names the mounting (was: nominal_residual, 'check the joint
+    convention'), calibrate fits there (was: large_corrections, a 100 mm tool correction), and
+    predict places both reflectors where the truth does, at poses it never saw."""
+    tmp, truth, X, q = mounted_ur10
+    header, values = _read(tmp / "markers.csv")
+    _write(tmp_path / "two.csv", header[:13], values[:, :13])
+    plate = np.array(yaml.safe_load((tmp / "plate.yaml").read_text())["markers"])[:2]
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump({"markers": plate.tolist()}))
+    run = tmp_path / "run"
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "two.csv"), "--run", str(run), "--robot", "ur10", "--quiet",
+                 "--markers", str(tmp_path / "two.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert "a tool mounting" in err and "two reflectors: of the frames turned about their line" in err
+    assert "[nominal_residual]" not in err and "joint convention" not in err
+    assert main(["calibrate", str(run), "--no-ann", "--no-report"]) == 0
+    err = capsys.readouterr().err
+    assert "a tool mounting, fitted" in err and "[large_corrections]" not in err and "joint convention" not in err
+    from campaign.sim.truth import random_joint_poses
+    from campaign.model.rotations import rotvec_to_matrix
+
+    q_new = random_joint_poses(truth.robot, 6, seed=11)
+    _write(tmp_path / "q.csv", [f"q{j}" for j in range(1, 7)], q_new)
+    assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    pred = _read(tmp_path / "p.csv")[1]
+    R, t = rotvec_to_matrix(pred[:, 10:13]), pred[:, 7:10]
+    T_true = truth.pose(q_new) @ X  # the truth, read only now
+    got = np.einsum("nij,kj->nki", R, plate) + t[:, None]
+    want = np.einsum("nij,kj->nki", T_true[:, :3, :3], plate) + T_true[:, None, :3, 3]
+    assert np.abs(got - want).max() < 2e-4  # m: both reflectors where the truth has them

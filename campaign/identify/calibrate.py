@@ -299,7 +299,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
             "measured_point_in_tool_m)")
     mounting = tool_mounting(robot, poses, tr)
     if mounting is not None:
-        say(f"{plausibility.mounting_text(robot, mounting)}: a tool mounting, fitted (the nominal model's tool "
+        k = poses.markers.shape[1] if raw and poses.markers is not None else None
+        say(f"{plausibility.mounting_text(robot, mounting, k)}: a tool mounting, fitted (the nominal model's tool "
             "frame, and the tolerance priors of the tool, moved there; params.yaml's tool_mounting_in_tool)")
     poses, robot, tracker = prepare_measured(robot, poses, tr, point, mounting)
     if tracker is not None:

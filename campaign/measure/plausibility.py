@@ -399,16 +399,45 @@ def tool_mounting(robot, q, T_measured, frame: str):
     return T, X
 
 
+def two_reflectors_mounting(robot, q, markers, P_nominal, frame: str):
+    """The frame two raw reflectors were placed in (their nominal positions P_nominal (2, 3), m)
+    when it is not the URDF's tool frame: (T (4, 4) the tracker's pose, X (4, 4) that frame in the
+    tool frame), from where the reflectors sit on the tool (:func:`register_measured_points` on
+    joint vectors q (n, N) and readings markers (n, 2, 3), NaN where not seen) and the rotation
+    taking their nominal line onto the found one by the smallest angle (the rotation about their
+    line is not observed: none); None as :func:`tool_mounting`."""
+    from campaign.measure.reflectors import register_measured_points
+    from campaign.model.rotations import rotvec_to_matrix
+
+    T, p = register_measured_points(forward(robot, np.asarray(q)), markers, tracker=frame == "tracker")
+    a, b = np.asarray(P_nominal, dtype=float), p
+    u, v = a[1] - a[0], b[1] - b[0]
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    axis = np.cross(u, v)
+    angle = float(np.arctan2(np.linalg.norm(axis), np.dot(u, v)))
+    X = np.eye(4)
+    if np.linalg.norm(axis) > 0:
+        X[:3, :3] = rotvec_to_matrix(axis / np.linalg.norm(axis) * angle)
+    X[:3, 3] = b.mean(axis=0) - X[:3, :3] @ a.mean(axis=0)
+    tol = robot_tolerances(robot)
+    if np.linalg.norm(X[:3, 3]) <= POINT_REGISTRATION_MIN_TOLERANCES * tol["tool_m"] and angle <= CORRECTION_MAX_RAD:
+        return None
+    return T, X
+
+
 def point_text(p) -> str:
     """``(79.1, -30.1, 60.3) mm``: a point in the tool frame as import, calibrate and the docs say it."""
     return "(" + ", ".join(f"{1e3 * v:.1f}" for v in np.asarray(p, dtype=float)) + ") mm"
 
 
-def mounting_text(robot, X) -> str:
-    """``the tool frame is 29° and 115 mm from the URDF's (tool0)``."""
+def mounting_text(robot, X, reflectors: int | None = None) -> str:
+    """``the tool frame is 29° and 115 mm from the URDF's (tool0)``; ``reflectors``: 2 for raw data
+    of two reflectors, whose rotation about their line is not observed (said)."""
     deg = np.rad2deg(np.linalg.norm(matrix_to_rotvec(np.asarray(X)[:3, :3])))
+    line = (" (two reflectors: of the frames turned about their line, which the data do not tell apart, the "
+            "nearest to the URDF's)" if reflectors == 2 else "")
     return f"the tool frame is {deg:.0f}° and {_mm(np.linalg.norm(np.asarray(X)[:3, 3]))} from the URDF's " \
-           f"({robot.tool_frame})"
+           f"({robot.tool_frame}){line}"
 
 
 def mounting_fit(robot, poses, rows=None):
@@ -421,7 +450,10 @@ def mounting_fit(robot, poses, rows=None):
     rows = np.arange(len(poses)) if rows is None else np.asarray(rows)
     idx = rows[_sample(len(rows))]
     q = poses.q[idx]
-    found = tool_mounting(robot, q, poses.T_IE[idx], poses.frame)
+    if poses.kind == "markers" and poses.markers is not None and poses.markers.shape[1] == 2:
+        found = two_reflectors_mounting(robot, q, poses.markers[idx], poses.marker_positions, poses.frame)
+    else:
+        found = tool_mounting(robot, q, poses.T_IE[idx], poses.frame)
     if found is None:
         return None
     P_meas = _measured_points(poses)[idx]
@@ -441,9 +473,15 @@ def _off_mounting(robot, poses, idx, rms, limit, fit_rows):
         return None
     X, _, rms_x = fit
     return Finding("tool_mounting",
-                   f"{mounting_text(robot, X)}: a tool mounting (a marker plate, a flange), which calibrate "
-                   f"fits; the nominal model misses the data by {_mm(rms)} rms in the URDF's tool frame, by "
+                   f"{mounting_text(robot, X, _reflector_count(poses))}: a tool mounting (a marker plate, a "
+                   f"flange), which calibrate fits; the nominal model misses the data by {_mm(rms)} rms in the "
+                   "URDF's tool frame, by "
                    f"{_mm(rms_x)} in the mounted one (the rest: the robot's own errors)")
+
+
+def _reflector_count(poses) -> int | None:
+    """The raw reflectors of MeasuredPoses, None for other kinds."""
+    return poses.markers.shape[1] if poses.kind == "markers" and poses.markers is not None else None
 
 
 def _distances(markers, P_nominal):

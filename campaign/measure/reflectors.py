@@ -143,25 +143,45 @@ def register_measured_point(T_model, P_measured, *, tracker: bool = True):
     minimising Σ‖T·(R_i p + t_i) − y_i‖² over the poses T_model (n, 4, 4) of the tool frame and the
     measured points P_measured (n, 3), m (rows with a missing value are left out). ``tracker``
     False: the points are in the model's own frame, T is the identity and p a linear least-squares
-    fit. Alternates the closed-form registration and the point's linear least squares (each step
-    lowers the sum); the point's directions the tool's orientations do not determine stay at 0."""
+    fit. :func:`register_measured_points` for one point."""
+    T, p = register_measured_points(T_model, np.asarray(P_measured, dtype=float)[:, None, :], tracker=tracker)
+    return T, p[0]
+
+
+def register_measured_points(T_model, P_measured, *, tracker: bool = True):
+    """Where k reflectors sit on the tool, with the tracker's pose: (T (4, 4), p (k, 3)) minimising
+    Σ‖T·(R_i p_j + t_i) − y_ij‖² over the poses T_model (n, 4, 4) of the tool frame and the measured
+    points P_measured (n, k, 3), m (a reflector not seen: NaN, left out). ``tracker`` False: T is
+    the identity and each p_j a linear least-squares fit. Alternates the closed-form registration
+    of every seen point and each point's linear least squares (each step lowers the sum); a
+    point's directions the tool's orientations do not determine stay at 0."""
     T_model = np.asarray(T_model, dtype=float)
     Y = np.asarray(P_measured, dtype=float)
-    ok = np.isfinite(Y).all(axis=1) & np.isfinite(T_model[:, :3, 3]).all(axis=1)
-    R, t, Y = T_model[ok, :3, :3], T_model[ok, :3, 3], Y[ok]
-    if len(Y) < 3:
-        raise DataError(f"registration of the measured point needs 3 measured points, got {len(Y)}")
-    T, p = np.eye(4), np.zeros(3)
+    seen = np.isfinite(Y).all(axis=2) & np.isfinite(T_model[:, :3, 3]).all(axis=1)[:, None]
+    if seen.sum() < 3:
+        raise DataError(f"registration of the measured point needs 3 measured points, got {int(seen.sum())}")
+    R, t = T_model[:, :3, :3], T_model[:, :3, 3]
+    T, p = np.eye(4), np.zeros((Y.shape[1], 3))
+
+    def registered(p):
+        X = np.einsum("nij,kj->nki", R, p) + t[:, None, :]
+        return kabsch(X[seen], Y[seen][None])[0]
+
     for _ in range(POINT_REGISTRATION_MAX_STEPS):
         if tracker:
-            T = kabsch(np.einsum("nij,j->ni", R, p) + t, Y[None])[0]
-        A = np.einsum("ij,njk->nik", T[:3, :3], R).reshape(-1, 3)
-        b = (Y - t @ T[:3, :3].T - T[:3, 3]).reshape(-1)
-        p_new = np.linalg.lstsq(A, b, rcond=POINT_REGISTRATION_RCOND)[0]
+            T = registered(p)
+        p_new = p.copy()
+        for j in range(Y.shape[1]):
+            s = seen[:, j]
+            if not s.any():
+                continue
+            A = np.einsum("ij,njk->nik", T[:3, :3], R[s]).reshape(-1, 3)
+            b = (Y[s, j] - t[s] @ T[:3, :3].T - T[:3, 3]).reshape(-1)
+            p_new[j] = np.linalg.lstsq(A, b, rcond=POINT_REGISTRATION_RCOND)[0]
         step = float(np.linalg.norm(p_new - p))
         p = p_new
         if step < POINT_REGISTRATION_STEP_TOL_M:
             break
     if tracker:
-        T = kabsch(np.einsum("nij,j->ni", R, p) + t, Y[None])[0]
+        T = registered(p)
     return T, p
