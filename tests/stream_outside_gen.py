@@ -225,7 +225,8 @@ class VendorLog:
         spikes = self.rng.random(n) < self.spike_rate
         d = self.rng.normal(size=(int(spikes.sum()), 3))
         P[spikes] += d / np.linalg.norm(d, axis=1)[:, None] * self.rng.uniform(5e-4, 0.1, (len(d), 1))
-        self.t_true, self.P, self.g, self.s, self.keep = t_all, P, g, s, keep
+        self.t_true, self.P, self.g, self.s, self.keep, self.spikes = t_all, P, g, s, keep, spikes
+        self.recorded = None
         self.empty = set(self.rng.choice(np.flatnonzero(keep), self.empty_rows, replace=False).tolist()) \
             if self.empty_rows else set()
 
@@ -235,7 +236,10 @@ class VendorLog:
         return self.epoch.timestamp() + np.asarray(t_true) * self.clock_rate
 
     def measured(self, min_s=0.3) -> list:
-        """The stops every reflector of which has at least ``min_s`` of samples."""
+        """The stops every reflector of which has at least ``min_s`` of samples (a log of stable
+        points: a record)."""
+        if self.recorded is not None:
+            return sorted(k for k, g in self.recorded.items() if len(g) == 3)
         return sorted(k for k, n in self.got.items() if min(n) >= min_s * self.rate)
 
     # -- the log as the vendor's software writes it ------------------------------------------------
@@ -243,14 +247,17 @@ class VendorLog:
         """(t_true, P (m), g, keep-mask already applied): every ``every``-th kept sample, or
         (mode "points") one averaged record per reflector per still stretch of at least 0.3 s."""
         idx = np.flatnonzero(self.keep)
+        self.recorded = None
         if mode == "continuous":
             idx = idx[::every]
             return self.t_true[idx], self.P[idx], self.g[idx], idx
         # stable points: the software averages each stretch of one reflector at rest (its own test:
         # successive samples within 0.1 mm, no time gap), spikes dropped by a median
         out_t, out_P, out_g, out_i = [], [], [], []
-        t, P, g = self.t_true[idx], self.P[idx], self.g[idx]
-        brk = np.flatnonzero((np.diff(t) > 2.5 / self.rate) | (g[1:] != g[:-1])
+        idx = idx[~self.spikes[idx]]  # the software's own filter drops a spike
+        self.recorded = {}
+        t, P, g, s = self.t_true[idx], self.P[idx], self.g[idx], self.s[idx]
+        brk = np.flatnonzero((np.diff(t) > 2.5 / self.rate) | (g[1:] != g[:-1]) | (s[1:] != s[:-1])
                              | (np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-3)) + 1
         for a, b in zip(np.r_[0, brk], np.r_[brk, len(t)]):
             if t[b - 1] - t[a] < 0.3:
@@ -263,6 +270,8 @@ class VendorLog:
             out_P.append(P[a:b][ok].mean(axis=0))
             out_g.append(g[a])
             out_i.append(idx[b - 1])
+            if s[a] >= 0:
+                self.recorded.setdefault(int(s[a]), set()).add(int(g[a]))
         return np.array(out_t), np.array(out_P), np.array(out_g), np.array(out_i)
 
     def write(self, path, *, mode="continuous", every=1, names=("SMR1", "SMR2", "SMR3"), unit="mm",
@@ -274,6 +283,7 @@ class VendorLog:
         scale = {"m": 1.0, "mm": 1e3, "in": 1 / 0.0254}[unit]
         tz = dt.timezone(dt.timedelta(hours=tz_hours))
         tl = self.log_time(t)
+        self.written_offset = 0.0 if iso else self.epoch.timestamp()
         cols = list(header[:4]) + ([header[4]] if names else [])
         if extra:
             cols = cols[:1] + ["Quality"] + cols[1:] + ["Distance_mm", "Temp_C"]
@@ -282,7 +292,7 @@ class VendorLog:
         empty = self.empty
         for k in range(len(t)):
             stamp = (base + dt.timedelta(seconds=float(tl[k]))).isoformat(timespec="microseconds") if iso \
-                else f"{tl[k] - self.epoch.timestamp():.6f}"
+                else f"{tl[k] - self.written_offset:.6f}"
             xyz = [f"{v * scale:.5f}" for v in P[k]]
             if idx[k] in empty:
                 xyz = ["", "", ""]
@@ -316,14 +326,17 @@ def check(run, gen: VendorLog, *, tol_m=3e-4):
     status = {int(r["stop"]): r for r in rows}
     found = [k for k in measured if status.get(k, {}).get("status") == "matched"]
     wrong = []
+    spans = {k: gen.log_time(np.array(v)) - gen.written_offset for k, v in gen.interval.items()}
     for r in rows:
         if r["status"] != "matched":
             continue
         k = int(r["stop"])
-        a, b = (gen.log_time(v) for v in gen.interval.get(k, (np.nan, np.nan)))
+        a, b = spans.get(k, (np.nan, np.nan))
         w0, w1 = float(r["window_start_s"]), float(r["window_end_s"])
-        if not (a - gen.settle - 0.5 <= w0 and w1 <= b + 0.5):
-            wrong.append((k, "time", w0 - a, w1 - b))
+        # the window must overlap the stop's dwell and reach into no other stop's
+        other = [j for j, (c, d) in spans.items() if j != k and (c <= w0 <= d or c <= w1 <= d)]
+        if not (w0 <= b and w1 >= a) or other:
+            wrong.append((k, "time", w0 - a, w1 - b, other))
     # the stored readings against the truth (the log's frame; pose ids of the poses and repeats)
     by_pid = {}
     for k, s in enumerate(gen.stops):

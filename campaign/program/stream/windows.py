@@ -8,8 +8,9 @@ ones). Still blocks that follow each other at one position make a window (also a
 spikes up to STREAM_BURST_S); a change of reflector (``target``) between them continues the window
 when the tool did not move in between (at most STREAM_SWITCH_BLOCKS moving blocks, or a short gap)
 and the reflector lies from the others as the tool holds them; a reflector measured again after
-another, or one the tracker's cycle measures before the last (the order of the first window with
-every reflector), starts the next window (the reflectors' cycle of a stop repeated in place). A
+another, or one the tracker's cycle measures before the last (the order of two whole windows in a
+row that agree, a lead-in's reflector last: one the tracker followed in and measured again), starts
+the next window (the reflectors' cycle of a stop repeated in place). A
 window keeps, per reflector, the median of its samples (the position) and their robust standard
 deviation (the spread, a quality figure). In a log of one reflector (no ``target``), a window
 STREAM_SPLIT_FACTOR times as long as the typical recent one is cut into that many: stops at one
@@ -61,6 +62,10 @@ class _Open:
     ref: dict = field(default_factory=dict)  # code -> (3,) position of its first still block
     n: int = 0
     last_code: int = -1
+    #: the reflector the tracker followed through the motion into the window (-1: none seen)
+    entry: int = -1
+    #: closed because its first reflector, the one followed in, was measured again: a lead-in
+    lead_in: bool = False
 
 
 def block_size(dt_s: float) -> int:
@@ -117,6 +122,9 @@ class WindowFinder:
         self.split_long = split_long
         self._lengths: list = []
         self._order = None  # reflector code -> its place in the tracker's cycle
+        self._entry = -1  # the code of the moving block before the still run being added
+        self._cycle = None  # the last whole window's cycle, until the next confirms it
+        self._tail = -1  # the code of the last block fed when it was moving
         self.windows: list = []
         self.B = None
         self.tau = None
@@ -200,8 +208,10 @@ class WindowFinder:
                 self._moving += a - prev - 1
                 prev = e
                 span = slice(start[a], start[e] + B)  # blocks a..e: one reflector's run, contiguous
+                self._entry = (int(codes[a - 1]) if not still[a - 1] else -1) if a > 0 else self._tail
                 self._still_block(a, tb[a, 0], tb[e, -1], int(codes[a]), med[a], np.column_stack((t[span], p[span])))
             self._moving += nb - 1 - prev
+        self._tail = int(codes[-1]) if not still[-1] else -1
         w = self._open
         if w is not None and self._moving > STREAM_SWITCH_BLOCKS and tb[-1, -1] - w.t1 > STREAM_BURST_S:
             self._close()
@@ -225,14 +235,18 @@ class WindowFinder:
                 self._extend(w, t1, code, med, samples)
                 self._moving = 0
                 return
+            # its first reflector, followed in through the motion, measured again after the others:
+            # the first part was the tracker holding it while the robot settled (a lead-in)
+            w.lead_in = again and code == next(iter(w.ref)) and code == w.entry \
+                and self._moving <= STREAM_SWITCH_BLOCKS
             self._close()
-        self._open = _Open(t0=t0, t1=t1)
+        self._open = _Open(t0=t0, t1=t1, entry=self._entry)
         self._extend(self._open, t1, code, med, samples)
         self._moving = 0
 
     def _before(self, a, b) -> bool:
-        """Whether the tracker's cycle (the order of the reflectors in the first window that has
-        them all) measures reflector ``a`` before ``b``; False before that order is known."""
+        """Whether the tracker's cycle (the order of the reflectors in two whole windows in a row
+        that agree) measures reflector ``a`` before ``b``; False before that order is known."""
         return self._order is not None and a in self._order and b in self._order and self._order[a] < self._order[b]
 
     def _on_the_same_tool(self, w, code, med) -> bool:
@@ -260,7 +274,14 @@ class WindowFinder:
             return
         samples = {code: np.concatenate(parts) for code, parts in w.parts.items()}  # (k, 4): t, x, y, z
         if self._order is None and self.D is not None and len(self.D) > 1 and len(samples) == len(self.D):
-            self._order = {code: k for k, code in enumerate(samples)}
+            cycle = list(samples)
+            if w.lead_in:  # the cycle starts after the reflector followed in: it is measured last
+                cycle = cycle[1:] + cycle[:1]
+            # two whole windows in a row with one cycle: a lead-in whose repeat a gap took away, or a
+            # stop with a reflector measured again, is not taken for the tracker's cycle
+            if self._cycle == cycle:
+                self._order = {code: k for k, code in enumerate(cycle)}
+            self._cycle = cycle
         length = w.t1 - w.t0
         pieces = 1
         if self.split_long and len(samples) == 1 and len(self._lengths) >= STREAM_SPLIT_AFTER_WINDOWS:
