@@ -460,33 +460,36 @@ def test_the_page_asks_only_its_server_shows_no_error_and_follows_each_new_calib
         server.stop()
 
 
-def test_one_reflector_data_in_the_trackers_frame_get_residuals_once_calibrate_found_the_tracker(tmp_path, robot):
+@pytest.mark.parametrize("kind, frame", [("point", "tracker"), ("markers", "robot")])
+def test_one_reflector_and_raw_reflector_data_get_the_residuals_calibrate_gets(tmp_path, robot, kind, frame):
+    """One reflector in the tracker's frame (residuals once calibrate found the tracker), raw
+    reflectors in the robot's (the log holds the pose they were fitted to)."""
     import pinocchio as pin
 
     from campaign.watch.view import RunView
 
-    csv, run = tmp_path / "point.csv", tmp_path / "run"
-    assert main(["synth", "--csv", str(csv), "--poses", "60", "--seed", "3", "--kind", "point",
-                 "--frame", "tracker"]) == 0
-    assert main(["import", str(csv), "--run", str(run), "--frame", "tracker"]) == 0
+    csv, run = tmp_path / "data.csv", tmp_path / "run"
+    assert main(["synth", "--csv", str(csv), "--poses", "60", "--seed", "3", "--kind", kind, "--frame", frame]) == 0
+    assert main(["import", str(csv), "--run", str(run), "--frame", frame]) == 0
     view = RunView(run)
-    assert [p["error_nominal_mm"] for p in view.poses()] == [None] * 60  # where the tracker stands is unknown
+    if frame == "tracker":  # where the tracker stands is unknown before a calibration
+        assert [p["error_nominal_mm"] for p in view.poses()] == [None] * 60
     assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
     time.sleep(0.3)
     rows = view.poses()
     metrics = json.loads((run / "calibration" / "metrics.json").read_text())
-    T_L_I = np.array(metrics["tracker"]["T_L_I"])
+    T_L_I = np.array(metrics["tracker"]["T_L_I"]) if frame == "tracker" else np.eye(4)
     model = robot.pinocchio_model
     data = model.createData()
     frame = model.getFrameId(robot.tool_frame)
     with sqlite3.connect(f"file:{run / 'measurements.sqlite'}?mode=ro", uri=True) as db:
         q = {p: r for p, *r in db.execute("SELECT pose_id, q1, q2, q3, q4, q5, q6 FROM poses")}
-    for p in rows:  # the nominal point (the tool frame's origin, where synth measures) by Pinocchio, in L
+    for p in rows:  # the nominal point (the tool frame's origin, where synth measures) by Pinocchio, in L or I
         pin.framesForwardKinematics(model, data, robot.pinocchio_q(np.array([q[p["pose_id"]]]))[0])
         T_LE = T_L_I @ np.linalg.inv(robot.T_root_base) @ data.oMf[frame].homogeneous
         assert math.isclose(p["error_nominal_mm"], 1e3 * np.linalg.norm(T_LE[:3, 3] - p["xyz_m"]), rel_tol=1e-6)
     # the calibrated residuals average to calibrate's own train and test means (they were 70 mm off:
-    # the first of the robot's three reflectors taken for the measured point)
+    # the first of the robot's three reflectors taken for the measured point, for both kinds)
     stage = metrics["stages"][metrics["order"][-1]]
     n = {k: stage[k]["n_poses"] for k in ("train", "test")}
     expected = sum(n[k] * stage[k]["position_mm"]["mean"] for k in n) / sum(n.values())

@@ -278,20 +278,17 @@ class RunView:
 
     def _tool_point(self, robot, *, calibrated: bool = False):
         """The point the log's x, y, z measure, in the tool frame F_E of ``robot`` (m): E's origin
-        for 6-D poses; for one-reflector data where calibrate takes them (robot.yaml's single
-        reflector, else E's origin: plausibility.measured_point), which is the calibrated robot's
-        own tool frame (``calibrated``: its origin); the first reflector for raw reflectors."""
+        for 6-D poses and raw reflectors (the log stores the pose the reflectors were fitted to);
+        for one-reflector data where calibrate takes them (robot.yaml's single reflector, else E's
+        origin: plausibility.measured_point), which is the calibrated robot's own tool frame
+        (``calibrated``: its origin)."""
         import numpy as np
 
         from campaign.measure.plausibility import measured_point
 
-        kind = self._meta.get("kind", "pose")
-        if kind == "pose" or (kind == "point" and calibrated):
+        if self._meta.get("kind", "pose") != "point" or calibrated:
             return np.zeros(3)
-        if kind == "point":
-            return np.asarray(measured_point(robot, "point"), dtype=float)
-        P = robot.reflector_positions_in_E
-        return np.asarray(P[0] if len(P) else np.zeros(3), dtype=float)
+        return np.asarray(measured_point(robot, "point"), dtype=float)
 
     def _q(self, rows, n_joints):
         import numpy as np
