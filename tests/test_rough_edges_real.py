@@ -682,3 +682,23 @@ def test_two_reflectors_on_an_unknown_plate_are_a_tool_mounting_not_a_joint_conv
     got = np.einsum("nij,kj->nki", R, plate) + t[:, None]
     want = np.einsum("nij,kj->nki", T_true[:, :3, :3], plate) + T_true[:, None, :3, 3]
     assert np.abs(got - want).max() < 2e-4  # m: both reflectors where the truth has them
+
+
+@pytest.mark.parametrize("header, mapping", [
+    ("id,joint1,joint2,joint3,joint4,joint5,joint6,x,y,z", "q1=joint1,q2=joint2,q3=joint3,q4=joint4,q5=joint5,q6=joint6"),
+    ("id,axis_0,axis_1,axis_2,axis_3,axis_4,axis_5,x,y,z", "q1=axis_0,q2=axis_1,q3=axis_2,q4=axis_3,q5=axis_4,q6=axis_5"),
+    ("pose_id,q1,q2,q3,q4,q5,q6,X_mm,Y_mm,Z_mm", "x=X_mm,y=Y_mm,z=Z_mm and --length-unit mm"),
+])
+def test_a_family_of_the_files_own_names_is_pointed_to_with_its_columns(tmp_path, capsys, header, mapping):
+    (tmp_path / "own.csv").write_text(header + "\n1,0.1,0.2,0.3,0.4,0.5,0.6,0.5,0.1,0.9\n")
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "own.csv"), "--run", str(tmp_path / "r"), "--robot", "ur10"]) == 1
+    assert f"(the file's own names: --columns {mapping}, or robot.yaml's columns:" in capsys.readouterr().err
+
+
+def test_fewer_than_three_points_say_no_rigid_move_they_cannot_give(tmp_path, capsys):
+    (tmp_path / "two.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6,x,y,z\n1,0.1,0.2,0.3,0.4,0.5,0.6,0.5,0.1,0.9\n"
+                                      "2,0.2,0.2,0.3,0.4,0.5,0.6,0.4,0.2,0.9\n")
+    capsys.readouterr()
+    main(["import", str(tmp_path / "two.csv"), "--run", str(tmp_path / "r"), "--robot", "ur10"])
+    assert "nan" not in capsys.readouterr().err  # was: '... but nan mm after one rigid move'

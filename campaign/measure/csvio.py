@@ -142,13 +142,45 @@ def near_miss_hint(wanted, header) -> str:
     left = [h for h in header if h not in _SPELLED]
     folded = {h.lower().replace("_", "").replace(" ", ""): h for h in left}
     near = []
+    family = _named_family(wanted, left)
     for m in wanted:
         close = difflib.get_close_matches(m.lower(), [h.lower() for h in left], 1, 0.6)
-        hit = folded.get(m.lower().replace("_", "")) or next((h for h in left if close and h.lower() == close[0]), None)
+        hit = (folded.get(m.lower().replace("_", "")) or family.get(m)
+               or next((h for h in left if close and h.lower() == close[0]), None))
         if hit is not None:
             near.append(f"{m}={hit}")
-    return (f" (the file's own names: --columns {','.join(near)}, or robot.yaml's columns:; docs/csv_import.md)"
+    mm = " and --length-unit mm" if any("mm" in h.lower() for h in family.values() if h[:1].lower() in "xyz") else ""
+    return (f" (the file's own names: --columns {','.join(near)}{mm}, or robot.yaml's columns:; docs/csv_import.md)"
             if near else "")
+
+
+def _named_family(wanted, header) -> dict:
+    """{wanted name: column} for names a header spells in a family of its own: joints as one prefix
+    and their numbers (``joint1..joint6``, ``A1..A6``, ``axis_0..axis_5`` counted from 0), positions
+    as the axis's letter with a unit or an index after it (``X_mm``, ``x [m]``)."""
+    import re
+
+    out = {}
+    joints = sorted(int(m[1:]) for m in wanted if m.startswith("q") and m[1:].isdigit())
+    if joints:
+        by_prefix = {}
+        for h in header:
+            m = re.fullmatch(r"(.*?[^\d])(\d+)", h)
+            if m:
+                by_prefix.setdefault(m.group(1), {})[int(m.group(2))] = h
+        for numbers in by_prefix.values():
+            for base in (0, 1):  # joint1.. or joint0..
+                if all(j - 1 + base in numbers for j in joints) and len(numbers) == len(joints):
+                    out.update({f"q{j}": numbers[j - 1 + base] for j in joints})
+                    break
+            if out:
+                break
+    for w in ("x", "y", "z"):
+        if w in wanted:
+            hits = [h for h in header if re.fullmatch(rf"{w}[^a-z].*", h.lower())]
+            if len(hits) == 1:
+                out[w] = hits[0]
+    return out
 
 
 #: the names the measured-pose CSV spells itself (never a near-miss of another)

@@ -323,7 +323,7 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None,
                                     rms, limit, "registered rms")
         if found is not None:
             out.append(found)
-    elif poses.frame == "robot":
+    elif poses.frame == "robot" and np.isfinite(rms):  # (fewer than 3 points: no rigid move to compare)
         plain = float(np.sqrt(np.nanmean(np.sum((P_nom - P_meas) ** 2, axis=-1))))
         if np.isfinite(plain) and plain > limit:
             # one rigid move fits: a joint-1 offset or sign turns the whole arm as a set-up error does
