@@ -116,6 +116,23 @@ def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
         server.stop()
 
 
+def test_a_base64_token_is_taken_as_typed_in_the_address_bar_and_as_a_form_encodes_it(tmp_path):
+    from campaign.measure.auth import read_token
+    from campaign.watch.server import WatchServer
+
+    token = "Ab+cd/ef+0123456789xyz=="  # `openssl rand -base64`: '+' is a space to a form's decoding
+    (tmp_path / "token").write_text(token + "\n")
+    (tmp_path / "run").mkdir()
+    server = WatchServer(tmp_path / "run", port=0, key=read_token(tmp_path / "token")).start()
+    try:
+        for given in (token, token.replace("+", "%2B").replace("/", "%2F").replace("=", "%3D")):
+            assert get(server.port, f"/api/status?token={given}")[0] == 200, given
+        for wrong in (token.replace("+", " "), token.replace("+", "-"), token[:-1]):
+            assert get(server.port, f"/api/status?token={wrong.replace(' ', '%20')}")[0] == 401, wrong
+    finally:
+        server.stop()
+
+
 # -- the API against a log written here ------------------------------------------------------------------
 def _write_log(run, robot, ids, q, failed, offsets_m, times_s):
     from campaign.measure.store import MeasurementStore, PoseRecord

@@ -26,7 +26,7 @@ import time
 from http.cookies import CookieError, SimpleCookie
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs, unquote, urlsplit
 
 from campaign.errors import ConfigError
 from campaign.measure.auth import is_loopback
@@ -174,10 +174,13 @@ class _Handler(BaseHTTPRequestHandler):
             jar = SimpleCookie()
         if COOKIE in jar and hmac.compare_digest(jar[COOKIE].value.encode(), w.cookie_value.encode()):
             return True
-        token = query.get("token", [""])[0]
-        if token and hmac.compare_digest(hashlib.sha256(token.strip().encode()).digest(), w.key):
-            self._set_cookie = True
-            return True
+        # the token as a form decodes it, and as typed: a base64 token's '+' pasted into the
+        # address bar is a '+', not the space a form's encoding makes of it
+        typed = [unquote(v) for k, _, v in (p.partition("=") for p in url.query.split("&")) if k == "token"]
+        for token in query.get("token", []) + typed:
+            if token.strip() and hmac.compare_digest(hashlib.sha256(token.strip().encode()).digest(), w.key):
+                self._set_cookie = True
+                return True
         self._send(401, b"campaign watch: open this page once as http://HOST:PORT/?token=<the text of the token "
                         b"file>; the browser then keeps a cookie\n", "text/plain; charset=utf-8")
         return False
