@@ -26,6 +26,11 @@ SMALL_ANGLE = 1e-6
 #: (no joint of a 6R arm turns more than 2*pi in one direction).
 RADIANS_MAX_ABS = 2.0 * 3.141592653589793 + 1e-9
 
+#: Joints read in degrees that all lie within RADIANS_MAX_ABS over this many rows are named as
+#: radians (a program in degrees turns some joint beyond 6.3° in five poses; fewer rows may be a
+#: small motion)
+RADIANS_AS_DEGREES_MIN_ROWS = 5
+
 #: ... when some joint of the file reads beyond this (3 turns' worth of rad, 19 in degrees: a
 #: campaign in degrees turns some joint farther). Readings a little past 2*pi in a file that
 #: reads no joint beyond it are radians past a limited joint's limit (a joint offset of another

@@ -702,3 +702,21 @@ def test_fewer_than_three_points_say_no_rigid_move_they_cannot_give(tmp_path, ca
     capsys.readouterr()
     main(["import", str(tmp_path / "two.csv"), "--run", str(tmp_path / "r"), "--robot", "ur10"])
     assert "nan" not in capsys.readouterr().err  # was: '... but nan mm after one rigid move'
+
+
+@pytest.mark.parametrize("cmd", ["predict", "compensate"])
+def test_radians_given_with_angle_unit_deg_are_named(comau_run, tmp_path, capsys, cmd):
+    run, src = comau_run
+    header, values = _read(src)
+    q = values[:6, [header.index(f"q{j}") for j in range(1, 7)]]
+    joints = [f"q{j}" for j in range(1, 7)]
+    _write(tmp_path / "rad.csv", joints, q)
+    _write(tmp_path / "deg.csv", joints, np.degrees(q))
+    capsys.readouterr()
+    assert main([cmd, str(run), "--csv", str(tmp_path / "rad.csv"), "--angle-unit", "deg", "--out",
+                 str(tmp_path / "a.csv")]) == 0
+    err = capsys.readouterr().err  # was: nothing; the poses near the zero pose, in the domain
+    assert "every revolute joint of its 6 rows reads within ±2π" in err and "radians?" in err
+    assert main([cmd, str(run), "--csv", str(tmp_path / "deg.csv"), "--angle-unit", "deg", "--out",
+                 str(tmp_path / "b.csv")]) == 0
+    assert "radians?" not in capsys.readouterr().err

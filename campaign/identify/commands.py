@@ -410,6 +410,7 @@ def _predict(args):
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
+    _radians_as_degrees(args, calibrated.robot, q)
     header, rows, inside, sigma = predict_rows(calibrated, pose_id, q, context, args.angle_unit)
     why = _why_outside(calibrated, q, inside)
     _refuse_outside(args, pose_id, inside, "rows", why)
@@ -438,6 +439,16 @@ def _refuse_outside(args, pose_id, inside, what, why=()) -> None:
         named = [f"{int(pose_id[k])}" + (f" ({why[k]})" if len(why) else "") for k in rows[:10]]
         raise DataError(f"{args.csv}: {len(rows)} of {len(inside)} {what} outside the calibrated domain with --strict "
                         f"(pose_id {', '.join(named)}{', ...' if len(rows) > 10 else ''}): nothing written")
+
+
+def _radians_as_degrees(args, robot, q) -> None:
+    """warning on stderr when joints read in degrees all lie within 2 pi (radians given with
+    --angle-unit deg): :func:`campaign.identify.use.radians_read_as_degrees`."""
+    from campaign.identify.use import radians_read_as_degrees
+
+    said = radians_read_as_degrees(q, robot, args.angle_unit)
+    if said:
+        print(f"warning: {args.csv}: {said}", file=sys.stderr)
 
 
 def _domain_line(calibrated, inside, sigma, what, to_file: bool, why=()) -> None:
@@ -474,6 +485,7 @@ def _compensate(args):
     slack, source = run_joint_slack(args.run, calibrated.robot, args.limit_slack)
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
+    _radians_as_degrees(args, calibrated.robot, q)
     header, rows, ok, inside, in_dom, sigma = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
     _refuse_outside(args, pose_id, in_dom, "corrected commands")
     write_table(args.out, header, rows)

@@ -340,6 +340,22 @@ def read_joint_csv(path, robot: RobotModel, context_keys=(), angle_unit: str = "
     return pose_id, q, context
 
 
+def radians_read_as_degrees(q, robot: RobotModel, angle_unit: str) -> str | None:
+    """What to say when joints read in degrees (``angle_unit`` "deg") look like radians: every
+    revolute reading of RADIANS_AS_DEGREES_MIN_ROWS rows or more within ±2π as written (degrees
+    of a program turn some joint farther), q (n, N) model, rad and m; None otherwise."""
+    from campaign.tolerances import RADIANS_AS_DEGREES_MIN_ROWS, RADIANS_MAX_ABS
+
+    revolute = ~np.asarray(robot.prismatic, dtype=bool)
+    if angle_unit != "deg" or not revolute.any() or len(q) < RADIANS_AS_DEGREES_MIN_ROWS:
+        return None
+    written = np.degrees(robot.to_controller_q(q)[:, revolute])
+    if np.abs(written).max() > RADIANS_MAX_ABS:
+        return None
+    return (f"every revolute joint of its {len(q)} rows reads within ±2π ({np.abs(written).max():.3g} at most), "
+            "read in degrees (--angle-unit deg): radians? without --angle-unit they are read in rad")
+
+
 def run_joint_slack(run_dir, robot: RobotModel, given_deg_or_mm: float | None = None) -> tuple:
     """(slack (N,) rad or m, its source in words) for joint readings given to a calibrated run:
     what its import accepted past the URDF's limits (``--limit-slack`` recorded), or
