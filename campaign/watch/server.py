@@ -143,6 +143,8 @@ class _Handler(BaseHTTPRequestHandler):
             return
         path = url.path
         try:
+            if path == "/favicon.ico":  # asked by the browser for every page (the reports' too): none
+                return self._send(204, b"", "image/x-icon")
             if path in ASSETS:
                 return self._send(200, _asset(ASSETS[path]), _type(ASSETS[path]), csp=True)
             if path == "/api/status":

@@ -211,7 +211,11 @@ function renderAuto(d) {
     }
   }
   const next = d.auto.rounds.length + 1;
-  $("auto-note").textContent = d.auto.finished ? `finished: ${d.auto.finished.reason || ""}`
+  // why it finished: the last round's decision when it was to stop, else the reason's code
+  const last = d.auto.rounds[d.auto.rounds.length - 1];
+  const why = last && last.kind === "stop" && last.decision ? last.decision
+            : d.auto.finished ? (d.auto.finished.reason || "").replace(/_/g, " ") : "";
+  $("auto-note").textContent = d.auto.finished ? `finished; ${why}`
                              : d.auto.pending ? `now: ${d.auto.pending}`
                              : d.auto.rounds.length ? `round ${next} under way: measuring, calibrating and diagnosing after round ${next - 1}'s decision`
                              : "no round yet: the first measurement is under way";
