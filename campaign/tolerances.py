@@ -158,6 +158,13 @@ POINT_REGISTRATION_MIN_TOLERANCES = 10.0
 #: length of a block of samples whose stillness is decided at once (s): short against a stop's
 #: dwell (seconds), long enough for a robust spread (5 to 50 samples at 10 to 1,000 Hz)
 STREAM_BLOCK_S = 0.2
+#: a log's matched windows, fitted rigidly to the stops' nominal points, leave a median residual of
+#: the nominal model's error (a fraction of a mm; a few mm on a badly built arm); another run's log, whose
+#: successive distances can agree by chance, leaves hundreds: refused above this
+STREAM_PLACEMENT_MAX_M = 0.01
+#: a log said to be in the robot's base frame whose rigid fit to the stops moves them more than this
+#: (a tracker's frame registered to the base is within a few mm) is in the tracker's frame
+STREAM_ROBOT_FRAME_MAX_M = 0.05
 #: blocks are laid from the start of each run of one reflector; a time gap longer than this many
 #: sample intervals starts a new run (a lost sample or two does not)
 STREAM_RUN_GAP_SAMPLES = 5.0

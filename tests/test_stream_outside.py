@@ -84,6 +84,45 @@ def test_a_log_cut_halfway_whose_second_file_starts_at_a_stop(planned, tmp_path)
     assert found >= 0.98 * measured and not wrong, (found, measured, wrong, missed)
 
 
+def test_a_users_mistakes_are_one_line_and_store_nothing(planned, tmp_path, capsys):
+    """Another run's log (its successive distances agreed by chance: 49 poses stored at other poses'
+    places), a log in inches or in mm read as m (every stop stored as failed: the run then took no
+    further log), a log in the tracker's frame read as the robot's, time reversed, the same log
+    twice: each refused in one line, nothing stored."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "campaign.yaml").write_text(yaml.safe_dump({
+        "robot": "comau_racer5_080",
+        "plan": {"grid_cells": [7, 5, 5, 7, 3, 5], "settle_time_s": 1.0, "tracker_time_per_reflector_s": 1.0}}))
+    assert main(["plan", "--run", str(other), "--select", "60"]) == 0
+    assert main(["program", str(other), "--format", "csv"]) == 0
+    VendorLog(read_stops(other / "program" / "stops.csv"), np.random.default_rng(5), rate_hz=20.0).write(
+        tmp_path / "other.csv", names=("rrr1", "rrr2", "brr"))
+    run, stops = fresh(planned, tmp_path)
+    gen = VendorLog(stops, np.random.default_rng(6), rate_hz=20.0)
+    for unit in ("mm", "in", "m"):
+        gen.write(tmp_path / f"{unit}.csv", unit=unit, names=("rrr1", "rrr2", "brr"))
+    lines = (tmp_path / "mm.csv").read_text().splitlines(keepends=True)
+    (tmp_path / "reversed.csv").write_text(lines[0] + "".join(lines[:0:-1]))
+    cols = ["--columns", "time=Time,x=X,y=Y,z=Z,target=Target", "--quiet"]
+    mm_tracker = ["--length-unit", "mm", "--frame", "tracker"]
+    for log, args, says in (("other.csv", mm_tracker, "do not lie as the stops of"),
+                            ("in.csv", mm_tracker, "not in --length-unit mm"),
+                            ("mm.csv", ["--frame", "tracker"], "not in --length-unit m?"),
+                            ("m.csv", mm_tracker, "not in --length-unit mm"),
+                            ("mm.csv", ["--length-unit", "mm"], "import it with --frame tracker"),
+                            ("reversed.csv", mm_tracker, "the log of another run")):
+        assert main(["import", "--stream", str(tmp_path / log), "--run", str(run), *args, *cols]) == 1, log
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and says in err, (log, err)
+        assert not (run / "measurements.sqlite").exists() and not (run / "import").exists(), log
+    assert main(["import", "--stream", str(tmp_path / "mm.csv"), "--run", str(run), *mm_tracker, *cols]) == 0
+    capsys.readouterr()
+    assert main(["import", "--stream", str(tmp_path / "mm.csv"), "--run", str(run), *mm_tracker, *cols]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "imported already" in err, err
+
+
 def test_the_logs_own_reflector_names_are_found_or_mapped_with_targets(planned, tmp_path, capsys):
     """P1..P3: which reflector each is comes from the geometry, or from --targets."""
     run, stops = fresh(planned, tmp_path)

@@ -113,6 +113,7 @@ def _import_locked(run, log, length_unit, frame, columns, progress, targets=None
     if layout.target_col is None:  # one point: which of the tool's (its reflectors, the origin) fits
         P_E, names = tracked_point(robot, stops, measured_idx, windows, first_m, finder.t_first)
     matches = match_stops(robot, stops, measured_idx, windows, P_E, first_m, finder.t_first)
+    check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame)
     rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
                                       finder, first_m, state)
     last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
@@ -239,6 +240,54 @@ def match_stops(robot, stops, measured_idx, windows, P_E, first_m, t_first) -> l
     except ConfigError:  # a robot without usable joint limits for Ruckig: distances and dwells alone
         motion = None
     return align(windows, P, dwell, first_stop=first_m, t_start=t_first, motion_s=motion)
+
+
+def check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame) -> None:
+    """Refuse, before anything is stored, a log that is not this run's: no window matched (another
+    run's log, another length unit), or matches that do not lie together as the program's stops do
+    (one rigid fit of every matched window to the stops' nominal points leaves a median residual
+    over STREAM_PLACEMENT_MAX_M: an arm off nominal by a few mm leaves well under a millimetre; the
+    distances between successive stops of another run's log can agree by chance, its places cannot);
+    with ``frame`` "robot", a fit far from the identity (STREAM_ROBOT_FRAME_MAX_M at the stops): the
+    log is in the tracker's frame."""
+    from campaign.measure.reflectors import kabsch, transform_points
+    from campaign.tolerances import STREAM_PLACEMENT_MAX_M, STREAM_ROBOT_FRAME_MAX_M
+
+    unit = "mm" if layout.length_scale == 1e-3 else "m"
+    if first_stop >= len(stops):
+        raise DataError(f"{run.path}: every stop of its program is imported already (next stop {first_stop} of "
+                        f"{len(stops)}); {layout.path.name} is not imported again")
+    ok = [m for m in matches if m.confirmed]
+    if not any(len(windows[m.window].position) == len(P_E) for m in ok):  # none to store
+        raise DataError(f"{layout.path}: none of its {len(windows)} still windows matches a stop of {run.path} "
+                        f"from stop {first_stop} on (the log of another run? its positions not in --length-unit "
+                        f"{unit}?); nothing stored")
+    P = nominal_points(robot, [stops[measured_idx[m.stop]] for m in ok], P_E)
+    A, B = [], []
+    for m, pts in zip(ok, P):
+        for c, pos in windows[m.window].position.items():
+            if c < len(pts):
+                A.append(pos)
+                B.append(pts[c])
+    if len(A) < 4:
+        return
+    A, B = np.array(A), np.array(B)
+    T = kabsch(A, B[None])[0]
+    res = np.linalg.norm(transform_points(T, A) - B, axis=1)
+    keep = res <= max(3 * float(np.median(res)), 0.01)  # once more without the farthest
+    if keep.sum() >= 4:
+        T = kabsch(A[keep], B[keep][None])[0]
+        res = np.linalg.norm(transform_points(T, A) - B, axis=1)
+    median = float(np.median(res))
+    if median > STREAM_PLACEMENT_MAX_M:
+        raise DataError(f"{layout.path}: its {len(ok)} matched windows do not lie as the stops of {run.path} do (one "
+                        f"rigid fit leaves {median * 1e3:.0f} mm median, this run's log a fraction of a mm): the log "
+                        f"of another run or robot, or not in --length-unit {unit}? nothing stored")
+    moved = float(np.median(np.linalg.norm(transform_points(T, A) - A, axis=1)))
+    if frame == "robot" and moved > STREAM_ROBOT_FRAME_MAX_M:
+        raise DataError(f"{layout.path}: its positions lie {moved * 1e3:.0f} mm (median) from where the stops are in "
+                        "the robot's base frame: the log is in the tracker's frame (import it with --frame tracker); "
+                        "nothing stored")
 
 
 def log_target_names(robot, targets) -> tuple:
