@@ -222,10 +222,11 @@ function renderAuto(d) {
 }
 
 // -- a 2-D plot on a canvas ----------------------------------------------------------------------
-function setup(canvas) {
+function setup(canvas, minHeight = 0) {
   if (!canvas.dataset.aspect) canvas.dataset.aspect = canvas.height / canvas.width;  // from the HTML's size
   const ratio = window.devicePixelRatio || 1;
-  const w = canvas.clientWidth || canvas.width, h = w * Number(canvas.dataset.aspect);
+  // the HTML's proportions, but never so flat that the axis labels run into each other (a phone)
+  const w = canvas.clientWidth || canvas.width, h = Math.max(w * Number(canvas.dataset.aspect), minHeight);
   canvas.width = Math.round(w * ratio);
   canvas.height = Math.round(h * ratio);
   const ctx = canvas.getContext("2d");
@@ -242,12 +243,14 @@ function niceTicks(lo, hi, n = 5) {
   return out;
 }
 
-// log10 positions of 1, 2, 5 × each decade between lo and hi (log10 values) over at most two
-// and a half decades, 1 and 3 × over at most five, the decades alone beyond
-function logTicks(lo, hi) {
+// log10 positions between lo and hi (log10 values) as far apart as the axis's height allows
+// (pxPerDecade): 1, 2, 5 × each decade, 1 and 3 ×, the decades, every other decade
+function logTicks(lo, hi, pxPerDecade) {
   const out = [];
+  const every = pxPerDecade < 14 ? 2 : 1;
   for (let d = Math.floor(lo); d <= Math.ceil(hi); d++) {
-    for (const m of hi - lo <= 2.5 ? [1, 2, 5] : hi - lo <= 5 ? [1, 3] : [1]) {
+    if (d % every) continue;
+    for (const m of pxPerDecade >= 70 ? [1, 2, 5] : pxPerDecade >= 36 ? [1, 3] : [1]) {
       const v = d + Math.log10(m);
       if (v >= lo - 1e-9 && v <= hi + 1e-9) out.push(v);
     }
@@ -256,7 +259,7 @@ function logTicks(lo, hi) {
 }
 
 function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log = false, empty = "nothing yet" }) {
-  const [ctx, W, H] = setup(canvas);
+  const [ctx, W, H] = setup(canvas, 200);
   canvas.dataset.yscale = log ? "log" : "linear";
   if (log) {  // plotted as log10 of the values (all positive: distances; a zero at a micrometre's thousandth)
     series = series.map((s) => ({ ...s, pts: s.pts.map((p) => [p[0], Math.log10(Math.max(p[1], 1e-6))]) }));
@@ -264,6 +267,17 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log =
   }
   const m = { l: 56, r: 12, t: 26, b: 38 };
   ctx.clearRect(0, 0, W, H);
+  ctx.font = "11px system-ui, sans-serif";
+  // the legend's entries, on as many lines above the plot as the width needs
+  const legend = [];
+  let lx = m.l + 6, line = 0;
+  for (const s of series) {
+    const text = `${s.label} (${s.pts.length})`, width = ctx.measureText(text).width + 12;
+    if (lx > m.l + 6 && lx + width > W - m.r) { line += 1; lx = m.l + 6; }
+    legend.push({ s, text, x: lx, y: 14 + 15 * line });
+    lx += width + 18;
+  }
+  m.t += 15 * line;
   const all = series.flatMap((s) => s.pts);
   let x0 = Math.min(...all.map((p) => p[0])), x1 = Math.max(...all.map((p) => p[0]));
   let y0 = Math.min(...all.map((p) => p[1])), y1 = Math.max(...all.map((p) => p[1]));
@@ -278,10 +292,9 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log =
   if (log) y0 -= (y1 - y0) * 0.05;  // no point on the bottom of the frame either
   const X = (v) => m.l + ((v - x0) / (x1 - x0)) * (W - m.l - m.r);
   const Y = (v) => H - m.b - ((v - y0) / (y1 - y0)) * (H - m.t - m.b);
-  ctx.font = "11px system-ui, sans-serif";
   ctx.strokeStyle = COLOURS.grid; ctx.fillStyle = COLOURS.axis; ctx.lineWidth = 1;
   ctx.textAlign = "right"; ctx.textBaseline = "middle";
-  for (const v of log ? logTicks(y0, y1) : niceTicks(y0, y1)) {
+  for (const v of log ? logTicks(y0, y1, (H - m.t - m.b) / (y1 - y0)) : niceTicks(y0, y1)) {
     ctx.beginPath(); ctx.moveTo(m.l, Y(v)); ctx.lineTo(W - m.r, Y(v)); ctx.stroke();
     ctx.fillText(log ? Number((10 ** v).toPrecision(1)) : Number(v.toPrecision(4)), m.l - 5, Y(v));
   }
@@ -309,15 +322,13 @@ function plot(canvas, { series, hline = null, xlabel, ylabel, ymin = null, log =
     }
     if (s.marks !== false) for (const p of s.pts) { ctx.beginPath(); ctx.arc(X(p[0]), Y(p[1]), r, 0, 2 * Math.PI); ctx.fill(); }
   }
-  let lx = m.l + 6;
   ctx.textAlign = "left"; ctx.textBaseline = "middle";
-  for (const s of series) {
+  for (const { s, text, x, y } of legend) {
     if (s.marks === false) {  // a line in the legend for a line, a dot for points
       ctx.save(); ctx.strokeStyle = s.color; ctx.lineWidth = 2; if (s.dashed) ctx.setLineDash([4, 2]);
-      ctx.beginPath(); ctx.moveTo(lx - 2, m.t - 12); ctx.lineTo(lx + 10, m.t - 12); ctx.stroke(); ctx.restore();
-    } else { ctx.fillStyle = s.color; ctx.beginPath(); ctx.arc(lx + 4, m.t - 12, 4, 0, 2 * Math.PI); ctx.fill(); }
-    ctx.fillStyle = COLOURS.axis; ctx.fillText(`${s.label} (${s.pts.length})`, lx + 12, m.t - 12);
-    lx += ctx.measureText(`${s.label} (${s.pts.length})`).width + 30;
+      ctx.beginPath(); ctx.moveTo(x - 2, y); ctx.lineTo(x + 10, y); ctx.stroke(); ctx.restore();
+    } else { ctx.fillStyle = s.color; ctx.beginPath(); ctx.arc(x + 4, y, 4, 0, 2 * Math.PI); ctx.fill(); }
+    ctx.fillStyle = COLOURS.axis; ctx.fillText(text, x + 12, y);
   }
   if (!all.length) { ctx.textAlign = "center"; ctx.fillText(empty, (m.l + W) / 2, (m.t + H) / 2); }
 }
