@@ -720,3 +720,16 @@ def test_radians_given_with_angle_unit_deg_are_named(comau_run, tmp_path, capsys
     assert main([cmd, str(run), "--csv", str(tmp_path / "deg.csv"), "--angle-unit", "deg", "--out",
                  str(tmp_path / "b.csv")]) == 0
     assert "radians?" not in capsys.readouterr().err
+
+
+def test_orientations_in_rad_beside_joints_in_degrees_are_named_so(tmp_path, capsys):
+    src = _synth(tmp_path, "c", "--poses", "40", "--seed", "5")
+    header, values = _read(src)
+    cols = [header.index(f"q{j}") for j in range(1, 7)]
+    values[:, cols] = np.degrees(values[:, cols])  # the controller's joints in degrees, the tracker's rotvec in rad
+    _write(tmp_path / "mixed.csv", header, values)
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "mixed.csv"), "--run", str(tmp_path / "r"), "--angle-unit", "deg"]) == 0
+    err = capsys.readouterr().err  # was: orientation_residual, 'no reading of rx,ry,rz ... fits'
+    assert "columns rx,ry,rz read in degrees (--angle-unit deg, as the joints) disagree" in err
+    assert "read in rad they agree to" in err and "[rotation_reading]" in err and "no reading" not in err

@@ -154,7 +154,8 @@ def import_warnings(csv_path, robot, options, run_dir=None) -> list:
     checked = robot if point is None else robot.with_tool_point(point)
     orientation = None
     if orient is not None:
-        scales = (1.0, 3.141592653589793 / 180) if options.angle_unit == "rad" else (1.0,)
+        # the other unit tried too: degrees read as rad, or rad read as degrees beside joints in degrees
+        scales = (1.0, 3.141592653589793 / 180) if options.angle_unit == "rad" else (1.0, 180 / 3.141592653589793)
         orientation = (orient, ROTATIONS[options.rotation][0], options.rotation, rotation_readings_table(), scales)
     return check_data(checked, sample, orientation=orientation, fit_rows=train)
 

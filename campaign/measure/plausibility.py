@@ -575,6 +575,13 @@ def _orientation(robot, poses, idx, orientation) -> list:
     cols = ",".join(columns)
     if best[1] != reading or best[2] != 1.0:
         if best[0] <= ORIENTATION_SPREAD_MAX_RAD and best[0] * CONVENTION_GAIN_MIN < here[0]:
+            if best[2] > 1.0:  # rad, read as degrees with the joints: one --angle-unit reads both
+                return [Finding("rotation_reading",
+                                f"columns {cols} read in degrees (--angle-unit deg, as the joints) disagree with the "
+                                f"nominal orientations by {here[0] * 1e3:.0f} mrad on average; read in rad"
+                                f"{'' if best[1] == reading else ' as ' + best[1]} they agree to "
+                                f"{best[0] * 1e3:.1f} mrad: --angle-unit reads joints and orientations alike, write "
+                                "them in one unit (docs/csv_import.md)")]
             unit = "" if best[2] == 1.0 else " (and in degrees: the columns, not the joints)"
             return [Finding("rotation_reading",
                             f"columns {cols} read as {reading} disagree with the nominal orientations by "
