@@ -472,12 +472,15 @@ def test_the_page_asks_only_its_server_shows_no_error_and_follows_each_new_calib
             assert note.startswith("round 2 under way"), note
             # then it stops: the page says why in the stop decision's words (it said 'finished: at_floor')
             stop = Decision("stop", "stop: at the measurement noise", reason="at_floor")
-            state["rounds"].append(Round(2, 40, 40, 0.2, "geometric", (), 0.011, 0.01, "at the noise", False, (),
-                                         None, stop).as_json())
+            state["rounds"].append(Round(2, 40, 40, 0.2, "geometric+ground_compliance+joint_compliance", (), 0.011,
+                                         0.01, "at the noise", False, (), None, stop).as_json())
             state["finished"] = {"reason": "at_floor", "time_unix_s": time.time()}
             save_state(RunFolder(run), state)
             browser.wait_for("document.getElementById('auto-note').textContent === "
                              "'finished; stop: at the measurement noise'", timeout_s=10)
+            # on a phone the page stays within the screen's width (a long model name ran it off the right)
+            browser.call("Emulation.setDeviceMetricsOverride", width=560, height=900, deviceScaleFactor=1, mobile=False)
+            browser.wait_for("document.documentElement.scrollWidth <= 560", timeout_s=5)
             # a report page opened from the page asks for /favicon.ico: no 404 in the console
             assert get(server.port, "/favicon.ico")[0] == 204
             origin = f"http://127.0.0.1:{server.port}/"
