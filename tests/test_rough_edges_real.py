@@ -733,3 +733,21 @@ def test_orientations_in_rad_beside_joints_in_degrees_are_named_so(tmp_path, cap
     err = capsys.readouterr().err  # was: orientation_residual, 'no reading of rx,ry,rz ... fits'
     assert "columns rx,ry,rz read in degrees (--angle-unit deg, as the joints) disagree" in err
     assert "read in rad they agree to" in err and "[rotation_reading]" in err and "no reading" not in err
+
+
+@pytest.mark.parametrize("kind", ["pose", "markers"])
+def test_a_joint_convention_and_an_unknown_plate_at_once_are_both_named(mounted_ur10, tmp_path, capsys, kind):
+    """The controller counts joint 2 the other way and the data were measured on the plate: neither
+    explains the data alone (was: nominal_residual only); together they fit, and are named so."""
+    tmp, truth, X, q = mounted_ur10
+    header, values = _read(tmp / f"{kind}.csv")
+    values[:, header.index("q2")] *= -1
+    _write(tmp_path / "flipped.csv", header, values)
+    extra = ["--markers", str(tmp / "plate.yaml")] if kind == "markers" else []
+    capsys.readouterr()
+    assert main(["import", str(tmp_path / "flipped.csv"), "--run", str(tmp_path / "r"), "--robot", "ur10",
+                 *extra]) == 0
+    err = capsys.readouterr().err
+    assert ("joint 2's sign is flipped (q2 -> -q2): registered rms" in err
+            and "with that convention and the tool frame is 29° and 115 mm from the URDF's (tool0)" in err), err
+    assert "[0, -1, 0, 0, 0, 0]" in err and "[joint_convention]" in err

@@ -319,8 +319,9 @@ def check_data(robot, poses, *, noise_mm: float | None = None, orientation=None,
                            f"registration{noise}, more than a real {robot.name}'s geometric errors "
                            f"(≤ {_mm(limit)}): check the joint convention (coupling, signs, offsets: robot.yaml's "
                            "controller), the length and angle units, the tool frame"))
-        found = _convention_finding(robot, test_conventions(robot, q, P_meas, kind, poses.marker_positions),
-                                    rms, limit, "registered rms")
+        ranked = test_conventions(robot, q, P_meas, kind, poses.marker_positions)
+        found = (_convention_finding(robot, ranked, rms, limit, "registered rms")
+                 or _convention_and_mounting(robot, poses, ranked[0], rms, limit, fit_rows))
         if found is not None:
             out.append(found)
     elif poses.frame == "robot" and np.isfinite(rms):  # (fewer than 3 points: no rigid move to compare)
@@ -350,6 +351,44 @@ def off_origin_point(robot, q, P_measured, frame: str):
     if np.linalg.norm(p) <= POINT_REGISTRATION_MIN_TOLERANCES * robot_tolerances(robot)["tool_m"]:
         return None
     return T, p
+
+
+def _convention_and_mounting(robot, poses, best, rms, limit, fit_rows):
+    """``joint_convention`` when the best candidate convention ``best`` (of :func:`test_conventions`)
+    makes 6-D or raw-reflector data fit the nominal model in a tool mounting (or one-reflector data
+    at a measured point) within ``limit``, CONVENTION_GAIN_MIN times better than ``rms``: both at
+    once (a controller's convention and a marker plate), which neither explains alone."""
+    from dataclasses import replace
+
+    _, label, M, b = best
+    if label is None:
+        return None
+    converted = replace(poses, q=poses.q @ M.T + b)
+    if poses.kind == "point":
+        idx = _sample(len(poses))
+        P_meas = _measured_points(poses)[idx]
+        P_nom = _points(robot, converted.q[idx], "point", None)
+        rms_c = _registered_rms(P_nom, P_meas)[0]
+        found = _off_point(robot, converted, converted.q[idx], P_meas, rms_c, limit, fit_rows)
+        if found is None:
+            return None
+        fit = off_origin_point(robot, converted.q[fit_rows], converted.xyz[fit_rows], poses.frame)
+        T_reg, p = fit
+        P_fit = transform_points(T_reg @ forward(robot, converted.q[idx]), np.broadcast_to(p, (len(idx), 1, 3)))
+        rms_x = float(np.sqrt(np.nanmean(np.sum((P_fit - P_meas) ** 2, axis=-1))))
+        where = f"a reflector measured at {point_text(p)} in the tool frame"
+    else:
+        fit = mounting_fit(robot, converted, fit_rows)
+        if fit is None:
+            return None
+        rms_x = fit[2]
+        where = mounting_text(robot, fit[0], _reflector_count(poses))
+    if not rms_x < limit or not rms_x * CONVENTION_GAIN_MIN < rms:
+        return None
+    return Finding("joint_convention",
+                   f"{label}: registered rms {_mm(rms)} -> {_mm(rms_x)} with that convention and {where}; import "
+                   f"with the controller's convention in robot.yaml: {controller_yaml(robot, M, b)} "
+                   "(docs/robot_yaml.md), and calibrate fits the tool where the data place it")
 
 
 def _off_point(robot, poses, q, P_meas, rms, limit, fit_rows):
