@@ -111,9 +111,31 @@ def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
         jar = {"Cookie": cookie.split(";")[0]}
         assert get_json(server.port, "/api/status", jar)["state"] == "planned"
         assert get(server.port, "/", jar)[0] == 200
-        assert get(server.port, "/api/status", {"Cookie": "campaign_watch=0123abcd"})[0] == 401
+        assert get(server.port, "/api/status", {"Cookie": f"campaign_watch_{server.port}=0123abcd"})[0] == 401
     finally:
         server.stop()
+
+
+def test_two_watchers_on_one_machine_keep_a_cookie_each(tmp_path):
+    """A browser keeps one cookie per host whatever the port: the second watcher's cookie replaced
+    the first's, which then refused the page (401)."""
+    from campaign.measure.auth import read_token
+    from campaign.watch.server import WatchServer
+
+    servers, jar = [], {}
+    try:
+        for k in range(2):
+            (tmp_path / f"token{k}").write_text(f"{TOKEN}-{k}")
+            (tmp_path / f"run{k}").mkdir()
+            servers.append(WatchServer(tmp_path / f"run{k}", port=0, key=read_token(tmp_path / f"token{k}")).start())
+        for k, server in enumerate(servers):  # each opened once with its token, as a browser would in turn
+            name, _, value = get(server.port, f"/?token={TOKEN}-{k}")[1]["Set-Cookie"].split(";")[0].partition("=")
+            jar[name] = value  # the browser's jar for this host: a cookie of the same name is replaced
+        cookie = {"Cookie": "; ".join(f"{n}={v}" for n, v in jar.items())}
+        assert len(jar) == 2 and [get(s.port, "/api/status", cookie)[0] for s in servers] == [200, 200]
+    finally:
+        for server in servers:
+            server.stop()
 
 
 def test_a_base64_token_is_taken_as_typed_in_the_address_bar_and_as_a_form_encodes_it(tmp_path):

@@ -33,6 +33,8 @@ from campaign.measure.auth import is_loopback
 from campaign.watch.view import RunView, strict_json
 
 DEFAULT_PORT = 8765
+#: the cookie's name, followed by the port: a browser keeps one cookie per host whatever the port,
+#: so two watchers on one machine (two runs, two tokens) would otherwise overwrite each other's
 COOKIE = "campaign_watch"
 #: the page's own files (campaign/watch/assets), by URL path
 ASSETS = {"/": "index.html", "/watch.js": "watch.js", "/watch.css": "watch.css"}
@@ -80,6 +82,7 @@ class WatchServer:
             raise ConfigError(f"{option} {port} on {host}: cannot bind ({exc.strerror or exc}); is another watcher "
                               "serving there? give another port") from None
         self.host, self.port = host, self.httpd.server_address[1]
+        self.cookie_name = f"{COOKIE}_{self.port}"
         self._thread = None
 
     @property
@@ -174,7 +177,8 @@ class _Handler(BaseHTTPRequestHandler):
             jar = SimpleCookie(self.headers.get("Cookie") or "")
         except CookieError:
             jar = SimpleCookie()
-        if COOKIE in jar and hmac.compare_digest(jar[COOKIE].value.encode(), w.cookie_value.encode()):
+        name = w.cookie_name
+        if name in jar and hmac.compare_digest(jar[name].value.encode(), w.cookie_value.encode()):
             return True
         # the token as a form decodes it, and as typed: a base64 token's '+' pasted into the
         # address bar is a '+', not the space a form's encoding makes of it
@@ -200,7 +204,8 @@ class _Handler(BaseHTTPRequestHandler):
         if csp:
             self.send_header("Content-Security-Policy", _CSP)
         if getattr(self, "_set_cookie", False) and code == 200:
-            self.send_header("Set-Cookie", f"{COOKIE}={self.watch.cookie_value}; HttpOnly; SameSite=Strict; Path=/")
+            self.send_header("Set-Cookie", f"{self.watch.cookie_name}={self.watch.cookie_value}; HttpOnly; "
+                                           "SameSite=Strict; Path=/")
         self.end_headers()
         self.wfile.write(body)
 
