@@ -115,7 +115,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     if floor_round is not None:
         return floor_round
     d = _design_or_stop(rnd, limits, loop, target, at_floor=False)
-    if d.kind != "stop" or reveals:
+    if d.kind != "stop" or reveals >= REVEAL_ROUNDS:
         return d
     n, limit = loop.room(REVEAL_POSES)
     if n <= 0:
