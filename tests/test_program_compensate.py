@@ -310,3 +310,39 @@ def test_joint_limits_and_strict_with_a_program(tmp_path, robot, calibrated, cap
     err = capsys.readouterr().err.strip()
     assert "1 target(s) outside the calibrated domain with --strict (line 4): nothing written" in err
     assert not (tmp_path / "c.script").exists()
+
+
+def test_a_controllers_file_keeps_its_line_ends_and_encoding_and_only_its_targets_change(tmp_path, robot,
+                                                                                          calibrated):
+    """A KUKA .dat as the controller keeps it: CRLF line ends and a comment in Windows-1252. Read
+    with universal newlines every line came back with LF (all changed); the ß made it 'not a text
+    file'. A URScript's set_tcp(p[...]) and force_mode's lists are no targets (they were rewritten as
+    a pose and joint lists), a movel(p[...]) is no motion to a target 'p' defined elsewhere."""
+    run, truth, poses = calibrated
+    q = poses.q[np.abs(poses.q[:, 4]) > 0.6][:2]  # off the wrist's singularity
+    d = np.degrees(q)
+    dat = tmp_path / "weld.dat"
+    rows = ["&ACCESS RVP", "DEFDAT  weld", "; Schweißnaht links"] + [
+        "DECL E6AXIS XP%d={A1 %.4f,A2 %.4f,A3 %.4f,A4 %.4f,A5 %.4f,A6 %.4f,E1 0.0,E2 0.0,E3 0.0,E4 0.0,E5 0.0,"
+        "E6 0.0}" % (k, *d[k]) for k in range(2)] + ["ENDDAT", ""]
+    dat.write_bytes("\r\n".join(rows).encode("cp1252"))
+    assert main(["compensate", str(run), "--program", str(dat), "--format", "krl", "--out", str(tmp_path / "o.dat")]) == 0
+    before = dat.read_bytes().split(b"\r\n")
+    after = (tmp_path / "o.dat").read_bytes().split(b"\r\n")
+    assert len(after) == len(before) and b"\n" not in b"".join(after)
+    assert [k for k, (a, b) in enumerate(zip(before, after)) if a != b] == [3, 4]
+    assert after[2] == "; Schweißnaht links".encode("cp1252")
+    T = forward(robot, q)
+    pose = T_to_pose(T[0], "m_rotvec", [0.0] * 6)
+    script = tmp_path / "a.script"
+    script.write_text("def a():\n  set_tcp(p[0, 0, 0.1, 0, 0, 0])\n"
+                      "  force_mode(p[0, 0, 0, 0, 0, 0], [0, 0, 1, 0, 0, 0], [0, 0, 10, 0, 0, 0], 2, "
+                      "[0.1, 0.1, 0.1, 0.3, 0.3, 0.3])\n"
+                      "  movel(p[" + ", ".join(f"{v:.7f}" for v in pose) + "], a=0.5)\nend\n")
+    assert main(["compensate", str(run), "--program", str(script), "--format", "urscript",
+                 "--out", str(tmp_path / "o.script")]) == 0
+    a, b = script.read_text().splitlines(), (tmp_path / "o.script").read_text().splitlines()
+    assert a[:3] == b[:3] and a[3] != b[3]
+    from campaign.program.compensate import _unresolved
+
+    assert _unresolved(script.read_text(), "urscript") == []

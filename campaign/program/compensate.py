@@ -97,12 +97,39 @@ def _unread(text: str, declaration: str, found_lines: set) -> list:
             if re.search(declaration, ln, re.I) and k not in found_lines]
 
 
+#: URScript calls a pose or a joint list is a target in (as their first argument or anywhere: a via)
+UR_MOTIONS = ("movej", "movel", "movep", "movec", "servoj")
+#: calls whose first argument is a pose the result is placed by (a base target), the others offsets
+UR_POSE_OPS = ("pose_trans", "pose_add")
+
+
+def _enclosing_call(text: str, pos: int) -> tuple:
+    """(name, argument index) of the innermost call whose parenthesis is open at ``pos`` on its
+    line, (None, 0) outside any call: ("set_tcp", 0) for the p[...] of ``set_tcp(p[...])``."""
+    line_start = text.rfind("\n", 0, pos) + 1
+    stack = []
+    for m in re.finditer(r"([A-Za-z_]\w*)?\s*\(|\)|,|\[|\]", text[line_start:pos]):
+        tok = m.group()
+        if tok == ")" and stack:
+            stack.pop()
+        elif tok.endswith("("):
+            stack.append([m.group(1), 0, 0])  # name, argument index, open brackets
+        elif stack and tok in "[]":
+            stack[-1][2] += 1 if tok == "[" else -1
+        elif stack and tok == "," and stack[-1][2] == 0:
+            stack[-1][1] += 1
+    return (stack[-1][0], stack[-1][1]) if stack else (None, 0)
+
+
 def _scan_urscript(text: str, n: int) -> Scan:
     out = Scan()
     for m in re.finditer(r"(p?)\[([^\[\]]*)\]", text):
         body = m.group(2)
         if not body.strip() or not re.fullmatch(rf"\s*{NUM}(\s*,\s*{NUM})*\s*", body):
             continue
+        call, arg = _enclosing_call(text, m.start())
+        if call is not None and call not in UR_MOTIONS and not (call in UR_POSE_OPS and arg == 0):
+            continue  # an argument of set_tcp, force_mode, pose_trans's offset, ...: a tool, a wrench, an offset
         spans, vals = _numbers(text, m.start(2), m.end(2))
         line = _line_of(text, m.start())
         if m.group(1):
@@ -309,7 +336,7 @@ MOTIONS = {
             r"(?:DECL\s+(?:GLOBAL\s+)?\w+\s+{name}\s*=|^\s*{name}\s*=)"),
     "rapid": (r"^\s*Move\w*\s+(?:\\\w+\s*,?\s*)*([A-Za-z_]\w*(?:\s*\([^)]*\))?)",
               r"\b(?:robtarget|jointtarget)\s+{name}\s*:="),
-    "urscript": (r"^\s*(?:movej|movel|movep|servoj)\s*\(\s*([A-Za-z_]\w*(?:\s*\([^)]*\))?)",
+    "urscript": (r"^\s*(?:movej|movel|movep|servoj)\s*\(\s*(?!p\s*\[)([A-Za-z_]\w*(?:\s*\([^)]*\))?)",
                  r"^\s*(?:global\s+)?{name}\s*=\s*p?\["),
     "pdl2": (r"^\s*MOVE(?:FLY)?\s+(?:JOINT\s+|LINEAR\s+|CIRCULAR\s+)?TO\s+([A-Za-z_$][\w$]*(?:\s*\([^)]*\))?)",
              r"(?:\bJNT\s*\(\s*{name}\s*,|^\s*{name}\s*:=\s*POS\s*\()"),
@@ -659,10 +686,7 @@ def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None,
     program = Path(program)
     if not program.is_file():
         raise DataError(f"{program}: no such program file")
-    try:
-        text = program.read_text()
-    except UnicodeDecodeError:
-        raise DataError(f"{program}: not a text file") from None
+    text, encoding, newline = read_program_text(program)
     out = Path(out) if out is not None else program.with_name(program.stem + "_compensated" + program.suffix)
     if out.resolve() == program.resolve():
         raise ConfigError(f"--out {out}: is the program itself; write the filtered program to another file")
@@ -673,5 +697,22 @@ def compensate_program_file(run_dir, program, fmt: str, *, out=None, stage=None,
         lines = res.outside_domain
         raise DataError(f"{program}: {len(lines)} target(s) outside the calibrated domain with --strict (line "
                         f"{', '.join(map(str, lines[:10]))}{', ...' if len(lines) > 10 else ''}): nothing written")
-    atomic_write(out, res.text)
+    atomic_write(out, res.text.replace("\n", newline).encode(encoding))
     return out, res
+
+
+def read_program_text(program: Path) -> tuple:
+    """(text with "\n" line ends, its encoding, its line end): a controller's file is written back
+    as it came (a KUKA .dat with CRLF and a comment in Windows-1252, "Schwei\xdfnaht", stays so;
+    read as UTF-8 with universal newlines, every line of it changed, or it was "not a text file")."""
+    raw = program.read_bytes()
+    if b"\0" in raw:
+        raise DataError(f"{program}: not a text file")
+    for encoding in ("utf-8", "cp1252", "latin-1"):
+        try:
+            text = raw.decode(encoding)
+            break
+        except UnicodeDecodeError:
+            continue
+    newline = "\r\n" if "\r\n" in text and text.count("\r\n") == text.count("\n") else "\n"
+    return text.replace("\r\n", "\n"), encoding, newline
