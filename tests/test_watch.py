@@ -546,3 +546,27 @@ def test_one_reflector_and_raw_reflector_data_get_the_residuals_calibrate_gets(t
     n = {k: stage[k]["n_poses"] for k in ("train", "test")}
     expected = sum(n[k] * stage[k]["position_mm"]["mean"] for k in n) / sum(n.values())
     assert math.isclose(np.mean([p["error_calibrated_mm"] for p in rows]), expected, rel_tol=1e-6)
+
+
+@pytest.mark.skipif(find_browser() is None, reason="no Chromium on this machine (apt-get install chromium)")
+def test_a_page_whose_watcher_restarted_with_another_token_says_to_open_it_again_with_the_token(tmp_path):
+    from campaign.measure.auth import read_token
+    from campaign.watch.server import WatchServer
+
+    (tmp_path / "run").mkdir()
+    for k in range(2):
+        (tmp_path / f"token{k}").write_text(f"{TOKEN}-{k}\n")
+    server = WatchServer(tmp_path / "run", port=0, key=read_token(tmp_path / "token0")).start()
+    port = server.port
+    try:
+        with chromium(width=1000, height=700) as browser:
+            browser.goto(f"http://127.0.0.1:{port}/?token={TOKEN}-0")
+            browser.wait_for("document.getElementById('state').textContent === 'planned'", timeout_s=10)
+            assert browser.evaluate("location.search") == ""  # the token left the address bar
+            server.stop()
+            server = WatchServer(tmp_path / "run", port=port, key=read_token(tmp_path / "token1")).start()
+            # said as such, not as 'no answer from the watcher (HTTP 401)' (the moment it was down, it was)
+            browser.wait_for("document.getElementById('conn').textContent.includes('refuses')", timeout_s=10)
+            assert "?token=" in browser.evaluate("document.getElementById('conn').textContent")
+    finally:
+        server.stop()

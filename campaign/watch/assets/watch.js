@@ -12,7 +12,8 @@ const $ = (id) => document.getElementById(id);
 
 async function getJSON(url) {
   const r = await fetch(url, { cache: "no-store", credentials: "same-origin" });
-  if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
+  if (r.status === 401) throw new Error("the watcher refuses this page: its token changed or it restarted with another; open the page again as http://HOST:PORT/?token=<the token file's text>");
+  if (!r.ok) throw new Error(`no answer from the watcher (${url}: HTTP ${r.status}); retrying`);
   return r.json();
 }
 
@@ -36,7 +37,7 @@ async function tick() {
     render();
     $("conn").textContent = "";
   } catch (e) {
-    $("conn").textContent = `no answer from the watcher (${e.message}); retrying`;
+    $("conn").textContent = e instanceof TypeError ? `no answer from the watcher (${e.message}); retrying` : e.message;
   }
   setTimeout(tick, POLL_MS);
 }
