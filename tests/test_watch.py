@@ -503,6 +503,9 @@ def test_the_page_asks_only_its_server_shows_no_error_and_follows_each_new_calib
             # on a phone the page stays within the screen's width (a long model name ran it off the right)
             browser.call("Emulation.setDeviceMetricsOverride", width=560, height=900, deviceScaleFactor=1, mobile=False)
             browser.wait_for("document.documentElement.scrollWidth <= 560", timeout_s=5)
+            # a failure's numbers are folded, its names kept (the reflector 'm1' was shown as 'm#')
+            assert browser.evaluate("reasonKey('tracker after 4 attempts: m1: beam_lost at 0.31 m, q3 -1.2e-3')") == \
+                "tracker after # attempts: m1: beam_lost at # m, q3 #"
             # a report page opened from the page asks for /favicon.ico: no 404 in the console
             assert get(server.port, "/favicon.ico")[0] == 204
             origin = f"http://127.0.0.1:{server.port}/"

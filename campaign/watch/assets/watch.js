@@ -135,11 +135,17 @@ function renderDrift(d) {
                                           : "no drift check yet (run.drift_check_every in campaign.yaml)";
 }
 
+// a failure's reason with its numbers folded (one reason with varying values counts once), names
+// such as a reflector's m1 or a joint's q3 kept: they say where it fails
+function reasonKey(reason) {
+  return (reason || "no reason stored").replace(/(?<![\w.])[-+]?\d+(\.\d+)?(e[-+]?\d+)?(?![\w])/gi, "#");
+}
+
 function renderFailures() {
   const failed = S.poses.filter((p) => p.status === "failed");
   const byReason = new Map();
   for (const p of failed) {
-    const key = (p.reason || "no reason stored").replace(/[-+]?\d+(\.\d+)?(e[-+]?\d+)?/gi, "#");
+    const key = reasonKey(p.reason);
     byReason.set(key, (byReason.get(key) || 0) + 1);
   }
   const box = $("failure-reasons");
