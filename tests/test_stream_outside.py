@@ -70,6 +70,19 @@ def test_a_10_hz_vendor_log_with_8_samples_a_reflector(planned, tmp_path):
     vendor_import(planned, tmp_path, 2, rate_hz=10.0)
 
 
+def test_a_window_matched_to_a_stop_it_is_not_at_is_not_stored(planned, tmp_path):
+    """Five runs of three lost stops, ten reflectors lost, forty gaps, 0.5 % spikes: where the program
+    turns one pose's wrist 60 degrees a stop with repeats of another pose between, beams lost, the
+    chain was shifted by two stops and stored stop 139's window as stop 142 (224 mm from it;
+    calibrate then 56x the noise floor). A match lying off the rigid fit of every match by more than
+    10 mm is not stored."""
+    run = vendor_import(planned, tmp_path, 1, rate_hz=100.0, lost_runs=5, lost_one=10, gaps=40, spike_rate=5e-3,
+                        empty_rows=30)
+    assert main(["calibrate", str(run), "--no-ann"]) == 0
+    m = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert m["stages"]["geometric"]["test"]["position_mm"]["mean"] <= 1.2 * m["noise_floor"]["mean_position_mm"]
+
+
 def test_a_log_cut_halfway_whose_second_file_starts_at_a_stop(planned, tmp_path):
     """The second file's first whole window began with the reflector followed in (a lead-in) and a
     gap took that reflector's measurement: its order (SMR3, SMR1, SMR2) was taken for the tracker's

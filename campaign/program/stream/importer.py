@@ -113,7 +113,7 @@ def _import_locked(run, log, length_unit, frame, columns, progress, targets=None
     if layout.target_col is None:  # one point: which of the tool's (its reflectors, the origin) fits
         P_E, names = tracked_point(robot, stops, measured_idx, windows, first_m, finder.t_first)
     matches = match_stops(robot, stops, measured_idx, windows, P_E, first_m, finder.t_first)
-    check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame)
+    matches = check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame)
     rows, records, events = _outcomes(run, stops, measured_idx, matches, windows, P_E, names, kind, layout,
                                       finder, first_m, state)
     last = max([measured_idx[m.stop] for m in matches], default=first_stop - 1)
@@ -242,14 +242,18 @@ def match_stops(robot, stops, measured_idx, windows, P_E, first_m, t_first) -> l
     return align(windows, P, dwell, first_stop=first_m, t_start=t_first, motion_s=motion)
 
 
-def check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame) -> None:
+def check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layout, first_stop, frame) -> list:
     """Refuse, before anything is stored, a log that is not this run's: no window matched (another
     run's log, another length unit), or matches that do not lie together as the program's stops do
     (one rigid fit of every matched window to the stops' nominal points leaves a median residual
     over STREAM_PLACEMENT_MAX_M: an arm off nominal by a few mm leaves well under a millimetre; the
     distances between successive stops of another run's log can agree by chance, its places cannot);
     with ``frame`` "robot", a fit far from the identity (STREAM_ROBOT_FRAME_MAX_M at the stops): the
-    log is in the tracker's frame."""
+    log is in the tracker's frame. Returns ``matches`` with those lying off the fit by more than
+    STREAM_PLACEMENT_MAX_M unconfirmed: a window matched to the wrong stop of a run of stops alike (a
+    pose's wrist turned by 60 degrees a stop, repeats between them, beams lost) is stored nowhere."""
+    from dataclasses import replace
+
     from campaign.measure.reflectors import kabsch, transform_points
     from campaign.tolerances import STREAM_PLACEMENT_MAX_M, STREAM_ROBOT_FRAME_MAX_M
 
@@ -263,14 +267,15 @@ def check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layo
                         f"from stop {first_stop} on (the log of another run? its positions not in --length-unit "
                         f"{unit}?); nothing stored")
     P = nominal_points(robot, [stops[measured_idx[m.stop]] for m in ok], P_E)
-    A, B = [], []
+    A, B, of = [], [], []
     for m, pts in zip(ok, P):
         for c, pos in windows[m.window].position.items():
             if c < len(pts):
                 A.append(pos)
                 B.append(pts[c])
+                of.append(m.window)
     if len(A) < 4:
-        return
+        return matches
     A, B = np.array(A), np.array(B)
     T = kabsch(A, B[None])[0]
     res = np.linalg.norm(transform_points(T, A) - B, axis=1)
@@ -288,6 +293,8 @@ def check_placement(run, robot, stops, measured_idx, windows, matches, P_E, layo
         raise DataError(f"{layout.path}: its positions lie {moved * 1e3:.0f} mm (median) from where the stops are in "
                         "the robot's base frame: the log is in the tracker's frame (import it with --frame tracker); "
                         "nothing stored")
+    off = {w for w, r in zip(of, res) if r > STREAM_PLACEMENT_MAX_M} if len(ok) >= 4 else set()
+    return [replace(m, confirmed=False) if m.window in off else m for m in matches]
 
 
 def log_target_names(robot, targets) -> tuple:
