@@ -4,7 +4,7 @@
 
 const POLL_MS = 500;
 const DETAILS_MS = 3000;
-const COLOURS = { nominal: "#1f77b4", calibrated: "#ff7f0e", bad: "#d62728", grid: "#e3e8ee", axis: "#5f6b7a" };
+const COLOURS = { ink: "#1d2733", nominal: "#1f77b4", calibrated: "#ff7f0e", bad: "#d62728", grid: "#e3e8ee", axis: "#5f6b7a" };
 const S = { poses: [], status: null, details: null, detailsAt: 0, stage: undefined, calibration: undefined,
             view: { yaw: -0.6, pitch: 0.35 } };
 
@@ -388,17 +388,10 @@ function renderSpace() {
   const P = pts.map((p) => ({ ...p, s: proj(p.x) }));
   const R = Math.max(...P.map((p) => Math.hypot(p.s[0], p.s[1])), 1e-3);
   const scale = (Math.min(W - 70, H - 30) / 2) / R, cx = (W - 60) / 2, cy = H / 2;
-  // the axes of the robot's frame from the centre of the points, 20 % of their spread
-  const L = 0.4 * R;
-  [["x", [1, 0, 0]], ["y", [0, 1, 0]], ["z", [0, 0, 1]]].forEach(([name, e]) => {
-    const o = proj(c), t = proj(c.map((v, k) => v + L * e[k]));
-    ctx.strokeStyle = COLOURS.axis; ctx.beginPath(); ctx.moveTo(cx + o[0] * scale, cy - o[1] * scale);
-    ctx.lineTo(cx + t[0] * scale, cy - t[1] * scale); ctx.stroke();
-    ctx.fillText(name, cx + t[0] * scale + 3, cy - t[1] * scale);
-  });
   const errs = P.filter((p) => p.e !== null).map((p) => p.e).sort((x, y) => x - y);
   const lo = errs.length ? errs[0] : 0, hi = errs.length ? errs[Math.floor(0.98 * (errs.length - 1))] : 1;
   P.sort((p, q) => p.s[2] - q.s[2]);
+  const dot = P.length > 2000 ? 1.6 : 3;  // thousands of poses: smaller dots, the shape shows through
   for (const p of P) {
     const x = cx + p.s[0] * scale, y = cy - p.s[1] * scale;
     if (p.failed) {
@@ -407,9 +400,24 @@ function renderSpace() {
       ctx.lineWidth = 1;
     } else {
       ctx.fillStyle = p.e === null ? "#aab4bf" : colourMap((p.e - lo) / Math.max(hi - lo, 1e-12));
-      ctx.beginPath(); ctx.arc(x, y, 3, 0, 2 * Math.PI); ctx.fill();
+      ctx.beginPath(); ctx.arc(x, y, dot, 0, 2 * Math.PI); ctx.fill();
     }
   }
+  // the axes of the frame from the centre of the points, 20 % of their spread, over the points
+  // (under thousands of them they were hidden)
+  const L = 0.4 * R;
+  ctx.lineWidth = 1.5; ctx.font = "bold 12px system-ui, sans-serif"; ctx.textAlign = "left"; ctx.textBaseline = "middle";
+  [["x", [1, 0, 0]], ["y", [0, 1, 0]], ["z", [0, 0, 1]]].forEach(([name, e]) => {
+    const o = proj(c), t = proj(c.map((v, k) => v + L * e[k]));
+    const ox = cx + o[0] * scale, oy = cy - o[1] * scale, tx = cx + t[0] * scale, ty = cy - t[1] * scale;
+    for (const [colour, width] of [["#fff", 4], [COLOURS.ink, 1.5]]) {  // a white halo under each
+      ctx.strokeStyle = colour; ctx.lineWidth = width;
+      ctx.beginPath(); ctx.moveTo(ox, oy); ctx.lineTo(tx, ty); ctx.stroke();
+      ctx.strokeText(name, tx + 4, ty);
+    }
+    ctx.fillStyle = COLOURS.ink; ctx.fillText(name, tx + 4, ty);
+  });
+  ctx.lineWidth = 1; ctx.font = "11px system-ui, sans-serif";
   // colour bar, when there is an error to colour by
   const bx = W - 46, by0 = 20, by1 = H - 40;
   if (errs.length) {
