@@ -108,6 +108,7 @@ def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
         assert status == 200 and json.loads(body)["state"] == "planned"
         cookie = headers["Set-Cookie"]
         assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and TOKEN not in cookie
+        assert "Max-Age=2592000" in cookie  # kept across browser restarts for a campaign's days
         jar = {"Cookie": cookie.split(";")[0]}
         assert get_json(server.port, "/api/status", jar)["state"] == "planned"
         assert get(server.port, "/", jar)[0] == 200

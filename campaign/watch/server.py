@@ -36,6 +36,9 @@ DEFAULT_PORT = 8765
 #: the cookie's name, followed by the port: a browser keeps one cookie per host whatever the port,
 #: so two watchers on one machine (two runs, two tokens) would otherwise overwrite each other's
 COOKIE = "campaign_watch"
+#: how long a browser keeps the cookie (s): a campaign's days and then some, across browser
+#: restarts (a session cookie asked for the token again after each)
+COOKIE_MAX_AGE_S = 30 * 86400
 #: the page's own files (campaign/watch/assets), by URL path
 ASSETS = {"/": "index.html", "/watch.js": "watch.js", "/watch.css": "watch.css"}
 #: how long `--watch` keeps serving after the run ended when a page was open (s): the pages poll
@@ -205,7 +208,7 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_header("Content-Security-Policy", _CSP)
         if getattr(self, "_set_cookie", False) and code == 200:
             self.send_header("Set-Cookie", f"{self.watch.cookie_name}={self.watch.cookie_value}; HttpOnly; "
-                                           "SameSite=Strict; Path=/")
+                                           f"SameSite=Strict; Path=/; Max-Age={COOKIE_MAX_AGE_S}")
         self.end_headers()
         self.wfile.write(body)
 
