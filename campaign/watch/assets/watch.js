@@ -92,7 +92,7 @@ function renderResiduals() {
     if (p.error_nominal_mm !== null) nom.push([p.time_s / 3600, p.error_nominal_mm]);
     if (p.error_calibrated_mm !== null) cal.push([p.time_s / 3600, p.error_calibrated_mm]);
   }
-  const series = [{ pts: nom, color: COLOURS.nominal, label: `nominal model (median ${fmt(median(nom.map((q) => q[1])))} mm)` }];
+  const series = [{ pts: nom, color: COLOURS.nominal, label: nom.length ? `nominal model (median ${fmt(median(nom.map((q) => q[1])))} mm)` : "nominal model" }];
   if (cal.length) series.push({ pts: cal, color: COLOURS.calibrated, label: `calibrated: ${S.stage} (median ${fmt(median(cal.map((q) => q[1])))} mm)` });
   // the calibrated errors are often a hundredth of the nominal ones: on one linear axis they would
   // all sit on its zero, so the axis turns logarithmic when the medians are a decade apart
