@@ -117,6 +117,21 @@ def test_the_token_is_given_once_then_kept_in_a_cookie(tmp_path):
         server.stop()
 
 
+def test_on_every_interface_the_command_says_what_to_open_not_0_0_0_0(tmp_path):
+    (tmp_path / "token").write_text(TOKEN)
+    (tmp_path / "run" / "plan").mkdir(parents=True)
+    (tmp_path / "run" / "plan" / "poses.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6\n")
+    proc = subprocess.Popen([sys.executable, "-m", "campaign.cli", "watch", str(tmp_path / "run"), "--host", "0.0.0.0",
+                             "--port", "0", "--token-file", str(tmp_path / "token")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        port = url_from(proc.stdout, r"http://<this machine's name or address>:(\d+)/ \(every interface\)")
+        assert get(port, "/api/status")[0] == 401  # and it serves, with the token required
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0 and "Traceback" not in proc.stderr.read()
+
+
 def test_two_watchers_on_one_machine_keep_a_cookie_each(tmp_path):
     """A browser keeps one cookie per host whatever the port: the second watcher's cookie replaced
     the first's, which then refused the page (401)."""

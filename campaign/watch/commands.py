@@ -50,7 +50,10 @@ def _watch(args):
         raise DataError(problem)
     server = WatchServer(args.run, host=args.host, port=args.port, key=key)
     auth = "open it once with ?token=<the token file's text>" if key else "loopback, no token"
-    print(f"watching {args.run}: {server.url} ({auth}); Ctrl-C stops", flush=True)
+    url = server.url
+    if args.host in ("0.0.0.0", "::", ""):  # an address to bind, not one a browser can open
+        url = f"http://<this machine's name or address>:{server.port}/ (every interface)"
+    print(f"watching {args.run}: {url} ({auth}); Ctrl-C stops", flush=True)
     return server.serve_until_interrupted()
 
 
