@@ -40,7 +40,7 @@ ALIGN_SKIP_STOP = 1.5
 ALIGN_REJECT_WINDOW = 1.0
 #: a wrong pair costs far more than a match gains: a chain never buys a match with a bad distance
 ALIGN_PAIR_CAP = 60.0
-#: a pair of windows with no reflector in common says nothing: this cost
+#: a pair of windows one of which holds no reflector of the model says nothing: this cost
 ALIGN_PAIR_UNKNOWN = 1.0
 ALIGN_BEAM = 24
 #: predecessors looked at directly (older ones through the best of them)
@@ -87,13 +87,16 @@ def _common(a: dict, b: dict):
 
 
 def pair_residual(wa, wb, P, ja, jb) -> np.ndarray:
-    """Distance residuals in tolerances between windows wa, wb matched to stops ja, jb (arrays).
-    NaN when the windows have no reflector in common."""
+    """Distance residuals in tolerances between windows wa, wb matched to stops ja, jb (arrays), on
+    the first reflector both hold, else between the first reflector of each (the tool's layout
+    predicts that distance as well: two windows without a reflector in common still say where they
+    are). NaN when a window holds none (P has fewer reflectors)."""
     c = _common(wa.position, wb.position)
-    if c is None:
+    ca, cb = (c, c) if c is not None else (min(wa.position, default=None), min(wb.position, default=None))
+    if ca is None or cb is None or ca >= P.shape[1] or cb >= P.shape[1]:
         return np.full(np.broadcast(ja, jb).shape, np.nan)
-    d_obs = float(np.linalg.norm(wb.position[c] - wa.position[c]))
-    d_pred = np.linalg.norm(P[jb, c] - P[ja, c], axis=-1)
+    d_obs = float(np.linalg.norm(wb.position[cb] - wa.position[ca]))
+    d_pred = np.linalg.norm(P[jb, cb] - P[ja, ca], axis=-1)
     return (d_obs - d_pred) / (STREAM_DISTANCE_TOL_M + STREAM_DISTANCE_TOL_REL * d_pred)
 
 
@@ -245,13 +248,16 @@ def _dp(windows, P, dwell_s, first_stop, t_start, time_model) -> list:
                 rep = np.repeat(np.arange(len(Jp)), cnt)
                 Ja, Ba = Jp[rep], Bp[rep]
                 J = Ja + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-                # the distance residual on the first reflector both windows hold (NaN: none)
+                # the distance residual on the first reflector both windows hold, else between the
+                # first of each (the tool's layout predicts it too; NaN: a window holds none)
                 common = has[Ba] & has[i][None, :]
-                c = np.argmax(common, axis=1)
-                d_obs = np.linalg.norm(W[i, c] - W[Ba, c], axis=1)
-                d_pred = np.linalg.norm(P[J, c] - P[Ja, c], axis=1)
+                shared = common.any(axis=1)
+                cb = np.where(shared, np.argmax(common, axis=1), np.argmax(has[i]))
+                ca = np.where(shared, cb, np.argmax(has[Ba], axis=1))
+                d_obs = np.linalg.norm(W[i, cb] - W[Ba, ca], axis=1)
+                d_pred = np.linalg.norm(P[J, cb] - P[Ja, ca], axis=1)
                 r = (d_obs - d_pred) / (tol + STREAM_DISTANCE_TOL_REL * d_pred)
-                r[~common.any(axis=1)] = np.nan
+                r[~(has[Ba].any(axis=1) & has[i].any())] = np.nan
                 S = Sp[rep] + gain[i] - ALIGN_SKIP_STOP * (J - Ja - 1) \
                     - ALIGN_REJECT_WINDOW * (i - Ba - 1) - _pair_cost(r)
                 if time_model is not None:
