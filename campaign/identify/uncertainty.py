@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.identify.solver import CalibrationModel
+from campaign.tolerances import TRACKER_NOISE_MIN_M
 
 
 def full_jacobian(robot, effect_set, q, p_e, theta, context=None, *, T_meas=None, points=None) -> np.ndarray:
@@ -59,10 +60,15 @@ def unknowns_covariance(model) -> np.ndarray:
     n_p, r = robot.n_params, len(model.cols_)
     sig = model.row_sigma_
     J = model.jacobian_at_fit_
-    H, _ = _normal_equations(J / sig[None, :, None], np.zeros(J.shape[:2]))
     e = model.residual_at_fit_ / sig
     dof = max(model.n_equations_ - model.n_effective_, 1.0)
     s2 = float(np.sum(e ** 2)) / dof  # the variance factor at the fit's final weights
+    # a fit with hardly more equations than unknowns passes through its positions (noise 0.02 µm on 6
+    # poses): no tracker measures so well (noise_below_floor), and its covariance would say the model is
+    # exact at the poses it measured; the positions' noise is then the fit's starting guess
+    position = np.ones(len(sig), dtype=bool) if model.points is not None else np.arange(len(sig)) < 3
+    sig = np.where(position & (sig * np.sqrt(s2) < TRACKER_NOISE_MIN_M), model.sigma_position_m / np.sqrt(s2), sig)
+    H, _ = _normal_equations(J / sig[None, :, None], np.zeros(J.shape[:2]))
     prior = make_prior(robot, es.effects)
     strength = float(model.prior_strength) if model.kind_ == "map" else 1.0
     if r == n_p and model.kind_ == "map" and model.physical:  # the redundant model: every physical parameter
@@ -70,14 +76,25 @@ def unknowns_covariance(model) -> np.ndarray:
     else:
         var = np.diag(prior.base_covariance(model.base_))
         geometric = np.where(var > 0, 1.0 / np.where(var > 0, var, 1.0), 0.0)
-    held = np.full(r + es.n_params, strength)
-    held *= np.concatenate([geometric, prior.precision()[n_p:]])
+    tolerance_precision = np.concatenate([geometric, prior.precision()[n_p:]])
+    # a prior weaker than the tolerances (leave-one-out's choice when the data determine the rest) is
+    # no knowledge that a direction the data do not see lies wider than the tolerances: at strength
+    # 0.001 a joint that never moved gave sigma_mm 100 mm where the model was 2 mm off
+    at_least_tolerance = max(strength, 1.0) / strength if strength > 0 else 1.0
+    held = strength * at_least_tolerance * tolerance_precision
     P = np.diag(held)
     free = np.asarray(model.free_, dtype=int)
-    P[np.ix_(free, free)] = model.fit_prior_precision_ if model.kind_ == "map" else 0.0
+    P[np.ix_(free, free)] = model.fit_prior_precision_ * at_least_tolerance if model.kind_ == "map" else 0.0
     A = H / s2 + P
     w, V = np.linalg.eigh(A)
-    keep = w > max(w.max(), 1e-300) * 1e-14
+    # A direction whose information is lost in A's round-off (a joint that never moved, beside rows of
+    # a fit whose variance factor is tiny: 1e-16 of the largest) has at least the tolerance's precision
+    # there, never an infinite one: dropped, it gave the least known direction a variance of zero
+    # (sigma_mm 0.03 mm where the model was 2 mm off, 8 poses, joint 6 never moved)
+    tolerance = np.einsum("ij,i,ij->j", V, tolerance_precision, V)
+    lost = w <= max(w.max(), 1e-300) * 1e-14
+    w = np.where(lost, np.maximum(w, tolerance), w)
+    keep = w > 0
     cov = (V[:, keep] / w[keep]) @ V[:, keep].T
     return 0.5 * (cov + cov.T)
 
