@@ -353,3 +353,27 @@ def test_eight_poses_with_a_still_wrist_give_sigma_near_the_true_error_at_other_
     err = 1e3 * np.linalg.norm(P - truth.pose_in_measured_frame(qq, poses.T_LI)[:, :3, 3], axis=1)
     assert sigma[0] > 0.2 * err[0] and sigma[1:].min() > 10 * sigma[0]
     assert 0.5 <= sigma[1:].mean() / err[1:].mean() <= 4.0
+
+
+def test_a_domain_json_of_another_shape_is_one_line_never_a_silent_in_domain(still_run, tmp_path, capsys):
+    """A domain.json whose joints list lost one (or whose poses were of another count) was reshaped into
+    other training poses and answered in_domain silently (11 of 12 rows outside); another stage's
+    parameters gave a traceback."""
+    d, _, poses = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    _joint_csv(tmp_path / "q.csv", poses.q[:3])
+    good = json.loads((d / "run" / "calibration" / "domain.json").read_text())
+    for breaks, says in [(lambda x: x["domain"].update(joints=x["domain"]["joints"][:5]), "the domain has 5 joints"),
+                         (lambda x: x["domain"].update(n_train=7), "the domain says 7 poses of 6 joints"),
+                         (lambda x: x["uncertainty"]["geometric"].update(
+                             names=x["uncertainty"]["geometric"]["names"][::-1]), "not of COMAU")]:
+        run = tmp_path / f"run{len(says)}"
+        shutil.copytree(d / "run", run, symlinks=True)
+        bad = json.loads(json.dumps(good))
+        breaks(bad)
+        (run / "calibration" / "domain.json").write_text(json.dumps(bad))
+        capsys.readouterr()
+        assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv")]) == 1
+        err = capsys.readouterr().err.strip()
+        assert says in err and "domain.json" in err and len(err.splitlines()) == 1

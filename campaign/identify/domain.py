@@ -165,14 +165,20 @@ class Domain:
                 "training_q": encode_array(self.q_train)}
 
     @classmethod
-    def from_json(cls, d, where) -> "Domain":
+    def from_json(cls, d, where, n_joints=None) -> "Domain":
         try:
             joints = d["joints"]
             get = lambda key: np.array([float(j[key]) for j in joints])  # noqa: E731
-            q = decode_array(d["training_q"]).reshape(-1, len(joints))
+            q = decode_array(d["training_q"])
+            n_train = int(d["n_train"])
             out = cls(get("lower"), get("upper"), get("margin"), get("scale"), get("coverage"), q)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"{where}: malformed domain ({exc.__class__.__name__}: {exc})") from None
+        if n_joints is not None and len(joints) != n_joints:
+            raise DataError(f"{where}: the domain has {len(joints)} joints, the run's robot {n_joints}; re-run calibrate")
+        if q.shape != (n_train, len(joints)):  # reshaped, another campaign's poses would answer in_domain
+            raise DataError(f"{where}: training_q has shape {list(q.shape)}, the domain says {n_train} poses of "
+                            f"{len(joints)} joints; re-run calibrate")
         if not len(q) or not np.all(out.scale > 0) or not np.all(np.isfinite(q)):
             raise DataError(f"{where}: the domain needs training poses and positive scales")
         return out
@@ -267,9 +273,10 @@ class StoredDomain:
     identifiability: dict
 
 
-def read_domain(folder, calibration_id) -> StoredDomain | None:
+def read_domain(folder, calibration_id, robot=None) -> StoredDomain | None:
     """The calibration's domain.json (None when the calibration has none: made before it existed);
-    DataError when it is malformed or of another calibration."""
+    DataError when it is malformed, of another calibration, or (with ``robot``) of another joint count
+    or error model."""
     import json
 
     from campaign.identify.uncertainty import Uncertainty
@@ -287,9 +294,13 @@ def read_domain(folder, calibration_id) -> StoredDomain | None:
     unc = d.get("uncertainty") or {}
     if not isinstance(unc, dict):
         raise DataError(f"{path}: uncertainty must be a mapping of stages")
-    return StoredDomain(Domain.from_json(d.get("domain"), path),
-                        {k: Uncertainty.from_json(v, f"{path}: uncertainty.{k}") for k, v in unc.items()},
-                        d.get("identifiability") or {})
+    stored = StoredDomain(Domain.from_json(d.get("domain"), path, None if robot is None else robot.n_joints),
+                          {k: Uncertainty.from_json(v, f"{path}: uncertainty.{k}") for k, v in unc.items()},
+                          d.get("identifiability") or {})
+    for stage, u in stored.uncertainty.items():
+        if robot is not None and tuple(u.names[:robot.n_params]) != tuple(robot.param_names):
+            raise DataError(f"{path}: uncertainty.{stage} is not of {robot.name}'s error parameters; re-run calibrate")
+    return stored
 
 
 def domain_summary(in_domain, sigma_mm, what: str = "rows") -> str:

@@ -128,7 +128,7 @@ class CalibratedRobot:
         from campaign.identify.domain import read_domain
 
         #: domain.json (campaign.identify.domain.StoredDomain), None for a calibration made before it
-        self.stored_domain = read_domain(folder, params.get("calibration_id"))
+        self.stored_domain = read_domain(folder, params.get("calibration_id"), self.robot)
         self.network = None
         if net_file is not None:
             from campaign.ann import ResidualNetwork
@@ -178,6 +178,9 @@ class CalibratedRobot:
             return None
         q = np.asarray(q, dtype=float).reshape(-1, self.robot.n_joints)
         unc = self.stored_domain.uncertainty.get(self.model.stage)
+        if unc is not None and unc.names != tuple(self.robot.param_names) + tuple(self.model.effects.param_names):
+            raise DataError(f"domain.json: the uncertainty of stage '{self.model.stage}' is not of its parameters "
+                            f"(params.yaml's); re-run calibrate")
         var = None if unc is None else \
             (1e3 * unc.sigma_m(self.robot, self.model.effects, self.model.p_e, self.model.theta, q, context)) ** 2
         if self.network_members > 1:
