@@ -304,6 +304,15 @@ DOMAIN_PAIR_FACTOR = 1.5
 #: much: at 48 poses 1.4 flags 6 % of fresh poses at worst, at 16 even 1.6 flags 10 %)
 DOMAIN_PAIR_MIN_POSES = 60
 
+#: A relation the training poses kept among joints (q2 + q3 constant): a direction of the joint space,
+#: ranges scaled by their spread, along which they spread less than this share of their widest
+#: direction, from DOMAIN_RELATION_MIN_POSES_PER_JOINT poses a joint on (at 2 a joint, random poses
+#: leave their thinnest direction at about 0.17 of the widest; a joint turned 2° of 200° beside the
+#: others is 0.01, and a range of its own): a pose off it by more than its training spread plus
+#: DOMAIN_MIN_MARGIN_RAD a joint is outside
+DOMAIN_RELATION_RTOL = 0.01
+DOMAIN_RELATION_MIN_POSES_PER_JOINT = 2
+
 #: `compensate --program`: the largest joint step (rad; m for a prismatic joint) a target's correction
 #: may take and be written. Corrections are of the size of the robot's errors (the paper's Table 4:
 #: joint offsets of up to about 1°, tool errors of about 1.6°), amplified for the wrist's outer

@@ -377,3 +377,28 @@ def test_a_domain_json_of_another_shape_is_one_line_never_a_silent_in_domain(sti
         assert main(["predict", str(run), "--csv", str(tmp_path / "q.csv")]) == 1
         err = capsys.readouterr().err.strip()
         assert says in err and "domain.json" in err and len(err.splitlines()) == 1
+
+
+def test_joints_that_moved_only_together_are_named_and_poses_off_their_relation_are_outside(robot):
+    """q2 + q3 held at one value over 30 poses: the warning named parameters but not the joints, and
+    poses at other sums were inside (4 of 6, the model 0.5-1.6 mm off there)."""
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 30, seed=4)
+    total = q[0, 1] + q[0, 2]
+    q[:, 2] = np.clip(total - q[:, 1], robot.q_lower[2] + 0.05, robot.q_upper[2] - 0.05)
+    q[:, 1] = total - q[:, 2]
+    poses = synthesize(truth, q, seed=5)
+    model = CalibrationModel(robot=robot).fit(q, poses.T_IE)
+    msg = " ".join(f.message for f in analyse(model, q).findings(robot))
+    assert f"q2 + q3 = {np.degrees(total):.1f}° in all 30 training poses" in msg
+    dom = calibrated_domain(robot, q)
+    other = np.repeat(q[:1], 4, axis=0)
+    other[:, 1] += np.deg2rad([-20.0, -5.0, 5.0, 20.0])  # within q2's training range, the sum changed
+    assert dom.within_ranges(other).all() and not dom.contains(other).any()
+    along = np.repeat(q[:1], 4, axis=0)
+    along[:, 1] += np.deg2rad([-20.0, -5.0, 5.0, 20.0])
+    along[:, 2] -= np.deg2rad([-20.0, -5.0, 5.0, 20.0])  # the sum kept
+    assert dom.keeps_relations(along).all()
+    assert "off the relation q2 + q3 constant" in dom.why_outside(other, [f"q{j}" for j in range(1, 7)])[0]
+    fresh = random_joint_poses(robot, 500, seed=9)  # a campaign spread over every joint keeps no relation
+    assert calibrated_domain(robot, random_joint_poses(robot, 12, seed=2)).keeps_relations(fresh).all()

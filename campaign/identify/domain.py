@@ -28,7 +28,8 @@ import numpy as np
 from campaign.errors import DataError
 from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMAIN_MIN_MARGIN_M,
                                  DOMAIN_MIN_MARGIN_RAD, DOMAIN_PAIR_FACTOR,
-                                 DOMAIN_PAIR_MIN_POSES)
+                                 DOMAIN_PAIR_MIN_POSES, DOMAIN_RELATION_MIN_POSES_PER_JOINT,
+                                 DOMAIN_RELATION_RTOL)
 
 DOMAIN_FILE = "domain.json"
 
@@ -131,12 +132,41 @@ class Domain:
             ok &= ~far
         return ok
 
+    @cached_property
+    def relations(self) -> list:
+        """[(v (N,) unit, centre (N,), half-width)]: the directions of the joint space (each joint over its
+        ``scale``) along which the training poses hardly spread, on two joints or more (q2 + q3 held
+        constant; a joint alone that never moved is its range's), with the half-width of the band they
+        keep: their own spread along it plus DOMAIN_MIN_MARGIN_RAD a joint (its margin when smaller)."""
+        n, N = self.q_train.shape
+        if n < DOMAIN_RELATION_MIN_POSES_PER_JOINT * N:
+            return []
+        z = self.q_train / self.scale
+        centre = z.mean(axis=0)
+        _, s, vt = np.linalg.svd(z - centre, full_matrices=False)
+        out = []
+        for k in np.flatnonzero(s < DOMAIN_RELATION_RTOL * s[0]):
+            v = vt[k]
+            if np.sum(np.abs(v) >= 0.1 * np.abs(v).max()) < 2:
+                continue
+            band = np.sum(np.abs(v) * np.minimum(self.margin, DOMAIN_MIN_MARGIN_RAD) / self.scale)
+            out.append((v, centre, float(np.abs((z - centre) @ v).max()) + band))
+        return out
+
+    def keeps_relations(self, q) -> np.ndarray:
+        """(n,) bool: the pose keeps every relation among joints the training poses kept."""
+        q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
+        ok = np.ones(len(q), dtype=bool)
+        for v, centre, half in self.relations:
+            ok &= np.abs((q / self.scale - centre) @ v) <= half
+        return ok
+
     def contains(self, q) -> np.ndarray:
         """(n,) bool: inside the calibrated domain."""
         q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
         if not len(q):
             return np.zeros(0, dtype=bool)
-        return self.within_ranges(q).all(axis=1) & self.pairs_reached(q)
+        return self.within_ranges(q).all(axis=1) & self.keeps_relations(q) & self.pairs_reached(q)
 
     def why_outside(self, q, joint_names) -> list:
         """For each row of q: "" inside, else what puts it outside (the first joint beyond its range, or a
@@ -144,16 +174,32 @@ class Domain:
         q = np.asarray(q, dtype=float).reshape(-1, len(self.scale))
         ok = self.within_ranges(q)
         pairs = self.pairs_reached(q)
+        kept = self.keeps_relations(q)
         out = []
         for i in range(len(q)):
             bad = np.flatnonzero(~ok[i])
             if len(bad):
                 out.append(f"{joint_names[bad[0]]} beyond the training range")
+            elif not kept[i]:
+                out.append(f"off the relation {self.relation_words(joint_names)} the training poses kept")
             elif not pairs[i]:
                 out.append("in a corner of two joints' ranges no training pose reached")
             else:
                 out.append("")
         return out
+
+    def relation_words(self, joint_names, value_words=None) -> str:
+        """The first relation among joints the training poses kept, in words: "q2 + q3 constant", or with
+        ``value_words`` (a function of the relation's value in the joints' units) "q2 + q3 = 81.9°"."""
+        if not self.relations:
+            return ""
+        c = self.relations[0][0] / self.scale
+        c = c / c[np.argmax(np.abs(c))]
+        terms = [(f"{'-' if c[j] < 0 else '+'} " + ("" if abs(abs(c[j]) - 1) < 0.05 else f"{abs(c[j]):.2f}·") +
+                  joint_names[j]) for j in np.flatnonzero(np.abs(c) >= 0.1)]
+        what = " ".join(terms).removeprefix("+ ")
+        return f"{what} constant" if value_words is None else \
+            f"{what} = {value_words(float(np.median(self.q_train @ c)))}"
 
     def as_json(self, robot) -> dict:
         unit = ["m" if p else "rad" for p in robot.prismatic]

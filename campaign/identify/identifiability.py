@@ -96,6 +96,9 @@ class Identifiability:
     narrow: tuple = ()
     #: what in the measurement leaves a direction unobserved (raw reflectors: at most two seen a pose)
     hint: str = ""
+    #: a relation among joints the training poses kept ("q2 + q3 = 81.9°"), and their number
+    relation: str = ""
+    n_train: int = 0
 
     @property
     def unidentified(self) -> list:
@@ -120,7 +123,9 @@ class Identifiability:
                                      f"measure poses over q{j + 1}'s range"))
             held = ""
         if self.unidentified and not self.still:
-            out.append(Finding(CODE, f"{self.hint + ': ' if self.hint else ''}{len(self.unidentified)} direction(s) "
+            hint = self.hint or (f"{self.relation} in all {self.n_train} training poses (those joints moved only "
+                                 "together)" if self.relation else "")
+            out.append(Finding(CODE, f"{hint + ': ' if hint else ''}{len(self.unidentified)} direction(s) "
                                      f"of the model are not identified by the training poses (rank {self.rank} of "
                                      f"{self.n_unknowns} unknowns): {'; '.join(self.words[:len(self.unidentified)])}"
                                      f"{held}; measure poses that move them"))
@@ -200,7 +205,19 @@ def analyse(model, q_train, frame: str = "robot", held=(), held_at: str = "nomin
     cond = float(s_max / s[-1]) if s[-1] > 0 and rank == n_free else float("inf")
     return Identifiability(rank=min(rank, n_free), n_unknowns=n_free, condition_number=cond, directions=tuple(dirs),
                            still=still, held=tuple(held), held_at=held_at, words=tuple(words),
-                           held_words=tuple(parameter_words(robot, n, frame) for n in held), narrow=narrow)
+                           held_words=tuple(parameter_words(robot, n, frame) for n in held), narrow=narrow,
+                           relation=_relation(robot, q_train), n_train=len(q_train))
+
+
+def _relation(robot, q_train) -> str:
+    """A relation among joints the training poses kept, in words ("q2 + q3 = 81.9°"; "" when none)."""
+    from campaign.identify.domain import calibrated_domain
+
+    if robot.prismatic.any() and not robot.prismatic.all():
+        unit = lambda v: f"{v:.4f} (rad and m)"  # noqa: E731
+    else:
+        unit = lambda v: _joint_value(robot, 0, v)  # noqa: E731
+    return calibrated_domain(robot, q_train).relation_words([f"q{j + 1}" for j in range(robot.n_joints)], unit)
 
 
 def unknowns_to_hold(model) -> list:
