@@ -180,9 +180,17 @@ class RunFolder:
     def effects(self) -> tuple:
         """Effects enabled for calibration in the run's campaign.yaml; user effect files
         (``path/file.py:ClassName``) made absolute against that file's folder."""
-        from campaign.effects.base import resolve_effect_spec
+        from campaign.effects.base import check_effect_joints, resolve_effect_spec, split_joints
 
-        return tuple(resolve_effect_spec(e, self.config.dir) for e in self.config.effects)
+        specs = tuple(resolve_effect_spec(e, self.config.dir) for e in self.config.effects)
+        for spec in specs:  # a joint the robot lacks: the file and field named, like every other entry
+            base, joints = split_joints(spec)
+            if joints is not None:
+                try:
+                    check_effect_joints(joints, self.robot(), base)
+                except ConfigError as exc:
+                    raise ConfigError(f"{self.config.path}: effects: {exc}") from None
+        return specs
 
     def last_calibration(self) -> dict | None:
         """What the run's current calibration fitted, read from its params.yaml (not from

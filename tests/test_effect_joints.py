@@ -76,6 +76,31 @@ def test_a_bad_mapping_entry_names_the_field(tmp_path):
         load_config(tmp_path)
 
 
+@pytest.mark.parametrize("spec, match", [("joint_compliance:", "no joints after ':'"),
+                                         ("joint_compliance:a", "joints 'a' are not joint numbers"),
+                                         ("backlash:-1", "joints '-1' are not joint numbers")])
+def test_a_known_effect_with_a_joint_list_that_is_none_says_so_not_unknown_effect(robot, spec, match):
+    with pytest.raises(ConfigError, match=match):
+        make_effect(spec, robot)
+    assert parse_effect_list("joint_compliance:2,,3,,backlash:5") == ("joint_compliance:2,3", "backlash:5")
+
+
+def test_campaign_yaml_joints_as_a_string_a_repeat_an_unknown_field_and_a_joint_too_many(tmp_path, robot):
+    def config(entry):
+        (tmp_path / "campaign.yaml").write_text(yaml.safe_dump({"robot": "comau_racer5_080", "effects": [entry]}))
+        return load_config(tmp_path)
+
+    assert config({"effect": "joint_compliance", "joints": "2, 3,4"}).effects == ("joint_compliance:2,3,4",)
+    assert config({"effect": "joint_compliance", "joints": "4"}).effects == ("joint_compliance:4",)
+    with pytest.raises(ConfigError, match=r"campaign.yaml: effects\[0\]: joint_compliance: joints \[2, 2\] name a joint twice"):
+        config({"effect": "joint_compliance", "joints": [2, 2]})
+    with pytest.raises(ConfigError, match=r"effects\[0\]: 'harmonics' is not a field of an effect entry"):
+        config({"effect": "cyclic", "joints": [1], "harmonics": [1, 2, 3]})
+    config({"effect": "joint_compliance", "joints": [7]})  # the robot is not known to the file alone
+    with pytest.raises(ConfigError, match=r"campaign.yaml: effects: .*joint 7 is not a joint of COMAU"):
+        RunFolder(tmp_path).effects
+
+
 def test_merging_a_joint_into_a_bare_name_uses_the_robots_default_joints(robot):
     assert merge_effects(["joint_compliance"], ["joint_compliance:4"], robot) == ("joint_compliance:2,3,4,5",)
     assert without_joints("joint_compliance:2,4", [4]) == "joint_compliance:2"

@@ -148,6 +148,11 @@ def effect_class(spec: str):
         eps = entry_point_effects()
         if spec not in eps:
             known = sorted(set(effects) | set(eps))
+            base, colon, tail = spec.rpartition(":")
+            if colon and base.strip() in known:  # a known effect with a joint list that is none
+                said = f"joints '{tail.strip()}' are not joint numbers" if tail.strip() else "no joints after ':'"
+                raise ConfigError(f"effect '{spec}': {said} (write {base.strip()}:2,3,4 with joints counted "
+                                  f"from 1, or {base.strip()} for its default joints)")
             raise ConfigError(f"unknown effect '{spec}' (known: {', '.join(known) or 'none'}; "
                               "a user effect is 'path/to/file.py:ClassName')")
         try:
@@ -223,6 +228,8 @@ def parse_effect_list(text, where: str = "--effects") -> tuple:
     if isinstance(text, str):
         items = []
         for part in (s.strip() for s in text.split(",")):
+            if not part:  # "a,,b" and "name:2,,3": an empty entry is dropped, not a new effect
+                continue
             if part.isdigit() and items and split_joints(items[-1])[1] is not None:
                 items[-1] = f"{items[-1]},{part}"
             else:
@@ -234,18 +241,25 @@ def parse_effect_list(text, where: str = "--effects") -> tuple:
 
 def effect_entry(value: dict, where: str) -> str:
     """The spec of a mapping entry ``{effect: NAME, joints: [2, 3]}`` (joints optional)."""
-    extra = sorted(set(value) - {"effect", "joints"})
-    if extra or not isinstance(value.get("effect"), str) or not value["effect"].strip():
+    extra = sorted(map(str, set(value) - {"effect", "joints"}))
+    if extra:
+        raise ConfigError(f"{where}: {', '.join(repr(k) for k in extra)} is not a field of an effect entry "
+                          f"(its fields: effect, joints), got {value!r}")
+    if not isinstance(value.get("effect"), str) or not value["effect"].strip():
         raise ConfigError(f"{where}: expected {{effect: NAME, joints: [j, ...]}}, got {value!r}")
     joints = value.get("joints")
     if joints is None:
         return value["effect"].strip()
     if isinstance(joints, int) and not isinstance(joints, bool):
         joints = [joints]
+    if isinstance(joints, str) and re.fullmatch(r"\s*\d+\s*(,\s*\d+\s*)*", joints):  # "2,3,4" as on the command line
+        joints = [int(j) for j in joints.split(",")]
     if not isinstance(joints, (list, tuple)) or not joints or \
             any(isinstance(j, bool) or not isinstance(j, int) or j < 1 for j in joints):
         raise ConfigError(f"{where}: {value['effect']}: joints must be a list of joint numbers (1-based), "
                           f"got {joints!r}")
+    if len(set(joints)) < len(joints):
+        raise ConfigError(f"{where}: {value['effect']}: joints {list(joints)} name a joint twice")
     return joint_spec(value["effect"].strip(), joints)
 
 
