@@ -311,6 +311,11 @@ DOMAIN_PAIR_MIN_POSES = 60
 #: others is 0.01, and a range of its own): a pose off it by more than its training spread plus
 #: DOMAIN_MIN_MARGIN_RAD a joint is outside
 DOMAIN_RELATION_RTOL = 0.01
+
+#: The tool point's nominal position rows leave what the measured points see by this share of their
+#: norm or more (two reflectors: 0.01, the rotation about their line; three: 1e-15, round-off): the
+#: tolerances in the unseen directions are part of sigma_mm (campaign.identify.uncertainty)
+UNSEEN_TOOL_RTOL = 1e-6
 DOMAIN_RELATION_MIN_POSES_PER_JOINT = 2
 
 #: `compensate --program`: the largest joint step (rad; m for a prismatic joint) a target's correction

@@ -402,3 +402,26 @@ def test_joints_that_moved_only_together_are_named_and_poses_off_their_relation_
     assert "off the relation q2 + q3 constant" in dom.why_outside(other, [f"q{j}" for j in range(1, 7)])[0]
     fresh = random_joint_poses(robot, 500, seed=9)  # a campaign spread over every joint keeps no relation
     assert calibrated_domain(robot, random_joint_poses(robot, 12, seed=2)).keeps_relations(fresh).all()
+
+
+def test_two_reflectors_warn_that_the_tool_origin_is_unseen_and_sigma_carries_its_tolerance(robot):
+    """Two reflectors declared (a base set of their own, so no direction is unidentified among it):
+    no warning, strict passed, and sigma_mm at the tool origin was 0.007 mm where the model was 0.08 mm
+    off. Three reflectors add nothing."""
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 40, seed=4)
+    poses = synthesize(truth, q, seed=5)
+    pts = np.array([[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]])
+    P = np.einsum("nij,kj->nki", poses.T_IE[:, :3, :3], pts) + poses.T_IE[:, None, :3, 3]
+    fresh = random_joint_poses(robot, 200, seed=9)
+    true_T = truth.pose_in_measured_frame(fresh, poses.T_LI)
+    out = {}
+    for k in (2, 3):
+        make = lambda **kw: CalibrationModel(robot=robot, points=pts[:k], **kw)  # noqa: E731
+        model, ident = hold_unidentified(make, make().fit(q, P[:, :k]), q, P[:, :k])
+        unc = model_uncertainty(model)
+        sigma = unc.sigma_m(robot, model.effect_set_, model.params_, model.effect_params_, fresh)
+        err = np.linalg.norm(model.predict(fresh)[:, :3, 3] - true_T[:, :3, 3], axis=1)
+        out[k] = (" ".join(f.message for f in ident.findings(robot)), sigma.mean() / err.mean())
+    assert "the tool frame's origin moves along what they do not see (the tool's rotation about" in out[2][0]
+    assert out[2][1] >= 1.0 and "origin moves" not in out[3][0] and 0.5 <= out[3][1] <= 2.0

@@ -99,6 +99,8 @@ class Identifiability:
     #: a relation among joints the training poses kept ("q2 + q3 = 81.9°"), and their number
     relation: str = ""
     n_train: int = 0
+    #: the directions the measured points do not see that move the tool frame's origin, in words
+    unseen: tuple = ()
 
     @property
     def unidentified(self) -> list:
@@ -129,6 +131,10 @@ class Identifiability:
                                      f"of the model are not identified by the training poses (rank {self.rank} of "
                                      f"{self.n_unknowns} unknowns): {'; '.join(self.words[:len(self.unidentified)])}"
                                      f"{held}; measure poses that move them"))
+        if self.unseen:
+            out.append(Finding(CODE, f"{self.hint or 'the reflectors measured'}: the tool frame's origin moves along "
+                                     f"what they do not see ({'; '.join(self.unseen)}): held at nominal there, "
+                                     "its tolerance is in sigma_mm; measure three reflectors or the tool point"))
         if self.weak:
             w = self.words[len(self.unidentified):]
             out.append(Finding(CODE, f"{len(self.weak)} direction(s) barely identified (singular value below "
@@ -245,8 +251,12 @@ def hold_unidentified(make, model, q, Y, context=None, *, frame: str = "robot", 
     from dataclasses import replace
 
     say = progress or (lambda msg: None)
+    from campaign.identify.uncertainty import unseen_at_tool
+
     first = analyse(model, q, frame)
-    if model.points is not None and first.unidentified:
+    unseen = tuple(" with ".join(parameter_words(model.robot, n, frame) for n in d) for d in unseen_at_tool(model))
+    first = replace(first, unseen=unseen)
+    if model.points is not None and (first.unidentified or unseen):
         seen = np.isfinite(np.asarray(Y, dtype=float)).all(axis=2).sum(axis=1)
         if seen.max(initial=0) <= 2:
             first = replace(first, hint=f"at most two of the {len(model._points())} reflectors seen in any pose: the "
