@@ -425,3 +425,17 @@ def test_two_reflectors_warn_that_the_tool_origin_is_unseen_and_sigma_carries_it
         out[k] = (" ".join(f.message for f in ident.findings(robot)), sigma.mean() / err.mean())
     assert "the tool frame's origin moves along what they do not see (the tool's rotation about" in out[2][0]
     assert out[2][1] >= 1.0 and "origin moves" not in out[3][0] and 0.5 <= out[3][1] <= 2.0
+
+
+def test_one_reflector_says_the_tool_orientation_is_not_observed(robot):
+    """Positions only: nothing said that predict's rx, ry, rz are the nominal tool's; --strict passed."""
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, 30, seed=4)
+    poses = synthesize(truth, q, seed=5)
+    msgs = {}
+    for position_only in (True, False):
+        make = lambda **kw: CalibrationModel(robot=robot, position_only=position_only, **kw)  # noqa: E731
+        _, ident = hold_unidentified(make, make().fit(q, poses.T_IE), q, poses.T_IE)
+        msgs[position_only] = " ".join(f.message for f in ident.findings(robot))
+    assert "the tool's orientation is not observed" in msgs[True] and "rx, ry, rz" in msgs[True]
+    assert msgs[False] == ""

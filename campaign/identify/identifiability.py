@@ -101,6 +101,8 @@ class Identifiability:
     n_train: int = 0
     #: the directions the measured points do not see that move the tool frame's origin, in words
     unseen: tuple = ()
+    #: positions only at the tool point (one reflector): no orientation of the tool is observed
+    orientation_unseen: bool = False
 
     @property
     def unidentified(self) -> list:
@@ -131,6 +133,11 @@ class Identifiability:
                                      f"of the model are not identified by the training poses (rank {self.rank} of "
                                      f"{self.n_unknowns} unknowns): {'; '.join(self.words[:len(self.unidentified)])}"
                                      f"{held}; measure poses that move them"))
+        if self.orientation_unseen:
+            out.append(Finding(CODE, "positions only (one reflector, or --position-only): the tool's orientation is not observed: its "
+                                     "rotation about its x, y and z axes is held at nominal, so the rx, ry, rz that "
+                                     "predict writes are the nominal tool's there and sigma_mm is the position's; "
+                                     "measure three reflectors (6-D poses) for the orientation"))
         if self.unseen:
             out.append(Finding(CODE, f"{self.hint or 'the reflectors measured'}: the tool frame's origin moves along "
                                      f"what they do not see ({'; '.join(self.unseen)}): held at nominal there, "
@@ -255,7 +262,7 @@ def hold_unidentified(make, model, q, Y, context=None, *, frame: str = "robot", 
 
     first = analyse(model, q, frame)
     unseen = tuple(" with ".join(parameter_words(model.robot, n, frame) for n in d) for d in unseen_at_tool(model))
-    first = replace(first, unseen=unseen)
+    first = replace(first, unseen=unseen, orientation_unseen=bool(model.position_only and model.points is None))
     if model.points is not None and (first.unidentified or unseen):
         seen = np.isfinite(np.asarray(Y, dtype=float)).all(axis=2).sum(axis=1)
         if seen.max(initial=0) <= 2:
