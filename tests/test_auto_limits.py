@@ -75,6 +75,12 @@ def test_auto_retry_failed_measures_the_failed_poses_again_and_goes_on(tmp_path,
     with open_run(run) as store:
         assert store.counts().get("failed", 0) == 0 and set(ids) <= store.stored_ids()
         assert len(store.events("retry_failed")) == 1
+    # asked again with nothing failed: said in a line, the finished loop not reopened, nothing measured
+    assert main(["auto", str(run), "--retry-failed", *SMALL]) == 0
+    out = capsys.readouterr().out
+    assert "--retry-failed: no pose is stored as failed; nothing to measure again" in out and "continuing" not in out
+    with open_run(run) as store:
+        assert len(store.events("retry_failed")) == 1
 
 
 def test_a_pose_limit_too_small_for_a_first_campaign_is_one_line_naming_it(tmp_path, capsys):

@@ -52,6 +52,8 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         limits = _limits(state, opts)
         for r in state["rounds"]:  # the story so far, when resumed
             say(Round.from_json(r).line())
+        if retry_failed and not _failed_count(run):  # asked for, nothing to do: said, not silently ignored
+            say("--retry-failed: no pose is stored as failed; nothing to measure again")
         if state["finished"] is not None:
             if not _reopen(run, state, limits, retry_failed):
                 return result(run, state, say, report=False)
