@@ -30,7 +30,9 @@ def test_a_run_resumed_on_another_cell_is_refused_unless_allowed_and_then_record
     cfg["sim"]["seed"] = 7
     (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
     assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "4"]) == 1
-    assert "measured so far on another cell" in capsys.readouterr().err and _stored(runs, run) == 4
+    err = capsys.readouterr().err
+    # the same words (--sim) on both sides: the line says what differs, in campaign.yaml's words
+    assert "measured so far on another cell" in err and "sim.seed 0 -> 7" in err and _stored(runs, run) == 4
     # ... but its faults are not: they leave the world as it was
     cfg["sim"]["seed"], cfg["sim"]["faults"] = 0, {"drop": 0.0}
     (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))

@@ -100,10 +100,32 @@ def refuse_other_cell(run_dir, before: dict | None, identity: dict, allow_other_
     if (before is None or before.get("fingerprint") == identity["fingerprint"] or allow_other_cell
             or not identity.get("resolved", True)):
         return before
+    changed = _changes(before.get("detail"), identity.get("detail")) if before.get("spec") == identity["spec"] else []
     raise ConfigError(f"{run_dir}: measured so far on another cell ({before.get('spec')}, fingerprint "
-                      f"{before.get('fingerprint')}) than {identity['spec']} (fingerprint {identity['fingerprint']}): "
+                      f"{before.get('fingerprint')}) than {identity['spec']} (fingerprint {identity['fingerprint']}"
+                      + (f"; {', '.join(changed)}" if changed else "") + "): "
                       "one run's measurements come from one cell; resume on that cell, or give --allow-other-cell "
                       "to measure the rest here (recorded in the run)")
+
+
+def _changes(before, now, prefix: str = "") -> list:
+    """What differs between two cells' ``detail`` of one spec, in campaign.yaml's words where
+    it has them (``sim.seed 0 -> 3``): the same words on the command line can be another world."""
+    if isinstance(before, dict) and isinstance(now, dict):
+        out = []
+        for key in sorted(set(before) | set(now), key=str):
+            if key in ("spec", "source"):  # where it lies, not what it is
+                continue
+            name = "sim" if key == "world" and not prefix else f"{prefix}.{key}" if prefix else str(key)
+            out += _changes(before.get(key), now.get(key), name)
+        return out
+    if before == now:
+        return []
+    if prefix.endswith("_sha256"):
+        return [f"{prefix[:-len('_sha256')]} changed (another file content)"]
+    if isinstance(before, list) or isinstance(now, list):
+        return [f"{prefix} changed"]
+    return [f"{prefix} {before} -> {now}"]
 
 
 def record_cell(store, identity: dict, *, allowed: bool = False) -> None:
