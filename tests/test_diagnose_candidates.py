@@ -80,3 +80,19 @@ def test_candidate_scores_equal_a_full_joint_refit(robot, fold, candidate):
         assert np.array_equal(got.heldout_dz, pose_error(current.predict(data_out[0], data_out[2]), data_out[1]))
     elif candidate == "joint_compliance":  # the hidden one: the held-out error falls
         assert err_got.mean() < 0.8 * before.mean()
+
+
+@pytest.mark.parametrize("given, match", [("joint_compliance:0", "joint 0 is not a joint of COMAU"),
+                                          ("backlash:2,2", "name a joint twice"),
+                                          ("ground_compliance:1", "takes no joints")])
+def test_a_candidate_over_joints_is_checked_and_scored_over_the_joints_the_model_lacks(robot, given, match):
+    # joint_compliance:4 in the model: a joint_compliance candidate on joint 0 was dropped without a word
+    from campaign.diagnose.engine import candidate_specs
+    from campaign.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=match):
+        candidate_specs(given, ("joint_compliance:4",), None, robot)
+    # given over joints of an effect in the model: scored over the joints it lacks (it was left out, the table empty)
+    assert candidate_specs("joint_compliance:5", ("joint_compliance:4",), None, robot) == ["joint_compliance:5"]
+    assert candidate_specs("joint_compliance:4,5", ("joint_compliance:4",), None, robot) == ["joint_compliance:5"]
+    assert candidate_specs("joint_compliance:4", ("joint_compliance:4",), None, robot) == []

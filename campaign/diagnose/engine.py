@@ -435,10 +435,23 @@ def candidate_specs(candidates, current, run_dir, robot=None):
         specs = list(available()) + sorted(set(entry_point_effects()) - set(available()))
     else:
         specs = [resolve_effect_spec(s) for s in parse_effect_list(candidates, "--candidates")]
+        for spec in specs if robot is not None else ():  # a joint the robot lacks or named twice: one line
+            make_effect(spec, robot)
     current_names = {effect_class(e).name for e in current}
-    return [s for s in specs if s not in current and (effect_class(s).name not in current_names or (
-        robot is not None and searches_joints(s, robot)
-        and len(model_joints(current, s, robot)) < robot.n_joints))]
+    out = []
+    for s in specs:
+        if s in current:
+            continue
+        if effect_class(s).name not in current_names:
+            out.append(s)
+        elif robot is not None and searches_joints(s, robot):
+            if len(model_joints(current, s, robot)) < robot.n_joints:
+                out.append(s)
+        elif robot is not None and split_joints(s)[1] is not None:  # given over joints: those the model lacks
+            lacks = [j for j in split_joints(s)[1] if j not in model_joints(current, s, robot)]
+            if lacks:
+                out.append(joint_spec(split_joints(s)[0], lacks))
+    return out
 
 
 def current_model_effects(run_dir) -> tuple:
