@@ -439,3 +439,17 @@ def test_one_reflector_says_the_tool_orientation_is_not_observed(robot):
         msgs[position_only] = " ".join(f.message for f in ident.findings(robot))
     assert "the tool's orientation is not observed" in msgs[True] and "rx, ry, rz" in msgs[True]
     assert msgs[False] == ""
+
+
+def test_compensate_strict_says_why_each_command_is_outside(still_run, tmp_path, capsys):
+    """compensate --strict named the pose ids only; predict --strict said why."""
+    d, _, poses = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    q = np.repeat(poses.q[:1], 2, axis=0)
+    q[1, 0] = np.deg2rad(90.0)
+    _joint_csv(tmp_path / "q.csv", q)
+    capsys.readouterr()
+    assert main(["compensate", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--strict"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "(pose_id 1 (q1 beyond the training range)): nothing written" in err and len(err.splitlines()) == 1

@@ -486,8 +486,9 @@ def _compensate(args):
     pose_id, q, context = read_joint_csv(args.csv, calibrated.robot, calibrated.context_keys, args.angle_unit,
                                          columns=args.columns, slack=slack, slack_source=source, run_dir=args.run)
     _radians_as_degrees(args, calibrated.robot, q)
-    header, rows, ok, inside, in_dom, sigma = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
-    _refuse_outside(args, pose_id, in_dom, "corrected commands")
+    header, rows, ok, inside, in_dom, sigma, q_cmd = compensate_rows(calibrated, pose_id, q, context, args.angle_unit)
+    why = _why_outside(calibrated, q_cmd, in_dom)
+    _refuse_outside(args, pose_id, in_dom, "corrected commands", why)
     write_table(args.out, header, rows)
     if args.out:
         print(f"wrote {len(rows)} corrected joint commands ({calibrated.stage}) to {args.out}")
@@ -496,7 +497,7 @@ def _compensate(args):
     if not inside.all():
         print(f"warning: {int((~inside).sum())} corrected command(s) outside the joint limits "
               "(column within_limits = 0)", file=sys.stderr)
-    _domain_line(calibrated, in_dom, sigma, "corrected commands", bool(args.out))
+    _domain_line(calibrated, in_dom, sigma, "corrected commands", bool(args.out), why)
     return 0
 
 

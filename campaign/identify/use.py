@@ -424,7 +424,8 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, an
     Columns: ``pose_id, q1..qN`` (corrected, rad or ``angle_unit``), ``dq1..dqN`` (correction, same unit),
     ``residual_position_mm, residual_orientation_mrad`` (model at the corrected q vs target),
     ``converged``, ``within_limits`` (0/1), ``in_domain`` (0/1, of the corrected command), ``sigma_mm``
-    (mm, there). Returns (header, rows, converged, within_limits, in_domain, sigma_mm).
+    (mm, there). Returns (header, rows, converged, within_limits, in_domain, sigma_mm, the corrected
+    commands q (n, N) rad).
     """
     robot = calibrated.robot
     T_target = forward(robot, q_nominal)
@@ -442,7 +443,7 @@ def compensate_rows(calibrated: CalibratedRobot, pose_id, q_nominal, context, an
                      *(repr(float(v)) for v in q_ctrl[k] - q_nominal_ctrl[k]),
                      f"{np.linalg.norm(r[k, :3]) * 1e3:.3e}", f"{np.linalg.norm(r[k, 3:]) * 1e3:.3e}",
                      int(ok[k]), int(inside[k]), *cells[k]])
-    return header, rows, ok, inside, in_dom, sigma
+    return header, rows, ok, inside, in_dom, sigma, q
 
 
 def export_domain_columns(run_dir, poses) -> tuple:
