@@ -294,6 +294,9 @@ class _StubLoop:
     def planned(self):
         return np.arange(130), None
 
+    def measure_cap(self):
+        return (None, None) if self._room else (0, "max_poses")
+
 
 def _diagnosis(verdict, ranking=(), depends_on=(), significant=True):
     from types import SimpleNamespace
@@ -408,3 +411,28 @@ def test_no_probe_round_on_a_structure_below_the_stated_share_of_the_error():
     assert weak_structure_inputs(d) == []  # 0.4 % of the held-out error: no round spent on it
     d.structure = SimpleNamespace(p_value=0.078, heldout_gain=MIN_ROUND_SHARE, depends_on=lambda share: ["q3"])
     assert weak_structure_inputs(d) == ["q3"]
+
+
+def test_decide_without_a_floor_because_the_limit_left_the_plan_unmeasured_names_the_limit():
+    # `auto --max-poses 10` on a run with 20 of its plan measured, the repeats not yet: the limit stops it
+    from campaign.auto import Limits, decide
+
+    from campaign.measure.floor import NoiseFloor
+
+    d = _diagnosis(None)
+    d.floor = NoiseFloor("none")
+    out = decide(d, _round(verdict=None), [], Limits(10, None, None), _StubLoop(room=0))
+    assert (out.kind, out.reason) == ("stop", "max_poses") and "pose limit allows no more" in out.text
+    out = decide(d, _round(verdict=None), [], Limits(312, None, None), _StubLoop(room=30))
+    assert (out.kind, out.reason) == ("stop", "no_floor")
+
+    # ... and the verdict does not call it "at the floor" (there is none)
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from campaign.auto.report import verdict_text
+
+    last = replace(_round(verdict=None), floor_mm=None, decision=out)
+    text = verdict_text(SimpleNamespace(path="r"), {"rounds": [last.as_json()], "finished": {"reason": "max_poses"}})
+    assert "stopped at the pose limit" in text and "no noise floor yet in the last diagnosis" in text
+    assert "at the floor" not in text

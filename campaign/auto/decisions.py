@@ -72,6 +72,11 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     floor_round = _floor_round(diagnosis, before, loop)
     if diagnosis.verdict is None:
         if not diagnosis.floor.known:
+            cap, limit = loop.measure_cap()
+            if limit is not None and cap == 0:  # the plan's poses (its repeats) wait for the limit, not the model
+                return Decision("stop", "stop: no missing effect found and no noise floor yet: planned poses "
+                                        f"left unmeasured, the {'budget' if limit == 'budget' else 'pose limit'} "
+                                        "allows no more", reason=limit)
             return Decision("stop", "stop: no missing effect found, but the run has no noise floor to say how close "
                                     "the model is to the noise", reason="no_floor")
         weak = weak_structure_inputs(diagnosis)

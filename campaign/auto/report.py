@@ -32,7 +32,8 @@ def verdict_text(run: RunFolder, state: dict) -> str:
                 f"(effects: [..., your_file.py:YourEffect]) and run `campaign auto {run.path}` again")
     if reason in ("budget", "max_poses"):
         what = "budget" if reason == "budget" else "pose limit"
-        return (f"verdict: stopped at the {what} with the model {last.model} ({last.verdict or 'at the floor'} in the "
+        found = last.verdict or ("at the floor" if last.floor_mm is not None else "nothing found, no noise floor yet")
+        return (f"verdict: stopped at the {what} with the model {last.model} ({found} in the "
                 f"last diagnosis). {head}.\n  next: run `campaign auto {run.path} "
                 f"{'--budget HOURS' if reason == 'budget' else '--max-poses N'}` with a larger limit to go on")
     if reason == "no_floor":
