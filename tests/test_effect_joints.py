@@ -78,7 +78,8 @@ def test_a_bad_mapping_entry_names_the_field(tmp_path):
 
 @pytest.mark.parametrize("spec, match", [("joint_compliance:", "no joints after ':'"),
                                          ("joint_compliance:a", "joints 'a' are not joint numbers"),
-                                         ("backlash:-1", "joints '-1' are not joint numbers")])
+                                         ("backlash:-1", "joints '-1' are not joint numbers"),
+                                         ("my/runout.py:Runout:", "no joints after ':'")])
 def test_a_known_effect_with_a_joint_list_that_is_none_says_so_not_unknown_effect(robot, spec, match):
     with pytest.raises(ConfigError, match=match):
         make_effect(spec, robot)

@@ -149,7 +149,7 @@ def effect_class(spec: str):
         if spec not in eps:
             known = sorted(set(effects) | set(eps))
             base, colon, tail = spec.rpartition(":")
-            if colon and base.strip() in known:  # a known effect with a joint list that is none
+            if colon and (base.strip() in known or is_file_spec(base.strip())):  # a joint list that is none
                 said = f"joints '{tail.strip()}' are not joint numbers" if tail.strip() else "no joints after ':'"
                 raise ConfigError(f"effect '{spec}': {said} (write {base.strip()}:2,3,4 with joints counted "
                                   f"from 1, or {base.strip()} for its default joints)")
