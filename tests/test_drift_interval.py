@@ -82,6 +82,29 @@ def test_too_few_readings_give_a_rate_without_an_interval():
     assert fit_drift([0.0, 0.0], [[0, 0, 0], [0, 0, 1e-5]], [0, 0]) is None  # no time between them
 
 
+def test_one_pose_read_twice_takes_its_interval_from_the_noise_floor():
+    # one drift check: 2 readings, no scatter of their own; with the floor's σ a sphere of radius
+    # sqrt(χ²₃(0.95)) σ / sqrt(S) around v, S = Σ(t − t̄)² = T² / 2 (hours)
+    from scipy import stats
+
+    sigma, T = 10e-6, 0.5
+    f = fit_drift([0.0, 3600 * T], [[0, 0, 0], [0, 0, 20e-6]], [0, 0], sigma_m=[sigma, 4e-6, 4e-6])
+    R = np.sqrt(stats.chi2.ppf(0.95, 3)) * sigma / np.sqrt(T ** 2 / 2) * 1e6
+    assert f.um_per_h == pytest.approx(40.0) and f.significant is False
+    assert f.ci95_um_per_h[0] == 0.0 and f.ci95_um_per_h[1] == pytest.approx(40.0 + R, rel=1e-4)
+    # a true drift lies inside in at least 95 % of such pairs (the speed's interval bounds the 95 % sphere of
+    # the velocity: at least as often), and a still pose reads significant in about 5 %
+    rng = np.random.default_rng(3)
+    inside = significant = 0
+    for _ in range(200):
+        x = np.array([[0, 0, 0], [0, 0, 100e-6 * T]]) + rng.normal(0, sigma, (2, 3))
+        lo, hi = fit_drift([0.0, 3600 * T], x, [0, 0], sigma_m=[sigma] * 3).ci95_um_per_h
+        inside += lo <= 100.0 <= hi
+        still = fit_drift([0.0, 3600 * T], rng.normal(0, sigma, (2, 3)), [0, 0], sigma_m=[sigma] * 3)
+        significant += still.significant
+    assert inside / 200 >= 0.94 and significant / 200 <= 0.1, (inside, significant)
+
+
 def test_a_pose_measured_again_with_its_last_joint_a_few_microradians_on_is_the_same_pose():
     q = np.array([[0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
                   [0.1, 0.2, 0.3, 0.4, 0.5, 0.6 + 1e-6],

@@ -19,6 +19,7 @@ freedom) gives v's covariance Σ̂ / Σ(t − t̄_i)², Hotelling's test of v = 
 5 %) and the 95 % confidence ellipsoid of v, whose nearest and farthest points from 0 bound
 the speed |v| (``ci95_um_per_h``; the lower bound is 0 exactly when the drift is not
 significant). With too few readings for a 3×3 scatter, one σ pooled over the coordinates.
+With none left over (one pose read twice), the noise floor's σ (χ²₃) when the run has one.
 A warm-up is not linear: the rate is then its least-squares average over the times measured.
 
 Runs measured before the drift check stored its position (``drift_mm`` only) keep the
@@ -133,10 +134,12 @@ class Drift:
 
 
 # -- the fit ---------------------------------------------------------------------------------------
-def fit_drift(time_s, xyz_m, group, alpha: float = DRIFT_ALPHA) -> DriftFit | None:
+def fit_drift(time_s, xyz_m, group, alpha: float = DRIFT_ALPHA, sigma_m=None) -> DriftFit | None:
     """The per-pose-offset linear fit (module docstring) of readings at ``time_s`` (n,) s with
     positions ``xyz_m`` (n, 3) m, ``group`` (n,) labelling the pose of each. None without a
-    pose read at two different times."""
+    pose read at two different times. ``sigma_m`` (3,) m: the noise floor's σ per coordinate,
+    which gives the interval (χ²₃ with the largest σ on every axis) when the readings leave no
+    degree of freedom of their own (one pose read twice: a rate without it is noise over time)."""
     from scipy import stats
 
     t = np.asarray(time_s, dtype=float) / 3600.0
@@ -163,9 +166,14 @@ def fit_drift(time_s, xyz_m, group, alpha: float = DRIFT_ALPHA) -> DriftFit | No
                   max_mm=float(np.linalg.norm(xc, axis=1).max() * 1e3),
                   velocity_um_per_h=tuple(float(c) for c in v * 1e6))
     speed = float(np.linalg.norm(v) * 1e6)
-    if dof < 1:
-        return DriftFit(speed, None, None, None, **common)
     eps = DRIFT_NUMERICAL_SIGMA_M ** 2
+    if dof < 1 and sigma_m is None:
+        return DriftFit(speed, None, None, None, **common)
+    if dof < 1:  # σ known (the floor's): T² = S vᵀ Σ⁻¹ v ~ χ²₃
+        cov = (float(np.max(np.asarray(sigma_m, dtype=float))) ** 2 + eps) * np.eye(3)
+        T2 = float(S * v @ np.linalg.solve(cov, v))
+        p, c = float(stats.chi2.sf(T2, 3)), float(stats.chi2.ppf(1.0 - alpha, 3))
+        return _with_interval(v, cov, S, T2, p, c, speed, common)
     if dof >= 5:  # Hotelling's T² with the full 3x3 scatter: F = T² (dof − 2) / (3 dof) ~ F(3, dof − 2)
         cov = r.T @ r / dof + eps * np.eye(3)
         f_dof = dof - 2
@@ -177,6 +185,11 @@ def fit_drift(time_s, xyz_m, group, alpha: float = DRIFT_ALPHA) -> DriftFit | No
     T2 = float(S * v @ np.linalg.solve(cov, v))
     p = float(stats.f.sf(T2 / scale, 3, f_dof))
     c = scale * float(stats.f.ppf(1.0 - alpha, 3, f_dof))
+    return _with_interval(v, cov, S, T2, p, c, speed, common)
+
+
+def _with_interval(v, cov, S, T2, p, c, speed, common) -> DriftFit:
+    """The fit with the speed's interval from the confidence ellipsoid T² ≤ ``c`` of v."""
     lo, hi = _norm_range(v, np.linalg.cholesky(cov * c / S))
     significant = bool(T2 > c)
     if not significant:
@@ -279,22 +292,23 @@ def drift_readings(run_dir, poses, readings_to_poses=None) -> dict:
 
 def measured_drift(run_dir, poses, floor: NoiseFloor | None = None, readings_to_poses=None) -> Drift:
     """The run's drift (see the module): every reference pose's readings in one fit, and the
-    monitor and the repeats each alone. ``floor``: only for runs whose drift checks stored
-    distances (its σ, when known and not an upper bound); ``readings_to_poses``: as
+    monitor and the repeats each alone. ``floor``: its σ (when known and not an upper bound)
+    gives readings too few for their own scatter an interval (and the distances of runs whose
+    drift checks stored only those their rate); ``readings_to_poses``: as
     :func:`drift_readings`."""
     r = drift_readings(run_dir, poses, readings_to_poses)
     monitor = repeats = legacy = None
+    sigma = floor.sigma_position_m if floor is not None and floor.known and not floor.upper_bound else None
     if r["monitor"] is not None:
-        monitor = fit_drift(r["monitor"][0], r["monitor"][1], np.full(len(r["monitor"][0]), -1))
+        monitor = fit_drift(r["monitor"][0], r["monitor"][1], np.full(len(r["monitor"][0]), -1), sigma_m=sigma)
     if r["repeats"] is not None:
-        repeats = fit_drift(*r["repeats"])
+        repeats = fit_drift(*r["repeats"], sigma_m=sigma)
     if r["legacy"] is not None:
-        sigma = floor.sigma_position_m if floor is not None and floor.known and not floor.upper_bound else None
         legacy = _distance_rate(*r["legacy"], sigma)
     if monitor is not None and repeats is not None:
         t = np.r_[r["monitor"][0], r["repeats"][0]]
         xyz = np.concatenate([r["monitor"][1], r["repeats"][1]])
-        fit = fit_drift(t, xyz, np.r_[np.full(len(r["monitor"][0]), -1), r["repeats"][2]])
+        fit = fit_drift(t, xyz, np.r_[np.full(len(r["monitor"][0]), -1), r["repeats"][2]], sigma_m=sigma)
     else:
         fit = monitor or repeats or legacy
     if legacy is not None and monitor is None:
