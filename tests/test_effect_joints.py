@@ -116,3 +116,12 @@ def test_the_simulated_truth_hides_an_effect_on_the_joints_it_names(tmp_path):
     assert cfg.hidden_effects() == (("joint_compliance:4", (2e-3,)),)
     assert cfg.as_yaml_dict()["sim"]["hidden_effects"] == [{"effect": "joint_compliance", "joints": [4],
                                                             "params": [2e-3]}]
+
+
+def test_a_hidden_effect_on_a_joint_the_robot_lacks_names_the_file_and_entry(tmp_path, robot):
+    from campaign.measure.session import check_simulated_cell
+
+    (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(
+        {"sim": {"hidden_effects": ["ground_compliance", {"effect": "joint_compliance", "joints": [9]}]}}))
+    with pytest.raises(ConfigError, match=r"campaign.yaml: sim.hidden_effects\[1\]: .*joint 9 is not a joint of COMAU"):
+        check_simulated_cell(load_config(tmp_path), robot)

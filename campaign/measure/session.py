@@ -17,8 +17,12 @@ def check_simulated_cell(cfg, robot) -> None:
     from campaign.effects.base import make_effect
     from campaign.sim.truth import hidden_effect_params
 
-    for spec, params in cfg.hidden_effects():
-        hidden_effect_params(make_effect(spec, robot), cfg.sim.seed, params)
+    for i, (spec, params) in enumerate(cfg.hidden_effects()):
+        try:
+            effect = make_effect(spec, robot)
+        except ConfigError as exc:  # a joint the robot lacks: the file and the entry named
+            raise ConfigError(f"{cfg.path}: sim.hidden_effects[{i}]: {exc}") from None
+        hidden_effect_params(effect, cfg.sim.seed, params)
 
 
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
