@@ -84,6 +84,8 @@ def test_a_known_effect_with_a_joint_list_that_is_none_says_so_not_unknown_effec
     with pytest.raises(ConfigError, match=match):
         make_effect(spec, robot)
     assert parse_effect_list("joint_compliance:2,,3,,backlash:5") == ("joint_compliance:2,3", "backlash:5")
+    assert make_effect("joint_compliance : 4", robot).joints == (4,)  # spaced as in prose: read, not refused
+    assert parse_effect_list("joint_compliance : 4, 5,backlash") == ("joint_compliance:4,5", "backlash")
 
 
 def test_campaign_yaml_joints_as_a_string_a_repeat_an_unknown_field_and_a_joint_too_many(tmp_path, robot):

@@ -78,7 +78,7 @@ def is_file_spec(spec: str) -> bool:
     return bool(sep) and path.endswith(".py") and cls.isidentifier()
 
 
-_JOINTS_SUFFIX = re.compile(r"^(?P<base>.*[^:\s]):(?P<joints>\s*\d+\s*(?:,\s*\d+\s*)*)$")
+_JOINTS_SUFFIX = re.compile(r"^(?P<base>.*[^:\s])\s*:(?P<joints>\s*\d+\s*(?:,\s*\d+\s*)*)$")
 
 
 def split_joints(spec: str) -> tuple:
@@ -236,7 +236,8 @@ def parse_effect_list(text, where: str = "--effects") -> tuple:
                 items.append(part)
     else:
         items = [effect_entry(v, where) if isinstance(v, dict) else v for v in text]
-    return refuse_repeats([s.strip() for s in items if str(s).strip()], where)
+    # one spelling per spec ("joint_compliance : 4" -> "joint_compliance:4"), as every later comparison expects
+    return refuse_repeats([joint_spec(*split_joints(s)) for s in items if str(s).strip()], where)
 
 
 def effect_entry(value: dict, where: str) -> str:
