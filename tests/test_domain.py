@@ -453,3 +453,18 @@ def test_compensate_strict_says_why_each_command_is_outside(still_run, tmp_path,
     assert main(["compensate", str(d / "run"), "--csv", str(tmp_path / "q.csv"), "--strict"]) == 1
     err = capsys.readouterr().err.strip()
     assert "(pose_id 1 (q1 beyond the training range)): nothing written" in err and len(err.splitlines()) == 1
+
+
+def test_export_of_a_calibration_before_domain_json_says_it_has_no_columns_not_empty_ones(still_run, tmp_path, capsys):
+    """It said 'no in_domain, sigma_mm columns: ... in_domain and sigma_mm left empty' (both at once)."""
+    d, _, _ = still_run
+    if not (d / "run" / "calibration" / "metrics.json").exists():
+        assert main(["calibrate", str(d / "run"), "--no-ann", "--quiet", "--no-report"]) == 0
+    old = tmp_path / "old"
+    shutil.copytree(d / "run", old, symlinks=True)
+    (old / "calibration" / "domain.json").unlink()
+    capsys.readouterr()
+    assert main(["export", str(old), "--csv", str(tmp_path / "e.csv")]) == 0
+    said = capsys.readouterr().out
+    assert "no in_domain, sigma_mm columns: no calibrated domain" in said and "left empty" not in said
+    assert list(_rows(tmp_path / "e.csv")[0])[-1] == "rz"

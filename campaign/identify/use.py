@@ -459,7 +459,10 @@ def export_domain_columns(run_dir, poses) -> tuple:
     except CampaignError as exc:
         return {}, f"no in_domain, sigma_mm columns: {exc}"
     inside, sigma, cells = domain_columns(calibrated, poses.q, _effect_context(poses))
-    if inside is None or sigma is None:
+    if inside is None:  # not "left empty": the export has no such columns then
+        return {}, "no in_domain, sigma_mm columns: no calibrated domain (a calibration from before domain.json); " \
+                   "re-run calibrate"
+    if sigma is None:
         return {}, "no in_domain, sigma_mm columns: " + domain_summary(inside, sigma, "poses")
     return {c: [row[i] for row in cells] for i, c in enumerate(DOMAIN_COLUMNS)}, domain_summary(inside, sigma, "poses")
 
