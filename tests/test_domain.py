@@ -400,6 +400,7 @@ def test_joints_that_moved_only_together_are_named_and_poses_off_their_relation_
     along[:, 2] -= np.deg2rad([-20.0, -5.0, 5.0, 20.0])  # the sum kept
     assert dom.keeps_relations(along).all()
     assert "off the relation q2 + q3 constant" in dom.why_outside(other, [f"q{j}" for j in range(1, 7)])[0]
+    assert calibrated_domain(robot, q[:10]).relations  # from N + 4 training poses on (12 measured)
     fresh = random_joint_poses(robot, 500, seed=9)  # a campaign spread over every joint keeps no relation
     assert calibrated_domain(robot, random_joint_poses(robot, 12, seed=2)).keeps_relations(fresh).all()
 

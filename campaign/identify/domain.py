@@ -28,7 +28,7 @@ import numpy as np
 from campaign.errors import DataError
 from campaign.tolerances import (DOMAIN_COVERAGE_BINS, DOMAIN_MARGIN_POSES, DOMAIN_MIN_MARGIN_M,
                                  DOMAIN_MIN_MARGIN_RAD, DOMAIN_PAIR_FACTOR,
-                                 DOMAIN_PAIR_MIN_POSES, DOMAIN_RELATION_MIN_POSES_PER_JOINT,
+                                 DOMAIN_PAIR_MIN_POSES, DOMAIN_RELATION_EXTRA_POSES,
                                  DOMAIN_RELATION_RTOL)
 
 DOMAIN_FILE = "domain.json"
@@ -139,7 +139,7 @@ class Domain:
         constant; a joint alone that never moved is its range's), with the half-width of the band they
         keep: their own spread along it plus DOMAIN_MIN_MARGIN_RAD a joint (its margin when smaller)."""
         n, N = self.q_train.shape
-        if n < DOMAIN_RELATION_MIN_POSES_PER_JOINT * N:
+        if n < N + DOMAIN_RELATION_EXTRA_POSES:
             return []
         z = self.q_train / self.scale
         centre = z.mean(axis=0)
