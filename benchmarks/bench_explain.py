@@ -11,7 +11,7 @@ diagnose's, poses measured and campaign hours.
 Targets (issue 31's Done-means): where the truth is expressible by the catalogue, no effect (or
 joint) the truth lacks in the final model in ≥ 90 % of runs; otherwise auto stops "unexplained" with
 the right input first in ≥ 9 of 10; auto and diagnose agree on depends_on every time.
-``--quick``: three cases, one seed. Writes benchmarks/results/explain.json (``--out``).
+``--quick``: three cases, one seed; ``--cases``: those only; ``--work DIR``: keep the run folders there. Writes benchmarks/results/explain.json (``--out``).
 """
 
 from __future__ import annotations
@@ -212,6 +212,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help=f"cases {', '.join(QUICK)}, one seed")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
+    ap.add_argument("--work", default=None, help="keep the run folders in this directory (default: a temporary one)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "explain.json"))
     args = ap.parse_args()
     cases = list(QUICK) if args.quick else (args.cases.split(",") if args.cases else list(CASES))
@@ -219,7 +220,8 @@ def main():
     results = {"command": "campaign auto RUN --sim; campaign diagnose RUN --json", "cases": cases, "seeds": seeds,
                "load_average_start": list(os.getloadavg()), "runs": []}
     with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
+        work = Path(args.work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
         for name, text in USER_FILES.items():
             (work / name).write_text(text)
         for seed in range(seeds):
