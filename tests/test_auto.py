@@ -333,6 +333,32 @@ def test_decide_adds_a_significant_candidate_by_its_spec_even_when_it_explains_o
     assert (d.kind, d.reason) == ("stop", "max_poses")
 
 
+def test_decide_adds_cyclic_only_when_the_structure_depends_on_its_joint_first():
+    from types import SimpleNamespace
+
+    from campaign.auto import Limits, decide
+
+    # cyclic of joint 1 explains the verdict's share of a structure that depends on q4 first (a
+    # bearing run-out of joint 4): not added; on q1 first it is
+    c = SimpleNamespace(effect="cyclic", spec="cyclic:1", joints=(1,), label="cyclic of joint 1", significant=True,
+                        description="d", heldout_mean_position_mm_before=0.134, heldout_mean_position_mm_after=0.126,
+                        gain=0.06)
+    d = decide(_diagnosis("cyclic", [c], ["q4", "q1"]), _round(verdict="cyclic", depends_on=("q4", "q1")), [],
+               Limits(130, None, None), _StubLoop(room=0))
+    assert (d.kind, d.reason) == ("stop", "max_poses")
+    d = decide(_diagnosis("cyclic", [c], ["q1", "q4"]), _round(verdict="cyclic", depends_on=("q1", "q4")), [],
+               Limits(312, None, None), _StubLoop())
+    assert (d.kind, d.effect) == ("add_effect", "cyclic:1")
+    # thermal and drift need time or temperature first; with nothing said (no significant structure) any may be added
+    t = SimpleNamespace(**{**c.__dict__, "effect": "thermal", "spec": "thermal", "joints": None})
+    d = decide(_diagnosis("thermal", [t], ["q3", "time_s"]), _round(verdict="thermal", depends_on=("q3", "time_s")),
+               [], Limits(130, None, None), _StubLoop(room=0))
+    assert d.kind == "stop"
+    d = decide(_diagnosis("thermal", [t], [], significant=False), _round(verdict="thermal"), [],
+               Limits(312, None, None), _StubLoop())
+    assert (d.kind, d.effect) == ("add_effect", "thermal")
+
+
 def test_decide_stops_unexplained_when_revealing_poses_did_not_change_the_first_input():
     from campaign.auto import Limits, decide
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from campaign.auto.state import Decision, Limits, Round
+from campaign.diagnose.engine import leads_to
 from campaign.diagnose.timing import TIME_INPUTS
 
 #: poses per round that reveal the structure of an "unexplained" (a quarter of the default selection)
@@ -56,6 +57,8 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     if best is not None and diagnosis.verdict == "unexplained" and (best.gain < MIN_PARTIAL_GAIN or (
             structure is not None and best.gain < PARTIAL_SHARE * structure.heldout_gain)):
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
+    if best is not None and not leads_to(best, rnd.depends_on):
+        best = None  # it fits part of a structure that depends on something else first: that is missing
     if best is not None and diagnosis.verdict is not None:
         test = _test_first(diagnosis, best, before, loop)
         if test is not None:
