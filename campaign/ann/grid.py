@@ -29,6 +29,7 @@ local cluster (``dask=True``) listens on 127.0.0.1 only.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
@@ -198,6 +199,24 @@ class SerialExecutor:
         """Stop at once (Ctrl-C): nothing runs elsewhere, the interrupt itself stops this process's task."""
 
 
+@contextlib.contextmanager
+def _sigint_blocked():
+    """SIGINT blocked in this thread while the block runs: a process spawned meanwhile inherits the
+    blocked signal through fork and exec, so a Ctrl-C to the process group while a worker is still
+    starting (before :func:`_worker_init` ignores it) prints no traceback of the worker's. A Ctrl-C
+    meanwhile is not lost: it is delivered to this process when the block ends."""
+    import signal
+
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 class ProcessExecutor:
     """Tasks on N local worker processes (spawned, one torch thread each), progress through a queue."""
 
@@ -216,10 +235,13 @@ class ProcessExecutor:
     def map(self, fn, tasks, on_units, on_done, on_interrupt=None):
         from concurrent.futures import FIRST_COMPLETED, wait
 
-        futures = {self._pool.submit(fn, t): i for i, t in enumerate(tasks)}
         results = [None] * len(tasks)
-        pending = set(futures)
+        futures = {}
         try:
+            with _sigint_blocked():  # the workers start here: Ctrl-C never reaches them, not even at start-up
+                for i, t in enumerate(tasks):
+                    futures[self._pool.submit(fn, t)] = i
+            pending = set(futures)
             while pending:
                 done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
                 self._drain(on_units)
