@@ -6,6 +6,16 @@ import math
 import sys
 
 
+def _add_reading_options(p) -> None:
+    """--columns and --limit-slack: how predict and compensate read a joints file, as the run's import did."""
+    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
+                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: the mapping the run's import read "
+                        "its file with, else robot.yaml's columns:)")
+    p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
+                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
+                        "prismatic ones; default: what the run's import accepted)")
+
+
 def register(sub):
     p = sub.add_parser("import", help="turn a measured-pose CSV, or a tracker's log matched to the program's stops, "
                                       "into a run folder")
@@ -123,12 +133,7 @@ def register(sub):
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written (default: rad)")
-    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
-                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: the mapping the run's import read "
-                        "its file with, else robot.yaml's columns:)")
-    p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
-                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
-                        "prismatic ones; default: what the run's import accepted)")
+    _add_reading_options(p)
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1, nothing written) when a row lies outside the calibrated domain")
     p.set_defaults(func=_predict)
@@ -152,12 +157,7 @@ def register(sub):
     p.add_argument("--stage", default=None, help="model stage from metrics.json (default: the last, current one)")
     p.add_argument("--angle-unit", choices=("rad", "deg"), default="rad",
                    help="unit of the joint columns read and written, dq included (default: rad)")
-    p.add_argument("--columns", default=None, metavar="NAME=COLUMN,...",
-                   help="the file's own column names, e.g. q1=J1,q2=J2 (default: the mapping the run's import read "
-                        "its file with, else robot.yaml's columns:)")
-    p.add_argument("--limit-slack", type=float, default=None, metavar="DEG_OR_MM",
-                   help="accept joint readings this far past the URDF's limits (deg for revolute joints, mm for "
-                        "prismatic ones; default: what the run's import accepted)")
+    _add_reading_options(p)
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1, nothing written) when a corrected command lies outside the calibrated domain")
     p.set_defaults(func=_compensate)
