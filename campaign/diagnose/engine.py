@@ -811,6 +811,26 @@ def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=()):
     return None
 
 
+def absent_in_time(specs, test) -> tuple:
+    """(the specs kept, (effect, reason) of those the time test says are absent): an effect of the
+    campaign's time alone (its context is ``time_s``: drift, a user's warm-up) moves a pose measured
+    again later; when the time test (campaign.diagnose.timing.TimeTest) finds that those poses did
+    not move, the effect is not in the data, and fitting it would only lend time the structure of
+    the poses the tour sweeps. Without a test (no pose measured again), every spec is kept."""
+    if test is None or test.moved:
+        return tuple(specs), ()
+    kept, absent = [], []
+    for spec in specs:
+        cls = effect_class(spec)
+        if tuple(getattr(cls, "context_keys", ())) == ("time_s",):
+            absent.append((cls.name, f"the re-measured poses did not move, p = {test.p_value:.2g} ({test.poses} "
+                                     f"pose{'' if test.poses == 1 else 's'} measured again over {test.span_h:.2g} h, "
+                                     f"{test.readings} readings): no effect of time to fit"))
+        else:
+            kept.append(spec)
+    return tuple(kept), tuple(absent)
+
+
 def run_time_test(data: DiagnosisData, floor: NoiseFloor):
     """The time test (campaign.diagnose.timing) on every pose of the run, against the noise of
     readings close in time (or the stated tracker noise); None without either: a floor from
@@ -851,7 +871,12 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
     struct_sig = bool(struct is not None and struct.p_value < ALPHA and struct.heldout_gain >= fv.detection)
     at_floor = False if (struct_sig and fv.at_floor) else fv.at_floor  # structure found is above the noise
-    scores, skipped, lins = score_candidates(data, fits, () if fv.round_off else data.candidates, fv.detection, say)
+    timed = run_time_test(data, fv.floor)
+    specs, absent = absent_in_time(() if fv.round_off else data.candidates, timed)  # time the poses deny
+    for name, reason in absent:
+        say(f"{name}: {reason}")
+    scores, skipped, lins = score_candidates(data, fits, specs, fv.detection, say)
+    skipped = absent + skipped
     if data.current and not fv.round_off:
         if lins is None:
             lins = {k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)}
@@ -862,7 +887,6 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     else:
         contrib = ()
     signature, depends = None, []
-    timed = run_time_test(data, fv.floor)
     if struct_sig:
         from campaign.diagnose.signature import describe
 
