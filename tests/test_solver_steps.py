@@ -23,8 +23,7 @@ def _by_hand(model, poses):
     problem = solver.FitProblem(model, q, T, ctx, layout, unknowns.r)
     free = model.free_unknowns(problem, x, held, unknowns, layout.sigma)
     prior = solver._PriorTerm(np.zeros((len(free), len(free))), mu[free], False, free)
-    fit = solver.iterate(problem, x, free, prior, layout, max_iter=50, estimate_noise=True,
-                         effective_unknowns=model._effective_unknowns)
+    fit = solver.iterate(problem, x, free, prior, layout, max_iter=50, estimate_noise=True)
     return fit, solver.posterior(problem, fit, free, prior, layout, unknowns,
                                  effective_unknowns=model._effective_unknowns)
 
@@ -47,14 +46,19 @@ def test_least_squares_covariance_is_the_inverse_normal_matrix_times_the_varianc
     assert np.allclose(model.covariance_, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
 
 
-def test_variance_components_give_each_block_its_rms_over_its_share_of_the_dof(rng):
+def test_variance_components_give_each_block_its_rms_over_its_rows_less_their_leverage(rng):
     res = np.concatenate([rng.normal(0, 2e-5, (40, 3)), rng.normal(0, 3e-4, (40, 3))], axis=1)
     layout = solver.RowLayout(rows=slice(0, 6), mask=np.ones((40, 6)), sigma=np.full(6, 1.0),
                               blocks=[np.arange(3), np.arange(3, 6)], measured=None)
-    got = solver.variance_components(res, layout.sigma, layout, dof=200)
-    share = 200 / 240
-    assert np.allclose(got[:3], np.sqrt(np.mean(res[:, :3] ** 2) / share))
-    assert np.allclose(got[3:], np.sqrt(np.mean(res[:, 3:] ** 2) / share))
+    J = rng.normal(size=(40, 6, 12))
+    J[:, 3:, :8] = 0.0  # eight unknowns the second block does not see
+    h = solver.row_leverage(J, np.zeros((12, 12)))
+    Q, _ = np.linalg.qr(J.reshape(240, 12))  # the hat matrix's diagonal, independently
+    assert np.allclose(h.reshape(-1), np.sum(Q ** 2, axis=1)) and h.sum() == pytest.approx(12)
+    got = solver.variance_components(res, layout.sigma, layout, h)
+    assert h[:, :3].sum() > 8  # the first block carries more than its equal share of the unknowns
+    assert np.allclose(got[:3], np.sqrt(np.sum(res[:, :3] ** 2) / (120 - h[:, :3].sum())))
+    assert np.allclose(got[3:], np.sqrt(np.sum(res[:, 3:] ** 2) / (120 - h[:, 3:].sum())))
 
 
 def test_start_values_take_init_by_name_and_hold_dropped_unknowns_at_zero(robot, poses):

@@ -210,34 +210,47 @@ def levenberg_marquardt(problem, x, res, cost, sig, free, prior, *, max_iter):
     return x, res, cost, history, n_iter
 
 
-def variance_components(res, sig, layout: RowLayout, dof) -> np.ndarray:
-    """Each block's noise (m,) re-estimated from its residuals res (n, m), each block given its
-    share of the dof degrees of freedom."""
+def row_leverage(J, P) -> np.ndarray:
+    """(n, m): each row's share of the unknowns the data determine, the diagonal of the hat matrix
+    ``J (JᵀJ + P)⁺ Jᵀ`` of the whitened Jacobian J (n, m, f) (P (f, f): the prior's precision, zeros
+    for least squares). The shares sum to tr H (H + P)⁻¹, the effective unknowns."""
+    H, _ = _normal_equations(J, np.zeros(J.shape[:2]))
+    A_inv = np.linalg.pinv(H + P, hermitian=True)
+    return np.sum((J @ A_inv) * J, axis=-1)
+
+
+def variance_components(res, sig, layout: RowLayout, leverage) -> np.ndarray:
+    """Each block's noise (m,) re-estimated from its residuals res (n, m) over its own degrees of
+    freedom: its measured rows less the unknowns they determine (``leverage`` (n, m),
+    :func:`row_leverage`). The unknowns are not shared equally between the blocks: a link length
+    is seen by the positions alone, so with an equal share a campaign of 12 6-D poses put the
+    positions' variance 22 % low and the orientations' 30 % high (tests/test_edges_late.py)."""
     new_sig = sig.copy()
-    share = dof / layout.n_rows
     for cols in layout.blocks:
-        new_sig[cols] = np.sqrt(np.sum(res[:, cols] ** 2) / (layout.mask[:, cols].sum() * share))
+        dof = float(layout.mask[:, cols].sum() - np.sum(leverage[:, cols]))
+        new_sig[cols] = np.sqrt(np.sum(res[:, cols] ** 2) / max(dof, 1.0))
     return np.maximum(new_sig, 1e-12)
 
 
-def iterate(problem, x, free, prior, layout: RowLayout, *, max_iter, estimate_noise, effective_unknowns) -> FitState:
-    """Levenberg-Marquardt from x, alternating (with ``estimate_noise``, at most 3 rounds) with the
-    rows' noise re-estimated from the residuals until it changes by less than 5 %."""
+def iterate(problem, x, free, prior, layout: RowLayout, *, max_iter, estimate_noise) -> FitState:
+    """Levenberg-Marquardt from x, alternating (with ``estimate_noise``, at most 10 rounds) with the
+    rows' noise re-estimated from the residuals until it changes by less than 1 % (each block's share
+    of the unknowns moves with the weights: stopping at 5 % left the positions' variance 16 % low on
+    8 poses, 6 % at 1 %; a round after the fit has converged takes no step)."""
     sig = layout.sigma
     res = problem.residual(x)
     cost = float(np.sum((res / sig) ** 2)) + prior.cost(x)
     history = [cost]
     n_iter = 0
-    for _ in range(3 if estimate_noise else 1):
+    for _ in range(10 if estimate_noise else 1):
         x, res, cost, steps, n = levenberg_marquardt(problem, x, res, cost, sig, free, prior, max_iter=max_iter)
         history += steps
         n_iter += n
         if not estimate_noise:
             break
-        n_eff = (effective_unknowns(problem.jacobian(x)[:, :, free] / sig[None, :, None], prior.precision)
-                 if prior.active else len(free))
-        new_sig = variance_components(res, sig, layout, max(layout.n_rows - n_eff, 1))
-        if np.allclose(new_sig, sig, rtol=0.05):
+        new_sig = variance_components(res, sig, layout,
+                                      row_leverage(problem.jacobian(x)[:, :, free] / sig[None, :, None], prior.precision))
+        if np.allclose(new_sig, sig, rtol=0.01):
             sig = new_sig
             break
         sig = new_sig
@@ -453,8 +466,7 @@ class CalibrationModel:
         free = self.free_unknowns(problem, x, held, unknowns, layout.sigma)
         prior = _PriorTerm(self._prior_precision(free, unknowns.r, unknowns.redundant) if unknowns.map_fit
                            else np.zeros((len(free), len(free))), mu[free], unknowns.map_fit, free)
-        fit = iterate(problem, x, free, prior, layout, max_iter=self.max_iter, estimate_noise=self.estimate_noise,
-                      effective_unknowns=self._effective_unknowns)
+        fit = iterate(problem, x, free, prior, layout, max_iter=self.max_iter, estimate_noise=self.estimate_noise)
         post = posterior(problem, fit, free, prior, layout, unknowns, effective_unknowns=self._effective_unknowns)
         self._store(problem, fit, post, free, prior, held, unknowns, layout)
         return self
