@@ -252,6 +252,19 @@ class RunFolder:
             row = db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
             return default if row is None else json.loads(row[0])
 
+    def cell_segments(self):
+        """Which stored poses were measured on which recorded cell
+        (campaign.measure.cell_identity.CellSegments; one segment for a run measured on one cell,
+        imported, or without a log)."""
+        from campaign.measure.cell_identity import cell_segments
+
+        with self._read_only_db() as db:
+            if db is None:
+                return cell_segments(sqlite3.connect(":memory:"))
+            recorded = db.execute("SELECT value FROM meta WHERE key = 'cell'").fetchone() \
+                if _has_table(db, "meta") else None
+            return cell_segments(db, None if recorded is None else json.loads(recorded[0]))
+
     def clock_s(self) -> float:
         """The campaign clock at the last thing stored (s; 0 without a log): a resumed campaign
         starts here, so the clock never runs backwards, even after the driver was killed."""

@@ -76,13 +76,13 @@ def _resolve_cell(run, state, cell):
 def _check_cell(run, cell: CellSource, allow_other_cell: bool, say) -> None:
     """Refused in one line (campaign.measure.cell_identity) when the run's measurements come from
     another cell than ``cell`` and ``allow_other_cell`` is not given; said when it is."""
-    from campaign.measure.cell_identity import cell_identity, check_cell
+    from campaign.measure.cell_identity import cell_identity, check_cell, same_cell
 
     sim = cell.sim or cell.cell == "sim"
     identity = cell_identity(run.config, sim=sim, cell=None if sim else cell.cell, options=cell.options,
                              controller=cell.controller, tracker=cell.tracker)
     before = check_cell(run.path, identity, allow_other_cell)
-    if before is not None and before.get("fingerprint") != identity["fingerprint"] and identity.get("resolved", True):
+    if before is not None and not same_cell(before, identity) and identity.get("resolved", True):
         say(f"measuring on another cell ({identity['spec']}) than so far ({before.get('spec')}), as "
             "--allow-other-cell says: recorded in the run")
 

@@ -24,6 +24,11 @@ A warm-up is not linear: the rate is then its least-squares average over the tim
 
 Runs measured before the drift check stored its position (``drift_mm`` only) keep the
 distance estimate of those days (E d² = v² Δt² + 2Σσ²), with no interval.
+
+A run measured on more than one cell (``cells``, campaign.identify.cells): a cell switch is a
+step, never a drift. Each reading is mapped into the reference frame by its segment's
+registration, and each pose has its own position a_i *per segment*, so v is fitted only from
+readings within one segment; readings of a segment the calibration left out are not used.
 """
 
 from __future__ import annotations
@@ -242,44 +247,68 @@ def same_pose_groups(q, tol: float = SAME_POSE_TOL_RAD) -> np.ndarray:
     return labels
 
 
-def drift_readings(run_dir, poses, readings_to_poses=None) -> dict:
+def drift_readings(run_dir, poses, readings_to_poses=None, cells=None) -> dict:
     """The reference poses' readings of a run (its MeasuredPoses ``poses``): ``{"monitor": (t
     (k,) s, xyz (k, 3) m) or None, "repeats": (t, xyz, group) or None, "legacy": (Δt (k,) s,
-    d (k,) m) or None}``; legacy: drift checks stored as distances only (no ``xyz_m``).
+    d (k,) m) or None, "monitor_group": (k,) the monitor's group labels (-1; -1 - s on segment s of a
+    run measured on several cells) or None}``; legacy: drift checks stored as distances only (no ``xyz_m``).
     ``readings_to_poses`` (4, 4): maps the drift checks' stored readings into the frame of ``poses``
-    (data measured in the tracker's frame that calibrate registered into the robot's; None: the same)."""
+    (data measured in the tracker's frame that calibrate registered into the robot's; None: the same).
+    ``cells``: the CellDecision of a run measured on more than one cell (its poses already mapped):
+    the drift checks mapped by their segment's registration, and every pose's label one per segment
+    (module docstring)."""
     with open_run(run_dir) as store:
-        events = [(t, d) for _, _, t, d in store.events("drift_check")
-                  if isinstance(d, dict) and d.get("drift_mm") is not None and t is not None]
+        if cells is None:
+            events = [(0, t, d) for _, _, t, d in store.events("drift_check")]
+        else:
+            from campaign.measure.cell_identity import segment_events
+
+            events = segment_events(store._db, "drift_check", cells.segments)
+        events = [(s, t, d) for s, t, d in events if isinstance(d, dict) and t is not None
+                  and (d.get("drift_mm") is not None or d.get("xyz_m") is not None)]
         reference = store.get_meta("drift_reference")
     labels = same_pose_groups(poses.q)
+    if cells is not None:  # one pose on two cells: two positions (a step is no drift)
+        pose_seg = cells.segments.of(poses.pose_id)
+        labels = labels * cells.segments.n + pose_seg
     t_all = np.asarray(poses.time_s, dtype=float)
     ref_label = None
-    out = {"monitor": None, "repeats": None, "legacy": None}
+    out = {"monitor": None, "monitor_group": None, "repeats": None, "legacy": None}
     if reference is not None:
         at = np.flatnonzero(np.asarray(poses.pose_id) == reference["pose_id"])
         if len(at):
             ref_label = labels[at[0]]
-    if events and ref_label is not None:
-        mine = np.flatnonzero(labels == ref_label)
-        with_xyz = [(float(t), d["xyz_m"]) for t, d in events if d.get("xyz_m") is not None]
+    ref_labels = np.zeros(0, dtype=np.int64) if ref_label is None else np.array([ref_label])
+    if cells is not None and ref_label is not None:  # the reference pose on every segment
+        ref_labels = np.unique(labels[labels // cells.segments.n == ref_label // cells.segments.n])
+    if events and (ref_label is not None or (cells is not None and reference is not None)):
+        # (on several cells the checks of a segment count without the reference's first reading)
+        mine = np.flatnonzero(np.isin(labels, ref_labels))
+        with_xyz = []
+        for seg, t, d in events:
+            M = np.eye(4) if cells is None else cells.reading_map(seg)
+            if d.get("xyz_m") is not None and M is not None:
+                with_xyz.append((float(t), M[:3, :3] @ np.asarray(d["xyz_m"], dtype=float) + M[:3, 3], seg))
         if with_xyz:
-            t = np.r_[t_all[mine], [t for t, _ in with_xyz]]
-            read = np.array([p for _, p in with_xyz], dtype=float)
+            t = np.r_[t_all[mine], [t for t, _, _ in with_xyz]]
+            read = np.array([p for _, p, _ in with_xyz], dtype=float)
             if readings_to_poses is not None:
                 T = np.asarray(readings_to_poses, dtype=float)
                 read = read @ T[:3, :3].T + T[:3, 3]
             xyz = np.concatenate([poses.xyz[mine], read])
             out["monitor"] = (t, xyz)
+            # one group a segment: the reference's position on each cell (a step is no drift)
+            out["monitor_group"] = -1 - np.r_[np.zeros(len(mine), dtype=np.int64) if cells is None else
+                                              pose_seg[mine], [s for _, _, s in with_xyz]].astype(np.int64)
         else:
             t_ref = np.nanmin(t_all[mine]) if np.isfinite(t_all[mine]).any() else np.nan
-            out["legacy"] = (np.array([float(t) for t, _ in events]) - t_ref,
-                             np.array([d["drift_mm"] * 1e-3 for _, d in events]))
+            out["legacy"] = (np.array([float(t) for _, t, _ in events]) - t_ref,
+                             np.array([d["drift_mm"] * 1e-3 for _, _, d in events]))
     keep = []
     order = np.argsort(labels, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(labels[order]) != 0])
     for g in np.split(order, starts[1:]):  # the poses measured more than once (one pass, not one per label)
-        if len(g) < 2 or (labels[g[0]] == ref_label and out["monitor"] is not None):
+        if len(g) < 2 or (labels[g[0]] in ref_labels and out["monitor"] is not None):
             continue
         # measured again later: two successive readings further apart than back to back (the floor's)
         if len(g) > 1 and np.isfinite(t_all[g]).all() and np.diff(np.sort(t_all[g])).max() > REPEAT_CLOSE_S:
@@ -290,17 +319,18 @@ def drift_readings(run_dir, poses, readings_to_poses=None) -> dict:
     return out
 
 
-def measured_drift(run_dir, poses, floor: NoiseFloor | None = None, readings_to_poses=None) -> Drift:
+def measured_drift(run_dir, poses, floor: NoiseFloor | None = None, readings_to_poses=None, cells=None) -> Drift:
     """The run's drift (see the module): every reference pose's readings in one fit, and the
     monitor and the repeats each alone. ``floor``: its σ (when known and not an upper bound)
     gives readings too few for their own scatter an interval (and the distances of runs whose
-    drift checks stored only those their rate); ``readings_to_poses``: as
+    drift checks stored only those their rate); ``readings_to_poses``, ``cells``: as
     :func:`drift_readings`."""
-    r = drift_readings(run_dir, poses, readings_to_poses)
+    r = drift_readings(run_dir, poses, readings_to_poses, cells)
     monitor = repeats = legacy = None
     sigma = floor.sigma_position_m if floor is not None and floor.known and not floor.upper_bound else None
+    monitor_group = r["monitor_group"]  # -1: the reference pose (-1 - s on segment s of several cells)
     if r["monitor"] is not None:
-        monitor = fit_drift(r["monitor"][0], r["monitor"][1], np.full(len(r["monitor"][0]), -1), sigma_m=sigma)
+        monitor = fit_drift(r["monitor"][0], r["monitor"][1], monitor_group, sigma_m=sigma)
     if r["repeats"] is not None:
         repeats = fit_drift(*r["repeats"], sigma_m=sigma)
     if r["legacy"] is not None:
@@ -308,7 +338,7 @@ def measured_drift(run_dir, poses, floor: NoiseFloor | None = None, readings_to_
     if monitor is not None and repeats is not None:
         t = np.r_[r["monitor"][0], r["repeats"][0]]
         xyz = np.concatenate([r["monitor"][1], r["repeats"][1]])
-        fit = fit_drift(t, xyz, np.r_[np.full(len(r["monitor"][0]), -1), r["repeats"][2]], sigma_m=sigma)
+        fit = fit_drift(t, xyz, np.r_[monitor_group, r["repeats"][2]], sigma_m=sigma)
     else:
         fit = monitor or repeats or legacy
     if legacy is not None and monitor is None:

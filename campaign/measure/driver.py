@@ -438,9 +438,7 @@ def _loop(store, ids, Q, vias, todo, ctrl, trk, opts, T_LI, P_E, base, stop, say
     clock = clock0 = clock_start
     stopped = kind = None
     reference = store.get_meta("drift_reference")
-    # the reference's readings so far: its first, then every drift check's (resumed runs too)
-    readings = [] if reference is None else [reference["xyz"]] + [
-        d["xyz_m"] for _, _, _, d in store.events("drift_check") if isinstance(d, dict) and d.get("xyz_m")]
+    readings = [] if reference is None else _reference_readings(store, reference)
     try:
         for n, k in enumerate(todo):
             pid = int(ids[k])
@@ -560,6 +558,19 @@ def _measure_pose(pid, seq, q, vias, ctrl, trk, opts, T_LI, P_E, base, targets=R
                           retries=retries, reason=str(exc)), clock
 
 
+def _reference_readings(store, reference) -> list:
+    """The reference pose's readings so far (resumed runs too): its first, then every drift check's;
+    of a run resumed on another cell (campaign.measure.cell_identity), only those on this one (the
+    cell's readings are in another frame: a step between cells is no drift)."""
+    from campaign.measure.cell_identity import cell_segments, segment_events
+
+    segments = cell_segments(store._db)
+    now = segments.session_segments[-1] if segments.session_segments else 0
+    first = [reference["xyz"]] if int(segments.of([reference["pose_id"]])[0]) == now else []
+    return first + [d["xyz_m"] for seg, _, d in segment_events(store._db, "drift_check", segments)
+                    if seg == now and isinstance(d, dict) and d.get("xyz_m")]
+
+
 def _record_drift_check(store, reference, xyz, readings, opts, P_E, n_stored, pid, clock, say) -> int:
     """Store a drift check's reading ``xyz`` (m, or None when it could not be measured) as a
     ``drift_check`` event: its position, its distance from the reference's first reading
@@ -569,6 +580,11 @@ def _record_drift_check(store, reference, xyz, readings, opts, P_E, n_stored, pi
     detail = {"reference_pose_id": reference["pose_id"], "drift_mm": None, "over_threshold": False}
     if xyz is None:
         store.add_event("drift_check", detail, pose_id=pid, time_s=clock)
+        return 0
+    if not readings:  # the first reading on another cell (a resumed run): nothing to compare it with
+        detail.update(xyz_m=[float(v) for v in xyz], first_on_cell=True)
+        store.add_event("drift_check", detail, pose_id=pid, time_s=clock)
+        readings.append(list(map(float, xyz)))
         return 0
     earlier = np.asarray(readings, dtype=float)
     moved_m = float(np.linalg.norm(xyz - earlier.mean(axis=0)))

@@ -208,10 +208,17 @@ def stated_tracker_noise_m(run_dir) -> float | None:
 
 
 def drift_check_distances_m(run_dir) -> list:
-    """Distances (m) of the drift check's re-measurements from the reference's first measurement."""
+    """Distances (m) of the drift check's re-measurements from the reference's first measurement;
+    of a run measured on more than one cell, those on the reference's cell (on another the reading
+    is in another frame: campaign.measure.cell_identity)."""
+    from campaign.measure.cell_identity import cell_segments, segment_events
+
     with open_run(run_dir) as store:
-        return [d["drift_mm"] * 1e-3 for _, _, _, d in store.events("drift_check")
-                if isinstance(d, dict) and d.get("drift_mm") is not None]
+        segments = cell_segments(store._db)
+        reference = store.get_meta("drift_reference")
+        mine = int(segments.of([reference["pose_id"]])[0]) if reference and segments.mixed else 0
+        return [d["drift_mm"] * 1e-3 for s, _, d in segment_events(store._db, "drift_check", segments)
+                if isinstance(d, dict) and d.get("drift_mm") is not None and s == mine]
 
 
 def noise_floor(run_dir, poses, robot) -> NoiseFloor:
