@@ -361,3 +361,18 @@ GRAVITY_JOINT_POSES = 200
 #: left is the noise's own sampling error or an effect too small to pay for hours of measuring
 #: (the issue-31 runs spent 30 poses on "0 % of the held-out error (p = 0.078)").
 MIN_ROUND_SHARE = 0.05
+
+#: A run measured on more than one cell (campaign.identify.cells): a segment disagrees with the
+#: others beyond its registration when the one-sided test of its held-out errors (one model against
+#: it alone) has p below this (Bonferroni over the segments tested): the same level as diagnose's
+#: candidates, a refusal costs the user a choice, a wrong mix costs them the calibration.
+CELL_AGREEMENT_ALPHA = 0.01
+#: ... and its held-out mean under one model exceeds the other by more than this share: with many
+#: poses a test finds a few % of region-dependent structure (an effect the model lacks, fitted by a
+#: segment's own model on its part of the workspace); two robots' geometric errors differ by
+#: millimetres, many times the model's error.
+CELL_AGREEMENT_MARGIN = 0.25
+#: Folds of the agreement test (within each segment).
+CELL_FOLDS = 5
+#: Training poses a segment needs for its registration (six unknowns; three positions not in a line).
+CELL_MIN_REGISTRATION_POSES = 3

@@ -20,6 +20,9 @@ def register(sub):
                    help="held-out folds on the training set (default: from the data, leave-one-out below 60 "
                         "training poses, else 5)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report and plots")
+    p.add_argument("--cell-segment", type=int, default=None, metavar="N",
+                   help="a run measured on more than one cell: diagnose the poses of its N-th cell segment alone "
+                        "(default: all, with a registration per segment, when they agree; docs/cells.md)")
     p.set_defaults(func=_diagnose)
 
 
@@ -35,7 +38,8 @@ def _diagnose(args):
 
     progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
     with RunFolder(args.run).lock("diagnose"):  # no calibrate rewrites what it reads, nothing else writes diagnose/
-        d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress)
+        d = diagnose(args.run, effects=args.effects, candidates=args.candidates, folds=args.folds, progress=progress,
+                     cell_segment=args.cell_segment)
         report = write_diagnosis(d, report=not args.no_report)
     if args.json:
         print(strict_json(diagnosis_doc(d, report.parent.name)))  # diagnosis.json, strict JSON

@@ -54,6 +54,7 @@ from campaign.effects.base import (available, effect_class, effect_context, effe
                                    entry_point_effects, joint_spec, make_effect, merge_effects, parse_effect_list,
                                    resolve_effect_spec, split_joints)
 from campaign.errors import DataError
+from campaign.identify.cells import decide_cells
 from campaign.identify.poses import (check_pose_count, distinct_poses, equations_per_pose, prepare_measured,
                                      tracker_to_robot, training_poses_needed)
 from campaign.identify.solver import CalibrationModel
@@ -168,6 +169,8 @@ class Diagnosis:
     time_test: object = None
     #: noise-free measurements that the model fits to round-off: nothing was tested further
     round_off: bool = False
+    #: a run measured on more than one cell: campaign.identify.cells.CellDecision (diagnosis.json's ``cells``)
+    cells: object = field(repr=False, default=None)
 
     @property
     def removal(self):
@@ -255,6 +258,7 @@ class Diagnosis:
             "fold_pose_ids": [list(ids) for ids in self.fold_pose_ids],
             "skipped_candidates": [{"effect": e, "reason": r} for e, r in self.skipped],
             "n_train_poses": self.n_train,
+            **({} if self.cells is None else {"cells": {**self.cells.as_json(), "line": self.cells.line()}}),
         }
 
     def _verdict_spec(self):
@@ -290,6 +294,7 @@ class Diagnosis:
     def text(self) -> str:
         lines = [f"current model: geometric" + "".join(f" + {e}" for e in self.current_effects),
                  *([f"  {self.model_note}"] if self.model_note else []),
+                 *([f"  {self.cells.line()}"] if self.cells is not None else []),
                  f"candidates scored on {folds_text(self.folds, self.n_train, self.fold_rule)} (test set untouched):",
                  "",
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
@@ -494,6 +499,8 @@ class DiagnosisData:
     candidates: tuple = ()
     #: the map of readings in the tracker's frame into the registered robot frame, or None
     tracker_to_robot: np.ndarray | None = None
+    #: a run measured on more than one cell: its CellDecision (campaign.identify.cells), poses mapped
+    cells: object = None
 
     @property
     def position_only(self) -> bool:
@@ -512,7 +519,7 @@ class DiagnosisData:
         return (*self.subset(self.tr[self.fold != k]), *self.subset(self.tr[self.fold == k]))
 
 
-def load_data(run_dir, effects, candidates, folds, say) -> DiagnosisData:
+def load_data(run_dir, effects, candidates, folds, say, cell_segment=None) -> DiagnosisData:
     """The run's poses (those with a pose), its calibrate split, the current model's effects, the
     candidates and the folds; one line when the poses are too few for every fold fit."""
     from campaign.plan.selection import base_pose_id
@@ -538,6 +545,12 @@ def load_data(run_dir, effects, candidates, folds, say) -> DiagnosisData:
             "(diagnose compares fits of poses)")
         poses = poses.subset(np.flatnonzero(usable))
     is_test = run_split(run_dir, poses.pose_id)  # calibrate's test set (a plan's validation poses)
+    cells = decide_cells(run_dir, robot, poses, ~is_test, run.cell_segments(), effects=current,
+                         cell_segment=cell_segment, say=say)  # several cells: as calibrate models them
+    if cells is not None:
+        poses, kept = cells.apply(poses)
+        is_test = is_test[kept]
+        say(cells.line())
     poses, robot, tracker = prepare_measured(robot, poses, ~is_test)  # as calibrate's model sees them
     tr = np.flatnonzero(~is_test)
     rule = choose_folds(len(np.unique(base_pose_id(poses.pose_id[tr]))), folds)
@@ -551,7 +564,7 @@ def load_data(run_dir, effects, candidates, folds, say) -> DiagnosisData:
     return DiagnosisData(Path(run_dir), robot, poses, is_test, tr, effect_context(poses.context, poses.time_s), rule,
                          fit_rule, pose_folds(poses.pose_id[tr], rule.k),
                          base_parameters(robot, position_only=not poses.has_orientation), tuple(current), n_current,
-                         model_note, specs, tracker_to_robot(tracker))
+                         model_note, specs, tracker_to_robot(tracker), cells)
 
 
 @dataclass(frozen=True)
@@ -841,14 +854,14 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor):
         floor = floor_from_stated(stated, P_E) if stated is not None and len(P_E) >= 3 else NoiseFloor("none")
     if not floor.known:
         return None
-    readings = drift_readings(data.run_dir, data.poses, data.tracker_to_robot)
+    readings = drift_readings(data.run_dir, data.poses, data.tracker_to_robot, data.cells)
     xyz, group, t = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
     if readings["repeats"] is not None:
         t_r, xyz_r, g_r = readings["repeats"]
         xyz.append(xyz_r), group.append(np.asarray(g_r, dtype=np.int64)), t.append(t_r)
     if readings["monitor"] is not None:  # the reference pose, its drift checks among its readings
         t_m, xyz_m = readings["monitor"]
-        xyz.append(xyz_m), group.append(np.full(len(t_m), -1, dtype=np.int64)), t.append(t_m)
+        xyz.append(xyz_m), group.append(readings["monitor_group"]), t.append(t_m)
     legacy = readings["legacy"]
     return time_test(np.concatenate(xyz), np.concatenate(group), np.concatenate(t), floor.sigma_position_m,
                      sigma_dof=3 * floor.dof if floor.source == "repeats" else 0,
@@ -856,16 +869,17 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor):
 
 
 def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
-             structure: bool = True) -> Diagnosis:
+             structure: bool = True, cell_segment: int | None = None) -> Diagnosis:
     """Diagnose a run's current model: noise floor, model-free structure test, time test, candidate
     ranking over the joints each acts on, and each current effect's contribution.
 
     folds: held-out folds of the training poses; None: from the data
     (:func:`campaign.identify.split.choose_folds`: leave-one-out below 60 training poses, else 5).
     Too few poses for every fold fit to identify the current model is one line saying how many
-    are needed; a candidate whose parameters the fold fits cannot identify is skipped (and said)."""
+    are needed; a candidate whose parameters the fold fits cannot identify is skipped (and said).
+    cell_segment: ``--cell-segment N`` of a run measured on more than one cell (campaign.identify.cells)."""
     say = progress or (lambda msg: None)
-    data = load_data(Path(run_dir), effects, candidates, folds, say)
+    data = load_data(Path(run_dir), effects, candidates, folds, say, cell_segment)
     fits = fit_current(data, say)
     fv = judge_floor(data, fits)
     X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
@@ -901,6 +915,5 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                      data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
-                     measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot), data.model_note, contrib,
-                     timed,
-                     fv.round_off)
+                     measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
+                     data.model_note, contrib, timed, fv.round_off, data.cells)

@@ -203,6 +203,8 @@ def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
         else:
             with run.store() as store:
                 poses = store.load_measured()
+            if diagnosis.cells is not None:  # several cells: the poses as the diagnosis saw them
+                poses = diagnosis.cells.apply(poses)[0]
             name = write_report(diagnosis, poses, run.robot(), out=version.path, diagnosis_id=version.id).name
     return versions.store_dir / version.id / name
 

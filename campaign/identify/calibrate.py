@@ -26,6 +26,7 @@ from campaign.effects.base import (EffectSet, effect_context, effect_name, make_
 from campaign.errors import ConfigError, DataError, Implausible
 from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.ann_stage import AnnStages
+from campaign.identify.cells import check_cell_segment, decide_cells
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.model_choice import check_model_options, choice_json, choice_text, fit_model, geometric_fix
 from campaign.identify.solver import CalibrationModel
@@ -108,6 +109,9 @@ class CalibrationResult:
     #: the calibrated domain, the uncertainty and the identifiability (campaign.identify.domain.domain_record;
     #: domain.json beside params.yaml)
     domain: dict | None = None
+    #: a run measured on more than one cell: the segments, their registrations and agreement test, the
+    #: decision (campaign.identify.cells.CellDecision.as_json(); metrics.json's ``cells``); None: one cell
+    cells: dict | None = None
 
     @property
     def metrics(self) -> dict:
@@ -138,6 +142,8 @@ class CalibrationResult:
             current = next((n for n in reversed(self.order) if n in self.domain["over_domain"]), None)
             out.update(domain_metrics(self.domain, None, self.stages, current))
             out["identifiability"] = {k: v for k, v in self.domain["identifiability"].items()}
+        if self.cells is not None:
+            out["cells"] = self.cells
         return out
 
     def floor_line(self) -> str:
@@ -214,7 +220,7 @@ def stage_name(effects) -> str:
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
               write: bool = True, report: bool = True, strict: bool = False, model: str = "auto",
-              fix=None) -> CalibrationResult:
+              fix=None, cell_segment: int | None = None) -> CalibrationResult:
     """Identify the model of a run and write its calibration folder, holding the run's lock
     (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
@@ -226,7 +232,9 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     during ANN training, campaign.ann.selection.TrainingProgress reports. report: also write
     report.html and its plots (with ``write``). The result carries plausibility ``warnings``
     (campaign.identify.checks); strict: any warning raises :class:`campaign.errors.Implausible`
-    and nothing is written.
+    and nothing is written. cell_segment: ``--cell-segment N``, the poses of the run's N-th cell
+    segment alone (campaign.identify.cells; a run measured on more than one cell is otherwise
+    calibrated on all, with a registration per segment, or refused when they disagree).
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
@@ -236,23 +244,25 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     effects = run.effects if effects is None else tuple(resolve_effect_spec(e) for e in parse_effect_list(effects))
     check_once(EffectSet(tuple(make_effect(name, robot) for name in effects)))  # unknown or twice: before any fit
     fix = check_model_options(robot, effects, model, fix)  # a bad --model or --fix: one line before any fit
+    segments = run.cell_segments()
+    check_cell_segment(segments, cell_segment)  # a segment the run lacks: one line before any fit
     # one writer at a time: a second calibrate (or a driver) is refused before any work
     with run.lock("calibrate") if write else contextlib.nullcontext():
         if not write:  # a network trained on the way is saved in a scratch folder, then dropped
             with tempfile.TemporaryDirectory() as scratch:
                 return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                  strict, Version(None, Path(scratch)), model, fix)
+                                  strict, Version(None, Path(scratch)), model, fix, (segments, cell_segment))
         # every output into a new version of RUN/calibration, current only once whole (campaign.versioned)
         with calibration_folder(run_dir).new_version() as version:
             result = _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                strict, version, model, fix)
+                                strict, version, model, fix, (segments, cell_segment))
     if result.report_path is not None:
         result = replace(result, report_path=run.calibration_dir / Path(result.report_path).name)
     return result
 
 
 def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
-               report, strict, version, model_kind="auto", fix=None) -> CalibrationResult:
+               report, strict, version, model_kind="auto", fix=None, cells=None) -> CalibrationResult:
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
@@ -280,6 +290,14 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         usable = usable[usable]
     position_only = position_only or not poses.has_orientation
     is_test = run_split(run_dir, poses.pose_id)  # the plan's validation poses, else 80/20
+    decision = None if cells is None else decide_cells(run_dir, robot, poses, ~is_test, cells[0], effects=effects,
+                                                       cell_segment=cells[1], say=say)
+    if decision is not None:  # more than one cell: a registration per segment (or one segment), said once
+        poses, kept = decision.apply(poses)
+        usable, is_test = usable[kept], is_test[kept]
+        if raw:
+            n_seen = n_seen[kept]
+        say(decision.line())
     foreign = not_the_plans(run_dir, poses.pose_id)
     if foreign:
         say(foreign)
@@ -411,7 +429,9 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
         frame=poses.frame, identification_time_s=t_geo,
         measured_point_in_tool_m=None if point is None else tuple(float(v) for v in point), tracker=tracker,
         tool_mounting_in_tool=None if mounting is None else mounting_json(mounting),
-        noise_floor=floor.as_json(), drift=measured_drift(run_dir, measured, floor, tracker_to_robot(tracker)).as_json(),
+        noise_floor=floor.as_json(),
+        drift=measured_drift(run_dir, measured, floor, tracker_to_robot(tracker), cells=decision).as_json(),
+        cells=None if decision is None else {**decision.as_json(), "line": decision.line()},
         ann=ann_stages, ann_skipped=ann_skipped,
         folds=None if rule is None else rule.as_json(), calibration_id=version.id,
         model_choice=choice_json(choice, model, poses.q[te], ctx_te=None if not context else
@@ -592,6 +612,8 @@ def summary_text(result: CalibrationResult) -> str:
         lines.append(f"strongly correlated: {pairs}" if more <= 0 else
                      f"strongly correlated: {len(m.correlated_pairs_)} pairs with |r| > 0.95; the worst five: {pairs}; "
                      "all in params.yaml")
+    if result.cells is not None:
+        lines.append(result.cells["line"])
     if result.ann_skipped:
         lines.append(result.ann_skipped)
     if result.model_choice is not None:

@@ -89,6 +89,10 @@ def register(sub):
     p.add_argument("--fix", metavar="NAME[=VALUE],...", default=None,
                    help="hold parameters at nominal or at VALUE (SI: m, rad): names (pL_6E_x), groups (base, tool, "
                         "offsets, joint<j>), patterns (pR_I0_*) or <effect>.<param>")
+    p.add_argument("--cell-segment", type=int, default=None, metavar="N",
+                   help="a run measured on more than one cell (resumed with --allow-other-cell): calibrate the "
+                        "poses of its N-th cell segment alone (default: all, with a registration per segment, "
+                        "when the segments agree beyond it; docs/cells.md)")
     ann = p.add_mutually_exclusive_group()
     ann.add_argument("--ann", dest="ann", action="store_true", default=None,
                      help="train the neural residual compensator (default from 250 training poses)")
@@ -311,7 +315,7 @@ def _calibrate(args):
     try:
         result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
                            ann_options=ann_options, progress=progress, report=not args.no_report, strict=args.strict,
-                           model=args.model, fix=args.fix)
+                           model=args.model, fix=args.fix, cell_segment=args.cell_segment)
     except Implausible as exc:
         if progress is not None:
             progress.close()
@@ -338,6 +342,9 @@ def _calibrate_fleet(args, ann, ann_options) -> int:
     if len(set(runs)) < len(runs):
         dup = next(r for r in runs if runs.count(r) > 1)
         raise ConfigError(f"calibrate: run {dup} is named twice")
+    if args.cell_segment is not None:  # a segment is one run's, not a fleet's
+        raise ConfigError(f"--cell-segment {args.cell_segment}: names a cell segment of one run; calibrate the run "
+                          "alone (`campaign calibrate DIR --cell-segment N`)")
     fleet_options = {k: v for k, v in ann_options.items() if k not in ("workers", "scheduler", "dask")}
     executor = make_executor(workers=ann_options.get("workers"), scheduler=ann_options.get("scheduler"),
                              dask=ann_options.get("dask", False))

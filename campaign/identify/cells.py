@@ -1,0 +1,388 @@
+"""A run measured on more than one cell: one registration per cell segment, and whether the
+segments are one robot beyond it.
+
+A run resumed on another cell (``--allow-other-cell``, campaign.measure.cell_identity) holds
+*cell segments*: the poses of each recorded cell (``RunFolder.cell_segments``). Two cells are two
+tracker placements at least (another base frame, another tracker registration) and possibly two
+robots. So a mixed run is modelled, not read as one cell:
+
+1. **A step per segment, not a drift.** Each segment's measurements are mapped into the frame
+   of the reference segment (the first kept one: the run's base-frame set-up was measured there)
+   by a rigid transform ``M_s``: first the closed-form registration of the nominal model's tool
+   points to each segment's measured ones (Kabsch), then refined jointly with the geometric model
+   (and the current effects) as six unknowns per other segment (:class:`CellStep`, a pose map
+   identified by the same solver), on the training poses.
+2. **Do the segments agree beyond it?** On the training poses, K folds (within each segment):
+   the *joint* model (geometric + current effects + the steps) fitted on the other folds of every
+   segment, against a *separate* model per segment (geometric + current effects, fitted on that
+   segment's other folds alone), both predicting the held-out poses. For a segment with enough
+   poses for its own model the statistic is a one-sided paired t-test of the held-out position
+   errors, joint minus separate, on its held-out poses; for a smaller one a one-sided Welch test
+   of its held-out errors under the joint model against the other segments'. A segment
+   *disagrees* when p < CELL_AGREEMENT_ALPHA / (segments tested) and its mean held-out error
+   under the joint model exceeds the other's by more than CELL_AGREEMENT_MARGIN
+   (campaign.tolerances).
+3. **The decision.** All agree: calibrate on every pose with the per-segment registrations
+   (``"mixed"``). One disagrees: refused in one line naming the segments, unless one segment is
+   asked for (``--cell-segment N``: ``"segment"``, its poses alone, mapped by the initial
+   registration into the reference frame).
+
+A segment with fewer than CELL_MIN_REGISTRATION_POSES training poses cannot be registered: its
+poses are left out, and the line says so. A run measured on one cell is left exactly as it is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from campaign.effects.base import Effect
+from campaign.errors import ConfigError, DataError
+from campaign.tolerances import (CELL_AGREEMENT_ALPHA, CELL_AGREEMENT_MARGIN, CELL_FOLDS,
+                                 CELL_MIN_REGISTRATION_POSES)
+
+#: the context column carrying each pose's segment (index into the kept segments) during the fits
+SEGMENT_KEY = "cell_segment"
+
+
+class CellStep(Effect):
+    """The step of each non-reference segment: its measured poses are ``E_s · T`` of the model's
+    ``T``, E_s a rigid motion (translation t_s in m, rotation vector r_s in rad, in the reference
+    frame). Context ``cell_segment``: the segment's index (0: the reference, no step). Not in the
+    registry: no candidate of `diagnose`, only built for a mixed run."""
+
+    name = "cell_step"
+    description = "a step between cell segments: another tracker placement or base frame"
+    context_keys = (SEGMENT_KEY,)
+
+    def __init__(self, robot, n_segments: int):
+        super().__init__(robot)
+        self.n_segments = int(n_segments)
+        self.param_names = tuple(f"{n}_segment{s + 1}" for s in range(1, self.n_segments)
+                                 for n in ("t_x", "t_y", "t_z", "r_x", "r_y", "r_z"))
+        self.param_units = tuple(u for _ in range(1, self.n_segments) for u in ("m",) * 3 + ("rad",) * 3)
+
+    def pose_map(self, params, T, q, context):
+        seg = np.asarray(context[SEGMENT_KEY]).astype(int)
+        out = np.array(T, dtype=float, copy=True)
+        for s in range(1, self.n_segments):
+            rows = seg == s
+            if rows.any():
+                out[rows] = step_matrix(params[6 * (s - 1):6 * s]) @ out[rows]
+        return out
+
+
+def step_matrix(p) -> np.ndarray:
+    """(4, 4) of a step (t_x, t_y, t_z in m, r_x, r_y, r_z a rotation vector in rad)."""
+    from campaign.model.rotations import rotvec_to_matrix
+
+    E = np.eye(4)
+    E[:3, :3] = rotvec_to_matrix(np.asarray(p[3:6], dtype=float))
+    E[:3, 3] = p[:3]
+    return E
+
+
+def _rigid_json(T) -> dict:
+    from campaign.model.rotations import matrix_to_rotvec
+
+    T = np.asarray(T, dtype=float)
+    return {"translation_m": [float(v) for v in T[:3, 3]],
+            "rotation_vector_rad": [float(v) for v in matrix_to_rotvec(T[:3, :3])]}
+
+
+@dataclass(frozen=True)
+class SegmentTest:
+    """The agreement test of one segment (module docstring, step 2)."""
+
+    segment: int  # 0-based, into CellSegments.cells
+    test: str  # "paired" (its own model) or "welch" (too few poses for one)
+    n_heldout: int
+    joint_mm: float  # mean held-out position error under the joint model
+    other_mm: float  # ... under its own model (paired) or of the other segments under the joint one (welch)
+    t: float
+    p: float
+    disagrees: bool
+
+    @property
+    def ratio(self) -> float:
+        return self.joint_mm / max(self.other_mm, 1e-300)
+
+    def as_json(self) -> dict:
+        return {"segment": self.segment + 1, "test": self.test, "n_heldout": self.n_heldout,
+                "heldout_mean_position_mm_joint": self.joint_mm,
+                ("heldout_mean_position_mm_alone" if self.test == "paired" else
+                 "heldout_mean_position_mm_other_segments"): self.other_mm,
+                "ratio": self.ratio, "t": self.t, "p": self.p, "disagrees": self.disagrees}
+
+    def text(self) -> str:
+        other = "alone" if self.test == "paired" else "the other segments' in it"
+        return (f"segment {self.segment + 1}: held-out {self.joint_mm:.4f} mm in one model vs {self.other_mm:.4f} mm "
+                f"{other} (x{self.ratio:.2f}, {'paired' if self.test == 'paired' else 'Welch'} t = {self.t:.2f}, "
+                f"p = {self.p:.2g}, {self.n_heldout} poses)")
+
+
+@dataclass(frozen=True)
+class CellDecision:
+    """How a mixed-cell run is modelled: its segments, the kept ones and the reference, the map of
+    each kept segment's measurements into the reference frame, the agreement tests, and the decision
+    ("mixed", "segment" or "refused")."""
+
+    segments: object  # campaign.measure.cell_identity.CellSegments
+    pose_segment: np.ndarray  # (n,) segment of each pose of the data it was made for
+    kept: tuple
+    reference: int
+    maps: dict  # segment -> (4, 4) map of its measurements into the reference frame
+    initial_maps: dict
+    tests: tuple
+    decision: str
+    chosen: int | None = None
+    left_out: dict = field(default_factory=dict)  # segment -> why its poses were left out
+    pose_ids: np.ndarray | None = None
+
+    @property
+    def agree(self) -> bool:
+        return not any(t.disagrees for t in self.tests)
+
+    def registration_json(self) -> list:
+        return [{"segment": s + 1, "reference": s == self.reference, **_rigid_json(self.maps[s])}
+                for s in sorted(self.maps)]
+
+    def as_json(self) -> dict:
+        """metrics.json / diagnosis.json ``cells`` (docs/cells.md)."""
+        return {"decision": self.decision, "segment": None if self.chosen is None else self.chosen + 1,
+                "reference_segment": self.reference + 1,
+                "segments": self.segments.as_json(self.pose_ids),
+                "left_out": [{"segment": s + 1, "why": why} for s, why in sorted(self.left_out.items())],
+                "registration": self.registration_json(),
+                "agreement": {"statistic": "held-out position error of one model with a registration per "
+                                           "segment against each segment alone (paired one-sided t) or, for a "
+                                           "segment too small for its own model, against the other segments "
+                                           "(one-sided Welch t)",
+                              "alpha": CELL_AGREEMENT_ALPHA, "margin": CELL_AGREEMENT_MARGIN,
+                              "agree": self.agree, "tests": [t.as_json() for t in self.tests]}}
+
+    def line(self) -> str:
+        """One line: what was decided, and why."""
+        names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
+        tests = "; ".join(t.text() for t in self.tests) or "no segment could be tested"
+        out = "".join(f"; {self.segments.label(s)} left out: {why}" for s, why in sorted(self.left_out.items()))
+        if self.decision == "mixed":
+            steps = ", ".join(f"segment {s + 1} {_step_words(self.maps[s])}" for s in sorted(self.maps)
+                              if s != self.reference)
+            return (f"measured on {self.segments.n} cells ({names}): they agree beyond one registration per segment "
+                    f"({tests}); modelled on all poses with per-segment registrations into segment "
+                    f"{self.reference + 1}'s frame ({steps}){out}")
+        return (f"measured on {self.segments.n} cells ({names}); --cell-segment {self.chosen + 1}: its poses alone"
+                + ("" if self.chosen == self.reference or self.chosen not in self.maps else
+                   f", registered into segment {self.reference + 1}'s frame ({_step_words(self.maps[self.chosen])})")
+                + f" ({tests}){out}")
+
+    def refusal(self, run_dir) -> str:
+        names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
+        bad = "; ".join(t.text() for t in self.tests if t.disagrees)
+        return (f"{run_dir}: measured on {self.segments.n} cells that do not agree beyond a registration ({names}; {bad}): "
+                f"they are not one robot in one model; calibrate one segment with --cell-segment N "
+                f"(N = 1..{self.segments.n}), or measure the rest on one cell")
+
+    def apply(self, poses):
+        """``poses`` (MeasuredPoses of the run, as stored) restricted to the kept (or chosen) segment(s),
+        each mapped into the reference frame; (poses, the kept rows)."""
+        use = (self.chosen,) if self.chosen is not None else self.kept
+        pose_segment = self.segments.of(poses.pose_id)
+        rows = np.flatnonzero(np.isin(pose_segment, use))
+        out = poses.subset(rows)
+        seg = pose_segment[rows]
+        M = np.stack([self.maps[int(s)] for s in seg]) if len(seg) else np.zeros((0, 4, 4))
+        T = M @ out.T_IE
+        if not out.has_orientation:
+            T[:, :3, :3] = np.eye(3)
+        markers = None if out.markers is None else \
+            np.einsum("nij,nkj->nki", M[:, :3, :3], out.markers) + M[:, None, :3, 3]
+        out = replace(out, T_IE=T, **({} if markers is None else {"markers": markers}))
+        return out, rows
+
+    def reading_map(self, segment: int):
+        """(4, 4): a reading of ``segment`` (in its measured frame) into the reference frame, or None
+        when the segment is not used."""
+        use = (self.chosen,) if self.chosen is not None else self.kept
+        return self.maps.get(segment) if segment in use else None
+
+
+def _step_words(M) -> str:
+    from campaign.model.rotations import matrix_to_rotvec
+
+    M = np.asarray(M, dtype=float)
+    return (f"moved {np.linalg.norm(M[:3, 3]) * 1e3:.1f} mm, turned "
+            f"{np.linalg.norm(matrix_to_rotvec(M[:3, :3])) * 1e3:.2f} mrad")
+
+
+# -- the steps -------------------------------------------------------------------------------------
+def check_cell_segment(segments, cell_segment) -> int | None:
+    """``--cell-segment N`` (1-based) as a 0-based index, ConfigError naming the run's segments
+    when out of range; None when not given."""
+    if cell_segment is None:
+        return None
+    if isinstance(cell_segment, bool) or not isinstance(cell_segment, (int, np.integer)) \
+            or not 1 <= cell_segment <= segments.n:
+        what = "one cell segment (it was measured on one cell)" if segments.n == 1 else \
+            f"{segments.n} cell segments"
+        raise ConfigError(f"--cell-segment {cell_segment!r}: the run has {what}; give 1..{segments.n}")
+    return int(cell_segment) - 1
+
+
+def initial_maps(robot, poses, seg, train, kept) -> dict:
+    """Segment -> (4, 4) map of its measurements into the first kept segment's frame, from the
+    closed-form registration of the nominal model's tool points to each segment's training poses."""
+    from campaign.measure.reflectors import invert, register_points
+    from campaign.model.kinematics import forward
+
+    reg = {}
+    for s in kept:
+        rows = np.flatnonzero(train & (seg == s) & np.isfinite(poses.xyz).all(axis=1))
+        reg[s] = register_points(forward(robot, poses.q[rows])[:, :3, 3], poses.xyz[rows])
+    ref = kept[0]
+    return {s: reg[ref] @ invert(reg[s]) for s in kept}
+
+
+def _fit(robot, effects, position_only, q, T, ctx, base, init=None):
+    from campaign.identify.solver import CalibrationModel
+
+    return CalibrationModel(robot=robot, effects=list(effects), position_only=position_only).fit(
+        q, T, ctx, base=base, init=init)
+
+
+def _folds(pose_id, seg, k) -> np.ndarray:
+    """Fold (n,) of each pose: within each segment, round robin over its distinct poses in id order
+    (a plan's repeats share their pose's fold)."""
+    from campaign.plan.selection import base_pose_id
+
+    base = base_pose_id(np.asarray(pose_id, dtype=np.int64))
+    fold = np.zeros(len(base), dtype=np.int64)
+    for s in np.unique(seg):
+        rows = np.flatnonzero(seg == s)
+        ids, inv = np.unique(base[rows], return_inverse=True)
+        fold[rows] = (np.arange(len(ids)) % k)[inv.reshape(-1)]
+    return fold
+
+
+def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_segment=None, say=None) -> CellDecision | None:
+    """The :class:`CellDecision` for ``poses`` (MeasuredPoses of the run ``run_dir``, in the frame
+    they were stored in) with ``train`` (n,) bool the training poses, or None when they come from
+    one cell (nothing changes). ``effects``: the current model's effect specs; ``cell_segment``:
+    ``--cell-segment N`` (1-based). DataError (one line) when the segments disagree and no segment
+    is chosen."""
+    from campaign.identify.poses import training_poses_needed
+    from campaign.model.base_params import base_parameters
+
+    chosen = check_cell_segment(segments, cell_segment)
+    if chosen is not None and not (segments.segment == chosen).any():
+        raise DataError(f"{run_dir}: --cell-segment {chosen + 1}: {segments.label(chosen)} holds no measured pose")
+    if not segments.mixed:  # one cell's measurements: exactly as they are
+        return None
+    say = say or (lambda line: None)
+    seg = segments.of(poses.pose_id)
+    position_only = not poses.has_orientation
+    usable = np.isfinite(poses.xyz).all(axis=1)
+    counts = {s: int((train & usable & (seg == s)).sum()) for s in range(segments.n)}
+    left_out = {s: f"{n} training poses, too few to register it ({CELL_MIN_REGISTRATION_POSES} needed)"
+                for s, n in counts.items() if n < CELL_MIN_REGISTRATION_POSES and (seg == s).any()}
+    left_out.update({s: "no pose measured" for s in range(segments.n) if not (seg == s).any()})
+    kept = tuple(s for s in range(segments.n) if s not in left_out)
+    if chosen is not None and chosen in left_out:
+        raise DataError(f"{run_dir}: --cell-segment {chosen + 1}: {segments.describe(chosen, poses.pose_id)}: "
+                        f"{left_out[chosen]}")
+    if not kept:
+        raise DataError(f"{run_dir}: measured on {segments.n} cells, none with {CELL_MIN_REGISTRATION_POSES} "
+                        "training poses to register it")
+    ref = kept[0]
+    maps0 = initial_maps(robot, poses, seg, train, kept)
+    maps, tests = dict(maps0), ()
+    if len(kept) > 1:
+        maps, tests = _register_and_test(robot, poses, seg, train & usable, kept, maps0, effects, position_only,
+                                         base_parameters(robot, position_only=position_only), say,
+                                         training_poses_needed)
+    decision = "mixed" if chosen is None else "segment"
+    result = CellDecision(segments, seg, kept, ref, maps, maps0, tests, decision, chosen, left_out,
+                          np.asarray(poses.pose_id))
+    if chosen is None and not result.agree:
+        raise DataError(result.refusal(run_dir))
+    if chosen is not None:  # its poses alone: the initial registration places them near the reference frame
+        result = replace(result, maps={**maps0, **{s: maps0[s] for s in kept}})
+    return result
+
+
+def _register_and_test(robot, poses, seg, train, kept, maps0, effects, position_only, base, say, needed):
+    """(the refined maps, the agreement tests): the joint fit with a step per segment on all training
+    poses, then K folds of the joint and the separate models (module docstring)."""
+    from scipy import stats
+
+    index = {s: i for i, s in enumerate(kept)}
+    rows = np.flatnonzero(train & np.isin(seg, kept))
+    q = poses.q[rows]
+    M = np.stack([maps0[int(s)] for s in seg[rows]])
+    T = M @ poses.T_IE[rows]
+    from campaign.effects.base import effect_context, make_effect
+
+    base_ctx = {k: v[rows] for k, v in effect_context(poses.context, poses.time_s).items()}
+    ctx = {**base_ctx, SEGMENT_KEY: np.array([index[int(s)] for s in seg[rows]], dtype=float)}
+    step = CellStep(robot, len(kept))
+    joint_effects = (*effects, step)
+    say(f"cell segments: one model with a registration per segment on {len(rows)} training poses")
+    full = _fit(robot, joint_effects, position_only, q, T, ctx, base)
+    theta = full.effect_set_.split(full.effect_params_)[-1]
+    maps = {kept[0]: maps0[kept[0]]}
+    for i, s in enumerate(kept[1:], start=1):
+        maps[s] = np.linalg.inv(step_matrix(theta[6 * (i - 1):6 * i])) @ maps0[s]
+    # the folds: joint and separate models on the same held-out poses
+    n_effect = sum(make_effect(e, robot).n_params for e in effects)
+    need = needed(base.n_base + n_effect, position_only)
+    k = CELL_FOLDS
+    s_rows = seg[rows]
+    fold = _folds(poses.pose_id[rows], s_rows, k)
+    joint_err = np.full(len(rows), np.nan)
+    alone_err = np.full(len(rows), np.nan)
+    own = {s for s in kept if len(np.unique(poses.q[rows][(s_rows == s)], axis=0)) * (k - 1) // k >= need}
+    say(f"cell segments: do they agree beyond it? {k} folds, one model against "
+        + (", ".join(f"segment {s + 1} alone" for s in sorted(own)) or "the segments' held-out errors"))
+    for f in range(k):
+        fit, out = fold != f, fold == f
+        if not out.any():
+            continue
+        sub = {key: v[fit] for key, v in ctx.items()}
+        m = _fit(robot, joint_effects, position_only, q[fit], T[fit], sub, base, init=full.values_)
+        dz = m.residuals(q[out], T[out], {key: v[out] for key, v in ctx.items()})
+        joint_err[out] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+        for s in own:
+            fs, os_ = fit & (s_rows == s), out & (s_rows == s)
+            if not os_.any():
+                continue
+            alone = _fit(robot, effects, position_only, q[fs], T[fs], {key: v[fs] for key, v in base_ctx.items()}, base)
+            dz = alone.residuals(q[os_], T[os_], {key: v[os_] for key, v in base_ctx.items()})
+            alone_err[os_] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+    tests = []
+    n_tests = len(kept)
+    for s in kept:
+        mine = s_rows == s
+        if s in own:
+            d = joint_err[mine] - alone_err[mine]
+            t, p = _one_sided(stats.ttest_1samp(d, 0.0))
+            joint, other, kind = float(joint_err[mine].mean()), float(alone_err[mine].mean()), "paired"
+        else:
+            t, p = _one_sided(stats.ttest_ind(joint_err[mine], joint_err[~mine], equal_var=False))
+            joint, other, kind = float(joint_err[mine].mean()), float(joint_err[~mine].mean()), "welch"
+        bad = bool(p < CELL_AGREEMENT_ALPHA / n_tests and joint > (1.0 + CELL_AGREEMENT_MARGIN) * other)
+        tests.append(SegmentTest(s, kind, int(mine.sum()), joint, other, t, p, bad))
+    return maps, tuple(tests)
+
+
+def _one_sided(res) -> tuple:
+    """(t, one-sided p of "greater") of a scipy t-test result; (0, 1) when undefined (no spread)."""
+    t = float(res.statistic)
+    if not np.isfinite(t):
+        return 0.0, 1.0
+    from scipy import stats
+
+    df = float(getattr(res, "df", np.nan))
+    p = float(stats.t.sf(t, df)) if np.isfinite(df) else float(res.pvalue) / 2.0 if t > 0 else 1.0 - float(res.pvalue) / 2.0
+    return t, p

@@ -1,0 +1,146 @@
+"""Issue 31, part 5: a run resumed on another cell (``--allow-other-cell``) is two cell segments,
+modelled with one registration each (a step, never a drift), mixed only when the segments are one
+robot beyond it, refused in one line otherwise; a run of one cell is left exactly as it was."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from campaign.cli import main
+from campaign.errors import DataError
+from campaign.measure.store import open_run
+from campaign.paths import DEFAULT_SCENE
+
+#: the sim's tracker noise (its default): σ per coordinate of a reflector centre, m
+NOISE_M = 10e-6
+
+
+def _half_then(runs, capsys, n, change, **make):
+    """A run of ``n`` planned poses: the first half measured on `--sim`, then ``change(cfg)`` applied
+    to its campaign.yaml and the rest measured there with --allow-other-cell; the stderr of that."""
+    run = runs.make(n=n, **make)
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", str(n // 2)]) == 0
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    change(cfg, run)
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    capsys.readouterr()
+    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
+    return run, capsys.readouterr().err
+
+
+def _move_tracker(cfg, run):
+    doc = yaml.safe_load(DEFAULT_SCENE.read_text())
+    doc["tracker"]["position_m"] = [0.6, -0.55, 2.8]  # 0.6 m aside, 0.2 m nearer, turned 20° about the vertical
+    doc["tracker"]["rotation_cardan_deg"] = [90.0, 20.0, 180.0]
+    (run.parent / "moved_scene.yaml").write_text(yaml.safe_dump(doc))
+    cfg["scene"] = str(run.parent / "moved_scene.yaml")
+
+
+def test_a_run_resumed_with_the_tracker_moved_is_one_model_with_a_step_per_segment_not_a_drift(runs, capsys, robot):
+    run, err = _half_then(runs, capsys, 60, _move_tracker, sim={"hidden_effects": []})
+    assert "moved" not in err  # the driver's drift check compares readings on one cell only
+    assert main(["calibrate", str(run), "--no-ann", "--no-report"]) == 0
+    out = capsys.readouterr().out
+    said = [line for line in out.splitlines() if "registration per segment" in line]
+    assert len(said) == 1 and "measured on 2 cells" in said[0] and "they agree" in said[0]
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    cells = metrics["cells"]
+    assert cells["decision"] == "mixed" and cells["agreement"]["agree"] and cells["reference_segment"] == 1
+    assert [s["n_poses"] for s in cells["segments"]] == [30, 30]
+    assert [t["test"] for t in cells["agreement"]["tests"]] == ["paired", "paired"]
+    assert metrics["drift"]["significant"] is not True
+    # one robot, one model: the geometric model at the noise on the held-out poses of both cells
+    # (a 6-D pose from three reflectors 5 cm apart: its position error about 1.6 σ; 40 µm allows 2.5x)
+    assert metrics["stages"]["geometric"]["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3
+    assert metrics["stages"]["nominal"]["test"]["position_mm"]["mean"] < 20  # no step of 0.4 m left in the data
+
+    assert main(["diagnose", str(run), "--json", "--no-report", "--candidates", "drift,thermal"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["verdict"] is None and doc["cells"]["decision"] == "mixed"
+    assert not any(c["significant"] for c in doc["ranking"])
+    assert doc["drift"]["significant"] is not True
+
+    # only now the truth: segment 2's readings were derived with segment 1's set-up T_LI (stored in the
+    # run), so the step from its frame into segment 1's is T_LI⁻¹ T_LI,1 T_LI,2⁻¹ T_LI
+    from campaign.model.rotations import matrix_to_rotvec
+    from campaign.plan.scene import load_scene
+
+    with open_run(run) as store:
+        T_setup = np.asarray(store.get_meta("T_LI"), dtype=float)
+    T1 = load_scene(DEFAULT_SCENE).placed(robot).T_LI
+    T2 = load_scene(run.parent / "moved_scene.yaml").placed(robot).T_LI
+    truth = np.linalg.inv(T_setup) @ T1 @ np.linalg.inv(T2) @ T_setup
+    reg = cells["registration"][1]
+    assert reg["segment"] == 2 and np.linalg.norm(truth[:3, 3]) > 0.3  # a real step: 0.4 m and 0.35 rad
+    R = np.asarray(_rotvec_matrix(reg["rotation_vector_rad"]))
+    # within the noise: 30 poses of 10 µm determine the step's six unknowns to a few µm (µrad over the
+    # arm's metre); the nominal model's registration alone, before the joint fit, is 0.6 mm and 1 mrad off
+    assert np.linalg.norm(np.asarray(reg["translation_m"]) - truth[:3, 3]) < 2 * NOISE_M
+    assert np.linalg.norm(matrix_to_rotvec(R.T @ truth[:3, :3])) < NOISE_M / 1.0
+
+
+def _rotvec_matrix(r):
+    from campaign.model.rotations import rotvec_to_matrix
+
+    return rotvec_to_matrix(np.asarray(r, dtype=float))
+
+
+def _another_robot(cfg, run):
+    cfg["sim"]["seed"] = 5  # the seed draws the hidden geometric errors: another robot of the same type
+
+
+def test_two_robots_in_one_run_are_refused_in_one_line_naming_the_segments(runs, capsys):
+    run, _ = _half_then(runs, capsys, 60, _another_robot, sim={"hidden_effects": []})
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert "do not agree beyond a registration" in err[0] and "--cell-segment N" in err[0]
+    assert "segment 1 (--sim, fingerprint" in err[0] and "segment 2 (--sim, fingerprint" in err[0]
+    assert "30 poses, the 1st-30th measured" in err[0] and "30 poses, the 31st-60th measured" in err[0]
+    assert not (run / "calibration").exists()
+    from campaign.diagnose.engine import diagnose
+
+    with pytest.raises(DataError, match="do not agree beyond a registration"):
+        diagnose(run, candidates="drift")
+
+    # one segment, as the line says: the second robot's 30 poses alone, at the noise
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--cell-segment", "2"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    geo = metrics["stages"]["geometric"]
+    assert metrics["cells"]["decision"] == "segment" and metrics["cells"]["segment"] == 2
+    assert geo["train"]["n_poses"] + geo["test"]["n_poses"] == 30
+    assert geo["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3
+    assert metrics["cells"]["agreement"]["agree"] is False
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet", "--cell-segment", "3"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cell-segment 3: the run has 2 cell segments; give 1..2" in err[0]
+
+
+def test_a_run_of_one_cell_is_calibrated_as_before(runs, capsys):
+    run = runs.make(n=40)
+    assert main(["run", str(run), "--sim", "--quiet"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report"]) == 0
+    first = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--cell-segment", "1"]) == 0
+    again = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert "cells" not in first and first["calibration_id"] != again["calibration_id"]
+    assert {**first, "calibration_id": None} == {**again, "calibration_id": None}
+    # its drift: every reading of the reference pose in one group, as the log holds them
+    from campaign.measure.drift import fit_drift
+
+    with open_run(run) as store:
+        checks = [(t, d["xyz_m"]) for _, _, t, d in store.events("drift_check")]
+        ref = store.get_meta("drift_reference")
+        poses = store.load_measured()
+    at = int(np.flatnonzero(poses.pose_id == ref["pose_id"])[0])
+    t = np.r_[poses.time_s[at], [c[0] for c in checks]]
+    xyz = np.vstack([poses.xyz[at], [c[1] for c in checks]])
+    assert len(checks) >= 1 and first["drift"]["um_per_h"] == pytest.approx(fit_drift(t, xyz, np.zeros(len(t))).um_per_h,
+                                                                              rel=1e-12)
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet", "--cell-segment", "2"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the run has one cell segment (it was measured on one cell); give 1..1" in err[0]
