@@ -195,7 +195,8 @@ class RunFolder:
     def last_calibration(self) -> dict | None:
         """What the run's current calibration fitted, read from its params.yaml (not from
         campaign.yaml, which a `calibrate --effects` does not change): {"calibration_id",
-        "effects": (spec, ...), "path"}; None when the run is not calibrated."""
+        "effects": (spec, ...), "path", "excluded_pose_ids": the reading faults it left out}; None when
+        the run is not calibrated."""
         from campaign.versioned import calibration_folder
 
         path = (calibration_folder(self.path).current() or self.calibration_dir) / "params.yaml"
@@ -206,7 +207,11 @@ class RunFolder:
         if not isinstance(block, dict):
             raise DataError(f"{path}: effects: expected a mapping of effect names, got {block!r}")
         specs = tuple(str((v.get("spec") if isinstance(v, dict) else None) or k) for k, v in block.items())
-        return {"calibration_id": params.get("calibration_id"), "effects": specs, "path": path}
+        left_out = params.get("excluded_pose_ids") or []
+        if not isinstance(left_out, list) or not all(isinstance(i, int) for i in left_out):
+            raise DataError(f"{path}: excluded_pose_ids: expected a list of pose ids, got {left_out!r}")
+        return {"calibration_id": params.get("calibration_id"), "effects": specs, "path": path,
+                "excluded_pose_ids": tuple(left_out)}
 
     # -- the measurement log ------------------------------------------------------------------
     def store(self, *, create: bool = False):

@@ -115,6 +115,18 @@ FITTED_NOISE_BELOW_FLOOR_FACTOR = 5.0
 #: (their single-point noise is 5-20 µm; the best interferometric modes ~0.5 µm + 0.4 µm/m).
 TRACKER_NOISE_MIN_M = 0.3e-6
 
+#: A training pose is a wild reading when its studentized residual exceeds the χ² quantile at this
+#: family-wise level over the pose count (campaign.identify.outliers): a clean campaign of any size
+#: then loses a pose in about 1 of 100 calibrations, and a 300 mm fault among 120 poses is ~10⁴ times the bound.
+OUTLIER_ALPHA = 0.01
+#: ... and beyond this factor on that bound: an effect the model lacks makes the residuals heavier-tailed
+#: than Gaussian noise (up to 1.37x the bound over 160 simulated campaigns of 150 poses with a catalogued
+#: effect missing, none of them a fault); a reading fault worth a word is tens of times beyond.
+OUTLIER_FACTOR = 2.0
+#: More flagged training poses than this share (or one, in a small campaign) are no isolated
+#: reading faults but a systematic error or a moved set-up: kept in the fit and said.
+OUTLIER_MAX_SHARE = 0.05
+
 #: A calibrated model's held-out mean position error above this (5 mm, or 0.5 % of the stretched
 #: chain) is no calibration: even uncalibrated arms are within a few mm, and a fit makes it better.
 MODEL_RESIDUAL_MAX_M = 0.005

@@ -102,3 +102,53 @@ def test_a_12_pose_campaigns_sigma_mm_matches_its_true_error(small_campaigns):
     err2, sigma2 = small_campaigns["err2"], small_campaigns["sigma2"]
     d = err2 - sigma2
     assert abs(d.mean()) < 3 * d.std(ddof=1) / np.sqrt(len(d)), (err2.mean() / sigma2.mean())
+
+
+def faulty_run(tmp_path, robot, offset_m, *, n=80):
+    """A run of ``n`` poses (every tenth measured three times back to back) whose first training pose's
+    reading is moved by ``offset_m`` (a reading fault); returns (run, the pose's id)."""
+    from campaign.identify.split import train_test_split
+
+    truth = make_truth(robot, seed=3)
+    q = random_joint_poses(robot, n, seed=4)
+    index = np.concatenate([np.repeat(i, 3) if i % 10 == 0 else [i] for i in range(n)])
+    ids = np.concatenate([[i + r * 10 ** 9 for r in range(3)] if i % 10 == 0 else [i] for i in range(n)])
+    poses = synthesize(truth, q[index], seed=5)
+    bad = int(next(i for i in ids[~train_test_split(ids)] if i % 10 and i < 10 ** 9))
+    T = poses.T_IE.copy()
+    T[ids == bad, :3, 3] += offset_m * np.array([0.6, 0.0, 0.8])
+    write_measured_csv(tmp_path / "m.csv", type(poses)(ids, poses.time_s, poses.q, T, {}, poses.T_LI))
+    run = tmp_path / "run"
+    assert main(["import", str(tmp_path / "m.csv"), "--run", str(run)]) == 0
+    return run, bad
+
+
+def test_a_300_mm_reading_fault_is_named_and_left_out_and_the_model_is_no_worse(tmp_path, robot, capsys):
+    import json
+
+    from campaign.identify.calibrate import calibrate
+
+    run, bad = faulty_run(tmp_path, robot, 0.3)
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    (line,) = [ln for ln in err.splitlines() if "[outlier]" in ln]
+    assert line.startswith(f"warning: pose {bad} (training): 29") and "left out of the fit" in line
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["excluded_pose_ids"] == [bad] and bad not in metrics["test_pose_ids"]
+    without = metrics["stages"]["geometric"]["test"]["position_mm"]["mean"]
+    kept = calibrate(run, ann=False, write=False, keep_outliers=True)
+    assert [w.code for w in kept.warnings].count("outlier") == 1 and "kept in the fit" in kept.warnings[-1].message
+    with_it = kept.stages["geometric"]["test"]["position_mm"]["mean"]
+    assert without <= with_it and without < 0.05, (without, with_it)  # a 0.01 mm robot against mm
+    d = diagnose(run, folds=3, candidates="drift", structure=False)  # diagnose leaves it out too
+    assert all(bad not in ids for ids in d.fold_pose_ids) and d.n_train == metrics["stages"]["geometric"]["train"]["n_poses"]
+
+
+def test_a_clean_run_loses_no_pose(tmp_path, robot):
+    from campaign.identify.calibrate import calibrate
+
+    run, _ = faulty_run(tmp_path, robot, 0.0)
+    result = calibrate(run, ann=False, write=False)
+    assert result.excluded_pose_ids == [] and "outlier" not in [w.code for w in result.warnings]
+

@@ -536,6 +536,11 @@ def load_data(run_dir, effects, candidates, folds, say, cell_segment=None) -> Di
     specs = tuple(candidate_specs(candidates, current, run_dir, robot))  # a bad name: one line before any work
     with run.store() as store:
         poses = store.load_measured(include_unusable=True)
+    faults = np.isin(poses.pose_id, (run.last_calibration() or {}).get("excluded_pose_ids") or ())
+    if faults.any():  # reading faults calibrate left out (campaign.identify.outliers)
+        say(f"poses {', '.join(str(int(i)) for i in poses.pose_id[faults])}: reading faults the last calibration "
+            "left out, left out here too")
+        poses = poses.subset(np.flatnonzero(~faults))
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     if not usable.any():
         raise DataError(f"{run_dir}: diagnose compares fits of poses, and no pose has three reflectors seen "

@@ -29,6 +29,7 @@ from campaign.identify.ann_stage import AnnStages
 from campaign.identify.cells import check_cell_segment, decide_cells
 from campaign.identify.metrics import error_stats, format_table6, reflector_stats
 from campaign.identify.model_choice import check_model_options, choice_json, choice_text, fit_model, geometric_fix
+from campaign.identify.outliers import OUTLIER_PASSES, outlier_findings, screen_outliers
 from campaign.identify.solver import CalibrationModel
 from campaign.identify.split import not_the_plans, run_split, validation_file
 from campaign.measure import plausibility
@@ -112,6 +113,13 @@ class CalibrationResult:
     #: a run measured on more than one cell: the segments, their registrations and agreement test, the
     #: decision (campaign.identify.cells.CellDecision.as_json(); metrics.json's ``cells``); None: one cell
     cells: dict | None = None
+    #: the training poses left out of the fit as reading faults (campaign.identify.outliers.Outlier)
+    outliers: tuple = ()
+
+    @property
+    def excluded_pose_ids(self) -> list:
+        """The pose ids left out of the fit (metrics.json's and params.yaml's ``excluded_pose_ids``)."""
+        return [o.pose_id for o in self.outliers]
 
     @property
     def metrics(self) -> dict:
@@ -134,6 +142,8 @@ class CalibrationResult:
             out["folds"] = self.folds
         out["warnings"] = [w.as_json() for w in self.warnings]
         out["test_pose_ids"] = [int(i) for i in self.test_pose_ids]
+        out["excluded_pose_ids"] = self.excluded_pose_ids
+        out["outliers"] = [o.as_json() for o in self.outliers]
         if self.model_choice is not None:
             out["model"] = self.model_choice
         if self.domain is not None:
@@ -220,7 +230,8 @@ def stage_name(effects) -> str:
 def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool = False,
               ann_options: dict | None = None, progress=None, robot: RobotModel | None = None,
               write: bool = True, report: bool = True, strict: bool = False, model: str = "auto",
-              fix=None, cell_segment: int | None = None) -> CalibrationResult:
+              fix=None, cell_segment: int | None = None,
+              keep_outliers: bool = False) -> CalibrationResult:
     """Identify the model of a run and write its calibration folder, holding the run's lock
     (:meth:`campaign.run.RunFolder.lock`; ``write=False``: compute only, no lock).
 
@@ -235,6 +246,8 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
     and nothing is written. cell_segment: ``--cell-segment N``, the poses of the run's N-th cell
     segment alone (campaign.identify.cells; a run measured on more than one cell is otherwise
     calibrated on all, with a registration per segment, or refused when they disagree).
+    A training pose whose reading is a fault (campaign.identify.outliers)
+    is left out of the fit and named in a warning (``outlier``); keep_outliers: keep it, still named.
     """
     run_dir = Path(run_dir)
     run = RunFolder(run_dir)
@@ -251,21 +264,27 @@ def calibrate(run_dir, *, effects=None, position_only: bool = False, ann: bool =
         if not write:  # a network trained on the way is saved in a scratch folder, then dropped
             with tempfile.TemporaryDirectory() as scratch:
                 return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                  strict, Version(None, Path(scratch)), model, fix, (segments, cell_segment))
+                                  strict, Version(None, Path(scratch)), model, fix, (segments, cell_segment),
+                                  keep_outliers)
         # every output into a new version of RUN/calibration, current only once whole (campaign.versioned)
         with calibration_folder(run_dir).new_version() as version:
             result = _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report,
-                                strict, version, model, fix, (segments, cell_segment))
+                                strict, version, model, fix, (segments, cell_segment), keep_outliers)
     if result.report_path is not None:
         result = replace(result, report_path=run.calibration_dir / Path(result.report_path).name)
     return result
 
 
 def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write,
-               report, strict, version, model_kind="auto", fix=None, cells=None) -> CalibrationResult:
+               report, strict, version, model_kind="auto", fix=None, cells=None, keep_outliers=False,
+               excluded=()) -> CalibrationResult:
+    """excluded: the wild training readings (campaign.identify.outliers.Outlier) earlier passes found,
+    left out of this one."""
     say = progress or (lambda msg: None)
     with open_run(run_dir) as store:
         poses = store.load_measured(include_unusable=True)
+    if excluded:
+        poses = poses.subset(np.flatnonzero(~np.isin(poses.pose_id, [o.pose_id for o in excluded])))
     if poses.q.shape[1] != robot.n_joints:
         raise DataError(f"{run_dir}: the measurements have {poses.q.shape[1]} joint values per pose, the run's robot "
                         f"{robot.name} has {robot.n_joints} joints")
@@ -389,6 +408,13 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                          frame=poses.frame, progress=say)
         dz_model = model.residuals(poses.q, poses.T_IE, context)
         add_stage(stage_name(effects), dz_model, model.point_residuals(poses.q, poses.markers, context) if raw else None)
+    wild = screen_outliers(model, poses, tr, te & usable, context)
+    if wild.train and wild.isolated and not keep_outliers and len(excluded) < OUTLIER_PASSES:
+        for o in wild.train:
+            say(f"pose {o.pose_id}: {o.error_mm:.3f} mm from the model, {o.ratio:.1f} σ of the poses' robust "
+                "scatter: a reading fault, left out; fitting again")
+        return _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progress, write, report, strict,
+                          version, model_kind, fix, cells, keep_outliers, (*excluded, *wild.train))
     ann_skipped = ann_stages = rule = None
     n_ann = int((tr & usable).sum())  # the network learns pose residuals: poses with a pose
     if ann == "auto":
@@ -438,6 +464,8 @@ def _calibrate(run_dir, robot, effects, position_only, ann, ann_options, progres
                                  {k: v[te] for k, v in context.items()}, stages=stages,
                                  stage=stage_name(effects) if effects else "geometric", fix=fix))
     result = with_checks(result, robot, poses, geo, stage_name(effects))
+    result = replace(result, outliers=tuple(excluded), warnings=tuple(result.warnings)
+                     + outlier_findings(excluded, wild, keep_outliers))
     models = {"geometric": geo, **({stage_name(effects): model} if effects else {})}
     record = domain_record(robot, models, poses.q[tr], poses.q, context, floor.as_json(), is_test, ident)
     result = replace(result, domain=record, warnings=tuple(result.warnings) + tuple(ident.findings(robot)))
@@ -542,6 +570,7 @@ def _write(result: CalibrationResult, robot, geo, out: Path) -> None:
         params["geometric_only"] = _param_block(geo)
     # networks trained by this calibrate run (stage -> file beside params.yaml)
     params["ann_stages"] = dict(result.ann.files) if result.ann is not None else {}
+    params["excluded_pose_ids"] = result.excluded_pose_ids  # reading faults left out (diagnose leaves them too)
     atomic_write(out / "params.yaml", yaml.safe_dump(params, sort_keys=False))
     if result.domain is not None:  # the calibrated domain and the uncertainty, the same calibration_id
         atomic_write_json(out / DOMAIN_FILE, {"calibration_id": result.calibration_id, "robot": robot.name,

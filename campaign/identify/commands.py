@@ -82,6 +82,9 @@ def register(sub):
     p.add_argument("--position-only", action="store_true", help="use measured positions only")
     p.add_argument("--strict", action="store_true",
                    help="exit 1 and write nothing when a plausibility check warns (the previous calibration stays)")
+    p.add_argument("--keep-outliers", action="store_true",
+                   help="keep training poses whose reading is a fault (far beyond the poses' robust scatter) in the "
+                        "fit; by default they are left out, each named in an `outlier` warning (docs/outliers.md)")
     p.add_argument("--model", choices=("lsq", "map", "auto"), default="auto",
                    help="geometric model: lsq (base parameters by least squares), map (with the tolerance priors, "
                         "strength by cross-validation), auto (default: chosen by cross-validated held-out error "
@@ -315,7 +318,8 @@ def _calibrate(args):
     try:
         result = calibrate(args.run[0], effects=args.effects, position_only=args.position_only, ann=ann,
                            ann_options=ann_options, progress=progress, report=not args.no_report, strict=args.strict,
-                           model=args.model, fix=args.fix, cell_segment=args.cell_segment)
+                           model=args.model, fix=args.fix, cell_segment=args.cell_segment,
+                           keep_outliers=args.keep_outliers)
     except Implausible as exc:
         if progress is not None:
             progress.close()
@@ -352,7 +356,8 @@ def _calibrate_fleet(args, ann, ann_options) -> int:
     try:
         results = calibrate_runs(runs, executor=executor, progress=say, errors="collect", effects=args.effects,
                                  position_only=args.position_only, ann=ann, ann_options=fleet_options,
-                                 report=not args.no_report, model=args.model, fix=args.fix)
+                                 report=not args.no_report, model=args.model, fix=args.fix,
+                                 keep_outliers=args.keep_outliers)
     finally:
         executor.close()
     failed = 0
