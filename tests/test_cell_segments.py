@@ -144,3 +144,53 @@ def test_a_run_of_one_cell_is_calibrated_as_before(runs, capsys):
     assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet", "--cell-segment", "2"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the run has one cell segment (it was measured on one cell); give 1..1" in err[0]
+
+
+def _planned(tmp_path, n_select=30):
+    """A run planned on a small grid (`campaign plan --select`), hidden truth: geometry alone."""
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text(yaml.safe_dump({"plan": {"grid_cells": [9, 6, 6, 8, 4, 6], "motion_sample_deg": 2.0},
+                                   "run": {"timeout_s": 0.5, "retries": 3, "backoff_s": 0.01},
+                                   "sim": {"seed": 0, "hidden_effects": []}}))
+    run = tmp_path / "run"
+    assert main(["plan", "--config", str(cfg), "--run", str(run), "--select", str(n_select), "--quiet"]) == 0
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "15"]) == 0
+    return run
+
+
+def _changed(run, change):
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    change(cfg, run)
+    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+
+
+def test_auto_resumed_with_the_tracker_moved_models_the_step_and_adds_no_drift(tmp_path, capsys):
+    run = _planned(tmp_path)
+    _changed(run, _move_tracker)
+    capsys.readouterr()
+    assert main(["auto", str(run), "--sim", "--allow-other-cell", "--no-report", "--quiet"]) == 0
+    story = capsys.readouterr().out.splitlines()
+    said = [line for line in story if line.startswith("  cells: measured on 2 cells")]
+    assert len(said) == 1 and "they agree beyond one registration per segment" in said[0]
+    assert not any("drift" in line for line in story if line.startswith("round ")), story
+    assert "drift" not in yaml.safe_load((run / "campaign.yaml").read_text()).get("effects", [])
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["cells"]["decision"] == "mixed" and metrics["drift"]["significant"] is not True
+    assert metrics["stages"][metrics["order"][-1]]["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3
+
+
+def test_auto_on_two_robots_stops_in_one_line_and_goes_on_with_one_segment(tmp_path, capsys):
+    run = _planned(tmp_path)
+    _changed(run, _another_robot)
+    capsys.readouterr()
+    assert main(["auto", str(run), "--sim", "--allow-other-cell", "--no-report", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "do not agree beyond a registration" in err[0] and "--cell-segment N" in err[0]
+    # the second robot's poses alone, kept for the loop's later rounds
+    assert main(["auto", str(run), "--cell-segment", "2", "--no-report", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["cells"]["decision"] == "segment" and metrics["cells"]["segment"] == 2
+    assert metrics["cells"]["segments"][0]["n_poses"] == 15
+    geo = metrics["stages"][metrics["order"][-1]]
+    assert geo["train"]["n_poses"] + geo["test"]["n_poses"] == metrics["cells"]["segments"][1]["n_poses"]
+    assert geo["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3

@@ -41,6 +41,10 @@ def register(sub):
     p.add_argument("--allow-other-cell", action="store_true",
                    help="measure on another cell than the run's measurements so far came from (refused otherwise; "
                         "recorded in the run)")
+    p.add_argument("--cell-segment", type=int, default=None, metavar="N",
+                   help="a run measured on more than one cell whose segments are not one robot: calibrate and "
+                        "diagnose the poses of its N-th cell segment alone (kept for the run's later rounds; "
+                        "docs/cells.md)")
     p.add_argument("--no-report", action="store_true", help="no HTML reports at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     from campaign.watch.commands import add_watch_argument
@@ -73,5 +77,5 @@ def _auto(args):
     with watching(args.run, args.watch):
         auto(args.run, cell, options, say=lambda line: print(line, flush=True),
              progress=not args.quiet and sys.stderr.isatty(), report=not args.no_report,
-             retry_failed=args.retry_failed, allow_other_cell=args.allow_other_cell)
+             retry_failed=args.retry_failed, allow_other_cell=args.allow_other_cell, cell_segment=args.cell_segment)
     return 0

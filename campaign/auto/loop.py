@@ -10,7 +10,7 @@ from dataclasses import asdict, replace
 from campaign.auto.decisions import decide, inputs_text
 from campaign.auto.report import result
 from campaign.auto.state import (MAX_POSES_FACTOR, AutoOptions, AutoResult, CellSource, Decision, Limits, Round,
-                                 load_state, save_state)
+                                 calibrated_key, load_state, save_state)
 from campaign.errors import ConfigError, Implausible, PeerError, RobotFault
 from campaign.run import RunFolder
 
@@ -18,7 +18,7 @@ from campaign.run import RunFolder
 # -- the loop --------------------------------------------------------------------------------------
 def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = None, *, say=None,
          progress: bool = False, report: bool = True, retry_failed: bool = False,
-         allow_other_cell: bool = False) -> AutoResult:
+         allow_other_cell: bool = False, cell_segment: int | None = None) -> AutoResult:
     """Run the loop on ``run_dir`` until there is nothing more to learn (module docstring).
 
     cell: where to measure (None: the one the run's earlier `auto` used); options: limits (None
@@ -27,7 +27,9 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
     report: write the calibration report and RUN/auto/report.html at the end; retry_failed: the
     poses stored as failed are measured again (`campaign run --retry-failed`), a finished loop
     goes on for them; allow_other_cell: measure on another cell than the run's measurements so
-    far came from (refused otherwise, campaign.measure.cell_identity; recorded in the run).
+    far came from (refused otherwise, campaign.measure.cell_identity; recorded in the run);
+    cell_segment: of a run measured on more than one cell, calibrate and diagnose the poses of its
+    N-th cell segment alone (campaign.identify.cells), kept in the loop's state for later rounds.
     The limits (``options``) cut the first campaign too: a plan auto makes holds what they allow
     (its repeats for the noise floor included); the run's own plan is measured as far as they
     allow. Holds the run's lock throughout."""
@@ -39,6 +41,8 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         _check_cell(run, cell, allow_other_cell, say)  # before the state records the cell
         opts = _resolve_options(state, options)
         state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if cell_segment is not None:
+            state["cell_segment"] = cell_segment
         if cell.cell is not None and cell.cell != "sim":  # a bad spec in one line, before anything is planned
             from campaign.cell.launcher import cell_specs
 
@@ -318,21 +322,25 @@ class _Loop:
     def calibrate(self) -> dict:
         from campaign.identify.calibrate import calibrate
 
-        effects = list(self.run.effects)
-        key = {"effects": effects, "poses": self.run.stored_pose_count()}
+        key = calibrated_key(self.run, self.state)
         metrics_path = self.run.calibration_dir / "metrics.json"
         if self.state.get("calibrated") != key or not metrics_path.is_file():
-            result = calibrate(self.run.path, ann=False, report=False)
+            result = calibrate(self.run.path, ann=False, report=False, cell_segment=self.state.get("cell_segment"))
             self.state["calibrated"] = key
             self.save()
             self.say(f"  calibrate: {result.order[-1]} on {int((~result.is_test).sum())} training poses")
+            said = None if result.cells is None else [result.cells["decision"], len(result.cells["segments"])]
+            if said is not None and said != self.state.get("cells_said"):  # several cells: how they are modelled,
+                self.say(f"  cells: {result.cells['line']}")  # said once (and again when that changes)
+                self.state["cells_said"] = said
+                self.save()
         return json.loads(metrics_path.read_text())
 
     def diagnose(self):
         from campaign.diagnose.engine import diagnose
         from campaign.diagnose.report import write_diagnosis
 
-        d = diagnose(self.run.path)
+        d = diagnose(self.run.path, cell_segment=self.state.get("cell_segment"))
         write_diagnosis(d, report=False)
         verdict = {None: "nothing left to find" if d.at_floor else "nothing found", "unexplained": "unexplained"}
         self.say(f"  diagnose: {verdict.get(d.verdict, 'add ' + str(d.verdict))}"

@@ -6,7 +6,7 @@ import html
 from pathlib import Path
 
 from campaign.auto.decisions import TIME_INPUTS, inputs_text
-from campaign.auto.state import AUTO_DIR, AutoResult, Round, save_state
+from campaign.auto.state import AUTO_DIR, AutoResult, Round, calibrated_key, save_state
 from campaign.fileio import atomic_write
 from campaign.run import RunFolder
 
@@ -63,8 +63,8 @@ def write_auto_report(run: RunFolder, state: dict, text: str) -> Path:
     page = run.calibration_dir / "report.html"
     if not page.is_file() or page.stat().st_mtime < (run.calibration_dir / "metrics.json").stat().st_mtime:
         long = (state.get("options") or {}).get("select") == 0
-        calibrate(run.path, ann="auto" if long else False, report=True)
-        state["calibrated"] = {"effects": list(run.effects), "poses": run.stored_pose_count()}
+        calibrate(run.path, ann="auto" if long else False, report=True, cell_segment=state.get("cell_segment"))
+        state["calibrated"] = calibrated_key(run, state)
         save_state(run, state)
     rounds = [Round.from_json(r) for r in state["rounds"]]
     out = run.path / AUTO_DIR

@@ -195,6 +195,15 @@ def load_state(run: RunFolder) -> dict:
                         "afresh") from None
 
 
+def calibrated_key(run: RunFolder, state: dict) -> dict:
+    """What the loop's last calibration was of (``state["calibrated"]``): the effects, the stored
+    poses and, when one was asked for, the cell segment (a new one is calibrated again)."""
+    key = {"effects": list(run.effects), "poses": run.stored_pose_count()}
+    if state.get("cell_segment") is not None:
+        key["cell_segment"] = state["cell_segment"]
+    return key
+
+
 def save_state(run: RunFolder, state: dict) -> None:
     atomic_write(state_path(run), json.dumps(state, indent=2))
 

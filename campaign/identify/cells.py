@@ -182,7 +182,7 @@ class CellDecision:
         names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
         bad = "; ".join(t.text() for t in self.tests if t.disagrees)
         return (f"{run_dir}: measured on {self.segments.n} cells that do not agree beyond a registration ({names}; {bad}): "
-                f"they are not one robot in one model; calibrate one segment with --cell-segment N "
+                f"they are not one robot in one model; calibrate (diagnose, auto) one segment with --cell-segment N "
                 f"(N = 1..{self.segments.n}), or measure the rest on one cell")
 
     def apply(self, poses):

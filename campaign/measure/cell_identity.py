@@ -236,14 +236,14 @@ class CellSegments:
         return f"segment {k + 1} ({cell.get('spec', 'an unrecorded cell')}, fingerprint {cell.get('fingerprint', '?')})"
 
     def describe(self, k: int, pose_ids=None) -> str:
-        """``segment 2 (--sim, fingerprint ...): 30 poses, the 31st-60th measured (ids 1030-1059 ...)``
+        """``segment 2 (--sim, fingerprint ...): 30 poses, the 31st-60th measured (first id 1030, last 1059)``
         over ``pose_ids`` (the poses a stage uses; all stored ones when None)."""
         ids = self.pose_ids[self.segment == k]
         if pose_ids is not None:
             ids = ids[np.isin(ids, np.asarray(pose_ids))]
         order = np.flatnonzero(np.isin(self.pose_ids, ids))
         where = (f", the {_ordinal(order[0] + 1)}-{_ordinal(order[-1] + 1)} measured" if len(order) else "")
-        span = f" (ids {ids[0]}-{ids[-1]} in measuring order)" if len(ids) > 1 else f" (id {ids[0]})" if len(ids) else ""
+        span = f" (first id {ids[0]}, last {ids[-1]})" if len(ids) > 1 else f" (id {ids[0]})" if len(ids) else ""
         return f"{self.label(k)}: {len(ids)} poses{where}{span}"
 
     def as_json(self, pose_ids=None) -> list:
