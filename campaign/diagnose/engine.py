@@ -195,9 +195,10 @@ class Diagnosis:
 
     @property
     def worth_a_round(self) -> bool:
-        """Structure significant and above MIN_ROUND_SHARE of the held-out error: worth measuring for."""
-        return bool(self.structure_significant and self.structure is not None
-                    and self.structure.heldout_gain >= MIN_ROUND_SHARE)
+        """Structure significant and above MIN_ROUND_SHARE of the held-out error, or the same poses
+        moved over time in a way the model does not predict: worth measuring for."""
+        return bool((self.structure_significant and self.structure is not None
+                     and self.structure.heldout_gain >= MIN_ROUND_SHARE) or self.time_moved)
 
     @property
     def model_to_noise(self) -> float | None:
@@ -205,19 +206,26 @@ class Diagnosis:
         return self.floor.ratio(self.heldout_mean_position_mm)
 
     @property
+    def time_moved(self) -> bool:
+        """The same poses, measured at different times, moved beyond the noise in a way the current
+        model does not predict (the time test on its residuals): systematic error that depends on time."""
+        return bool(self.time_test is not None and self.time_test.moved)
+
+    @property
     def depends_on(self) -> list:
-        """The inputs the structure depends on, most important first, time and temperature ranked by
-        the time test (campaign.diagnose.timing.rank_by_time_test)."""
-        if self.structure is None or not self.structure_significant:
-            return []
-        return rank_by_time_test(self.structure.depends_on(MIN_IMPORTANCE_SHARE), self.time_tested)
+        """The inputs the error left depends on, most important first (:func:`ranked_inputs`)."""
+        return ranked_inputs(self.structure, self.structure_significant, self.time_test)
 
     @property
     def time_tested(self):
-        """The time test when time or temperature ranks among the structure's inputs, else None."""
-        if self.structure is None or not set(self.structure.depends_on(MIN_IMPORTANCE_SHARE)) & set(TIME_INPUTS):
+        """The time test when it ranks the inputs (time or temperature ranks among the structure's, or
+        the same poses moved), else None."""
+        if self.time_test is None:
             return None
-        return self.time_test
+        if self.time_test.moved or (self.structure is not None and self.structure_significant and set(
+                self.structure.depends_on(MIN_IMPORTANCE_SHARE)) & set(TIME_INPUTS)):
+            return self.time_test
+        return None
 
     def as_json(self) -> dict:
         s = self.structure
@@ -358,6 +366,12 @@ def verdict_text(d: Diagnosis) -> str:
             extra = (f"\n  {partial[0].effect} explains only part of it ({100 * partial[0].gain:.0f} % vs the regressor's "
                      f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
             return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
+                    f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
+        if d.time_moved:
+            return (f"verdict: unexplained — the same poses, measured at different times, moved in a way the model "
+                    f"does not predict ({d.time_test.poses} pose{'' if d.time_test.poses == 1 else 's'}, p = "
+                    f"{d.time_test.p_value:.2g}): an effect of time that no candidate explains (a warm-up of one "
+                    f"part moves each pose its own way).\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
         return (f"verdict: unexplained — the model's cross-validated mean {d.heldout_mean_position_mm:.4g} mm is "
                 f"{times_the_noise(d.heldout_mean_position_mm, d.floor.mean_position_mm).lstrip('= ')}, but neither a "
@@ -793,6 +807,15 @@ def _describe(cls, spec) -> str:
     return f"{cls.description}, on joint{'s' if len(joints) > 1 else ''} {', '.join(map(str, joints))}"
 
 
+def ranked_inputs(struct, struct_sig: bool, test) -> list:
+    """The inputs the error left depends on, most important first: the flexible regressor's (when
+    its structure is significant), time and temperature ranked by the time test on the model's
+    residuals (campaign.diagnose.timing.rank_by_time_test: first when the same poses moved, out
+    when they did not; time alone when only the test found it). Diagnose's and auto's alike."""
+    inputs = struct.depends_on(MIN_IMPORTANCE_SHARE) if struct is not None and struct_sig else []
+    return rank_by_time_test(inputs, test)
+
+
 #: the inputs a catalogued effect depends on alone, when that is one kind: the harmonics of cyclic
 #: are functions of its own joints' angles, thermal of the temperature, drift of the time
 OWN_JOINT_INPUTS = ("cyclic",)
@@ -814,17 +837,19 @@ def leads_to(best, depends_on) -> bool:
     return True
 
 
-def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=()):
+def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), time_moved: bool = False):
     """The best significant candidate when it explains the structure (and the structure, when
     significant, depends first on an input the candidate can depend on: :func:`leads_to`), else
-    "unexplained" when systematic error remains, else None (module docstring)."""
+    "unexplained" when systematic error remains (the regressor finds it, the same poses moved over
+    time as the model does not predict: ``time_moved``, or the model is above the floor), else None
+    (module docstring)."""
     best = scores[0] if scores and scores[0].significant else None
     if best is not None:
         reg_after = struct.after.mean() if struct is not None else np.inf
         explains = not struct_sig or (best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
                                       and leads_to(best, depends_on))
         return best.effect if explains else "unexplained"
-    if struct_sig or (fv.floor.known and not fv.at_floor):
+    if struct_sig or time_moved or (fv.floor.known and not fv.at_floor):
         return "unexplained"
     return None
 
@@ -849,10 +874,16 @@ def absent_in_time(specs, test) -> tuple:
     return tuple(kept), tuple(absent)
 
 
-def run_time_test(data: DiagnosisData, floor: NoiseFloor):
-    """The time test (campaign.diagnose.timing) on every pose of the run, against the noise of
-    readings close in time (or the stated tracker noise); None without either: a floor from
-    readings far apart holds the very changes over time the test looks for."""
+def run_time_test(data: DiagnosisData, floor: NoiseFloor, model=None):
+    """The time test (campaign.diagnose.timing) on every pose of the run measured at different
+    times, against the noise of readings close in time (or the stated tracker noise); None without
+    either: a floor from readings far apart holds the very changes over time the test looks for.
+
+    ``model`` (the current model fitted on the training poses): the test runs on its residuals, so
+    it asks whether the same poses moved in a way the model does not predict. A model without
+    effects of time predicts the same position at each visit (the readings' own changes are
+    tested); one with thermal or drift predicts how they move, and a warm-up of one link, which
+    moves each pose its own way, still shows."""
     if floor.known and floor.upper_bound:
         stated = RunFolder(data.run_dir).config.tracker.noise_m
         P_E = data.robot.reflector_positions_in_E
@@ -860,6 +891,20 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor):
     if not floor.known:
         return None
     readings = drift_readings(data.run_dir, data.poses, data.tracker_to_robot, data.cells)
+    xyz, group, t = time_readings(data, readings, model)
+    legacy = readings["legacy"]
+    return time_test(xyz, group, t, floor.sigma_position_m,
+                     sigma_dof=3 * floor.dof if floor.source == "repeats" else 0,
+                     drift_check_m=None if legacy is None else list(legacy[1]), alpha=ALPHA)
+
+
+def time_readings(data: DiagnosisData, readings: dict, model=None) -> tuple:
+    """The readings of the poses measured at different times (the repeats and poses measured again,
+    the reference pose with its drift checks: ``readings`` of
+    :func:`campaign.measure.drift.drift_readings`) as (position (k, 3) m, pose label (k,), time (k,)
+    s); with ``model``, the position is the reading minus the model's prediction at that pose and
+    moment: a stored pose's own context, a drift check's (e.g. the temperature) interpolated in time
+    from the poses measured around it. Readings the model cannot predict are left out."""
     xyz, group, t = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
     if readings["repeats"] is not None:
         t_r, xyz_r, g_r = readings["repeats"]
@@ -867,10 +912,32 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor):
     if readings["monitor"] is not None:  # the reference pose, its drift checks among its readings
         t_m, xyz_m = readings["monitor"]
         xyz.append(xyz_m), group.append(readings["monitor_group"]), t.append(t_m)
-    legacy = readings["legacy"]
-    return time_test(np.concatenate(xyz), np.concatenate(group), np.concatenate(t), floor.sigma_position_m,
-                     sigma_dof=3 * floor.dof if floor.source == "repeats" else 0,
-                     drift_check_m=None if legacy is None else list(legacy[1]), alpha=ALPHA)
+    xyz, group, t = np.concatenate(xyz), np.concatenate(group), np.concatenate(t)
+    if model is None or not len(t):
+        return xyz, group, t
+    poses = data.poses
+    t_all = np.asarray(poses.time_s, dtype=float)
+    # each reading that is a stored pose (its time and position), else a drift check of the reference pose
+    at = {(float(s), *map(float, p)): i for i, (s, p) in enumerate(zip(t_all, poses.xyz))}
+    stored = np.array([at.get((float(s), *map(float, p)), -1) for s, p in zip(t, xyz)], dtype=int)
+    pose = stored.copy()
+    if (stored < 0).any():
+        with RunFolder(data.run_dir).store() as store:
+            ref = store.get_meta("drift_reference")
+        pose[stored < 0] = np.flatnonzero(np.asarray(poses.pose_id) == ref["pose_id"])[0]
+    context = {"time_s": t}
+    for key, v in data.context.items():  # the cell's state at each reading: a stored pose's own, else
+        if key == "time_s":  # from the poses measured around it
+            continue
+        v = np.asarray(v, dtype=float)
+        ok = np.isfinite(v) & np.isfinite(t_all)
+        order = np.argsort(t_all[ok], kind="stable")
+        c = np.interp(t, t_all[ok][order], v[ok][order]) if ok.any() else np.full(len(t), np.nan)
+        c[stored >= 0] = v[stored[stored >= 0]]
+        context[key] = c
+    res = xyz - model.predict(poses.q[pose], context)[:, :3, 3]
+    keep = np.isfinite(res).all(axis=1)
+    return res[keep], group[keep], t[keep]
 
 
 def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
@@ -889,8 +956,10 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     fv = judge_floor(data, fits)
     X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
     struct_sig = bool(struct is not None and struct.p_value < ALPHA and struct.heldout_gain >= fv.detection)
-    at_floor = False if (struct_sig and fv.at_floor) else fv.at_floor  # structure found is above the noise
-    timed = run_time_test(data, fv.floor)
+    timed = run_time_test(data, fv.floor, fits.full)
+    time_moved = bool(timed is not None and timed.moved)
+    # structure found, or poses that moved as the model does not predict, are above the noise
+    at_floor = False if ((struct_sig or time_moved) and fv.at_floor) else fv.at_floor
     specs, absent = absent_in_time(() if fv.round_off else data.candidates, timed)  # time the poses deny
     for name, reason in absent:
         say(f"{name}: {reason}")
@@ -905,17 +974,17 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                                 fits.before, fits.dz, data.fold)
     else:
         contrib = ()
-    signature, depends = None, []
+    depends = ranked_inputs(struct, struct_sig, timed)  # time and temperature as the time test ranks them
+    signature = None
     if struct_sig:
         from campaign.diagnose.signature import describe
 
         say("signature of the structure (periodicity, time, gravity load)")
-        depends = struct.depends_on(MIN_IMPORTANCE_SHARE)  # time and temperature as the time test ranks them
-        depends = rank_by_time_test(depends, timed if set(depends) & set(TIME_INPUTS) else None)
         signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct, depends, r_out,
                              data.poses.time_s[data.tr], residual_fit=r_fit)
     residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
-    return Diagnosis(data.run_dir, data.current, scores, choose_verdict(scores, struct, struct_sig, fv, depends),
+    return Diagnosis(data.run_dir, data.current, scores,
+                     choose_verdict(scores, struct, struct_sig, fv, depends, time_moved),
                      len(data.tr),
                      data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,

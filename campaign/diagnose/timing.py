@@ -144,11 +144,12 @@ def _p_value(chi2, dof: int, sigma_dof: int) -> float:
 
 def rank_by_time_test(depends_on, test: TimeTest | None) -> list:
     """The inputs ranked by the time test: time and temperature first when the same poses moved
-    over time, taken out when they did not (time then stands in for the poses), as they were
-    when there is no test."""
+    over time (time alone when the flexible regressor ranked neither: the test itself found the
+    error depends on time), taken out when they did not (time then stands in for the poses), as
+    they were when there is no test."""
     depends_on = list(depends_on)
-    timed = [i for i in depends_on if i in TIME_INPUTS]
-    if test is None or not timed:
+    if test is None:
         return depends_on
+    timed = [i for i in depends_on if i in TIME_INPUTS]
     rest = [i for i in depends_on if i not in TIME_INPUTS]
-    return timed + rest if test.moved else rest
+    return (timed or ["time_s"]) + rest if test.moved else rest
