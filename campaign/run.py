@@ -34,7 +34,7 @@ from pathlib import Path
 from campaign.config import CampaignConfig, check_names, load_config, parse_config, write_run_config
 from campaign.errors import ConfigError, DataError, RunBusy, RunHoldsMeasurements, StorageError
 from campaign.fileio import atomic_write, read_yaml_mapping
-from campaign.measure.store import MEASUREMENTS_FILE, check_integrity
+from campaign.measure.store import MEASUREMENTS_FILE, read_only_log
 from campaign.paths import DEFAULT_CONFIG
 
 CONFIG_FILE = "campaign.yaml"
@@ -222,25 +222,15 @@ class RunFolder:
 
     @contextlib.contextmanager
     def _read_only_db(self):
-        """A read-only connection to the log, or None when there is none (never creates files)."""
+        """A read-only connection to the log, or None when there is none (never creates files:
+        campaign.measure.store.read_only_log)."""
         if not self.measurements_path.is_file():
             yield None
             return
-        try:
-            db = sqlite3.connect(self.measurements_path.resolve().as_uri() + "?mode=ro", uri=True, timeout=5.0)
-        except sqlite3.Error as exc:
-            raise StorageError(f"{self.measurements_path}: cannot open ({exc})") from None
-        try:
-            if not self._checked:  # once per RunFolder: a damaged log is one line, never rewritten
-                check_integrity(db, self.measurements_path)
-                self._checked = True
+        # once per RunFolder: a damaged log is one line, never rewritten
+        with read_only_log(self.measurements_path, check=not self._checked) as db:
+            self._checked = True
             yield db
-        except sqlite3.OperationalError as exc:
-            raise StorageError(f"{self.measurements_path}: cannot read ({exc})") from None
-        except sqlite3.DatabaseError as exc:
-            raise DataError(f"{self.measurements_path}: not a measurement log ({exc})") from None
-        finally:
-            db.close()
 
     def stored_pose_count(self) -> int:
         """Poses with a stored outcome (measured or failed); 0 without a log."""

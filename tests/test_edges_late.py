@@ -152,3 +152,87 @@ def test_a_clean_run_loses_no_pose(tmp_path, robot):
     result = calibrate(run, ann=False, write=False)
     assert result.excluded_pose_ids == [] and "outlier" not in [w.code for w in result.warnings]
 
+
+def _finished_log(run, robot, n=8):
+    """A run folder with a plan of ``n`` poses all measured by a writer in WAL mode, now closed."""
+    from campaign.measure.store import MeasurementStore, PoseRecord
+    from campaign.model.kinematics import forward
+
+    q = random_joint_poses(robot, n, seed=3)
+    (run / "plan").mkdir(parents=True)
+    (run / "plan" / "poses.csv").write_text("pose_id,q1,q2,q3,q4,q5,q6\n" + "".join(
+        f"{i}," + ",".join(repr(float(v)) for v in row) + "\n" for i, row in enumerate(q)))
+    T = forward(robot, q)
+    with MeasurementStore(run / "measurements.sqlite") as store:
+        store.use_wal()
+        for i in range(n):
+            store.add_pose(PoseRecord(i, "measured", tuple(q[i]), seq=i, time_s=10.0 * i, wall_time_unix_s=1e9 + i,
+                                      xyz=tuple(T[i, :3, 3]), rotvec=(0.0, 0.0, 0.0)))
+
+
+def _listing(folder):
+    return sorted((str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns)
+                  for p in folder.rglob("*") if p.is_file())
+
+
+def test_a_watch_session_leaves_the_run_folder_exactly_as_it_was(tmp_path, robot):
+    from test_watch import get_json
+
+    from campaign.watch.server import WatchServer
+
+    run = tmp_path / "run"
+    _finished_log(run, robot)
+    before = _listing(run)
+    assert [name for name, _, _ in before] == ["measurements.sqlite", "plan/poses.csv"]
+    server = WatchServer(run, port=0).start()
+    try:
+        st = get_json(server.port, "/api/status")
+        assert (st["state"], st["measured"], st["planned"]) == ("finished", 8, 8)
+        assert len(get_json(server.port, "/api/poses")) == 8 and get_json(server.port, "/api/details")
+    finally:
+        server.stop()
+    assert _listing(run) == before  # no -wal, no -shm, nothing touched
+
+
+def test_a_watcher_on_a_damaged_log_says_so_naming_the_file(tmp_path, robot):
+    import sqlite3
+
+    from campaign.watch.view import RunView
+
+    run = tmp_path / "run"
+    _finished_log(run, robot, n=200)
+    log = run / "measurements.sqlite"
+    with sqlite3.connect(log) as db:
+        page = db.execute("SELECT rootpage FROM sqlite_master WHERE name = 'poses'").fetchone()[0]
+    data = bytearray(log.read_bytes())
+    data[page * 4096 - 2048:page * 4096] = np.random.default_rng(7).bytes(2048)  # the root page's cells
+    log.write_bytes(bytes(data))
+    before = _listing(run)
+    view = RunView(run)
+    assert view.status()["state"] == "damaged"
+    assert view.log_error.startswith(f"{log}: the measurement log is damaged (SQLite: ")
+    assert view.log_error in view.details()["notes"]
+    assert _listing(run) == before
+
+
+def test_runfolder_and_watch_read_the_log_through_one_reader(tmp_path, robot):
+    """RunFolder's questions and the watcher open the log through campaign.measure.store.read_only_log:
+    a finished WAL log is read immutable (nothing beside it), a log with a writer's -wal through it."""
+    import sqlite3
+
+    from campaign.measure.store import read_only_uri
+    from campaign.run import RunFolder
+
+    run = tmp_path / "run"
+    _finished_log(run, robot)
+    log = run / "measurements.sqlite"
+    assert read_only_uri(log).endswith("?mode=ro&immutable=1")
+    assert RunFolder(run).stored_pose_count() == 8 and _listing(run)[0][0] == "measurements.sqlite"
+    writer = sqlite3.connect(log)
+    writer.execute("INSERT INTO meta VALUES ('x', '1')")
+    writer.commit()  # an open writer in WAL mode: its -wal holds the commit
+    try:
+        assert (run / "measurements.sqlite-wal").exists() and read_only_uri(log).endswith("?mode=ro")
+        assert RunFolder(run).meta("x") == 1
+    finally:
+        writer.close()

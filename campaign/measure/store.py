@@ -338,6 +338,48 @@ def check_integrity(db, path) -> None:
         raise DataError(damaged_message(path, f"{detail}{more}"))
 
 
+def read_only_uri(path) -> str:
+    """The SQLite URI that reads the log at ``path`` without writing anything beside it. ``mode=ro``
+    alone does not: on a log in WAL mode whose writer has closed (no ``-wal`` file), a reader creates
+    ``-wal`` and ``-shm`` and, read-only, cannot remove them. Such a log is read ``immutable`` (all of it
+    is in the file); a log with a ``-wal`` (a writer at work, or killed) is read ``mode=ro``, through it."""
+    path = Path(path)
+    uri = path.resolve().as_uri() + "?mode=ro"
+    try:
+        with open(path, "rb") as f:
+            header = f.read(100)
+    except OSError:
+        return uri
+    wal_mode = len(header) == 100 and header[:16] == b"SQLite format 3\x00" and header[18:20] == b"\x02\x02"
+    return uri + "&immutable=1" if wal_mode and not Path(f"{path}-wal").exists() else uri
+
+
+@contextlib.contextmanager
+def read_only_log(path, *, check: bool = False, timeout_s: float = 5.0):
+    """A read-only connection to the measurement log at ``path`` that writes nothing into its folder
+    (:func:`read_only_uri`); ``check``: SQLite's integrity check first (:func:`check_integrity`).
+    StorageError (one line) when it cannot be opened or read now (busy; a writer started during an
+    immutable read), DataError when it is no log or damaged. The one reader of the log for those who
+    must not write it: RunFolder's questions, `campaign watch`."""
+    uri = read_only_uri(path)
+    try:
+        db = sqlite3.connect(uri, uri=True, timeout=timeout_s)
+    except sqlite3.Error as exc:
+        raise StorageError(f"{path}: cannot open ({exc})") from None
+    try:
+        if check:
+            check_integrity(db, path)
+        yield db
+    except sqlite3.OperationalError as exc:
+        raise StorageError(f"{path}: cannot read ({exc})") from None
+    except sqlite3.DatabaseError as exc:
+        if uri.endswith("immutable=1") and Path(f"{path}-wal").exists():  # a writer began meanwhile
+            raise StorageError(f"{path}: changed while read ({exc})") from None
+        raise DataError(f"{path}: not a measurement log ({exc})") from None
+    finally:
+        db.close()
+
+
 def open_run(run_dir, *, create: bool = False) -> MeasurementStore:
     """The measurement log of a run folder."""
     run_dir = Path(run_dir)

@@ -54,6 +54,9 @@ def _watch(args):
     if args.host in ("0.0.0.0", "::", ""):  # an address to bind, not one a browser can open
         url = f"http://<this machine's name or address>:{server.port}/ (every interface)"
     print(f"watching {args.run}: {url} ({auth}); Ctrl-C stops", flush=True)
+    server.view.refresh(force=True)
+    if server.view.log_error:  # the page says it too, as its state
+        print(f"warning: {server.view.log_error}", file=sys.stderr, flush=True)
     return server.serve_until_interrupted()
 
 

@@ -1,8 +1,10 @@
 """What the live page shows, read from a run folder without ever getting in the writer's way.
 
-The measurement log is opened read-only (SQLite URI ``mode=ro``), one short connection per
-refresh, and only when its files changed: the driver writes it in WAL mode, where a reader never
-blocks a commit. Whether a command is writing the run is read from the kernel's table of file
+The measurement log is opened read-only, one short connection per refresh and only when its files
+changed, through the log's one read-only reader (campaign.measure.store.read_only_log), which writes
+nothing into the run folder: the driver writes it in WAL mode, where a reader never blocks a commit.
+A damaged log (SQLite's integrity check, once per file) makes the state ``damaged`` and a note names
+the file. Whether a command is writing the run is read from the kernel's table of file
 locks (``/proc/locks``), so the watcher never takes the run's lock itself, not even for a
 moment (a ``flock`` probe could make a `campaign run` starting at that instant refuse as busy);
 elsewhere than Linux it falls back to such a probe (:meth:`RunFolder.lock_holder`).
@@ -16,18 +18,18 @@ from __future__ import annotations
 import json
 import math
 import os
-import sqlite3
 import threading
 import time
 from pathlib import Path
 
-from campaign.errors import CampaignError
+from campaign.errors import CampaignError, DataError, StorageError
+from campaign.measure.store import read_only_log
 from campaign.run import RunFolder
 
 #: commands whose lock on the run means poses are being measured
 MEASURING_COMMANDS = ("run", "auto")
-#: the states of a run (DESIGN.md, `campaign watch`)
-STATES = ("planned", "running", "finished", "interrupted")
+#: the states of a run (DESIGN.md, `campaign watch`), and ``damaged``: the log cannot be read
+STATES = ("planned", "running", "finished", "interrupted", "damaged")
 #: shortest time between two reads of the log (s): any number of clients share one read (a page polls
 #: every second; the log is read again only when its files changed)
 MIN_REFRESH_S = 0.25
@@ -141,6 +143,9 @@ class RunView:
         self._todo = (None, [], 0)
         self._state = "planned"
         self._holder = None
+        #: why the log cannot be read (a damaged file: one line naming it), else None
+        self.log_error = None
+        self._checked_inode = None  # the log file whose integrity was checked
         #: reads of the log: whole ("full") and of what was appended since the last ("appended")
         self.reads = {"full": 0, "appended": 0}
 
@@ -217,33 +222,23 @@ class RunView:
             self._tally = _Tally()
             return True
         try:
-            db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=1.0)
-        except sqlite3.Error:
+            inode = path.stat().st_ino
+        except OSError:
             return False
         try:
-            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-            if "poses" not in tables:
-                return False
-            with db:  # one read transaction: the count and the rows of one state of the log
-                db.execute("BEGIN")
-                count = db.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
-                cols = ", ".join(_POSE_COLUMNS)
-                new = db.execute(f"SELECT {cols} FROM poses WHERE seq > ? ORDER BY seq, pose_id",
-                                 (-1 if self._max_seq is None else self._max_seq,)).fetchall()
-                appended = count == len(self._rows) + len(new) and not any(r[0] in self._ids for r in new)
-                if not appended:
-                    new = db.execute(f"SELECT {cols} FROM poses ORDER BY seq, pose_id").fetchall()
-                events = db.execute("SELECT seq, kind, pose_id, time_s, wall_time_unix_s, detail FROM events "
-                                    "WHERE seq > ? ORDER BY seq", (self._event_seq if appended else 0,)
-                                    ).fetchall() if "events" in tables else []
-                meta = dict(db.execute("SELECT key, value FROM meta").fetchall()) if "meta" in tables else {}
-        except sqlite3.OperationalError:
+            with read_only_log(path, check=inode != self._checked_inode, timeout_s=1.0) as db:
+                self._checked_inode = inode
+                got = self._query(db)
+        except StorageError:
             return False  # busy or being created: what was read stays until the next refresh
-        except sqlite3.DatabaseError as exc:  # damaged: said on the page, nothing written
-            self._note(f"{path}: cannot read the measurement log ({exc})")
+        except DataError as exc:  # damaged: said on the page and as the state, nothing written
+            self.log_error = " ".join(str(exc).split())
+            self._note(self.log_error)
+            return True  # read again when the file changes
+        self.log_error = None
+        if got is None:
             return False
-        finally:
-            db.close()
+        new, events, meta, appended = got
         rows = [dict(zip(_POSE_COLUMNS, r)) for r in new]
         new_events = [(k, p, t, w, _loads(d, {})) for _, k, p, t, w, d in events]
         if appended:
@@ -263,6 +258,27 @@ class RunView:
         self._tally.add(rows, new_events)
         self._update_residuals(rows)
         return True
+
+    def _query(self, db):
+        """(rows, events, meta, appended) of one read transaction of the open log ``db``: what it
+        gained since the last read (all of it unless ``appended``), None before it has a poses table."""
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "poses" not in tables:
+            return None
+        with db:  # one read transaction: the count and the rows of one state of the log
+            db.execute("BEGIN")
+            count = db.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
+            cols = ", ".join(_POSE_COLUMNS)
+            new = db.execute(f"SELECT {cols} FROM poses WHERE seq > ? ORDER BY seq, pose_id",
+                             (-1 if self._max_seq is None else self._max_seq,)).fetchall()
+            appended = count == len(self._rows) + len(new) and not any(r[0] in self._ids for r in new)
+            if not appended:
+                new = db.execute(f"SELECT {cols} FROM poses ORDER BY seq, pose_id").fetchall()
+            events = db.execute("SELECT seq, kind, pose_id, time_s, wall_time_unix_s, detail FROM events "
+                                "WHERE seq > ? ORDER BY seq", (self._event_seq if appended else 0,)
+                                ).fetchall() if "events" in tables else []
+            meta = dict(db.execute("SELECT key, value FROM meta").fetchall()) if "meta" in tables else {}
+        return new, events, meta, appended
 
     # -- residuals ----------------------------------------------------------------------------------
     def _robot_model(self):
@@ -413,7 +429,10 @@ class RunView:
                 "drift": drift, "sessions": t.sessions}
 
     def _run_state(self) -> str:
-        """planned | running | finished | interrupted (DESIGN.md, `campaign watch`)."""
+        """planned | running | finished | interrupted (DESIGN.md, `campaign watch`); damaged when the
+        log cannot be read (:attr:`log_error` says why, naming the file): no count of it can be told."""
+        if self.log_error is not None:
+            return "damaged"
         s = self._summary
         if self._holder is not None and self._holder.get("command") in MEASURING_COMMANDS:
             return "running"
