@@ -8,6 +8,7 @@ from dataclasses import replace
 from campaign.auto.state import Decision, Limits, Round
 from campaign.diagnose.engine import leads_to
 from campaign.diagnose.timing import TIME_INPUTS
+from campaign.effects.base import effect_label
 
 #: poses per round that reveal the structure of an "unexplained" (a quarter of the default selection)
 REVEAL_POSES = 30
@@ -36,6 +37,9 @@ PARTIAL_SHARE = 0.5
 PARTIAL_FLOOR_FACTOR = 3.0
 FLOOR_POSES = 8
 FLOOR_TIMES = 4
+#: rounds of poses chosen to separate two effects that the poses cannot tell apart on one joint
+#: (diagnose's ``indistinguishable``), at most, in a run
+SEPARATE_ROUNDS = 2
 
 
 def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decision:
@@ -52,6 +56,10 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                                          f"changes by {1e3 * removal.gain_mm:+.1f} ± {1e3 * removal.gain_se_mm:.1f} µm "
                                          "(within its standard error)",
                         effect=removal.label, effects=tuple(diagnosis.effects_after_removal()))
+    if diagnosis.swap is not None:  # a joint of the model that another effect fits better in its place
+        rival, after = diagnosis.swap
+        return Decision("remove_effect", f"replace {effect_label(rival.own)} by {effect_label(rival.rival)}: "
+                                         f"{rival.text()}", effect=effect_label(rival.own), effects=tuple(after))
     best = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
     structure = diagnosis.structure
     if best is not None and diagnosis.verdict == "unexplained" and (best.gain < MIN_PARTIAL_GAIN or (
@@ -59,6 +67,10 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
     if best is not None and not leads_to(best, rnd.depends_on):
         best = None  # it fits part of a structure that depends on something else first: that is missing
+    if best is None and diagnosis.indistinguishable:
+        separate = _separate(diagnosis, before, loop)
+        if separate is not None:
+            return separate
     if best is not None and diagnosis.verdict is not None:
         test = _test_first(diagnosis, best, before, loop)
         if test is not None:
@@ -286,6 +298,35 @@ def _test_first(diagnosis, best, before, loop) -> Decision | None:
                               f"({best.heldout_mean_position_mm_after / floor.mean_position_mm:.0f}× the floor) and the "
                               f"model-free test cannot yet say on what the rest depends: measure {len(pose_ids)} poses "
                               "spread over the joints before adding it", pose_ids=tuple(pose_ids), reason="test")
+
+
+def _separate(diagnosis, before, loop) -> Decision | None:
+    """Poses that separate two effects the poses cannot tell apart on one joint (diagnose's
+    ``indistinguishable``, neither named for it): the optimal design for the current model with both
+    (the direction in which they differ is the one the measured poses inform least, so the design
+    spends its poses there: for backlash against compliance, poses where the joint's gravity torque
+    bends the tanh and poses near its sign change). After SEPARATE_ROUNDS such rounds, a stop that
+    names both; None when the limits leave no room or no pose is left."""
+    from campaign.effects.base import merge_effects
+    from campaign.plan.extend import design_poses
+
+    pairs = diagnosis.indistinguishable
+    what = "; ".join(f"{r.words()} on these poses" for r in pairs)
+    done = sum(1 for r in before if r.decision.reason == "separate")
+    if done >= SEPARATE_ROUNDS:
+        return Decision("stop", f"stop: {what}, still after {done} rounds of poses chosen to separate them: the "
+                                "data cannot say which, and neither is added", reason="indistinguishable")
+    n, _ = loop.room(REVEAL_POSES)
+    if n <= 0:
+        return None
+    effects = merge_effects(loop.design_effects(), [s for r in pairs for s in (r.own, r.rival)], loop.space.robot)
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    chosen, _, _ = design_poses(loop.space, ids_train, ids, effects, n_max=n)
+    if len(chosen) == 0:
+        return None
+    return Decision("design", f"{what}: measure the {len(chosen)} poses that best separate them (the optimal design "
+                              f"for the model with both)", pose_ids=tuple(int(p) for p in chosen), reason="separate")
 
 
 def _reveal_rounds(before) -> int:

@@ -91,8 +91,9 @@ class Decision:
     """What a round decided. kind: ``add_effect`` (``effect``), ``remove_effect`` (``effect`` taken
     out, or one of its joints: ``effects`` the model's effects after it), ``design``, ``reveal``, ``floor``
     or ``remeasure`` (``pose_ids`` to append and measure; ``reason`` ``probe`` for poses that
-    test a structure found below the detection limit at the floor), or ``stop`` (``reason``: ``at_floor``,
-    ``unexplained``, ``no_floor``, ``budget``, ``max_poses``, ``no_poses``); text: one line."""
+    test a structure found below the detection limit at the floor; ``separate`` for poses that separate two
+    effects indistinguishable on one joint), or ``stop`` (``reason``: ``at_floor``, ``unexplained``,
+    ``no_floor``, ``budget``, ``max_poses``, ``no_poses``, ``indistinguishable``); text: one line."""
 
     kind: str
     text: str

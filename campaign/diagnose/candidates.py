@@ -36,7 +36,7 @@ start point, the candidate's columns after the current ones, a diagonal below
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -123,9 +123,15 @@ class CandidateFit:
     n_steps: int
 
 
-def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_out, context_out) -> CandidateFit:
+def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_out, context_out,
+                  hold=()) -> CandidateFit:
     """Fit ``effect`` (an Effect instance) jointly with the fold's current model on its fitting
-    poses (q, T_meas, context: those :func:`linearise` saw) and predict the held-out poses."""
+    poses (q, T_meas, context: those :func:`linearise` saw) and predict the held-out poses.
+    ``hold``: indices of the current unknowns held at zero (an effect of the model, or one joint
+    of it, taken out while the candidate takes its place)."""
+    hold = np.asarray(hold, dtype=int)
+    if len(hold):
+        lin = _holding(lin, hold)
     m = lin.model
     robot = m.robot
     es = EffectSet((*m.effect_set_.effects, effect))
@@ -133,6 +139,7 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
     u = lin.J.shape[1]
     k = effect.n_params
     x0 = np.concatenate([m.x_, np.asarray(effect.initial_params(), dtype=float)])
+    x0[hold] = 0.0
 
     def dz(x, qq, TT, ctx):
         return pose_error(model_pose(robot, qq, m.base_.expand(x[:r]), es, x[r:], ctx), TT)
@@ -141,6 +148,8 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
         return _weighted(dz(x, q, T_meas, context), lin.rows, lin.sigma)
 
     res, C = _start(lin, effect, x0, q, T_meas, context, weighted_residual)
+    if len(hold):  # the start residual of the model at x̂ does not hold: the unknowns held moved
+        res = weighted_residual(x0)
     # absorbed: what is left of each normalised candidate column after the current columns
     # and the candidate's earlier ones (the diagonal of the joint QR)
     norms = np.linalg.norm(C, axis=0)
@@ -187,6 +196,21 @@ def fit_candidate(lin: FoldLinearisation, effect, q, T_meas, context, q_out, T_o
                 break
     names = tuple(f"{effect.name}.{effect.param_names[i]}" for i in absorbed_c)
     return CandidateFit(dz(x, q_out, T_out, context_out), names, x[u:].copy(), n_steps)
+
+
+def _holding(lin: FoldLinearisation, hold) -> FoldLinearisation:
+    """The fold's linearisation with the current unknowns ``hold`` out of the fit: not free, not in
+    the basis that decides what a candidate's columns add (its shared columns kept: the chord
+    method takes the Jacobian at x̂ with them)."""
+    held = set(hold.tolist())
+    free = np.array([i for i in lin.free if i not in held], dtype=int)
+    rest = [i for i in range(lin.J.shape[1]) if i not in held]
+    J = lin.J[:, rest]
+    norms = np.linalg.norm(J, axis=0)
+    Q = scipy.linalg.qr(J / np.where(norms > 0, norms, 1.0), mode="economic", check_finite=False)[0] if rest \
+        else np.zeros((lin.J.shape[0], 0))
+    Jf = lin.J[:, free]
+    return replace(lin, Q=Q, free=free, H=Jf.T @ Jf, J_free=Jf)
 
 
 def _hooks(effect) -> set:
@@ -280,3 +304,26 @@ def _joint_columns(lin: FoldLinearisation, q, T_meas, context) -> np.ndarray:
                          lin.rows, lin.sigma) for d in (FD_STEP, -FD_STEP)]
         cols.append((res[0] - res[1]) / (2 * FD_STEP))
     return np.column_stack(cols)
+
+
+def combined_effect(robot, effects) -> Effect:
+    """Several effects as one candidate (their parameters in order, their hooks summed or, for
+    ``pose_map``, composed, as a model's :class:`EffectSet` does), fitted at once with a fold's
+    current model: an effect over some joints beside another one on a joint it gave up (the
+    comparison of two effects on one joint, :mod:`campaign.diagnose.joints`). It overrides only
+    the hooks its parts override, so joint offsets alone keep the shared columns."""
+    es = EffectSet(tuple(effects))
+    hooks = set().union(*(_hooks(e) for e in es.effects))
+    ns = {"name": "+".join(es.names), "description": " and ".join(e.description for e in es.effects),
+          "context_keys": tuple(dict.fromkeys(k for e in es.effects for k in e.context_keys)),
+          "param_names": es.param_names, "param_units": es.param_units,
+          "initial_params": lambda self: es.initial_params()}
+    if "joint_offset" in hooks:
+        ns["joint_offset"] = lambda self, params, q, context: es.joint_offset(params, q, context)
+    if "joint_twist" in hooks:
+        ns["joint_twist"] = lambda self, params, q, context: es.joint_twist(params, q, context)
+    if "pose_map" in hooks:
+        ns["pose_map"] = lambda self, params, T_IE, q, context: es.pose_map(params, T_IE, q, context)
+    out = type("CombinedEffect", (Effect,), ns)(robot)
+    out.spec = "+".join(e.spec for e in es.effects)
+    return out

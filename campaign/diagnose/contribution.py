@@ -13,6 +13,12 @@ position errors, mm) and its standard error ``sd(d) / √n``. An effect (or join
 when the mean exceeds :data:`KEEP_STANDARD_ERRORS` standard errors: one whose removal does not
 worsen the cross-validated error beyond its standard error is taken out (the one-standard-error
 rule of model selection: the simpler model unless the data say otherwise).
+
+A joint of a joint-indexed effect may earn its place and still belong to another effect: backlash
+of a joint read as its compliance. :func:`joint_swaps` lists, for each such joint, the other
+joint-indexed candidates that could take it; diagnose fits each in its place on the same folds
+(the joint's parameters held at zero, :func:`campaign.diagnose.candidates.fit_candidate`) and
+compares the two as :mod:`campaign.diagnose.joints` compares a candidate's joints.
 """
 
 from __future__ import annotations
@@ -21,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from campaign.effects.base import effect_label, make_effect, split_joints, takes_joints, without_joints
+from campaign.diagnose.joints import model_joints
+from campaign.effects.base import (effect_class, effect_label, joint_spec, make_effect, split_joints, takes_joints,
+                                   without_joints)
 
 #: an effect earns its place when taking it out worsens the held-out mean by more than this many
 #: standard errors of the paired difference (the one-standard-error rule)
@@ -93,7 +101,7 @@ def contributions(current, robot, folds, before_mm, dz_before, fold) -> tuple:
     for spec, joint, params, rest in removals(current, robot):
         after = np.empty_like(before_mm)
         for k, (lin, J_out) in enumerate(folds):
-            idx = _param_index(lin.model, spec, params)
+            idx = param_index(lin.model, spec, params)
             after[fold == k] = _heldout_without(lin, J_out, idx, dz_before[fold == k])
         d = after - before_mm
         se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
@@ -101,7 +109,7 @@ def contributions(current, robot, folds, before_mm, dz_before, fold) -> tuple:
     return tuple(out)
 
 
-def _param_index(model, spec, params) -> np.ndarray:
+def param_index(model, spec, params) -> np.ndarray:
     """Indices into the model's unknowns x of effect ``spec``'s parameters ``params``."""
     i = model.base_.n_base
     for e in model.effect_set_.effects:
@@ -120,3 +128,25 @@ def _heldout_without(lin, J_out, idx, dz_out) -> np.ndarray:
     step = -np.linalg.lstsq(lin.J[:, free], shifted, rcond=None)[0] if len(free) else np.zeros(0)
     moved = dz_out + np.einsum("nap,p->na", J_out[:, :, free], step) - np.einsum("nap,p->na", J_out[:, :, idx], x[idx])
     return np.linalg.norm(moved, axis=1) * 1e3
+
+
+def joint_swaps(current, robot, rivals) -> list:
+    """Each joint of each joint-indexed effect of ``current`` (specs) with each of ``rivals`` (bare
+    names of joint-indexed effects) that is another effect and not on that joint in the model:
+    [(spec, joint, param names of the joint taken out, the effect on that joint alone, the rival
+    on it)]."""
+    out = []
+    for spec in current:
+        effect = make_effect(spec, robot)
+        if not takes_joints(type(effect)):
+            continue
+        base = split_joints(spec)[0]
+        for j in effect.joints:
+            rest = without_joints(spec, [j], robot)
+            kept = set(make_effect(rest, robot).param_names) if rest else set()
+            params = tuple(p for p in effect.param_names if p not in kept)
+            for other in rivals:
+                if effect_class(other).name == effect.name or j in model_joints(current, other, robot):
+                    continue
+                out.append((spec, j, params, joint_spec(base, [j]), joint_spec(split_joints(other)[0], [j])))
+    return out

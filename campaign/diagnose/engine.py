@@ -21,7 +21,9 @@ here reads a simulator's truth):
 
    A joint-indexed candidate named without joints is searched over the robot's joints
    (:mod:`campaign.diagnose.joints`); the simplest candidate within one standard error of the
-   best (plus one per joint a search added) comes first.
+   best (plus one per joint a search added) comes first. Each of its joints is compared with the
+   other joint-indexed candidates on that joint: a joint a rival fits better, or that the poses
+   cannot tell apart from one, is not named for it (``indistinguishable`` in diagnosis.json).
 4. **Does each effect of the model earn its place?** Each (and each joint of a joint-indexed
    one) taken out on the same folds (:mod:`campaign.diagnose.contribution`).
 5. **Is it time, or the poses the tour sweeps?** When time or temperature ranks among the
@@ -46,13 +48,15 @@ from pathlib import Path
 
 import numpy as np
 
-from campaign.diagnose.candidates import fit_candidate, linearise
-from campaign.diagnose.contribution import contributions
-from campaign.diagnose.joints import model_joints, paired_p, search_joints, searches_joints
+from campaign.diagnose.candidates import combined_effect, fit_candidate, linearise
+from campaign.diagnose.contribution import contributions, joint_swaps, param_index
+from campaign.diagnose.joints import (Rival, contested_joints, model_joints, paired_p, search_joints,
+                                      searches_joints, shared_joint_rivals)
 from campaign.diagnose.timing import TIME_INPUTS, rank_by_time_test, time_test
 from campaign.effects.base import (available, effect_class, effect_context, effect_label,
                                    entry_point_effects, joint_spec, make_effect, merge_effects, parse_effect_list,
-                                   resolve_effect_spec, split_joints)
+                                   resolve_effect_spec, split_joints, takes_joints, without_joints)
+from campaign.errors import ConfigError
 from campaign.errors import DataError
 from campaign.identify.cells import decide_cells
 from campaign.identify.poses import (check_pose_count, distinct_poses, equations_per_pose, prepare_measured,
@@ -97,6 +101,9 @@ class CandidateScore:
     spec: str = ""
     #: the joint search's steps (campaign.diagnose.joints.JointStep), for a joint-indexed candidate
     joint_steps: tuple = ()
+    #: its joints against the other joint-indexed candidates on them (campaign.diagnose.joints.Rival);
+    #: None when not compared (only the leading candidate is)
+    rivals: tuple | None = None
 
     @property
     def joints(self):
@@ -126,6 +133,7 @@ class CandidateScore:
             "joints": None if self.joints is None else list(self.joints),
             "label": self.label,
             "joint_search": [st.as_json() for st in self.joint_steps],
+            "rivals": None if self.rivals is None else [r.as_json() for r in self.rivals],
         }
 
 
@@ -171,6 +179,11 @@ class Diagnosis:
     round_off: bool = False
     #: a run measured on more than one cell: campaign.identify.cells.CellDecision (diagnosis.json's ``cells``)
     cells: object = field(repr=False, default=None)
+    #: each joint of the model's joint-indexed effects against the other joint-indexed candidates in
+    #: its place (campaign.diagnose.joints.Rival: own in the model, rival instead)
+    model_rivals: tuple = ()
+    #: (Rival, the model's effects after it) when a rival fits a joint of the model better: replaced
+    swap: tuple | None = None
 
     @property
     def removal(self):
@@ -187,6 +200,16 @@ class Diagnosis:
         if c is None:
             return None
         return tuple(c.without if s == c.spec else s for s in self.current_effects if s != c.spec or c.without)
+
+    @property
+    def indistinguishable(self) -> tuple:
+        """Pairs of effects on one joint these poses cannot tell apart (campaign.diagnose.joints.Rival),
+        once each: neither is named for that joint."""
+        out = {}
+        for r in (*[r for c in self.ranking for r in c.rivals or ()], *self.model_rivals):
+            if r.outcome == "indistinguishable":
+                out.setdefault(frozenset((r.own, r.rival)), r)
+        return tuple(out.values())
 
     @property
     def verdict_spec(self) -> str | None:
@@ -256,6 +279,9 @@ class Diagnosis:
             "verdict_spec": self._verdict_spec(),
             "verdict_label": None if self.verdict in (None, "unexplained") else effect_label(self._verdict_spec()),
             "contributions": [c.as_json() for c in self.contributions],
+            "indistinguishable": [r.as_json() for r in self.indistinguishable],
+            "model_rivals": [r.as_json() for r in self.model_rivals],
+            "replace": None if self.swap is None else {**self.swap[0].as_json(), "effects_after": list(self.swap[1])},
             "remove": None if self.removal is None else {**self.removal.as_json(),
                                                           "effects_after": list(self.effects_after_removal())},
             "time_test": None if self.time_test is None else {**self.time_test.as_json(),
@@ -322,9 +348,17 @@ class Diagnosis:
         if self.contributions:
             lines += ["", "what each current effect earns (taken out on the same folds):"]
             lines += ["  " + c.text() for c in self.contributions]
+        rivals = [r for c in self.ranking for r in c.rivals or () if r.outcome != "own"]
+        rivals += [r for r in self.model_rivals if r.outcome != "own"]
+        if rivals:
+            lines += ["", "effects on one joint compared (each with the leading candidate's other joints):"]
+            lines += ["  " + r.text() for r in rivals]
         if self.removal is not None:
             after = self.effects_after_removal()
             lines.append(f"  take out {self.removal.label}: effects: [{', '.join(after)}]")
+        elif self.swap is not None:
+            r, after = self.swap
+            lines.append(f"  replace {effect_label(r.own)} by {effect_label(r.rival)}: effects: [{', '.join(after)}]")
         lines += ["", verdict_text(self)]
         return "\n".join(lines)
 
@@ -719,11 +753,12 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
     ss_before = float(np.sum((fits.dz - fits.dz.mean(axis=0)) ** 2))
     lins = {}
 
-    def fit_spec(spec):
-        """(after (n,) mm, dz_after (n, 3), absorbed names, fully absorbed) of one spec on the folds."""
+    def fit_spec(spec, effect=None):
+        """(after (n,) mm, dz_after (n, 3), absorbed names, fully absorbed) of one spec (or ``effect``)
+        on the folds."""
         if not lins:  # the current model linearised at each fold's optimum, shared by every candidate
             lins.update({k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)})
-        effect = make_effect(spec, data.robot)
+        effect = effect or make_effect(spec, data.robot)
         after, dz_after, absorbed = np.empty(len(data.tr)), np.empty((len(data.tr), 3)), set()
         for k in range(data.folds):
             fit = fit_candidate(lins[k], effect, *data.fold_data(k))
@@ -732,14 +767,14 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
             absorbed |= set(fit.absorbed)
         return after, dz_after, tuple(sorted(absorbed)), len(absorbed) >= effect.n_params > 0
 
-    for i, spec in enumerate(specs):
+    def one_candidate(i, spec):
         cls = effect_class(spec)
         say(f"candidate {i + 1}/{len(specs)}: {cls.name}")
         reason = _cannot_score(data, spec, cls)
         if reason:
             skipped.append((cls.name, reason))
             say(f"  {cls.name}: skipped ({reason})")
-            continue
+            return
         tried, steps = 1, ()
         if searches_joints(spec, data.robot):
             exclude = model_joints(data.current, spec, data.robot)
@@ -748,16 +783,65 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
                                                          exclude, alpha=ALPHA, detection=detection)
             if spec is None:
                 skipped.append((cls.name, "no joint's parameters can be identified with the current model"))
-                continue
+                return
+        scores.append(score(spec, cls, steps, tried))
+        tries[cls.name] = tried
+        if takes_joints(cls):
+            rivals.append(split_joints(spec)[0])
+
+    def score(spec, cls, steps, tried) -> CandidateScore:
         after, dz_after, absorbed, fully = fit_spec(spec)
         p = paired_p(fits.before, after)
         gain = 1 - after.mean() / max(fits.before.mean(), 1e-300)
         r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
         significant = (p < ALPHA / (n_cand * tried)) and gain >= detection and not fully
-        scores.append(CandidateScore(cls.name, float(fits.before.mean()), float(after.mean()), p, bool(significant),
-                                     float(r2), absorbed, _describe(cls, spec), spec, steps))
         errors[spec] = (after, make_effect(spec, data.robot).n_params - len(absorbed), max(len(steps), 1))
-    return rank(scores, errors), tuple(skipped), (lins or None)
+        return CandidateScore(cls.name, float(fits.before.mean()), float(after.mean()), p, bool(significant),
+                              float(r2), absorbed, _describe(cls, spec), spec, steps)
+
+    def score_with(rest, rival):
+        """Held-out errors (n,) mm of the candidate over ``rest`` with ``rival`` fitted beside it, or
+        None (the rival cannot act on that joint, the model already holds it there, or it is absorbed)."""
+        base, (joint,) = split_joints(rival)
+        if joint in model_joints(data.current, base, data.robot):
+            return None
+        try:
+            parts = [make_effect(s, data.robot) for s in (rest, rival) if s is not None]
+        except ConfigError:
+            return None
+        after, _, _, fully = fit_spec(None, combined_effect(data.robot, parts) if len(parts) > 1 else parts[0])
+        return None if fully else after
+
+    rivals, tries = [], {}
+    for i, spec in enumerate(specs):
+        one_candidate(i, spec)
+    ranked = settle_rivals(rank(scores, errors), errors, rivals, score_with,
+                           lambda spec, c: score(spec, effect_class(spec), c.joint_steps, tries[c.effect]))
+    return ranked, tuple(skipped), (lins or None)
+
+
+def settle_rivals(ranked, errors, rivals, score_with, rescore) -> tuple:
+    """The ranking once the leading candidate's joints are compared with the other joint-indexed
+    candidates (``rivals``, bare names) on each of them (:func:`campaign.diagnose.joints.shared_joint_rivals`):
+    the joints a rival fits better, or that the poses cannot tell apart from one, are taken out of it
+    (``rescore(spec, candidate)`` scores what is left); with none left it is not significant. Repeated
+    on the new leader until one keeps its joints (or none is significant)."""
+    out = list(ranked)
+    for _ in range(2 * len(out)):
+        first = out[0] if out else None
+        if first is None or not first.significant or not first.joints or first.rivals is not None:
+            break
+        found = shared_joint_rivals(first.spec, errors[first.spec][0], rivals, score_with)
+        lost = contested_joints(found)
+        keep = [j for j in first.joints if j not in lost]
+        if not lost:
+            out[0] = replace(first, rivals=found)
+        elif keep:
+            out[0] = replace(rescore(joint_spec(split_joints(first.spec)[0], keep), first), rivals=found)
+        else:
+            out[0] = replace(first, significant=False, rivals=found)
+        out = list(rank(out, errors))
+    return tuple(out)
 
 
 def rank(scores: list, errors: dict) -> tuple:
@@ -852,6 +936,36 @@ def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), 
     if struct_sig or time_moved or (fv.floor.known and not fv.at_floor):
         return "unexplained"
     return None
+
+
+def compare_model_joints(data: DiagnosisData, fits: CurrentFits, lins) -> tuple:
+    """Each joint of the model's joint-indexed effects against every other joint-indexed candidate
+    in its place (the joint's parameters held at zero, the rival fitted on the same folds):
+    (:class:`campaign.diagnose.joints.Rival` each, the model being "own"; the swap to make or None)."""
+    bases = [split_joints(s)[0] for s in data.candidates if takes_joints(effect_class(s))]
+    out = []
+    for spec, j, params, own, rival in joint_swaps(data.current, data.robot, bases):
+        try:
+            effect = make_effect(rival, data.robot)
+        except ConfigError:  # the rival cannot act on that joint
+            continue
+        after, fully = np.empty(len(data.tr)), False
+        for k in range(data.folds):
+            fit = fit_candidate(lins[k], effect, *data.fold_data(k), hold=param_index(lins[k].model, spec, params))
+            after[data.fold == k] = np.linalg.norm(fit.heldout_dz[:, :3], axis=1) * 1e3
+            fully |= len(fit.absorbed) >= effect.n_params
+        if fully:
+            continue
+        d = fits.before - after
+        se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
+        out.append(Rival(j, own, rival, float(fits.before.mean()), float(after.mean()), se))
+    wins = [r for r in out if r.outcome == "rival"]
+    if not wins:
+        return tuple(out), None
+    r = max(wins, key=lambda r: (r.own_mm - r.rival_mm) / max(r.diff_se_mm, 1e-300))
+    base = split_joints(r.own)[0]
+    after = [s if split_joints(s)[0] != base else without_joints(s, [r.joint], data.robot) for s in data.current]
+    return tuple(out), (r, merge_effects([s for s in after if s is not None], [r.rival], data.robot))
 
 
 def absent_in_time(specs, test) -> tuple:
@@ -972,8 +1086,10 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         contrib = contributions(data.current, data.robot, [(lins[k], fits.heldout_jacobians[k])
                                                             for k in range(data.folds)],
                                 fits.before, fits.dz, data.fold)
+        say("each joint of the current effects against the other effects in its place")
+        model_rivals, swap = compare_model_joints(data, fits, lins)
     else:
-        contrib = ()
+        contrib, model_rivals, swap = (), (), None
     depends = ranked_inputs(struct, struct_sig, timed)  # time and temperature as the time test ranks them
     signature = None
     if struct_sig:
@@ -990,4 +1106,4 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
-                     data.model_note, contrib, timed, fv.round_off, data.cells)
+                     data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap)

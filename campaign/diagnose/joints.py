@@ -8,6 +8,16 @@ as long as that step is significant on the held-out poses (one-sided paired t-te
 per-pose errors at p < alpha / the joints left, and a gain of at least the detection limit) —
 the stopping rule against chasing noise. A compliant joint 4 is thus "joint compliance of
 joint 4", not the default joints with the noise's share on each.
+
+Two effects on one joint can look alike: backlash ``β tanh(τ / 1 N·m)`` is compliance ``c τ`` up to
+the tanh's bend, all the closer the smaller the joint's gravity torque (a Panda's joint 6 carries
+1-2.5 N·m: a quarter of backlash's shape is not compliance's). Each joint j the leading candidate
+acts on is therefore compared with every other joint-indexed candidate on j
+(:func:`shared_joint_rivals`): the candidate over its other joints plus the rival on j, fitted
+together on the same folds. The one whose held-out mean is lower by more than
+:data:`RIVAL_STANDARD_ERRORS` standard errors of the paired difference keeps the joint; closer, the
+two are *indistinguishable on these poses* and neither is named for it (auto then measures poses
+that separate them).
 """
 
 from __future__ import annotations
@@ -17,7 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from campaign.effects.base import effect_class, joint_spec, make_effect, split_joints, takes_joints
+from campaign.effects.base import effect_class, effect_label, joint_spec, make_effect, split_joints, takes_joints
+
+#: two effects on one joint are told apart when the held-out mean of one is lower than the other's by
+#: more than this many standard errors of their paired difference (one-sided p ≈ 0.023 each way);
+#: closer, they are indistinguishable on these poses
+RIVAL_STANDARD_ERRORS = 2.0
 
 
 @dataclass(frozen=True)
@@ -92,3 +107,74 @@ def model_joints(current, spec, robot) -> tuple:
         if effect_class(s).name == name:
             out += list(getattr(make_effect(s, robot), "joints", ()))
     return tuple(sorted(set(out)))
+
+
+@dataclass(frozen=True)
+class Rival:
+    """A joint that a candidate and another joint-indexed effect both fit: ``own`` the candidate on
+    that joint ("joint_compliance:6"), ``rival`` the other effect on it ("backlash:6"); the held-out
+    mean (mm) of the candidate over all its joints and of the candidate over its other joints plus
+    the rival on this one, and the standard error of their paired difference (mm)."""
+
+    joint: int
+    own: str
+    rival: str
+    own_mm: float
+    rival_mm: float
+    diff_se_mm: float
+
+    @property
+    def outcome(self) -> str:
+        """"own", "rival" (the one lower by more than RIVAL_STANDARD_ERRORS standard errors keeps
+        the joint) or "indistinguishable"."""
+        d = self.own_mm - self.rival_mm
+        if d > RIVAL_STANDARD_ERRORS * self.diff_se_mm:
+            return "rival"
+        if -d > RIVAL_STANDARD_ERRORS * self.diff_se_mm:
+            return "own"
+        return "indistinguishable"
+
+    def as_json(self) -> dict:
+        return {"joint": self.joint, "effects": [self.own, self.rival],
+                "heldout_mean_position_mm": [self.own_mm, self.rival_mm], "difference_se_mm": self.diff_se_mm,
+                "outcome": self.outcome}
+
+    def words(self) -> str:
+        """"joint_compliance of joint 6 and backlash of joint 6 are indistinguishable", or which keeps it."""
+        a, b = effect_label(self.own), effect_label(self.rival)
+        if self.outcome == "indistinguishable":
+            return f"{a} and {b} are indistinguishable"
+        return f"{a} rather than {b}" if self.outcome == "own" else f"{b} rather than {a}"
+
+    def text(self) -> str:
+        out = (f"{self.words()} on these poses (held-out {self.own_mm:.4f} mm with {effect_label(self.own)}, "
+               f"{self.rival_mm:.4f} mm with {effect_label(self.rival)} instead, ± {self.diff_se_mm:.4f})")
+        return out + (": poses that separate them are needed" if self.outcome == "indistinguishable" else "")
+
+
+def shared_joint_rivals(spec, after, rivals, score_with) -> tuple:
+    """Each joint of candidate ``spec`` (with joints; its held-out errors ``after`` (n,) mm) against
+    each rival effect (bare joint-indexed names other than the candidate's) on that joint:
+    ``score_with(rest, rival)`` -> held-out errors (n,) mm, or None when the pair cannot be fitted,
+    of the candidate over ``rest`` (its other joints' spec, None when it has no other) together with
+    ``rival`` on the joint. Returns the :class:`Rival` comparisons."""
+    base, joints = split_joints(spec)
+    out = []
+    for j in joints or ():
+        rest = [k for k in joints if k != j]
+        for other in rivals:
+            if split_joints(other)[0] == base:
+                continue
+            pair = score_with(joint_spec(base, rest) if rest else None, joint_spec(split_joints(other)[0], [j]))
+            if pair is None:
+                continue
+            d = np.asarray(after) - np.asarray(pair)
+            se = float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("inf")
+            out.append(Rival(j, joint_spec(base, [j]), joint_spec(split_joints(other)[0], [j]),
+                             float(np.mean(after)), float(np.mean(pair)), se))
+    return tuple(out)
+
+
+def contested_joints(rivals) -> tuple:
+    """The joints of a candidate that a rival takes or that are indistinguishable from one, sorted."""
+    return tuple(sorted({r.joint for r in rivals if r.outcome != "own"}))
