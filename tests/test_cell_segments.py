@@ -194,3 +194,59 @@ def test_auto_on_two_robots_stops_in_one_line_and_goes_on_with_one_segment(tmp_p
     geo = metrics["stages"][metrics["order"][-1]]
     assert geo["train"]["n_poses"] + geo["test"]["n_poses"] == metrics["cells"]["segments"][1]["n_poses"]
     assert geo["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3
+
+
+def test_a_run_begun_on_the_sim_and_resumed_on_the_mujoco_twin_is_two_segments_and_no_drift(tmp_path, capsys):
+    """The twin takes its world (seed: the same geometric errors) from the sim section and puts the
+    tracker where the scene does; its own physics (joint stiffness under gravity) stays inside what
+    one model of the geometry fits on both."""
+    run = _planned(tmp_path)
+    assert main(["run", str(run), "--cell", "mujoco", "--quiet", "--allow-other-cell"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    cells = json.loads((run / "calibration" / "metrics.json").read_text())["cells"]
+    assert [s["spec"] for s in cells["segments"]] == ["--sim", "--cell mujoco"]
+    assert cells["decision"] == "mixed" and cells["agreement"]["agree"]
+    step = cells["registration"][1]
+    assert np.linalg.norm(step["translation_m"]) < 1e-3  # the same tracker placement: no step worth a millimetre
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--json", "--no-report", "--candidates", "drift,thermal"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["verdict"] not in ("drift", "thermal") and doc["cells"]["decision"] == "mixed"
+    assert doc["drift"]["significant"] is not True
+
+
+def test_data_in_the_trackers_frame_get_the_moved_trackers_registration(runs, capsys, robot):
+    """Measured in the tracker's frame (`--frame tracker`, no base-frame set-up): each segment's
+    readings are in its own tracker's frame, metres from the robot's; the step between them is the
+    move of the tracker, T_LI,1 T_LI,2⁻¹."""
+    run = runs.make(n=60, sim={"hidden_effects": []})
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "30", "--frame", "tracker"]) == 0
+    _changed(run, _move_tracker)
+    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell", "--frame", "tracker"]) == 0
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+    assert metrics["cells"]["decision"] == "mixed" and metrics["cells"]["agreement"]["agree"]
+    assert metrics["stages"]["geometric"]["test"]["position_mm"]["mean"] < 4 * NOISE_M * 1e3
+    from campaign.model.rotations import matrix_to_rotvec
+    from campaign.plan.scene import load_scene
+
+    truth = load_scene(DEFAULT_SCENE).placed(robot).T_LI @ np.linalg.inv(
+        load_scene(run.parent / "moved_scene.yaml").placed(robot).T_LI)
+    reg = metrics["cells"]["registration"][1]
+    assert np.linalg.norm(np.asarray(reg["translation_m"]) - truth[:3, 3]) < 2 * NOISE_M
+    R = _rotvec_matrix(reg["rotation_vector_rad"])
+    assert np.linalg.norm(matrix_to_rotvec(R.T @ truth[:3, :3])) < NOISE_M / 1.0
+
+
+def test_a_few_poses_of_another_robot_are_refused(runs, capsys):
+    """Six poses on the second robot, too few for a model of their own: they pull the one model off
+    the first robot's poses, which its own model fits at the noise."""
+    run = runs.make(n=36, sim={"hidden_effects": []})
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "30"]) == 0
+    _changed(run, _another_robot)
+    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "do not agree beyond a registration" in err[0]
+    assert "6 poses, the 31st-36th measured" in err[0] and "segment 1: held-out" in err[0] and "paired t" in err[0]

@@ -231,9 +231,10 @@ def check_cell_segment(segments, cell_segment) -> int | None:
     return int(cell_segment) - 1
 
 
-def initial_maps(robot, poses, seg, train, kept) -> dict:
-    """Segment -> (4, 4) map of its measurements into the first kept segment's frame, from the
-    closed-form registration of the nominal model's tool points to each segment's training poses."""
+def initial_maps(robot, poses, seg, train, kept) -> tuple:
+    """(segment -> (4, 4) map of its measurements into the first kept segment's frame, the (4, 4)
+    registration of the nominal model into that frame), from the closed-form registration of the
+    nominal model's tool points to each segment's training poses."""
     from campaign.measure.reflectors import invert, register_points
     from campaign.model.kinematics import forward
 
@@ -242,7 +243,7 @@ def initial_maps(robot, poses, seg, train, kept) -> dict:
         rows = np.flatnonzero(train & (seg == s) & np.isfinite(poses.xyz).all(axis=1))
         reg[s] = register_points(forward(robot, poses.q[rows])[:, :3, 3], poses.xyz[rows])
     ref = kept[0]
-    return {s: reg[ref] @ invert(reg[s]) for s in kept}
+    return {s: reg[ref] @ invert(reg[s]) for s in kept}, reg[ref]
 
 
 def _fit(robot, effects, position_only, q, T, ctx, base, init=None):
@@ -296,10 +297,10 @@ def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_seg
         raise DataError(f"{run_dir}: measured on {segments.n} cells, none with {CELL_MIN_REGISTRATION_POSES} "
                         "training poses to register it")
     ref = kept[0]
-    maps0 = initial_maps(robot, poses, seg, train, kept)
+    maps0, to_ref = initial_maps(robot, poses, seg, train, kept)
     maps, tests = dict(maps0), ()
     if len(kept) > 1:
-        maps, tests = _register_and_test(robot, poses, seg, train & usable, kept, maps0, effects, position_only,
+        maps, tests = _register_and_test(robot, poses, seg, train & usable, kept, maps0, to_ref, effects, position_only,
                                          base_parameters(robot, position_only=position_only), say,
                                          training_poses_needed)
     decision = "mixed" if chosen is None else "segment"
@@ -312,15 +313,19 @@ def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_seg
     return result
 
 
-def _register_and_test(robot, poses, seg, train, kept, maps0, effects, position_only, base, say, needed):
+def _register_and_test(robot, poses, seg, train, kept, maps0, to_ref, effects, position_only, base, say, needed):
     """(the refined maps, the agreement tests): the joint fit with a step per segment on all training
-    poses, then K folds of the joint and the separate models (module docstring)."""
+    poses, then K folds of the joint and the separate models (module docstring). The fits see the
+    data near the nominal model (``to_ref``⁻¹ of the reference frame: data in a tracker's frame are
+    metres from the robot's), where the model's linearisation holds."""
     from scipy import stats
 
     index = {s: i for i, s in enumerate(kept)}
     rows = np.flatnonzero(train & np.isin(seg, kept))
     q = poses.q[rows]
-    M = np.stack([maps0[int(s)] for s in seg[rows]])
+    from campaign.measure.reflectors import invert
+
+    M = invert(to_ref) @ np.stack([maps0[int(s)] for s in seg[rows]])
     T = M @ poses.T_IE[rows]
     from campaign.effects.base import effect_context, make_effect
 
@@ -333,7 +338,7 @@ def _register_and_test(robot, poses, seg, train, kept, maps0, effects, position_
     theta = full.effect_set_.split(full.effect_params_)[-1]
     maps = {kept[0]: maps0[kept[0]]}
     for i, s in enumerate(kept[1:], start=1):
-        maps[s] = np.linalg.inv(step_matrix(theta[6 * (i - 1):6 * i])) @ maps0[s]
+        maps[s] = to_ref @ invert(step_matrix(theta[6 * (i - 1):6 * i])) @ invert(to_ref) @ maps0[s]
     # the folds: joint and separate models on the same held-out poses
     n_effect = sum(make_effect(e, robot).n_params for e in effects)
     need = needed(base.n_base + n_effect, position_only)
