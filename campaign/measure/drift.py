@@ -281,8 +281,7 @@ def drift_readings(run_dir, poses, readings_to_poses=None, cells=None) -> dict:
     ref_labels = np.zeros(0, dtype=np.int64) if ref_label is None else np.array([ref_label])
     if cells is not None and ref_label is not None:  # the reference pose on every segment
         ref_labels = np.unique(labels[labels // cells.segments.n == ref_label // cells.segments.n])
-    if events and (ref_label is not None or (cells is not None and reference is not None)):
-        # (on several cells the checks of a segment count without the reference's first reading)
+    if events and ref_label is not None:  # (a segment without the reference pose: no monitor)
         mine = np.flatnonzero(np.isin(labels, ref_labels))
         with_xyz = []
         for seg, t, d in events:
