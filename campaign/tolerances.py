@@ -388,3 +388,15 @@ CELL_AGREEMENT_MARGIN = 0.25
 CELL_FOLDS = 5
 #: Training poses a segment needs for its registration (six unknowns; three positions not in a line).
 CELL_MIN_REGISTRATION_POSES = 3
+
+#: The test set against the folds (campaign.diagnose.testset): the current model does not hold on
+#: the test poses when their mean position error exceeds the folds' held-out mean with one-sided
+#: p below TEST_SET_ALPHA (diagnose's own level) and by more than TEST_SET_MARGIN (a material
+#: share: a correct model's test and fold errors are both the noise, a ratio near 1; a wrist
+#: run-out hidden by training poses that hold q5 at ±0.855 rad gave 6.5×).
+TEST_SET_ALPHA = 0.01
+TEST_SET_MARGIN = 0.5
+#: A joint is sparse when the test poses lie a median of more than this share of its range from
+#: every training value of it (two training values over the range: about 25 %; 160 spread
+#: training poses: well under 1 %).
+TEST_SET_GAP_SHARE = 0.05

@@ -132,6 +132,11 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
             return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
         return replace(d, text=f"unexplained, depends on {inputs_text(rnd.depends_on)}: {d.text}")
     # above the floor, and nothing says on what the rest depends
+    tested = getattr(diagnosis, "test_set", None)
+    if tested is not None and not tested.holds and tested.sparse and reveals < REVEAL_ROUNDS:
+        d = _spread_sparse(tested, loop)  # the folds cannot see it: the training poses do not vary it
+        if d is not None:
+            return d
     if floor_round is not None:
         return floor_round
     d = _design_or_stop(rnd, limits, loop, target, at_floor=False)
@@ -342,3 +347,22 @@ def _reveal_rounds(before) -> int:
 def inputs_text(inputs) -> str:
     inputs = ["time" if i == "time_s" else i for i in inputs]
     return inputs[0] if len(inputs) == 1 else ", ".join(inputs[:-1]) + " and " + inputs[-1]
+
+
+def _spread_sparse(tested, loop) -> Decision | None:
+    """Poses spread over the joints the training poses leave sparse, when the test set says the
+    model does not hold beyond them (campaign.diagnose.testset), or None without room or poses."""
+    from campaign.plan.extend import spread_poses
+
+    n, limit = loop.room(REVEAL_POSES)
+    if n <= 0:
+        return None
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    pose_ids = spread_poses(loop.space, ids_train, ids, tested.sparse_joints, n)
+    if len(pose_ids) == 0:
+        return None
+    return Decision("reveal", f"the test set is {tested.ratio:.1f}× the folds (p = {tested.p_value:.2g}) and the "
+                              f"training poses hold {', '.join(c.text() for c in tested.sparse)}: measure "
+                              f"{len(pose_ids)} poses spread over {', '.join(tested.sparse_joints)}",
+                    pose_ids=tuple(pose_ids))

@@ -184,6 +184,8 @@ class Diagnosis:
     model_rivals: tuple = ()
     #: (Rival, the model's effects after it) when a rival fits a joint of the model better: replaced
     swap: tuple | None = None
+    #: the current model on the test set against the folds (campaign.diagnose.testset.TestSetCheck) or None
+    test_set: object = None
 
     @property
     def removal(self):
@@ -293,6 +295,7 @@ class Diagnosis:
             "skipped_candidates": [{"effect": e, "reason": r} for e, r in self.skipped],
             "n_train_poses": self.n_train,
             **({} if self.cells is None else {"cells": {**self.cells.as_json(), "line": self.cells.line()}}),
+            "test_set": None if self.test_set is None else {**self.test_set.as_json(), "line": self.test_set.text()},
         }
 
     def _verdict_spec(self):
@@ -340,7 +343,10 @@ class Diagnosis:
                          f"{100 * c.gain:>7.1f}%{c.r2:>7.2f}{c.p_value:>10.2g}  {'yes' if c.significant else 'no'}{note}")
         for effect, reason in self.skipped:
             lines.append(f"{effect:<20}skipped: {reason}")
-        lines += ["", self.floor_line(), self.structure_line()]
+        lines += ["", self.floor_line()]
+        if self.test_set is not None:
+            lines.append(self.test_set.text())
+        lines.append(self.structure_line())
         if self.time_tested is not None:
             lines.append("  " + self.time_tested.text())
         if self.signature is not None and self.structure_significant:
@@ -407,6 +413,13 @@ def verdict_text(d: Diagnosis) -> str:
                     f"{d.time_test.p_value:.2g}): an effect of time that no candidate explains (a warm-up of one "
                     f"part moves each pose its own way).\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
+        if d.test_set is not None and not d.test_set.holds and d.floor.known and d.floor.ratio(
+                d.heldout_mean_position_mm) is not None and d.test_set.folds_mean_mm <= d.test_set.mean_mm:
+            sparse = ", ".join(d.test_set.sparse_joints)
+            return (f"verdict: unexplained — the folds reach {times_the_noise(d.heldout_mean_position_mm, d.floor.mean_position_mm).lstrip('= ')}, "
+                    f"but the test set is {d.test_set.ratio:.1f}× the folds: the model holds only on the training "
+                    f"poses' values{f' of {sparse}' if sparse else ''}.\n  measure poses spread over "
+                    f"{sparse or 'the joints'} (`campaign auto` does), then diagnose again")
         return (f"verdict: unexplained — the model's cross-validated mean {d.heldout_mean_position_mm:.4g} mm is "
                 f"{times_the_noise(d.heldout_mean_position_mm, d.floor.mean_position_mm).lstrip('= ')}, but neither a "
                 "candidate nor the regressor finds on which input the rest depends (a pose-to-pose error the inputs "
@@ -1074,6 +1087,11 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     time_moved = bool(timed is not None and timed.moved)
     # structure found, or poses that moved as the model does not predict, are above the noise
     at_floor = False if ((struct_sig or time_moved) and fv.at_floor) else fv.at_floor
+    residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
+    tested = test_set_check(data, fits, residuals)
+    if tested is not None and not tested.holds and fv.at_floor:  # at the floor on the folds only
+        say(tested.text())
+        at_floor, fv = False, replace(fv, at_floor=False)
     specs, absent = absent_in_time(() if fv.round_off else data.candidates, timed)  # time the poses deny
     for name, reason in absent:
         say(f"{name}: {reason}")
@@ -1098,7 +1116,6 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         say("signature of the structure (periodicity, time, gravity load)")
         signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct, depends, r_out,
                              data.poses.time_s[data.tr], residual_fit=r_fit)
-    residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
     return Diagnosis(data.run_dir, data.current, scores,
                      choose_verdict(scores, struct, struct_sig, fv, depends, time_moved),
                      len(data.tr),
@@ -1106,4 +1123,15 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
-                     data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap)
+                     data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap, tested)
+
+
+def test_set_check(data: DiagnosisData, fits: CurrentFits, residuals):
+    """The current model (fitted on every training pose) on the test set against its held-out
+    folds (campaign.diagnose.testset); None without a test set."""
+    from campaign.diagnose.testset import check_test_set
+
+    if not data.is_test.any():
+        return None
+    e_test = np.linalg.norm(residuals[data.is_test, :3], axis=1) * 1e3
+    return check_test_set(e_test, fits.before, data.poses.q[data.tr], data.poses.q[data.is_test])
