@@ -313,81 +313,105 @@ def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_seg
     return result
 
 
+@dataclass(frozen=True)
+class _Fitting:
+    """The training poses of the kept segments as the fits see them: near the nominal model, with
+    each pose's segment in the context (``ctx``; ``base_ctx`` without it)."""
+
+    q: np.ndarray
+    T: np.ndarray
+    seg: np.ndarray  # (n,) segment of each (into CellSegments.cells)
+    pose_id: np.ndarray
+    ctx: dict
+    base_ctx: dict
+
+    def sub(self, rows, joint: bool = True) -> tuple:
+        ctx = self.ctx if joint else self.base_ctx
+        return self.q[rows], self.T[rows], {key: v[rows] for key, v in ctx.items()}
+
+
+def _fitting(poses, seg, train, kept, maps0, to_ref) -> _Fitting:
+    from campaign.effects.base import effect_context
+    from campaign.measure.reflectors import invert
+
+    index = {s: i for i, s in enumerate(kept)}
+    rows = np.flatnonzero(train & np.isin(seg, kept))
+    T = invert(to_ref) @ np.stack([maps0[int(s)] for s in seg[rows]]) @ poses.T_IE[rows]
+    base_ctx = {k: v[rows] for k, v in effect_context(poses.context, poses.time_s).items()}
+    ctx = {**base_ctx, SEGMENT_KEY: np.array([index[int(s)] for s in seg[rows]], dtype=float)}
+    return _Fitting(poses.q[rows], T, seg[rows], np.asarray(poses.pose_id)[rows], ctx, base_ctx)
+
+
 def _register_and_test(robot, poses, seg, train, kept, maps0, to_ref, effects, position_only, base, say, needed):
     """(the refined maps, the agreement tests): the joint fit with a step per segment on all training
     poses, then K folds of the joint and the separate models (module docstring). The fits see the
     data near the nominal model (``to_ref``⁻¹ of the reference frame: data in a tracker's frame are
     metres from the robot's), where the model's linearisation holds."""
-    from scipy import stats
-
-    index = {s: i for i, s in enumerate(kept)}
-    rows = np.flatnonzero(train & np.isin(seg, kept))
-    q = poses.q[rows]
+    from campaign.effects.base import make_effect
     from campaign.measure.reflectors import invert
 
-    M = invert(to_ref) @ np.stack([maps0[int(s)] for s in seg[rows]])
-    T = M @ poses.T_IE[rows]
-    from campaign.effects.base import effect_context, make_effect
-
-    base_ctx = {k: v[rows] for k, v in effect_context(poses.context, poses.time_s).items()}
-    ctx = {**base_ctx, SEGMENT_KEY: np.array([index[int(s)] for s in seg[rows]], dtype=float)}
-    step = CellStep(robot, len(kept))
-    joint_effects = (*effects, step)
-    say(f"cell segments: one model with a registration per segment on {len(rows)} training poses")
-    full = _fit(robot, joint_effects, position_only, q, T, ctx, base)
+    data = _fitting(poses, seg, train, kept, maps0, to_ref)
+    joint_effects = (*effects, CellStep(robot, len(kept)))
+    say(f"cell segments: one model with a registration per segment on {len(data.q)} training poses")
+    full = _fit(robot, joint_effects, position_only, *data.sub(slice(None)), base)
     theta = full.effect_set_.split(full.effect_params_)[-1]
     maps = {kept[0]: maps0[kept[0]]}
     for i, s in enumerate(kept[1:], start=1):
         maps[s] = to_ref @ invert(step_matrix(theta[6 * (i - 1):6 * i])) @ invert(to_ref) @ maps0[s]
-    # the folds: joint and separate models on the same held-out poses
-    n_effect = sum(make_effect(e, robot).n_params for e in effects)
-    need = needed(base.n_base + n_effect, position_only)
-    k = CELL_FOLDS
-    s_rows = seg[rows]
-    fold = _folds(poses.pose_id[rows], s_rows, k)
-    joint_err = np.full(len(rows), np.nan)
-    alone_err = np.full(len(rows), np.nan)
-    own = {s for s in kept if len(np.unique(poses.q[rows][(s_rows == s)], axis=0)) * (k - 1) // k >= need}
-    say(f"cell segments: do they agree beyond it? {k} folds, one model against "
+    need = needed(base.n_base + sum(make_effect(e, robot).n_params for e in effects), position_only)
+    fold = _folds(data.pose_id, data.seg, CELL_FOLDS)
+    own = {s for s in kept
+           if len(np.unique(data.q[data.seg == s], axis=0)) * (CELL_FOLDS - 1) // CELL_FOLDS >= need}
+    say(f"cell segments: do they agree beyond it? {CELL_FOLDS} folds, one model against "
         + (", ".join(f"segment {s + 1} alone" for s in sorted(own)) or "the segments' held-out errors"))
-    for f in range(k):
+    joint_err, alone_err = _heldout_errors(robot, data, fold, joint_effects, effects, position_only, base,
+                                           full.values_, own)
+    return maps, tuple(_segment_test(s, data.seg == s, joint_err, alone_err, len(kept)) for s in kept)
+
+
+def _heldout_errors(robot, data, fold, joint_effects, effects, position_only, base, init, own) -> tuple:
+    """Held-out position errors (n,) mm of the joint model and of each ``own`` segment's model alone
+    (NaN for the others, and for a segment whose own fit fails on a fold)."""
+    from campaign.errors import CampaignError
+
+    joint_err, alone_err = np.full(len(fold), np.nan), np.full(len(fold), np.nan)
+    for f in range(CELL_FOLDS):
         fit, out = fold != f, fold == f
         if not out.any():
             continue
-        sub = {key: v[fit] for key, v in ctx.items()}
-        m = _fit(robot, joint_effects, position_only, q[fit], T[fit], sub, base, init=full.values_)
-        dz = m.residuals(q[out], T[out], {key: v[out] for key, v in ctx.items()})
-        joint_err[out] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
+        m = _fit(robot, joint_effects, position_only, *data.sub(fit), base, init=init)
+        joint_err[out] = np.linalg.norm(m.residuals(*data.sub(out))[:, :3], axis=1) * 1e3
         for s in own:
-            fs, os_ = fit & (s_rows == s), out & (s_rows == s)
+            fs, os_ = fit & (data.seg == s), out & (data.seg == s)
             if not os_.any():
                 continue
-            alone = _fit(robot, effects, position_only, q[fs], T[fs], {key: v[fs] for key, v in base_ctx.items()}, base)
-            dz = alone.residuals(q[os_], T[os_], {key: v[os_] for key, v in base_ctx.items()})
-            alone_err[os_] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
-    tests = []
-    n_tests = len(kept)
-    for s in kept:
-        mine = s_rows == s
-        if s in own:
-            d = joint_err[mine] - alone_err[mine]
-            t, p = _one_sided(stats.ttest_1samp(d, 0.0))
-            joint, other, kind = float(joint_err[mine].mean()), float(alone_err[mine].mean()), "paired"
-        else:
-            t, p = _one_sided(stats.ttest_ind(joint_err[mine], joint_err[~mine], equal_var=False))
-            joint, other, kind = float(joint_err[mine].mean()), float(joint_err[~mine].mean()), "welch"
-        bad = bool(p < CELL_AGREEMENT_ALPHA / n_tests and joint > (1.0 + CELL_AGREEMENT_MARGIN) * other)
-        tests.append(SegmentTest(s, kind, int(mine.sum()), joint, other, t, p, bad))
-    return maps, tuple(tests)
+            try:
+                alone = _fit(robot, effects, position_only, *data.sub(fs, joint=False), base)
+            except CampaignError:  # this segment's fold fit cannot identify the model: tested as a small one
+                alone_err[data.seg == s] = np.nan
+                own = own - {s}
+                continue
+            alone_err[os_] = np.linalg.norm(alone.residuals(*data.sub(os_, joint=False))[:, :3], axis=1) * 1e3
+    for s in set(np.unique(data.seg)) - set(own):
+        alone_err[data.seg == s] = np.nan
+    return joint_err, alone_err
 
 
-def _one_sided(res) -> tuple:
-    """(t, one-sided p of "greater") of a scipy t-test result; (0, 1) when undefined (no spread)."""
-    t = float(res.statistic)
-    if not np.isfinite(t):
-        return 0.0, 1.0
+def _segment_test(s, mine, joint_err, alone_err, n_tests) -> SegmentTest:
+    """Segment ``s``'s agreement test (module docstring, step 2): paired against its own model when
+    every held-out pose of it has one, else Welch against the other segments in the joint model."""
     from scipy import stats
 
-    df = float(getattr(res, "df", np.nan))
-    p = float(stats.t.sf(t, df)) if np.isfinite(df) else float(res.pvalue) / 2.0 if t > 0 else 1.0 - float(res.pvalue) / 2.0
-    return t, p
+    joint = joint_err[mine]
+    if np.isfinite(alone_err[mine]).all():
+        alone = alone_err[mine]
+        res = stats.ttest_rel(joint, alone, alternative="greater")
+        kind, other = "paired", float(alone.mean())
+    else:
+        res = stats.ttest_ind(joint, joint_err[~mine], equal_var=False, alternative="greater")
+        kind, other = "welch", float(joint_err[~mine].mean())
+    t, p = float(res.statistic), float(res.pvalue)
+    if not (np.isfinite(t) and np.isfinite(p)):  # no spread at all (exact data): nothing to tell apart
+        t, p = 0.0, 1.0
+    bad = bool(p < CELL_AGREEMENT_ALPHA / n_tests and float(joint.mean()) > (1.0 + CELL_AGREEMENT_MARGIN) * other)
+    return SegmentTest(s, kind, int(mine.sum()), float(joint.mean()), other, t, p, bad)
