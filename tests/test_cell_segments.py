@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from campaign.cli import main
-from campaign.errors import DataError
+from campaign.errors import ConfigError, DataError
 from campaign.measure.store import open_run
 from campaign.paths import DEFAULT_SCENE
 
@@ -250,3 +250,53 @@ def test_a_few_poses_of_another_robot_are_refused(runs, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "do not agree beyond a registration" in err[0]
     assert "6 poses, the 31st-36th measured" in err[0] and "segment 1: held-out" in err[0] and "paired t" in err[0]
+
+
+def test_segments_follow_the_sessions_cells_in_the_log(tmp_path):
+    """Each measured pose belongs to the cell of the session it was stored in; a session recorded
+    before cells were (no cell) belongs to the cell before it, else the first; a cell measured on
+    again adds to its segment; a failed pose makes no segment."""
+    import time
+
+    from campaign.measure.store import PoseRecord
+    from campaign.run import RunFolder
+
+    a = {"kind": "sim", "spec": "--sim", "fingerprint": "a" * 16, "detail": {}}
+    b = {"kind": "cell", "spec": "--cell mujoco", "fingerprint": "b" * 16, "detail": {}}
+    sessions = [(None, [1], "measured"), (a, [2], "measured"), (b, [3], "measured"), (b, [4], "failed"),
+                (a, [5], "measured"), ({**b, "fingerprint": "c" * 16}, [6], "failed")]
+    with open_run(tmp_path, create=True) as store:
+        for cell, ids, status in sessions:
+            store.add_event("session_start", {"cell": cell})
+            time.sleep(0.002)
+            for i in ids:
+                store.add_pose(PoseRecord(i, status, (0.0,) * 6, seq=i, time_s=float(i), wall_time_unix_s=time.time(),
+                                          xyz=(0.0, 0.0, 0.0) if status == "measured" else None,
+                                          rotvec=(0.0, 0.0, 0.0) if status == "measured" else None))
+            time.sleep(0.002)
+    segments = RunFolder(tmp_path).cell_segments()
+    assert [c["fingerprint"] for c in segments.cells] == ["a" * 16, "b" * 16, "c" * 16]
+    assert segments.of([1, 2, 3, 5]).tolist() == [0, 0, 1, 0] and segments.mixed
+    assert segments.describe(1) == "segment 2 (--cell mujoco, fingerprint bbbbbbbbbbbbbbbb): 1 pose, the 3rd measured (id 3)"
+    assert [s["n_poses"] for s in segments.as_json()] == [3, 1, 0]
+
+
+def test_a_cell_recorded_before_its_world_held_the_placement_is_the_same_cell(runs):
+    """A run begun before the simulated world's fingerprint held the scene's placement, resumed on
+    the same world: the same cell (no refusal, no second segment); a tracker moved from a recorded
+    placement: another."""
+    from campaign.config import load_config
+    from campaign.measure.cell_identity import _fingerprint, cell_identity, refuse_other_cell, same_cell
+
+    run = runs.make(n=4)
+    cfg = load_config(run / "campaign.yaml")
+    now = cell_identity(cfg, sim=True)
+    world = {k: v for k, v in now["detail"]["world"].items() if k != "placement"}
+    before = {**now, "detail": {"world": world}, "fingerprint": _fingerprint("sim", {"world": world})}
+    assert before["fingerprint"] != now["fingerprint"] and same_cell(before, now) and same_cell(now, before)
+    assert refuse_other_cell(run, before, now) == before
+    _changed(run, _move_tracker)
+    moved = cell_identity(load_config(run / "campaign.yaml"), sim=True)
+    assert not same_cell(now, moved)  # (a record without its placement cannot tell a moved tracker)
+    with pytest.raises(ConfigError, match=r"sim\.placement\.T_cell_L changed"):
+        refuse_other_cell(run, now, moved)

@@ -242,9 +242,10 @@ class CellSegments:
         if pose_ids is not None:
             ids = ids[np.isin(ids, np.asarray(pose_ids))]
         order = np.flatnonzero(np.isin(self.pose_ids, ids))
-        where = (f", the {_ordinal(order[0] + 1)}-{_ordinal(order[-1] + 1)} measured" if len(order) else "")
+        where = ("" if not len(order) else f", the {_ordinal(order[0] + 1)} measured" if len(order) == 1 else
+                 f", the {_ordinal(order[0] + 1)}-{_ordinal(order[-1] + 1)} measured")
         span = f" (first id {ids[0]}, last {ids[-1]})" if len(ids) > 1 else f" (id {ids[0]})" if len(ids) else ""
-        return f"{self.label(k)}: {len(ids)} poses{where}{span}"
+        return f"{self.label(k)}: {len(ids)} pose{'' if len(ids) == 1 else 's'}{where}{span}"
 
     def as_json(self, pose_ids=None) -> list:
         """metrics.json / diagnosis.json ``cells.segments``: one entry per segment."""
