@@ -41,6 +41,7 @@ def _move_tracker(cfg, run):
 def test_a_run_resumed_with_the_tracker_moved_is_one_model_with_a_step_per_segment_not_a_drift(runs, capsys, robot):
     run, err = _half_then(runs, capsys, 60, _move_tracker, sim={"hidden_effects": []})
     assert "moved" not in err  # the driver's drift check compares readings on one cell only
+    assert "its own set-up is measured" in err
     assert main(["calibrate", str(run), "--no-ann", "--no-report"]) == 0
     out = capsys.readouterr().out
     said = [line for line in out.splitlines() if "registration per segment" in line]
@@ -62,21 +63,24 @@ def test_a_run_resumed_with_the_tracker_moved_is_one_model_with_a_step_per_segme
     assert not any(c["significant"] for c in doc["ranking"])
     assert doc["drift"]["significant"] is not True
 
-    # only now the truth: segment 2's readings were derived with segment 1's set-up T_LI (stored in the
-    # run), so the step from its frame into segment 1's is T_LI⁻¹ T_LI,1 T_LI,2⁻¹ T_LI
+    # only now the truth: each segment's readings were derived with its own base-frame set-up (the
+    # second cell measured its own, stored with it: the `setup` events), so the step from segment 2's
+    # frame into segment 1's is T_LI,set-up 1⁻¹ T_LI,1 T_LI,2⁻¹ T_LI,set-up 2 (the set-ups' errors)
     from campaign.model.rotations import matrix_to_rotvec
     from campaign.plan.scene import load_scene
 
     with open_run(run) as store:
-        T_setup = np.asarray(store.get_meta("T_LI"), dtype=float)
+        setups = [np.asarray(d["T_LI"], dtype=float) for _, _, _, d in store.events("setup")]
     T1 = load_scene(DEFAULT_SCENE).placed(robot).T_LI
     T2 = load_scene(run.parent / "moved_scene.yaml").placed(robot).T_LI
-    truth = np.linalg.inv(T_setup) @ T1 @ np.linalg.inv(T2) @ T_setup
+    assert len(setups) == 2 and np.linalg.norm(setups[1][:3, 3] - setups[0][:3, 3]) > 0.3  # the tracker moved
+    truth = np.linalg.inv(setups[0]) @ T1 @ np.linalg.inv(T2) @ setups[1]
     reg = cells["registration"][1]
-    assert reg["segment"] == 2 and np.linalg.norm(truth[:3, 3]) > 0.3  # a real step: 0.4 m and 0.35 rad
+    assert reg["segment"] == 2
     R = np.asarray(_rotvec_matrix(reg["rotation_vector_rad"]))
     # within the noise: 30 poses of 10 µm determine the step's six unknowns to a few µm (µrad over the
-    # arm's metre); the nominal model's registration alone, before the joint fit, is 0.6 mm and 1 mrad off
+    # arm's metre), the set-ups' own errors (tens of µm) beside them
+    assert np.linalg.norm(matrix_to_rotvec(truth[:3, :3])) > NOISE_M / 1.0  # a step the identity would miss
     assert np.linalg.norm(np.asarray(reg["translation_m"]) - truth[:3, 3]) < 2 * NOISE_M
     assert np.linalg.norm(matrix_to_rotvec(R.T @ truth[:3, :3])) < NOISE_M / 1.0
 

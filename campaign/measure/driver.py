@@ -342,8 +342,12 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
                 T_LI = np.eye(4).tolist()
             else:
                 T_LI = store.get_meta("T_LI")
+                if T_LI is not None and cell_identity is not None and not _setup_is_of(store, cell_identity):
+                    say(f"another cell ({cell_identity['spec']}) than the base-frame set-up was measured on: its "
+                        "own set-up is measured (another tracker placement is another frame)")
+                    T_LI = None
             if T_LI is None:
-                T_LI = _setup(store, trk, opts, base)
+                T_LI = _setup(store, trk, opts, base, cell_identity)
             T_LI = np.array(T_LI, dtype=float)
             geometry = ("robot.yaml's reflectors" if robot.reflectors else
                         "the default triad: robot.yaml names no reflectors")
@@ -386,11 +390,26 @@ def run_campaign(run_dir, robot, controller, tracker, opts: RunOptions = RunOpti
                      kind, remaining_total - n_ok - n_fail)
 
 
-def _setup(store, trk, opts, base):
-    """Base-frame set-up: the three set-up points, each averaged over repeats → T_LI, kept in meta."""
+def _setup_is_of(store, identity) -> bool:
+    """Whether the run's base-frame set-up (meta ``T_LI``) was measured on the cell ``identity``: the
+    cell recorded with it (meta ``setup_cell``), else (a set-up from before that was recorded) the
+    run's first recorded cell; True when neither is known."""
+    from campaign.measure.cell_identity import same_cell
+
+    setup = store.get_meta("setup_cell")
+    if setup is None:
+        setup = (store.get_meta("cells") or [None])[0]
+    return setup is None or same_cell(setup, identity)
+
+
+def _setup(store, trk, opts, base, cell=None):
+    """Base-frame set-up: the three set-up points, each averaged over repeats → T_LI, kept in meta
+    with the cell it was measured on (``cell``, meta ``setup_cell``). A run's later set-up (on
+    another cell) asks with request ids of its own (peers answer a repeated id with its first reply)."""
     pts = {t: [] for t in P.SETUP_TARGETS}
+    first = base + _SETUP_ID + 1024 * len(store.events("setup"))
     for k in range(opts.setup_repeats):
-        reply = trk.request(P.Measure(base + _SETUP_ID + k, P.SETUP_TARGETS), opts.timeout_s)
+        reply = trk.request(P.Measure(first + k, P.SETUP_TARGETS), opts.timeout_s)
         if not isinstance(reply, P.Measurement):
             raise PeerError(f"tracker: answered '{reply.type}' to the set-up measurement")
         for r in reply.readings:
@@ -412,8 +431,11 @@ def _setup(store, trk, opts, base):
     dof = 3 * (len(dev) - len(pts))
     if dof > 0:
         store.set_meta("setup_noise_m", {"sigma": float(np.sqrt(np.sum(dev ** 2) / dof)), "dof": int(dof)})
+    if cell is not None:
+        store.set_meta("setup_cell", cell)
     store.set_meta("T_LI", T_LI)  # last: its presence marks the set-up as done
-    store.add_event("setup", {"T_LI": T_LI, "readings": {t: len(v) for t, v in pts.items()}})
+    store.add_event("setup", {"T_LI": T_LI, "readings": {t: len(v) for t, v in pts.items()},
+                              **({} if cell is None else {"cell": cell.get("fingerprint")})})
     return T_LI
 
 

@@ -231,6 +231,18 @@ class MeasurementStore:
                                 (kind,) if kind else ()).fetchall()
         return [(k, p, t, json.loads(d)) for k, p, t, d in rows]
 
+    def _setup_of(self, pose_ids, T_LI) -> np.ndarray:
+        """T_LI (n, 4, 4) in force when each of ``pose_ids`` was measured: a run resumed on another
+        cell measured that cell's own set-up (campaign.measure.driver); ``T_LI`` (meta) when the run
+        has one set-up."""
+        walls, setups = _setup_walls(self._db)
+        if len(setups) < 2:
+            return np.broadcast_to(np.asarray(T_LI, dtype=float), (len(pose_ids), 4, 4))
+        when = dict(self._db.execute("SELECT pose_id, wall_time_unix_s FROM poses").fetchall())
+        w = np.array([np.nan if when.get(int(p)) is None else when[int(p)] for p in pose_ids], dtype=float)
+        at = np.clip(np.searchsorted(walls, np.nan_to_num(w, nan=-np.inf), side="right") - 1, 0, None)
+        return setups[at]
+
     def forget_failed(self) -> list:
         """Delete the failed poses (one transaction) so a re-run measures them again; their ids."""
         with self._writing("the forgetting of failed poses") as db:
@@ -299,7 +311,7 @@ class MeasurementStore:
             if names and T_LI is not None and self.get_meta("frame", "robot") == "robot":
                 from campaign.measure.reflectors import invert, transform_points
 
-                markers = transform_points(invert(np.asarray(T_LI, dtype=float)), markers)
+                markers = transform_points(invert(self._setup_of(pid, T_LI)), markers)
             # a pose only where its rigid fit was (three or more seen): no rotation, no pose
             num[np.isnan(num[:, 10:13]).any(axis=1), 7:10] = np.nan
         poses = MeasuredPoses.from_vectors(pid, num[:, 0], q, num[:, 7:10], num[:, 10:13], context, kind=kind,
@@ -311,6 +323,14 @@ class MeasurementStore:
         if not usable.any():
             raise DataError(f"{self.path}: no pose has three reflectors seen")
         return poses.subset(np.flatnonzero(usable))
+
+
+def _setup_walls(db) -> tuple:
+    """(wall times (k,), T_LI (k, 4, 4)) of the log's base-frame set-ups, in order."""
+    rows = db.execute("SELECT wall_time_unix_s, detail FROM events WHERE kind = 'setup' ORDER BY seq").fetchall()
+    rows = [(w, json.loads(d).get("T_LI")) for w, d in rows]
+    rows = [(w, T) for w, T in rows if T is not None]
+    return np.array([w for w, _ in rows], dtype=float), np.array([T for _, T in rows], dtype=float).reshape(-1, 4, 4)
 
 
 def damaged_message(path, detail) -> str:
