@@ -173,10 +173,8 @@ class CellDecision:
             return (f"measured on {self.segments.n} cells ({names}): they agree beyond one registration per segment "
                     f"({tests}); modelled on all poses with per-segment registrations into segment "
                     f"{self.reference + 1}'s frame ({steps}){out}")
-        return (f"measured on {self.segments.n} cells ({names}); --cell-segment {self.chosen + 1}: its poses alone"
-                + ("" if self.chosen == self.reference or self.chosen not in self.maps else
-                   f", registered into segment {self.reference + 1}'s frame ({_step_words(self.maps[self.chosen])})")
-                + f" ({tests}){out}")
+        return (f"measured on {self.segments.n} cells ({names}); --cell-segment {self.chosen + 1}: its poses alone "
+                f"({tests}){out}")
 
     def refusal(self, run_dir) -> str:
         names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
@@ -286,30 +284,29 @@ def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_seg
     position_only = not poses.has_orientation
     usable = np.isfinite(poses.xyz).all(axis=1)
     counts = {s: int((train & usable & (seg == s)).sum()) for s in range(segments.n)}
-    left_out = {s: f"{n} training poses, too few to register it ({CELL_MIN_REGISTRATION_POSES} needed)"
+    posed = "" if poses.kind != "markers" else " with a pose (three or more reflectors seen)"
+    left_out = {s: f"{n} training poses{posed}, too few to register it ({CELL_MIN_REGISTRATION_POSES} needed)"
                 for s, n in counts.items() if n < CELL_MIN_REGISTRATION_POSES and (seg == s).any()}
     left_out.update({s: "no pose measured" for s in range(segments.n) if not (seg == s).any()})
     kept = tuple(s for s in range(segments.n) if s not in left_out)
-    if chosen is not None and chosen in left_out:
-        raise DataError(f"{run_dir}: --cell-segment {chosen + 1}: {segments.describe(chosen, poses.pose_id)}: "
-                        f"{left_out[chosen]}")
-    if not kept:
+    if not kept and chosen is None:
         raise DataError(f"{run_dir}: measured on {segments.n} cells, none with {CELL_MIN_REGISTRATION_POSES} "
-                        "training poses to register it")
-    ref = kept[0]
-    maps0, to_ref = initial_maps(robot, poses, seg, train, kept)
+                        f"training poses{posed} to register it: calibrate one segment with --cell-segment N "
+                        f"(N = 1..{segments.n})")
+    ref = kept[0] if kept else chosen
+    maps0, to_ref = initial_maps(robot, poses, seg, train, kept) if kept else ({}, np.eye(4))
     maps, tests = dict(maps0), ()
     if len(kept) > 1:
         maps, tests = _register_and_test(robot, poses, seg, train & usable, kept, maps0, to_ref, effects, position_only,
                                          base_parameters(robot, position_only=position_only), say,
                                          training_poses_needed)
     decision = "mixed" if chosen is None else "segment"
+    if chosen is not None:  # its poses alone, in their own frame (each cell's set-up is its own)
+        ref, maps = chosen, {chosen: np.eye(4)}
     result = CellDecision(segments, seg, kept, ref, maps, maps0, tests, decision, chosen, left_out,
                           np.asarray(poses.pose_id))
     if chosen is None and not result.agree:
         raise DataError(result.refusal(run_dir))
-    if chosen is not None:  # its poses alone: the initial registration places them near the reference frame
-        result = replace(result, maps={**maps0, **{s: maps0[s] for s in kept}})
     return result
 
 
