@@ -136,3 +136,38 @@ def test_auto_stops_naming_both_when_poses_chosen_to_separate_them_did_not():
     got = decide(d, _round(), separate, Limits(312, None, None), _StubLoop(30))
     assert got.kind == "stop" and got.reason == "indistinguishable"
     assert "joint_compliance of joint 6 and backlash of joint 6 are indistinguishable" in got.text
+
+
+def test_auto_measures_poses_that_separate_an_indistinguishable_pair(tmp_path):
+    """The separating round on a real plan: poses the plan lacks where compliance and backlash of
+    the COMAU's joint 5 differ most, i.e. where its gravity torque bends tanh; with them the share
+    of backlash's shape that compliance cannot take grows more than with as many random poses."""
+    from types import SimpleNamespace
+
+    from campaign.auto import Limits, decide
+    from campaign.effects.gravity import gravity_torques
+    from campaign.measure.driver import read_plan
+    from campaign.plan.extend import plan_space
+    from test_auto import _diagnosis, _round
+
+    run = tmp_path / "r"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--select", "30", "--quiet"]) == 0
+    space = plan_space(RunFolder(run))
+    ids, Q, _ = read_plan(run)
+    loop = SimpleNamespace(space=space, room=lambda n: (min(n, 12), None), training=lambda: (ids, np.zeros(len(ids))),
+                           planned=lambda: (ids, Q), design_effects=lambda: ())
+    d = _diagnosis("unexplained", significant=False)
+    d.indistinguishable = (Rival(5, "joint_compliance:5", "backlash:5", 0.10, 0.10, 0.01),)
+    got = decide(d, _round(), [], Limits(312, None, None), loop)
+    assert got.kind == "design" and got.reason == "separate" and len(got.pose_ids) == 12, got
+    assert not set(got.pose_ids) & set(map(int, ids)) and set(got.pose_ids) <= set(map(int, space.suitable))
+
+    def bend(q):  # the share of backlash's shape on joint 5 that compliance's cannot take
+        t = gravity_torques(space.robot, q)[:, 4]
+        b = np.tanh(t)
+        return float(np.linalg.norm(b - t * (t @ b) / (t @ t)) / np.linalg.norm(b))
+
+    free = np.setdiff1d(space.suitable, ids)
+    random = np.random.default_rng(0).choice(free, 12, replace=False)
+    chosen = bend(np.concatenate([Q, space.grid.q(np.array(got.pose_ids))]))
+    assert chosen > 1.1 * bend(np.concatenate([Q, space.grid.q(random)])) and chosen > 1.1 * bend(Q)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from campaign.auto.state import Decision, Limits, Round
 from campaign.diagnose.engine import leads_to
 from campaign.diagnose.timing import TIME_INPUTS
@@ -307,31 +309,35 @@ def _test_first(diagnosis, best, before, loop) -> Decision | None:
 
 def _separate(diagnosis, before, loop) -> Decision | None:
     """Poses that separate two effects the poses cannot tell apart on one joint (diagnose's
-    ``indistinguishable``, neither named for it): the optimal design for the current model with both
-    (the direction in which they differ is the one the measured poses inform least, so the design
-    spends its poses there: for backlash against compliance, poses where the joint's gravity torque
-    bends the tanh and poses near its sign change). After SEPARATE_ROUNDS such rounds, a stop that
-    names both; None when the limits leave no room or no pose is left."""
-    from campaign.effects.base import merge_effects
-    from campaign.plan.extend import design_poses
+    ``indistinguishable``, neither named for it): where one's signal differs most from the best fit
+    of the other (:func:`campaign.plan.extend.separating_poses`; for backlash against compliance,
+    where the joint's gravity torque bends the tanh), the room shared among the pairs. After
+    SEPARATE_ROUNDS such rounds, a stop that names both; None when the limits leave no room or no
+    pose is left."""
+    from campaign.plan.extend import separating_poses
 
     pairs = diagnosis.indistinguishable
     what = "; ".join(f"{r.words()} on these poses" for r in pairs)
     done = sum(1 for r in before if r.decision.reason == "separate")
     if done >= SEPARATE_ROUNDS:
+        either = " or ".join(f"[{r.own}] or [{r.rival}]" for r in pairs)
         return Decision("stop", f"stop: {what}, still after {done} rounds of poses chosen to separate them: the "
-                                "data cannot say which, and neither is added", reason="indistinguishable")
+                                f"data cannot say which, and neither is added (they predict alike here: if you know "
+                                f"which is there, add it, effects: {either})", reason="indistinguishable")
     n, _ = loop.room(REVEAL_POSES)
     if n <= 0:
         return None
-    effects = merge_effects(loop.design_effects(), [s for r in pairs for s in (r.own, r.rival)], loop.space.robot)
     ids_train, _ = loop.training()
     ids, _ = loop.planned()
-    chosen, _, _ = design_poses(loop.space, ids_train, ids, effects, n_max=n)
-    if len(chosen) == 0:
+    chosen = []
+    for k, r in enumerate(pairs):
+        share = (n - len(chosen)) // (len(pairs) - k)
+        chosen += [int(p) for p in separating_poses(loop.space, ids_train, np.concatenate([ids, chosen]), r.own,
+                                                    r.rival, share)]
+    if not chosen:
         return None
-    return Decision("design", f"{what}: measure the {len(chosen)} poses that best separate them (the optimal design "
-                              f"for the model with both)", pose_ids=tuple(int(p) for p in chosen), reason="separate")
+    return Decision("design", f"{what}: measure the {len(chosen)} poses where they differ most",
+                    pose_ids=tuple(chosen), reason="separate")
 
 
 def _reveal_rounds(before) -> int:

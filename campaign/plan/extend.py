@@ -12,6 +12,9 @@ Three ways to choose (each deterministic: the same measured data give the same p
 * :func:`spread_poses` — poses that fill the gaps of the measured ones over given inputs (joint
   angles, or the gravity load): farthest-point sampling in those inputs scaled to their range,
   so that a structure the model-free test found gets the evidence it needs.
+* :func:`separating_poses` — where two effects that the measured poses cannot tell apart differ
+  most (T-optimal design): each one's position signal less the best fit of the other (with a
+  constant offset of every joint and of the tool) over the measured poses and those chosen before.
 * :func:`remeasure_poses` — measured poses measured again now (repeat ids ``p + r·10⁹``): the
   oldest first, spread over the joints, so that a dependence on time shows as the same pose
   giving another answer later.
@@ -36,6 +39,11 @@ DESIGN_CHECK_EVERY = 4
 #: as it takes the commanded joints): the noise floor pools repeats of identical joint vectors, and
 #: two measurements hours apart would give it the drift between them, not the noise
 REMEASURE_OFFSET_RAD = 1e-6
+#: free suitable poses :func:`separating_poses` weighs at most (an even stride over them): a few
+#: forward kinematics each
+SEPARATE_CANDIDATES = 20000
+#: central-difference step of an effect's parameters and of the joints, in their units
+SIGNAL_STEP = 1e-6
 
 
 @dataclass(frozen=True)
@@ -200,6 +208,70 @@ def spread_poses(space: PlanSpace, measured_ids, planned_ids, inputs, n: int) ->
         free[j] = False
         gap = np.minimum(gap, np.linalg.norm(F - F[j], axis=1))
     return space.suitable[np.array(chosen, dtype=np.int64)]
+
+
+def separating_poses(space: PlanSpace, measured_ids, planned_ids, first: str, second: str, n: int) -> np.ndarray:
+    """``n`` new poses (grid indices) that separate effects ``first`` and ``second`` (specs), which
+    the measured poses cannot tell apart: the T-optimal design of model discrimination (Atkinson &
+    Fedorov 1975), both ways. At each pose, one effect's position signal (at its typical parameters)
+    less the least-squares fit of the other, with a constant offset of every joint and of the tool
+    (what the geometry takes), fitted on the measured poses and those chosen before; the pose with
+    the largest misfit (the two ways' sum, each over its largest) is chosen next."""
+    from campaign.effects.base import make_effect
+
+    where = {int(g): i for i, g in enumerate(space.suitable)}
+    known = np.array([where[int(b)] for b in base_pose_id(measured_ids) if int(b) in where], dtype=np.int64)
+    free = np.flatnonzero(_free(space, planned_ids))
+    cand = free[:: max(1, len(free) // SEPARATE_CANDIDATES)]
+    if n <= 0 or not len(cand):
+        return np.zeros(0, dtype=np.int64)
+    rows = np.concatenate([known, cand])
+    robot = space.robot
+    q = space.grid.q(space.suitable[rows])
+    effects = [make_effect(s, robot) for s in (first, second)]
+    offsets = _signal_columns(robot, q, None)  # (r, 3, N + 3): each joint's offset, the tool's translation
+    cols = [_signal_columns(robot, q, e) for e in effects]
+    signal = [c @ _typical(e) for c, e in zip(cols, effects)]
+    fit = list(range(len(known)))
+    chosen = []
+    for _ in range(min(n, len(cand))):
+        score = np.zeros(len(rows))
+        for a, b in ((0, 1), (1, 0)):  # each effect's signal against the other's best fit
+            A = np.concatenate([cols[a], offsets], axis=2)
+            c = np.linalg.lstsq(A[fit].reshape(-1, A.shape[2]), signal[b][fit].reshape(-1), rcond=None)[0] \
+                if fit else np.zeros(A.shape[2])
+            miss = np.linalg.norm(signal[b] - A @ c, axis=1)
+            score += miss / max(miss[len(known):].max(), 1e-300)
+        score[: len(known)] = -np.inf
+        score[chosen] = -np.inf
+        i = int(np.argmax(score))
+        chosen.append(i)
+        fit.append(i)
+    return space.suitable[rows[np.array(chosen, dtype=np.int64)]]
+
+
+def _typical(effect) -> np.ndarray:
+    """An effect's typical parameters (its ``typical_params`` when it has one, else ones)."""
+    typical = getattr(effect, "typical_params", None)
+    return np.asarray(typical(0) if typical is not None else np.ones(effect.n_params), dtype=float)
+
+
+def _signal_columns(robot, q, effect) -> np.ndarray:
+    """(n, 3, k): the tool origin's motion per unit of each of ``effect``'s k parameters at poses q
+    (central differences, SIGNAL_STEP), or with ``effect`` None per unit offset of each joint and
+    per unit translation of the tool (N + 3 columns)."""
+    from campaign.effects.base import EffectSet, model_pose
+    from campaign.model.kinematics import forward
+
+    if effect is None:
+        cols = [(forward(robot, q + d)[:, :3, 3] - forward(robot, q - d)[:, :3, 3]) / (2 * SIGNAL_STEP)
+                for d in SIGNAL_STEP * np.eye(q.shape[1])]
+        cols += [np.broadcast_to(e, (len(q), 3)) for e in np.eye(3)]
+        return np.stack(cols, axis=2)
+    es = EffectSet((effect,))
+    h = SIGNAL_STEP * np.eye(effect.n_params)
+    return np.stack([(model_pose(robot, q, None, es, d, {})[:, :3, 3] - model_pose(robot, q, None, es, -d, {})[:, :3, 3])
+                     / (2 * SIGNAL_STEP) for d in h], axis=2)
 
 
 def remeasure_poses(space: PlanSpace, measured_ids, times_s, n: int) -> np.ndarray:
