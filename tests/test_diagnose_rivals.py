@@ -70,6 +70,8 @@ def test_a_joint_of_the_model_that_another_effect_fits_better_is_replaced(tmp_pa
     assert "replace joint_compliance of joint 6 by backlash of joint 6" in d.text()
     got = decide(d, _round(), [], Limits(312, None, None), _StubLoop())
     assert got.kind == "remove_effect" and got.effects == ("joint_compliance:4", "backlash:6")
+    back = _round().__class__(**{**_round().__dict__, "effects": ("backlash:6", "joint_compliance:4")})
+    assert decide(d, _round(), [back], Limits(312, None, None), _StubLoop()).kind != "remove_effect"  # no way back
     assert rival.rival_mm == pytest.approx(_refit_mean(run, d, ["joint_compliance:4", "backlash:6"]), rel=0.03)
 
 

@@ -58,7 +58,10 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                                          f"changes by {1e3 * removal.gain_mm:+.1f} ± {1e3 * removal.gain_se_mm:.1f} µm "
                                          "(within its standard error)",
                         effect=removal.label, effects=tuple(diagnosis.effects_after_removal()))
-    if diagnosis.swap is not None:  # a joint of the model that another effect fits better in its place
+    earlier = {tuple(sorted(r.effects)) for r in before}
+    if diagnosis.swap is not None and tuple(sorted(diagnosis.swap[1])) not in earlier:
+        # a joint of the model that another effect fits better in its place (never back to a model
+        # of an earlier round: a pair that close swaps back and forth on the noise)
         rival, after = diagnosis.swap
         return Decision("remove_effect", f"replace {effect_label(rival.own)} by {effect_label(rival.rival)}: "
                                          f"{rival.text()}", effect=effect_label(rival.own), effects=tuple(after))
