@@ -3,6 +3,7 @@ modelled with one registration each (a step, never a drift), mixed only when the
 robot beyond it, refused in one line otherwise; a run of one cell is left exactly as it was."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -304,3 +305,32 @@ def test_a_cell_recorded_before_its_world_held_the_placement_is_the_same_cell(ru
     assert not same_cell(now, moved)  # (a record without its placement cannot tell a moved tracker)
     with pytest.raises(ConfigError, match=r"sim\.placement\.T_cell_L changed"):
         refuse_other_cell(run, now, moved)
+
+
+def test_two_reflector_data_of_two_cells_take_each_cells_own_set_up(runs, capsys):
+    """Two reflectors give no pose to register a segment by: one line says to calibrate one segment,
+    and each segment's raw readings are carried into F_I by the set-up of its own cell (segment 1's
+    by the first set-up, though the log's last is the moved tracker's)."""
+    import campaign
+
+    root = Path(campaign.__file__).parent / "data" / "robot_models" / "comau_racer5_080"
+    doc = yaml.safe_load((root / "robot.yaml").read_text())
+    doc.update(urdf=str(root / "robot.urdf"), name="comau_two", reflectors=doc["reflectors"][:2])
+    run = runs.make(n=60, sim={"hidden_effects": []})
+    (run.parent / "two.yaml").write_text(yaml.safe_dump(doc))
+    _changed(run, lambda cfg, run: cfg.update(robot=str(run.parent / "two.yaml")))
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "30"]) == 0
+    _changed(run, _move_tracker)
+    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "with a pose (three or more reflectors seen)" in err[0] and "--cell-segment N" in err[0]
+    for n in (1, 2):
+        assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet", "--cell-segment", str(n)]) == 0
+        metrics = json.loads((run / "calibration" / "metrics.json").read_text())
+        assert metrics["cells"]["segment"] == n and metrics["measurement_kind"] == "markers"
+        # in F_I: the nominal model millimetres off (the robot's errors), not the 0.4 m of another set-up
+        assert metrics["stages"]["nominal"]["test"]["position_mm"]["mean"] < 20
+        # each reflector at the noise: 10 µm per coordinate, its distance about 1.6 σ
+        assert metrics["stages"]["geometric"]["test"]["position_mm"]["mean"] < 3 * NOISE_M * 1e3
