@@ -236,3 +236,40 @@ def test_runfolder_and_watch_read_the_log_through_one_reader(tmp_path, robot):
         assert RunFolder(run).meta("x") == 1
     finally:
         writer.close()
+
+
+def test_the_iso9283_cube_leaves_room_for_a_calibrated_robots_corrections(tmp_path, robot):
+    """The default cell at the full grid: the largest cube put P5 0.7° from joint 4's limit, and the
+    corrections of a calibration of the default truth (35 mrad of tool orientation) took it 4.1° past:
+    `--compensate` refused P5 on 6 of 6 calibrations. Every test pose now keeps JOINT_MARGIN_RAD."""
+    import json
+
+    cfg = tmp_path / "campaign.yaml"
+    cfg.write_text("sim: {seed: 3, time_factor: 0.0, noise_m: 1.0e-05}\n")
+    assert main(["synth", "--csv", str(tmp_path / "m.csv"), "--poses", "150", "--seed", "3"]) == 0
+    assert main(["import", str(tmp_path / "m.csv"), "--run", str(tmp_path / "cal"), "--quiet"]) == 0
+    assert main(["calibrate", str(tmp_path / "cal"), "--no-ann", "--no-report", "--quiet"]) == 0
+    run = tmp_path / "iso"
+    assert main(["plan", "--config", str(cfg), "--run", str(run), "--iso9283", "--cycles", "2",
+                 "--compensate", str(tmp_path / "cal"), "--quiet"]) == 0
+    from campaign.iso9283.plan import JOINT_MARGIN_RAD
+
+    doc = json.loads((run / "plan" / "iso9283.json").read_text())
+    q_nom = np.array([p["q_nominal"] for p in doc["poses"]])
+    q_cmd = np.array([p["q_command"] for p in doc["poses"]])
+    room = np.minimum(q_nom - robot.q_lower, robot.q_upper - q_nom)
+    assert room.min() >= JOINT_MARGIN_RAD - 1e-9
+    assert np.abs(q_cmd - q_nom).max() > 0.05  # corrections of the size the margin is there for
+    assert np.all((q_cmd >= robot.q_lower) & (q_cmd <= robot.q_upper))
+
+
+def test_a_corrected_command_past_a_limit_is_refused_naming_the_joint_and_the_amount(robot):
+    from campaign.iso9283.plan import _Feasibility
+
+    q_ref = np.zeros((2, 6))
+    q_ref[:, 3] = robot.q_lower[3] + 0.01
+    q = q_ref.copy()
+    q[0, 3] -= 0.0815  # 4.1° past joint 4's lower limit, moved -4.7°
+    why = _Feasibility(robot, None, None, 0.035, 0.02, 0.02).why_not(q[:1], q_ref[:1])
+    lo = np.rad2deg(robot.q_lower[3])
+    assert why == [f"joint 4 at {lo - 4.1:.1f}° is 4.1° beyond its limit ({lo:.1f}°), the correction moved it -4.7°"]

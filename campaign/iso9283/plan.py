@@ -22,6 +22,7 @@ import numpy as np
 
 from campaign.errors import ConfigError, PlanError
 from campaign.fileio import atomic_write_json
+from campaign.tolerances import CORRECTION_MAX_RAD
 from campaign.versioned import plan_folder
 
 #: the order of one cycle (ISO 9283, 7.2.1)
@@ -41,6 +42,12 @@ BISECTION_STEPS = 5
 SIZE_MARGIN = 0.9
 #: an inverse-kinematics solution must reach its target this well (m, rad)
 IK_TOL_M, IK_TOL_RAD = 1e-7, 1e-6
+#: every test pose keeps this far from each revolute joint's limits (rad): a calibrated robot's
+#: corrected commands (--compensate) differ from the nominal ones by its geometric errors carried to
+#: the joints; for the COMAU's Table 4 errors (35 mrad of tool orientation, 8-13 mm) up to 94 mrad on
+#: the wrist joints over 6 calibrations, and CORRECTION_MAX_RAD bounds a plausible one (without the
+#: margin, P5 of a cube sized to the joint limit fell 4.1° beyond joint 4's on 5 of 6 runs)
+JOINT_MARGIN_RAD = CORRECTION_MAX_RAD
 
 
 def cube_axes(gravity_in_I) -> np.ndarray:
@@ -80,17 +87,19 @@ class _Feasibility:
     """Whether the five test poses of cubes about candidate centres can be measured: IK from the
     centre pose, joint limits, the plan's pose filters, and the cycle's motions."""
 
-    def __init__(self, robot, scene, checker, clearance_m, motion_clearance_m, max_step_rad):
+    def __init__(self, robot, scene, checker, clearance_m, motion_clearance_m, max_step_rad, joint_margin_rad=0.0):
         self.robot, self.scene, self.checker = robot, scene, checker
         self.clearance, self.motion_clearance, self.max_step = clearance_m, motion_clearance_m, max_step_rad
+        #: (N,) how far inside each joint's limits a pose must be (revolute joints: joint_margin_rad)
+        self.margin = np.where(robot.prismatic, 0.0, float(joint_margin_rad))
 
     def poses_ok(self, Q) -> np.ndarray:
-        """(m,) bool for joint vectors Q (m, N): within limits and suitable."""
+        """(m,) bool for joint vectors Q (m, N): within limits (less the margin) and suitable."""
         from campaign.model.kinematics import frames
         from campaign.plan import checks
 
         robot = self.robot
-        ok = np.all((Q >= robot.q_lower) & (Q <= robot.q_upper), axis=1)
+        ok = np.all((Q >= robot.q_lower + self.margin) & (Q <= robot.q_upper - self.margin), axis=1)
         if not ok.any():
             return ok
         R, t = frames(robot, Q)
@@ -107,6 +116,39 @@ class _Feasibility:
         if len(idx):
             ok[idx] = self.checker.clear(R[idx], t[idx], self.clearance)
         return ok
+
+    def why_not(self, Q, Q_ref) -> list:
+        """For each joint vector of Q (m, N): None when :meth:`poses_ok` at the true limits, else the
+        first check it fails in words (a joint past its limit with the amount, and how far it moved
+        from Q_ref (m, N), the commands it replaces)."""
+        from campaign.model.kinematics import frames
+        from campaign.plan import checks
+
+        robot = self.robot
+        out = []
+        for q, q_ref in zip(np.asarray(Q, dtype=float), np.asarray(Q_ref, dtype=float)):
+            past = np.maximum(robot.q_lower - q, q - robot.q_upper)
+            if np.any(past > 0):
+                j = int(np.argmax(past))
+                unit, f = ("mm", 1e3) if robot.prismatic[j] else ("°", np.rad2deg(1.0))
+                limit = robot.q_lower[j] if q[j] < robot.q_lower[j] else robot.q_upper[j]
+                out.append(f"joint {j + 1} at {f * q[j]:.1f}{unit} is {f * past[j]:.1f}{unit} beyond its limit "
+                           f"({f * limit:.1f}{unit}), the correction moved it {f * (q[j] - q_ref[j]):+.1f}{unit}")
+                continue
+            R, t = frames(robot, q[None])
+            E = robot.n_joints + 1
+            P, A = checks.reflector_geometry(robot, R[:, E], t[:, E])
+            los = checks.robot_line_of_sight_ok(robot, self.scene, P, R, t)
+            if not los[0]:
+                los = self.checker.beams_clear(R, t, P)
+            tests = (("out of the tracker's range", checks.range_ok(self.scene, P)),
+                     ("a reflector outside its cone", checks.cone_ok(robot, self.scene, P, A)),
+                     ("a beam blocked by the scene", checks.scene_line_of_sight_ok(self.scene, P)),
+                     ("a beam blocked by the robot", los),
+                     (f"closer than {self.clearance * 1e3:.0f} mm to the scene or itself",
+                      self.checker.clear(R, t, self.clearance)))
+            out.append(next((what for what, ok in tests if not np.asarray(ok)[0]), None))
+        return out
 
     def cycle_ok(self, Q5) -> bool:
         """Whether the cycle P1 → P5 → P4 → P3 → P2 → P1 of Q5 (5, N), rows P1..P5, is collision-free."""
@@ -148,7 +190,7 @@ def find_cube(robot, scene, checker, q_suitable, *, clearance_m, motion_clearanc
     pick = pick[np.argsort(np.linalg.norm(T_seed[pick, :3, 3] - middle, axis=1))]  # nearest the middle first
     centres, R_tools, Q_seed = T_seed[pick, :3, 3], T_seed[pick, :3, :3], q_suitable[pick]
     axes = cube_axes(robot.gravity_in_I)
-    feas = _Feasibility(robot, scene, checker, clearance_m, motion_clearance_m, max_step_rad)
+    feas = _Feasibility(robot, scene, checker, clearance_m, motion_clearance_m, max_step_rad, JOINT_MARGIN_RAD)
     found, larger = None, None
     for h in HALF_EDGES_M:
         if progress:
@@ -245,12 +287,14 @@ def plan_iso9283(config=None, run_dir="runs/iso9283", *, cycles: int = DEFAULT_C
             q_command, res, conv = calibrated.compensate(cube["targets"], q_nominal)
             feas = _Feasibility(model, scene, checker, pc.clearance_m, pc.motion_clearance_m, max_step)
             why = [f"P{k + 1} did not converge" for k in np.flatnonzero(~conv)]
-            why += [f"P{k + 1} is not suitable (limits, tracker or clearance)"
-                    for k in np.flatnonzero(~feas.poses_ok(q_command))]
+            why += [f"P{k + 1}: {w}" for k, w in enumerate(feas.why_not(q_command, q_nominal)) if w]
             if not why and not feas.cycle_ok(q_command):
                 why.append("a motion of the cycle collides")
             if why:
-                raise PlanError(f"--compensate {compensate}: the corrected commands fail: {'; '.join(why)}")
+                raise PlanError(f"--compensate {compensate}: the corrected commands fail: {'; '.join(why)}. The "
+                                f"cube keeps {np.rad2deg(JOINT_MARGIN_RAD):.1f}° from every joint limit for the "
+                                "corrections of a calibrated robot; larger ones mean a calibration far from the nominal "
+                                "model: check its warnings (large_corrections) and the robot's joint convention")
             compensation = {"run": str(Path(compensate).resolve()), "stage": calibrated.stage,
                             "residual_position_mm": (1e3 * np.linalg.norm(res[:, :3], axis=1)).tolist()}
             inside, sigma = calibrated.in_domain(q_command), calibrated.sigma_mm(q_command)
