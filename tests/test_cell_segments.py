@@ -18,14 +18,15 @@ from campaign.paths import DEFAULT_SCENE
 NOISE_M = 10e-6
 
 
-def _half_then(runs, capsys, n, change, **make):
-    """A run of ``n`` planned poses: the first half measured on `--sim`, then ``change(cfg)`` applied
-    to its campaign.yaml and the rest measured there with --allow-other-cell; the stderr of that."""
+def _half_then(runs, capsys, n, change, first=None, before=None, **make):
+    """A run of ``n`` planned poses (``before(cfg, run)`` applied to its campaign.yaml first): the first
+    half (``first`` poses) measured on `--sim`, then ``change(cfg, run)`` applied and the rest measured
+    there with --allow-other-cell; (the run, the stderr of that)."""
     run = runs.make(n=n, **make)
-    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", str(n // 2)]) == 0
-    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
-    change(cfg, run)
-    (run / "campaign.yaml").write_text(yaml.safe_dump(cfg))
+    if before is not None:
+        _changed(run, before)
+    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", str(first or n // 2)]) == 0
+    _changed(run, change)
     capsys.readouterr()
     assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
     return run, capsys.readouterr().err
@@ -246,11 +247,7 @@ def test_data_in_the_trackers_frame_get_the_moved_trackers_registration(runs, ca
 def test_a_few_poses_of_another_robot_are_refused(runs, capsys):
     """Six poses on the second robot, too few for a model of their own: they pull the one model off
     the first robot's poses, which its own model fits at the noise."""
-    run = runs.make(n=36, sim={"hidden_effects": []})
-    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "30"]) == 0
-    _changed(run, _another_robot)
-    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
-    capsys.readouterr()
+    run, _ = _half_then(runs, capsys, 36, _another_robot, first=30, sim={"hidden_effects": []})
     assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "do not agree beyond a registration" in err[0]
@@ -316,13 +313,12 @@ def test_two_reflector_data_of_two_cells_take_each_cells_own_set_up(runs, capsys
     root = Path(campaign.__file__).parent / "data" / "robot_models" / "comau_racer5_080"
     doc = yaml.safe_load((root / "robot.yaml").read_text())
     doc.update(urdf=str(root / "robot.urdf"), name="comau_two", reflectors=doc["reflectors"][:2])
-    run = runs.make(n=60, sim={"hidden_effects": []})
-    (run.parent / "two.yaml").write_text(yaml.safe_dump(doc))
-    _changed(run, lambda cfg, run: cfg.update(robot=str(run.parent / "two.yaml")))
-    assert main(["run", str(run), "--sim", "--quiet", "--max-poses", "30"]) == 0
-    _changed(run, _move_tracker)
-    assert main(["run", str(run), "--sim", "--quiet", "--allow-other-cell"]) == 0
-    capsys.readouterr()
+
+    def two_reflectors(cfg, run):
+        (run.parent / "two.yaml").write_text(yaml.safe_dump(doc))
+        cfg["robot"] = str(run.parent / "two.yaml")
+
+    run, _ = _half_then(runs, capsys, 60, _move_tracker, before=two_reflectors, sim={"hidden_effects": []})
     assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "with a pose (three or more reflectors seen)" in err[0] and "--cell-segment N" in err[0]
