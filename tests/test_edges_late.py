@@ -273,3 +273,27 @@ def test_a_corrected_command_past_a_limit_is_refused_naming_the_joint_and_the_am
     why = _Feasibility(robot, None, None, 0.035, 0.02, 0.02).why_not(q[:1], q_ref[:1])
     lo = np.rad2deg(robot.q_lower[3])
     assert why == [f"joint 4 at {lo - 4.1:.1f}° is 4.1° beyond its limit ({lo:.1f}°), the correction moved it -4.7°"]
+
+
+def test_a_50_mm_fault_on_one_raw_reflector_is_named_by_its_worst_reflector(tmp_path):
+    import csv
+
+    from campaign.identify.calibrate import calibrate
+    from campaign.identify.split import train_test_split
+
+    assert main(["synth", "--csv", str(tmp_path / "m.csv"), "--poses", "80", "--seed", "2", "--kind", "markers",
+                 "--frame", "tracker"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "m.csv")))
+    ids = np.array([int(r["pose_id"]) for r in rows])
+    i = int(np.flatnonzero(~train_test_split(ids))[3])
+    rows[i]["m1_x"] = repr(float(rows[i]["m1_x"]) + 0.05)
+    with open(tmp_path / "bad.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert main(["import", str(tmp_path / "bad.csv"), "--run", str(tmp_path / "run"), "--frame", "tracker",
+                 "--quiet"]) == 0
+    result = calibrate(tmp_path / "run", ann=False, write=False)
+    assert result.excluded_pose_ids == [int(ids[i])]
+    (o,) = result.outliers
+    assert 40 < o.error_mm < 55  # the reflector's 50 mm, less what the fit took of it

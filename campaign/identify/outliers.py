@@ -44,7 +44,8 @@ OUTLIER_PASSES = 3
 @dataclass(frozen=True)
 class Outlier:
     """A wild reading: its ``pose_id``, in the ``test`` set or not, its position error ``error_mm``
-    (the fit's residual at a training pose, the prediction error at a test pose), and ``ratio``,
+    (the fit's residual at a training pose, of its worst reflector for raw reflectors; the prediction
+    error at a test pose), and ``ratio``,
     its studentized error over the robust scale, against the ``threshold`` (both as a distance:
     the square roots of the χ² values)."""
 
@@ -148,8 +149,8 @@ def screen(model, pose_id, train_index, *, q_test=None, T_test=None, context_tes
     for i in np.flatnonzero(fitted):
         limit = _limit(d[i], dof, n)
         if T[i] / scale > limit:
-            err = float(np.linalg.norm(model.fit_residual_[i, :3] * model.row_sigma_[:3])) * 1e3 \
-                if model.points is None else float(np.sqrt(T[i] / d[i]) * np.mean(sigma_rows)) * 1e3
+            r = (model.fit_residual_[i] * model.row_sigma_).reshape(-1, 3)  # m; raw reflectors: one row each
+            err = float(np.linalg.norm(r[:1] if model.points is None else r, axis=1).max()) * 1e3
             out.append(Outlier(int(pose_id[train_index[i]]), False, err, float(np.sqrt(T[i] / scale)),
                                float(np.sqrt(limit))))
     if q_test is not None and len(q_test) and model.points is None:
