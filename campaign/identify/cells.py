@@ -21,7 +21,9 @@ robots. So a mixed run is modelled, not read as one cell:
    of its held-out errors under the joint model against the other segments'. A segment
    *disagrees* when p < CELL_AGREEMENT_ALPHA / (segments tested) and its mean held-out error
    under the joint model exceeds the other's by more than CELL_AGREEMENT_MARGIN
-   (campaign.tolerances).
+   (campaign.tolerances). Poses measured on both cells, each cell in its own set-up's frame,
+   decide instead when there are any (:func:`repeat_tests`): a model's test on two parts of the
+   workspace also finds what the model lacks there.
 3. **The decision.** All agree: calibrate on every pose with the per-segment registrations
    (``"mixed"``). One disagrees: refused in one line naming the segments, unless one segment is
    asked for (``--cell-segment N``: ``"segment"``, its poses alone, mapped by the initial
@@ -96,30 +98,41 @@ class SegmentTest:
     """The agreement test of one segment (module docstring, step 2)."""
 
     segment: int  # 0-based, into CellSegments.cells
-    test: str  # "paired" (its own model) or "welch" (too few poses for one)
-    n_heldout: int
-    joint_mm: float  # mean held-out position error under the joint model
-    other_mm: float  # ... under its own model (paired) or of the other segments under the joint one (welch)
-    t: float
+    test: str  # "paired" (its own model), "welch" (too few poses for one) or "repeat" (the same poses)
+    n_heldout: int  # held-out poses; "repeat": the poses measured on both cells
+    joint_mm: float  # mean held-out position error under the joint model; "repeat": mean distance between cells
+    other_mm: float  # ... under its own model (paired) or of the other segments under the joint one (welch);
+    #                  "repeat": the distance the noise and the two set-ups allow (rms)
+    t: float  # t; "repeat": chi-squared
     p: float
     disagrees: bool
+    #: whether this test decides (a model's test does not where the same poses were measured on both cells)
+    decisive: bool = True
 
     @property
     def ratio(self) -> float:
         return self.joint_mm / max(self.other_mm, 1e-300)
 
     def as_json(self) -> dict:
-        return {"segment": self.segment + 1, "test": self.test, "n_heldout": self.n_heldout,
+        if self.test == "repeat":
+            return {"segment": self.segment + 1, "test": "repeat", "n_poses": self.n_heldout,
+                    "mean_distance_mm": self.joint_mm, "expected_distance_mm": self.other_mm, "chi2": self.t,
+                    "p": self.p, "disagrees": self.disagrees, "decisive": True}
+        return {"segment": self.segment + 1, "test": self.test, "n_heldout": self.n_heldout, "decisive": self.decisive,
                 "heldout_mean_position_mm_joint": self.joint_mm,
                 ("heldout_mean_position_mm_alone" if self.test == "paired" else
                  "heldout_mean_position_mm_other_segments"): self.other_mm,
                 "ratio": self.ratio, "t": self.t, "p": self.p, "disagrees": self.disagrees}
 
     def text(self) -> str:
+        if self.test == "repeat":
+            return (f"segment {self.segment + 1}: {self.n_heldout} pose{'s' if self.n_heldout > 1 else ''} measured on "
+                    f"both cells {self.joint_mm:.4f} mm apart, the noise and the set-ups allow {self.other_mm:.4f} mm "
+                    f"(chi2 = {self.t:.3g}, p = {self.p:.2g})")
         other = "alone" if self.test == "paired" else "the other segments' in it"
         return (f"segment {self.segment + 1}: held-out {self.joint_mm:.4f} mm in one model vs {self.other_mm:.4f} mm "
                 f"{other} (x{self.ratio:.2f}, {'paired' if self.test == 'paired' else 'Welch'} t = {self.t:.2f}, "
-                f"p = {self.p:.2g}, {self.n_heldout} poses)")
+                f"p = {self.p:.2g}, {self.n_heldout} poses{'' if self.decisive else '; not deciding'})")
 
 
 @dataclass(frozen=True)
@@ -142,7 +155,7 @@ class CellDecision:
 
     @property
     def agree(self) -> bool:
-        return not any(t.disagrees for t in self.tests)
+        return not any(t.disagrees and t.decisive for t in self.tests)
 
     def registration_json(self) -> list:
         return [{"segment": s + 1, "reference": s == self.reference, **_rigid_json(self.maps[s])}
@@ -158,7 +171,9 @@ class CellDecision:
                 "agreement": {"statistic": "held-out position error of one model with a registration per "
                                            "segment against each segment alone (paired one-sided t) or, for a "
                                            "segment too small for its own model, against the other segments "
-                                           "(one-sided Welch t)",
+                                           "(one-sided Welch t); where poses were measured on both cells, each "
+                                           "in its own set-up's frame, their distance against the noise and the "
+                                           "set-ups (chi-squared), which then decides",
                               "alpha": CELL_AGREEMENT_ALPHA, "margin": CELL_AGREEMENT_MARGIN,
                               "agree": self.agree, "tests": [t.as_json() for t in self.tests]}}
 
@@ -178,7 +193,7 @@ class CellDecision:
 
     def refusal(self, run_dir) -> str:
         names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
-        bad = "; ".join(t.text() for t in self.tests if t.disagrees)
+        bad = "; ".join(t.text() for t in self.tests if t.disagrees and t.decisive)
         return (f"{run_dir}: measured on {self.segments.n} cells that do not agree beyond a registration ({names}; {bad}): "
                 f"they are not one robot in one model; calibrate (diagnose, auto) one segment with --cell-segment N "
                 f"(N = 1..{self.segments.n}), or measure the rest on one cell")
@@ -300,6 +315,7 @@ def decide_cells(run_dir, robot, poses, train, segments, *, effects=(), cell_seg
         maps, tests = _register_and_test(robot, poses, seg, train & usable, kept, maps0, to_ref, effects, position_only,
                                          base_parameters(robot, position_only=position_only), say,
                                          training_poses_needed)
+        tests = _with_repeats(tests, repeat_tests(run_dir, robot, poses, segments, kept), kept)
     decision = "mixed" if chosen is None else "segment"
     if chosen is not None:  # its poses alone, in their own frame (each cell's set-up is its own)
         ref, maps = chosen, {chosen: np.eye(4)}
@@ -412,3 +428,80 @@ def _segment_test(s, mine, joint_err, alone_err, n_tests) -> SegmentTest:
         t, p = 0.0, 1.0
     bad = bool(p < CELL_AGREEMENT_ALPHA / n_tests and float(joint.mean()) > (1.0 + CELL_AGREEMENT_MARGIN) * other)
     return SegmentTest(s, kind, int(mine.sum()), float(joint.mean()), other, t, p, bad)
+
+
+# -- the same poses on two cells ------------------------------------------------------------------
+def _with_repeats(tests, repeats: dict, kept) -> tuple:
+    """The model's tests and the repeat tests: where a segment's poses were measured on the reference
+    cell too, that test decides for it (a model's test on two parts of the workspace also finds what
+    the model lacks there); the reference's own model test decides only while a segment has none."""
+    if not repeats:
+        return tests
+    all_repeated = all(s in repeats for s in kept[1:])
+    out = [replace(t, decisive=False) if t.segment in repeats or (t.segment == kept[0] and all_repeated) else t
+           for t in tests]
+    return tuple(out) + tuple(repeats[s] for s in kept[1:] if s in repeats)
+
+
+def repeat_tests(run_dir, robot, poses, segments, kept) -> dict:
+    """Segment -> its "repeat" :class:`SegmentTest` against the reference segment (``kept[0]``): the
+    poses measured on both cells (the drift check's reference pose, poses measured again), each
+    cell's readings in its own base frame (data in the robot's frame, each segment's cell with a
+    set-up of its own: campaign.measure.driver), no model involved. Their mean positions differ by
+    the noise and the two set-ups' errors alone when one robot stands in both cells, by its
+    geometric errors' difference (millimetres) when two do. {} when no segment qualifies."""
+    from scipy import stats
+
+    from campaign.measure.cell_identity import segment_events
+    from campaign.measure.drift import same_pose_groups, warning_sigma_m
+    from campaign.measure.store import open_run
+    from campaign.run import RunFolder
+
+    if poses.frame != "robot" or len(kept) < 2 or poses.kind == "markers":
+        return {}
+    with open_run(run_dir) as store:
+        setups = [d for _, _, _, d in store.events("setup")]
+        checks = segment_events(store._db, "drift_check", segments)
+        reference = store.get_meta("drift_reference")
+        setup_noise = store.get_meta("setup_noise_m")
+        points = store.get_meta("setup_points_L")
+    own = [d.get("cell") for d in setups]
+    if not all(segments.cells[s].get("fingerprint") in own or (s == 0 and own and own[0] is None) for s in kept):
+        return {}  # a segment measured in another cell's set-up frame: its readings are not comparable as such
+    ok = np.isfinite(poses.xyz).all(axis=1)
+    sigma = warning_sigma_m(poses.subset(np.flatnonzero(ok)), RunFolder(run_dir).config.tracker.noise_m,
+                            robot.reflector_positions_in_E, None if setup_noise is None else setup_noise["sigma"])
+    if sigma is None:
+        return {}
+    labels = same_pose_groups(poses.q)
+    seg = segments.of(poses.pose_id)
+    rows = [(int(labels[i]), int(seg[i]), poses.xyz[i]) for i in np.flatnonzero(ok)]
+    at = np.flatnonzero(np.asarray(poses.pose_id) == reference["pose_id"]) if reference else []
+    if len(at):
+        rows += [(int(labels[at[0]]), s, np.asarray(d["xyz_m"], dtype=float)) for s, _, d in checks
+                 if isinstance(d, dict) and d.get("xyz_m") is not None]
+    # a set-up point's σ after its repeats, and the set-up's lever: its frame's error at a pose r away
+    # grows as 1 + √2 r / spacing (the two axes from points `spacing` apart)
+    repeats = max(int(min((setups[-1].get("readings") or {"x": 1}).values())), 1) if setups else 1
+    pt = (setup_noise["sigma"] if setup_noise else float(np.max(sigma))) / np.sqrt(repeats)
+    P = np.array(list(points.values()), dtype=float) if isinstance(points, dict) and len(points) == 3 else None
+    spacing = float(min(np.linalg.norm(P[i] - P[j]) for i in range(3) for j in range(i))) if P is not None else 0.3
+    ref, out = kept[0], {}
+    for s in kept[1:]:
+        chi2, dist, allow = 0.0, [], []
+        for g in {r[0] for r in rows if r[1] == s} & {r[0] for r in rows if r[1] == ref}:
+            a = np.array([r[2] for r in rows if r[0] == g and r[1] == ref])
+            b = np.array([r[2] for r in rows if r[0] == g and r[1] == s])
+            d = b.mean(axis=0) - a.mean(axis=0)
+            setup_m = pt * (1.0 + np.sqrt(2.0) * float(np.linalg.norm(a.mean(axis=0))) / max(spacing, 1e-3))
+            var = float(np.max(sigma)) ** 2 * (1.0 / len(a) + 1.0 / len(b)) + 2.0 * setup_m ** 2
+            chi2 += float(d @ d) / var
+            dist.append(float(np.linalg.norm(d)))
+            allow.append(3.0 * var)
+        if not dist:
+            continue
+        p = float(stats.chi2.sf(chi2, 3 * len(dist)))
+        mean, expected = float(np.mean(dist)) * 1e3, float(np.sqrt(np.mean(allow))) * 1e3
+        bad = bool(p < CELL_AGREEMENT_ALPHA / (len(kept) - 1) and mean > (1.0 + CELL_AGREEMENT_MARGIN) * expected)
+        out[s] = SegmentTest(s, "repeat", len(dist), mean, expected, chi2, p, bad)
+    return out
