@@ -103,3 +103,17 @@ def test_context_columns_are_labelled_with_the_unit_their_name_carries(key, labe
     from campaign.diagnose.report import context_label
 
     assert context_label(key) == label
+
+
+def test_the_report_of_a_run_with_a_reading_fault_left_out_shows_the_poses_diagnose_used(tmp_path, robot, capsys):
+    """A fault the calibration left out: diagnose's residuals are of the other poses, and its report
+    figures them against those poses (it raised an IndexError: 189 poses against 186 residuals)."""
+    from test_edges_late import faulty_run
+
+    run, bad = faulty_run(tmp_path, robot, 0.3)
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--candidates", "drift"]) == 0
+    out = capsys.readouterr()
+    assert f"poses {bad}: reading faults the last calibration left out" in out.err + out.out
+    assert (run / "diagnose" / "report.html").exists() and (run / "diagnose" / "residual_joints.svg").exists()

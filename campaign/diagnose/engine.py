@@ -580,6 +580,12 @@ class DiagnosisData:
         return (*self.subset(self.tr[self.fold != k]), *self.subset(self.tr[self.fold == k]))
 
 
+def without_faults(run: RunFolder, poses) -> tuple:
+    """(the poses without the reading faults the run's last calibration left out, their ids)."""
+    faults = np.isin(poses.pose_id, (run.last_calibration() or {}).get("excluded_pose_ids") or ())
+    return (poses.subset(np.flatnonzero(~faults)) if faults.any() else poses), poses.pose_id[faults]
+
+
 def load_data(run_dir, effects, candidates, folds, say, cell_segment=None) -> DiagnosisData:
     """The run's poses (those with a pose), its calibrate split, the current model's effects, the
     candidates and the folds; one line when the poses are too few for every fold fit."""
@@ -596,12 +602,10 @@ def load_data(run_dir, effects, candidates, folds, say, cell_segment=None) -> Di
         say(model_note)
     specs = tuple(candidate_specs(candidates, current, run_dir, robot))  # a bad name: one line before any work
     with run.store() as store:
-        poses = store.load_measured(include_unusable=True)
-    faults = np.isin(poses.pose_id, (run.last_calibration() or {}).get("excluded_pose_ids") or ())
-    if faults.any():  # reading faults calibrate left out (campaign.identify.outliers)
-        say(f"poses {', '.join(str(int(i)) for i in poses.pose_id[faults])}: reading faults the last calibration "
+        poses, faults = without_faults(run, store.load_measured(include_unusable=True))
+    if len(faults):  # reading faults calibrate left out (campaign.identify.outliers)
+        say(f"poses {', '.join(str(int(i)) for i in faults)}: reading faults the last calibration "
             "left out, left out here too")
-        poses = poses.subset(np.flatnonzero(~faults))
     usable = np.isfinite(poses.T_IE[:, :3, 3]).all(axis=1)
     if not usable.any():
         raise DataError(f"{run_dir}: diagnose compares fits of poses, and no pose has three reflectors seen "

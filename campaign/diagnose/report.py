@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from campaign.diagnose.engine import without_faults
 from campaign.fileio import atomic_write, atomic_write_json
 from campaign.identify.noise_floor import tracker_noise_floor
 from campaign.identify.report import PAGE_STYLE, binned_quantiles
@@ -202,7 +203,7 @@ def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
             name = "diagnosis.json"
         else:
             with run.store() as store:
-                poses = store.load_measured()
+                poses = without_faults(run, store.load_measured())[0]  # the poses as the diagnosis saw them
             if diagnosis.cells is not None:  # several cells: the poses as the diagnosis saw them
                 poses = diagnosis.cells.apply(poses)[0]
             name = write_report(diagnosis, poses, run.robot(), out=version.path, diagnosis_id=version.id).name
