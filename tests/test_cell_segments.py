@@ -109,6 +109,7 @@ def test_two_robots_in_one_run_are_refused_in_one_line_naming_the_segments(runs,
     assert "do not agree beyond a registration" in err[0] and "--cell-segment N" in err[0]
     assert "segment 1 (--sim, fingerprint" in err[0] and "segment 2 (--sim, fingerprint" in err[0]
     assert "30 poses, the 1st-30th measured" in err[0] and "30 poses, the 31st-60th measured" in err[0]
+    assert "1 pose measured on both cells" in err[0]  # the reference pose, millimetres apart: it decides
     assert not (run / "calibration").exists()
     from campaign.diagnose.engine import diagnose
 
@@ -257,6 +258,7 @@ def test_a_few_poses_of_another_robot_are_refused(runs, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "do not agree beyond a registration" in err[0]
     assert "6 poses, the 31st-36th measured" in err[0] and "segment 1: held-out" in err[0] and "paired t" in err[0]
+    assert "rests on the model" in err[0]  # no drift check on the second cell: no pose measured on both
 
 
 def test_segments_follow_the_sessions_cells_in_the_log(tmp_path):

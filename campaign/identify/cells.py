@@ -194,6 +194,9 @@ class CellDecision:
     def refusal(self, run_dir) -> str:
         names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
         bad = "; ".join(t.text() for t in self.tests if t.disagrees and t.decisive)
+        if not any(t.test == "repeat" for t in self.tests):  # the model alone: say what else it can be
+            bad += ("; no pose was measured on both cells in their own set-ups, so this rests on the model, which "
+                    "an effect it lacks on two parts of the workspace can mislead too (docs/cells.md)")
         return (f"{run_dir}: measured on {self.segments.n} cells that do not agree beyond a registration ({names}; {bad}): "
                 f"they are not one robot in one model; calibrate (diagnose, auto) one segment with --cell-segment N "
                 f"(N = 1..{self.segments.n}), or measure the rest on one cell")
