@@ -68,7 +68,8 @@ def test_a_drift_the_model_holds_does_not_move_the_poses(tmp_path, robot):
     # the readings themselves did move (~60 µm over the hour): the model's residuals are what was tested
     data = load_data(run, None, "", 3, lambda m: None)
     readings = drift_readings(run, data.poses)
-    raw = time_test(*time_readings(data, readings), d.floor.sigma_position_m, sigma_dof=3 * d.floor.dof)
+    xyz, group, t, _, _ = time_readings(data, readings)
+    raw = time_test(xyz, group, t, d.floor.sigma_position_m, sigma_dof=3 * d.floor.dof)
     assert raw.moved and raw.p_value < 1e-6
 
 
@@ -84,3 +85,18 @@ def test_a_forearm_warm_up_under_thermal_and_drift_is_unexplained_and_depends_on
     assert not d.structure_significant and "moved in a way the model does not predict" in d.text()
     # only now the truth: a warm-up of one link, no catalogued effect of time
     assert [type(e).__name__ for e in truth.effects.effects] == ["ForearmWarmUp"]
+
+
+def test_the_report_of_a_run_whose_calibration_left_a_reading_fault_out(tmp_path, robot, capsys):
+    """diagnose leaves out the poses calibrate called reading faults; its report's figures take the
+    same poses (they took every stored one, and the figure of the residual against the joints failed)."""
+    import json
+
+    from test_edges_late import faulty_run
+
+    run, bad = faulty_run(tmp_path, robot, 0.3)
+    assert main(["calibrate", str(run), "--no-ann", "--no-report", "--quiet"]) == 0
+    assert json.loads((run / "calibration" / "metrics.json").read_text())["excluded_pose_ids"] == [bad]
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--folds", "3", "--candidates", "drift"]) == 0
+    assert (run / "diagnose" / "residual_joints.svg").is_file() and (run / "diagnose" / "report.html").is_file()

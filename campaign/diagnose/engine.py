@@ -186,6 +186,9 @@ class Diagnosis:
     swap: tuple | None = None
     #: the current model on the test set against the folds (campaign.diagnose.testset.TestSetCheck) or None
     test_set: object = None
+    #: the ids of the poses diagnosed (n,), in the order of ``residuals``: without the reading faults the
+    #: last calibration left out, and the poses with fewer than three reflectors seen
+    pose_ids: np.ndarray = field(repr=False, default=None)
 
     @property
     def removal(self):
@@ -243,9 +246,9 @@ class Diagnosis:
 
     @property
     def time_tested(self):
-        """The time test when it ranks the inputs (time or temperature ranks among the structure's, or
-        the same poses moved), else None."""
-        if self.time_test is None:
+        """The time test when it ranks the inputs (time or temperature ranks among the structure's and
+        the test could see the change over time the regressor predicts, or the same poses moved), else None."""
+        if self.time_test is None or not self.time_test.conclusive:
             return None
         if self.time_test.moved or (self.structure is not None and self.structure_significant and set(
                 self.structure.depends_on(MIN_IMPORTANCE_SHARE)) & set(TIME_INPUTS)):
@@ -347,8 +350,10 @@ class Diagnosis:
         if self.test_set is not None:
             lines.append(self.test_set.text())
         lines.append(self.structure_line())
-        if self.time_tested is not None:
-            lines.append("  " + self.time_tested.text())
+        shown = self.time_tested or (self.time_test if self.time_test is not None and self.structure_significant
+                                     and not self.time_test.conclusive else None)
+        if shown is not None:
+            lines.append("  " + shown.text())
         if self.signature is not None and self.structure_significant:
             lines.append("  signature: " + self.signature.text())
         if self.contributions:
@@ -483,6 +488,13 @@ def joint1_rotation(robot, q):
 
     R, _ = frames(robot, q)
     return R[:, robot.joint_frame_index[0]]
+
+
+def tool_rotation(robot, q):
+    """The rotation (n, 3, 3) of the tool frame (nominal model) at poses q (n, N)."""
+    from campaign.model.kinematics import forward
+
+    return forward(robot, q)[:, :3, :3]
 
 
 def residual_in_joint1_frame(robot, q, dt, R1=None):
@@ -725,40 +737,52 @@ def judge_floor(data: DiagnosisData, fits: CurrentFits) -> FloorVerdict:
 
 
 def find_structure(data: DiagnosisData, fits: CurrentFits, detection: float, run: bool, say) -> tuple:
-    """The model-free test on the held-out residuals (in the frame after joint 1): (inputs X,
-    their names, the held-out residual, the fold fits' residuals, StructureResult or None)."""
+    """The model-free test on the held-out residuals: (inputs X, their names, the held-out residual
+    in the frame after joint 1, the fold fits' residuals in that frame, StructureResult or None).
+    The test is run on the residuals in the frame after joint 1 and in the tool frame
+    (:func:`pose_or_all_structure`)."""
     q_tr = data.poses.q[data.tr]
     X, input_names = regressor_inputs(q_tr, {key: v[data.tr] for key, v in data.context.items()})
     R1 = joint1_rotation(data.robot, q_tr)  # each training pose's, for the held-out and the fold fits' residuals
     r_out = residual_in_joint1_frame(data.robot, q_tr, fits.dz, R1)
     if not run:
         return X, input_names, r_out, None, None
-    from campaign.diagnose.structure import structure_test
-
     say("model-free structure test (flexible regressor on the same folds)")
     r_fit = {k: residual_in_joint1_frame(data.robot, q_tr[data.fold != k], fits.fit_residuals[k], R1[data.fold != k])
              for k in fits.fit_residuals}
-    return X, input_names, r_out, r_fit, pose_or_all_structure(X, input_names, q_tr.shape[1], data.fold, r_fit, r_out)
+    RE = tool_rotation(data.robot, q_tr)
+    r_out_E = np.einsum("nji,nj->ni", RE, fits.dz)
+    r_fit_E = {k: np.einsum("nji,nj->ni", RE[data.fold != k], fits.fit_residuals[k]) for k in fits.fit_residuals}
+    return X, input_names, r_out, r_fit, pose_or_all_structure(X, input_names, q_tr.shape[1], data.fold,
+                                                               [(r_fit, r_out), (r_fit_E, r_out_E)])
 
 
-def pose_or_all_structure(X, input_names, n_joints: int, fold, r_fit, r_out):
-    """The model-free test on every input and on the joint angles alone, the one whose held-out
-    error is lower, its p-value doubled (the better of two tests). The time and the temperature
-    follow the order the poses were measured in, itself a path through the joint space: given
-    them, the regressor (one length scale for all inputs) spreads over proxies of the pose and
-    misses a structure of the pose alone (a bearing run-out of joint 4: 10 % of the held-out
-    error on every input, 24 % on the joints, with q4 first). On the joints alone the time
-    columns are held constant: the regressor leaves them out and their importance is 0."""
+def pose_or_all_structure(X, input_names, n_joints: int, fold, residuals):
+    """The model-free test on every input and on the joint angles alone, for the residuals in each
+    frame of ``residuals`` ([(fold fits' residuals, held-out residual)], the frame after joint 1 and
+    the tool frame): the one whose held-out error is lower, its p-value times the number of tests
+    (Bonferroni: the best of several). The time and the temperature follow the order the poses were
+    measured in, itself a path through the joint space: given them, the regressor (one length scale
+    for all inputs) spreads over proxies of the pose and misses a structure of the pose alone (a
+    bearing run-out of joint 4: 10 % of the held-out error on every input, 24 % on the joints, with
+    q4 first). On the joints alone the time columns are held constant: the regressor leaves them out
+    and their importance is 0. The frame: an effect near the base (joints 2-3) is a smooth function
+    of few joints in the frame after joint 1; one in the wrist moves the tool point along a
+    direction fixed in the tool frame, scaled by a function of the wrist joints alone (a run-out of
+    joint 6: one input there, all six and their products in the frame after joint 1)."""
     from campaign.diagnose.structure import structure_test
 
-    every = structure_test(X, input_names, fold, r_fit, r_out)
-    if X.shape[1] <= n_joints:
-        return every
-    X_q = X.copy()
-    X_q[:, n_joints:] = 0.0
-    pose = structure_test(X_q, input_names, fold, r_fit, r_out)
-    best = pose if pose.after.mean() < every.after.mean() else every
-    return replace(best, p_value=min(1.0, 2.0 * best.p_value))
+    X_q = None
+    if X.shape[1] > n_joints:
+        X_q = X.copy()
+        X_q[:, n_joints:] = 0.0
+    tests = []
+    for r_fit, r_out in residuals:
+        tests.append(structure_test(X, input_names, fold, r_fit, r_out))
+        if X_q is not None:
+            tests.append(structure_test(X_q, input_names, fold, r_fit, r_out))
+    best = min(tests, key=lambda t: t.after.mean())
+    return replace(best, p_value=min(1.0, len(tests) * best.p_value))
 
 
 def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: float, say) -> tuple:
@@ -1005,7 +1029,7 @@ def absent_in_time(specs, test) -> tuple:
     return tuple(kept), tuple(absent)
 
 
-def run_time_test(data: DiagnosisData, floor: NoiseFloor, model=None):
+def run_time_test(data: DiagnosisData, floor: NoiseFloor, model=None, struct=None):
     """The time test (campaign.diagnose.timing) on every pose of the run measured at different
     times, against the noise of readings close in time (or the stated tracker noise); None without
     either: a floor from readings far apart holds the very changes over time the test looks for.
@@ -1014,7 +1038,9 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor, model=None):
     it asks whether the same poses moved in a way the model does not predict. A model without
     effects of time predicts the same position at each visit (the readings' own changes are
     tested); one with thermal or drift predicts how they move, and a warm-up of one link, which
-    moves each pose its own way, still shows."""
+    moves each pose its own way, still shows. ``struct`` (the flexible regressor's result, when it
+    depends on time or temperature): the test's power against the change over time it predicts at
+    these very readings (:func:`time_test_power`)."""
     if floor.known and floor.upper_bound:
         stated = RunFolder(data.run_dir).config.tracker.noise_m
         P_E = data.robot.reflector_positions_in_E
@@ -1022,20 +1048,55 @@ def run_time_test(data: DiagnosisData, floor: NoiseFloor, model=None):
     if not floor.known:
         return None
     readings = drift_readings(data.run_dir, data.poses, data.tracker_to_robot, data.cells)
-    xyz, group, t = time_readings(data, readings, model)
+    xyz, group, t, pose, context = time_readings(data, readings)
+    keep = np.ones(len(t), dtype=bool)
+    if model is not None and len(t):
+        xyz = xyz - model.predict(data.poses.q[pose], context)[:, :3, 3]
+        keep = np.isfinite(xyz).all(axis=1)  # readings the model cannot predict (no context then) left out
     legacy = readings["legacy"]
-    return time_test(xyz, group, t, floor.sigma_position_m,
+    test = time_test(xyz[keep], group[keep], t[keep], floor.sigma_position_m,
                      sigma_dof=3 * floor.dof if floor.source == "repeats" else 0,
                      drift_check_m=None if legacy is None else list(legacy[1]), alpha=ALPHA)
+    if test is None or struct is None:
+        return test
+    sub = {key: v[keep] for key, v in context.items()}
+    return replace(test, power=time_test_power(data.poses.q[pose[keep]], sub, group[keep], struct, floor.sigma_position_m,
+                                               ALPHA))
 
 
-def time_readings(data: DiagnosisData, readings: dict, model=None) -> tuple:
+def time_test_power(q, context, group, struct, sigma_position_m, alpha: float) -> float | None:
+    """The probability that the time test sees the change over time the flexible regressor
+    predicts at its readings (joints q (k, N), context with ``time_s``, pose labels ``group``): the
+    regressor's mean prediction over its fold models, tested as noise-free readings, gives the χ²
+    statistic's non-centrality λ; the power is P(χ²(dof, λ) > the α critical value). A time test
+    that would probably miss that change says nothing when it finds no movement. None without
+    readings at two times."""
+    from scipy import stats
+
+    cols = []
+    for name in struct.input_names:
+        if name.startswith("q") and name[1:].isdigit():
+            cols.append(np.asarray(q, dtype=float)[:, int(name[1:]) - 1])
+        else:
+            cols.append(np.asarray(context.get(name, np.full(len(q), np.nan)), dtype=float))
+    X = np.stack(cols, axis=1)
+    if not len(X) or not np.isfinite(X).all() or not struct.models:
+        return None
+    pred = np.mean([m.predict(X) for m in struct.models.values()], axis=0)
+    expected = time_test(pred, group, context["time_s"], sigma_position_m)
+    if expected is None:
+        return None
+    critical = stats.chi2.ppf(1.0 - alpha, expected.dof)
+    return float(stats.ncx2.sf(critical, expected.dof, max(expected.statistic, 1e-12)))
+
+
+def time_readings(data: DiagnosisData, readings: dict) -> tuple:
     """The readings of the poses measured at different times (the repeats and poses measured again,
     the reference pose with its drift checks: ``readings`` of
     :func:`campaign.measure.drift.drift_readings`) as (position (k, 3) m, pose label (k,), time (k,)
-    s); with ``model``, the position is the reading minus the model's prediction at that pose and
-    moment: a stored pose's own context, a drift check's (e.g. the temperature) interpolated in time
-    from the poses measured around it. Readings the model cannot predict are left out."""
+    s, the index of the stored pose whose joints each measured (k,), the context at each: a stored
+    pose's own, a drift check's (e.g. the temperature) interpolated in time from the poses measured
+    around it, and ``time_s``)."""
     xyz, group, t = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
     if readings["repeats"] is not None:
         t_r, xyz_r, g_r = readings["repeats"]
@@ -1044,8 +1105,6 @@ def time_readings(data: DiagnosisData, readings: dict, model=None) -> tuple:
         t_m, xyz_m = readings["monitor"]
         xyz.append(xyz_m), group.append(readings["monitor_group"]), t.append(t_m)
     xyz, group, t = np.concatenate(xyz), np.concatenate(group), np.concatenate(t)
-    if model is None or not len(t):
-        return xyz, group, t
     poses = data.poses
     t_all = np.asarray(poses.time_s, dtype=float)
     # each reading that is a stored pose (its time and position), else a drift check of the reference pose
@@ -1066,9 +1125,7 @@ def time_readings(data: DiagnosisData, readings: dict, model=None) -> tuple:
         c = np.interp(t, t_all[ok][order], v[ok][order]) if ok.any() else np.full(len(t), np.nan)
         c[stored >= 0] = v[stored[stored >= 0]]
         context[key] = c
-    res = xyz - model.predict(poses.q[pose], context)[:, :3, 3]
-    keep = np.isfinite(res).all(axis=1)
-    return res[keep], group[keep], t[keep]
+    return xyz, group, t, pose, context
 
 
 def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None, progress=None,
@@ -1087,7 +1144,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     fv = judge_floor(data, fits)
     X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
     struct_sig = bool(struct is not None and struct.p_value < ALPHA and struct.heldout_gain >= fv.detection)
-    timed = run_time_test(data, fv.floor, fits.full)
+    timed = run_time_test(data, fv.floor, fits.full, struct if struct_sig else None)
     time_moved = bool(timed is not None and timed.moved)
     # structure found, or poses that moved as the model does not predict, are above the noise
     at_floor = False if ((struct_sig or time_moved) and fv.at_floor) else fv.at_floor
@@ -1127,7 +1184,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
-                     data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap, tested)
+                     data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap, tested,
+                     data.poses.pose_id)
 
 
 def test_set_check(data: DiagnosisData, fits: CurrentFits, residuals):

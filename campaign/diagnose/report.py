@@ -206,6 +206,8 @@ def write_diagnosis(diagnosis, *, report: bool = True) -> Path:
                 poses = without_faults(run, store.load_measured())[0]  # the poses as the diagnosis saw them
             if diagnosis.cells is not None:  # several cells: the poses as the diagnosis saw them
                 poses = diagnosis.cells.apply(poses)[0]
+            if diagnosis.pose_ids is not None:  # those diagnosed (a reading fault calibrate left out is not)
+                poses = poses.subset(np.flatnonzero(np.isin(poses.pose_id, diagnosis.pose_ids)))
             name = write_report(diagnosis, poses, run.robot(), out=version.path, diagnosis_id=version.id).name
     return versions.store_dir / version.id / name
 

@@ -30,6 +30,9 @@ from campaign.tolerances import REPEAT_CLOSE_S
 
 #: the inputs a time test speaks for
 TIME_INPUTS = ("time_s", "temperature_c")
+#: a test that finds no movement takes time out of the inputs only if it would have seen, with at
+#: least this probability, the change over time the flexible regressor predicts at its readings
+MIN_POWER = 0.5
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,14 @@ class TimeTest:
     drift_checks: int
     alpha: float
     sigma_dof: int = 0
+    #: the probability that the test sees the change over time the flexible regressor predicts at
+    #: these readings (None: not asked); below MIN_POWER a test that finds no movement says nothing
+    power: float | None = None
+
+    @property
+    def conclusive(self) -> bool:
+        """Moved, or had the power to see the change the regressor predicts (MIN_POWER; unknown: yes)."""
+        return self.moved or self.power is None or self.power >= MIN_POWER
 
     @property
     def moved(self) -> bool:
@@ -59,13 +70,17 @@ class TimeTest:
         return {"statistic": self.statistic, "dof": self.dof, "p_value": self.p_value, "poses_used": self.poses,
                 "readings": self.readings, "visits": self.visits, "span_h": self.span_h,
                 "drift_checks": self.drift_checks, "alpha": self.alpha, "moved": self.moved,
-                "floor_dof": self.sigma_dof}
+                "floor_dof": self.sigma_dof, "power": self.power}
 
     def text(self) -> str:
         what = (f"{self.poses} pose{'' if self.poses == 1 else 's'} measured again over {self.span_h:.2g} h ({self.readings} readings"
                 + (", the drift check" if self.drift_checks else "") + ")")
         if self.moved:
             return f"time test: {what} moved beyond the noise (χ² {self.statistic:.1f} on {self.dof}, p = {self.p_value:.2g})"
+        if not self.conclusive:
+            return (f"time test: {what} did not move beyond the noise (χ² {self.statistic:.1f} on {self.dof}, "
+                    f"p = {self.p_value:.2g}), but would have seen the change over time the regressor finds with "
+                    f"probability {self.power:.2f} only: it does not decide")
         return (f"time test: {what} did not move beyond the noise (χ² {self.statistic:.1f} on {self.dof}, "
                 f"p = {self.p_value:.2g}): time stands in for the poses the tour sweeps")
 
@@ -146,9 +161,10 @@ def rank_by_time_test(depends_on, test: TimeTest | None) -> list:
     """The inputs ranked by the time test: time and temperature first when the same poses moved
     over time (time alone when the flexible regressor ranked neither: the test itself found the
     error depends on time), taken out when they did not (time then stands in for the poses), as
-    they were when there is no test."""
+    they were when there is no test or one too weak to see what the regressor predicts
+    (:attr:`TimeTest.conclusive`)."""
     depends_on = list(depends_on)
-    if test is None:
+    if test is None or not test.conclusive:
         return depends_on
     timed = [i for i in depends_on if i in TIME_INPUTS]
     rest = [i for i in depends_on if i not in TIME_INPUTS]
