@@ -6,6 +6,8 @@ and a warm-up of one link, which thermal and drift absorb on average, is still f
 Each run hides a truth in simulated measurements; the truth is compared with only after diagnose
 answered."""
 
+from dataclasses import replace
+
 import numpy as np
 import yaml
 
@@ -100,3 +102,35 @@ def test_the_report_of_a_run_whose_calibration_left_a_reading_fault_out(tmp_path
     capsys.readouterr()
     assert main(["diagnose", str(run), "--folds", "3", "--candidates", "drift"]) == 0
     assert (run / "diagnose" / "residual_joints.svg").is_file() and (run / "diagnose" / "report.html").is_file()
+
+
+def test_a_time_test_without_the_power_to_see_the_regressors_change_does_not_take_time_out():
+    """The regressor finds the residual growing with time; one pose measured at ten times can see a
+    growth of 60 µm over the hour but not one of 3 µm: only the first test, finding no movement, may
+    take time out of the inputs."""
+    from types import SimpleNamespace
+
+    from campaign.diagnose.engine import time_test_power
+    from campaign.diagnose.structure import FourierRidge
+    from campaign.diagnose.timing import rank_by_time_test
+
+    rng = np.random.default_rng(3)
+    sigma = np.full(3, 6e-6)
+    t_fit = rng.uniform(0, 3600, 300)
+    X = np.column_stack([rng.uniform(-1, 1, (300, 6)), t_fit])
+    q_ref = np.zeros((10, 6))
+    t_ref = np.linspace(0, 3600, 10)
+    group = np.zeros(10, dtype=int)
+    powers = {}
+    for rate_m_per_h in (6e-5, 3e-6):
+        r = np.outer(t_fit / 3600 * rate_m_per_h, [1.0, 0.0, 0.0]) + rng.normal(0, 6e-6, (300, 3))
+        models = {k: FourierRidge(random_state=k).fit(X, r) for k in range(3)}
+        struct = SimpleNamespace(input_names=("q1", "q2", "q3", "q4", "q5", "q6", "time_s"), models=models)
+        powers[rate_m_per_h] = time_test_power(q_ref, {"time_s": t_ref}, group, struct, sigma, 0.01)
+    assert powers[6e-5] > 0.95 and powers[3e-6] < 0.5, powers
+    still = time_test(rng.normal(0, 6e-6, (10, 3)), group, t_ref, sigma)
+    assert not still.moved
+    assert rank_by_time_test(["time_s", "q2"], replace(still, power=powers[6e-5])) == ["q2"]
+    weak = replace(still, power=powers[3e-6])
+    assert not weak.conclusive and rank_by_time_test(["time_s", "q2"], weak) == ["time_s", "q2"]
+    assert "does not decide" in weak.text()
