@@ -134,3 +134,20 @@ def test_a_time_test_without_the_power_to_see_the_regressors_change_does_not_tak
     weak = replace(still, power=powers[3e-6])
     assert not weak.conclusive and rank_by_time_test(["time_s", "q2"], weak) == ["time_s", "q2"]
     assert "does not decide" in weak.text()
+
+
+def test_an_effect_of_time_is_named_only_when_the_poses_measured_again_move_as_it_says(tmp_path, robot):
+    """A drift is named drift; a forearm warm-up, which thermal and drift each fit in part, is
+    unexplained on time: with both added the same poses still move as no catalogued effect says."""
+    drift = make_effect("drift", robot)
+    run, _ = timed_run(tmp_path / "drift", robot, [drift], [4e-5, -3e-5, 2e-5], [])
+    d = diagnose(run, folds=3, candidates="drift,thermal")
+    assert d.verdict == "drift" and not d.time_effects_fail, d.text()
+    run, truth = timed_run(tmp_path / "warm", robot, [ForearmWarmUp(robot)], [2e-4], [])
+    d = diagnose(run, folds=3, candidates="drift,thermal")
+    assert d.ranking[0].effect == "thermal" and d.ranking[0].significant  # it fits a part
+    assert d.time_effects_fail and d.verdict == "unexplained" and d.depends_on[0] in ("time_s", "temperature_c")
+    out = d.as_json()
+    assert out["time_effects_test"]["moved"] and out["time_effects_test"]["poses_used"] == 24
+    assert "with every candidate effect of time added" in d.text()
+    assert [type(e).__name__ for e in truth.effects.effects] == ["ForearmWarmUp"]

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from campaign.auto.state import Decision, Limits, Round
-from campaign.diagnose.engine import leads_to
+from campaign.diagnose.engine import is_time_effect, leads_to
 from campaign.diagnose.timing import TIME_INPUTS
 from campaign.effects.base import effect_label
 
@@ -72,6 +72,8 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
     if best is not None and not leads_to(best, rnd.depends_on):
         best = None  # it fits part of a structure that depends on something else first: that is missing
+    if best is not None and getattr(diagnosis, "time_effects_fail", False) and is_time_effect(best.spec or best.effect):
+        best = None  # the poses measured again still move with every effect of time added: none is the answer
     if best is None and diagnosis.indistinguishable:
         separate = _separate(diagnosis, before, loop)
         if separate is not None:

@@ -189,6 +189,15 @@ class Diagnosis:
     #: the ids of the poses diagnosed (n,), in the order of ``residuals``: without the reading faults the
     #: last calibration left out, and the poses with fewer than three reflectors seen
     pose_ids: np.ndarray = field(repr=False, default=None)
+    #: the time test on the residuals of the current model with every candidate effect of time added
+    #: (thermal, drift, a user's), when the best candidate is one; None otherwise (:func:`time_effects_test`)
+    time_effects_test: object = None
+
+    @property
+    def time_effects_fail(self) -> bool:
+        """Every candidate effect of time added, the same poses still move as the model does not
+        predict: none of them is the answer (a warm-up of one link moves each pose its own way)."""
+        return bool(self.time_effects_test is not None and self.time_effects_test.moved)
 
     @property
     def removal(self):
@@ -289,6 +298,7 @@ class Diagnosis:
             "replace": None if self.swap is None else {**self.swap[0].as_json(), "effects_after": list(self.swap[1])},
             "remove": None if self.removal is None else {**self.removal.as_json(),
                                                           "effects_after": list(self.effects_after_removal())},
+            "time_effects_test": None if self.time_effects_test is None else self.time_effects_test.as_json(),
             "time_test": None if self.time_test is None else {**self.time_test.as_json(),
                                                               "ranks_inputs": self.time_tested is not None},
             "noise_free_round_off": self.round_off,
@@ -354,6 +364,9 @@ class Diagnosis:
                                      and not self.time_test.conclusive else None)
         if shown is not None:
             lines.append("  " + shown.text())
+        if self.time_effects_fail:
+            lines.append("  with every candidate effect of time added (thermal, drift, ...): "
+                         + self.time_effects_test.text().removeprefix("time test: "))
         if self.signature is not None and self.structure_significant:
             lines.append("  signature: " + self.signature.text())
         if self.contributions:
@@ -962,13 +975,17 @@ def leads_to(best, depends_on) -> bool:
     return True
 
 
-def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), time_moved: bool = False):
+def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), time_moved: bool = False,
+                   time_effects_fail: bool = False):
     """The best significant candidate when it explains the structure (and the structure, when
     significant, depends first on an input the candidate can depend on: :func:`leads_to`), else
     "unexplained" when systematic error remains (the regressor finds it, the same poses moved over
     time as the model does not predict: ``time_moved``, or the model is above the floor), else None
-    (module docstring)."""
+    (module docstring). An effect of time is not the verdict when the same poses still move with
+    every candidate effect of time added (``time_effects_fail``)."""
     best = scores[0] if scores and scores[0].significant else None
+    if best is not None and time_effects_fail and is_time_effect(best.spec or best.effect):
+        return "unexplained"
     if best is not None:
         reg_after = struct.after.mean() if struct is not None else np.inf
         explains = not struct_sig or (best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
@@ -977,6 +994,27 @@ def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), 
     if struct_sig or time_moved or (fv.floor.known and not fv.at_floor):
         return "unexplained"
     return None
+
+
+def is_time_effect(spec) -> bool:
+    """An effect of the campaign's time or temperature alone (thermal, drift, a user's warm-up)."""
+    keys = tuple(getattr(effect_class(spec), "context_keys", ()))
+    return bool(keys) and set(keys) <= set(TIME_INPUTS)
+
+
+def time_effects_test(data: DiagnosisData, floor: NoiseFloor, specs, scores, say):
+    """When the best significant candidate is an effect of time: the time test (:func:`run_time_test`)
+    on the residuals of the current model with every candidate effect of time in ``specs`` added,
+    fitted on the training poses. A drift, a thermal expansion or both move the poses measured again
+    as they say; when the poses still move with all of them, none is the answer. None otherwise."""
+    best = scores[0] if scores and scores[0].significant else None
+    if best is None or not is_time_effect(best.spec or best.effect):
+        return None
+    timed = [s for s in specs if is_time_effect(s)]
+    say(f"the poses measured again, with {', '.join(effect_class(s).name for s in timed)} added")
+    model = CalibrationModel(robot=data.robot, effects=[*data.current, *timed], position_only=data.position_only)
+    model.fit(*data.subset(data.tr), base=data.base)
+    return run_time_test(data, floor, model)
 
 
 def compare_model_joints(data: DiagnosisData, fits: CurrentFits, lins) -> tuple:
@@ -1158,6 +1196,8 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         say(f"{name}: {reason}")
     scores, skipped, lins = score_candidates(data, fits, specs, fv.detection, say)
     skipped = absent + skipped
+    scored = {c.spec for c in scores}
+    timed_all = time_effects_test(data, fv.floor, [s for s in specs if s in scored], scores, say)
     if data.current and not fv.round_off:
         if lins is None:
             lins = {k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)}
@@ -1178,14 +1218,15 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         signature = describe(data.robot, data.poses.q[data.tr], X, input_names, struct, depends, r_out,
                              data.poses.time_s[data.tr], residual_fit=r_fit)
     return Diagnosis(data.run_dir, data.current, scores,
-                     choose_verdict(scores, struct, struct_sig, fv, depends, time_moved),
+                     choose_verdict(scores, struct, struct_sig, fv, depends, time_moved,
+                                    bool(timed_all is not None and timed_all.moved)),
                      len(data.tr),
                      data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
                      data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap, tested,
-                     data.poses.pose_id)
+                     data.poses.pose_id, timed_all)
 
 
 def test_set_check(data: DiagnosisData, fits: CurrentFits, residuals):
