@@ -462,3 +462,23 @@ def test_decide_without_a_floor_because_the_limit_left_the_plan_unmeasured_names
     text = verdict_text(SimpleNamespace(path="r"), {"rounds": [last.as_json()], "finished": {"reason": "max_poses"}})
     assert "stopped at the pose limit" in text and "no noise floor yet in the last diagnosis" in text
     assert "at the floor" not in text
+
+
+def test_a_floor_of_zero_is_stated_as_zero_in_the_round_line_and_the_verdict_not_as_missing():
+    # a noise-free cell (sim.noise_m: 0): repeats agree to the last bit, the floor is 0, not absent
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from campaign.auto.report import verdict_text
+    from campaign.auto.state import Decision
+
+    stop = Decision("stop", "stop: noise-free measurements", reason="at_floor")
+    zero = replace(_round(verdict=None), heldout_mm=3.3e-13, floor_mm=0.0, decision=stop)
+    assert zero.ratio is None
+    assert "(the noise floor is 0)" in zero.line() and "no noise floor" not in zero.line()
+    run = SimpleNamespace(path="r", calibration_dir="r/calibration")
+    text = verdict_text(run, {"rounds": [zero.as_json()], "finished": {"reason": "at_floor"}})
+    assert "the noise floor is 0" in text and "no noise floor" not in text
+    none = replace(zero, floor_mm=None)
+    assert "(no noise floor)" in none.line()
+    assert "the noise floor is 0" not in verdict_text(run, {"rounds": [none.as_json()], "finished": {"reason": "at_floor"}})

@@ -15,8 +15,8 @@ def verdict_text(run: RunFolder, state: dict) -> str:
     """The final verdict and what the user can do next, in a few lines."""
     last = Round.from_json(state["rounds"][-1])
     reason = (state.get("finished") or {}).get("reason")
-    ratio = f"{last.ratio:.2f}× the noise floor" if last.ratio is not None else "no noise floor"
-    head = f"{last.model} on {last.poses} poses ({last.hours:.2f} h): test-set mean {last.heldout_mm:.4f} mm = {ratio}"
+    head = (f"{last.model} on {last.poses} poses ({last.hours:.2f} h): test-set mean {last.heldout_mm:.4f} mm "
+            f"{last.ratio_text('the noise floor')}")
     if reason == "at_floor":
         return (f"verdict: at the measurement noise: nothing left to find. {head}.\n"
                 f"  the model: {run.calibration_dir}/params.yaml; use it with `campaign predict {run.path}` or "

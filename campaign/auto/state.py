@@ -137,8 +137,15 @@ class Round:
     def ratio(self) -> float | None:
         return self.heldout_mm / self.floor_mm if self.floor_mm else None
 
+    def ratio_text(self, floor: str = "the floor") -> str:
+        """The held-out mean against the floor in words: "= 1.08× the floor"; a floor of 0
+        (noise-free data) has no ratio but is a floor, not a missing one."""
+        if self.ratio is not None:
+            return f"= {self.ratio:.2f}× {floor}"
+        return "(the noise floor is 0)" if self.floor_mm == 0 else "(no noise floor)"
+
     def line(self) -> str:
-        ratio = f" = {self.ratio:.2f}× the floor" if self.ratio is not None else " (no noise floor)"
+        ratio = " " + self.ratio_text()
         return (f"round {self.number}: {self.poses} poses, {self.hours:.2f} h, {self.model}: test set "
                 f"{self.heldout_mm:.4f} mm{ratio} → {self.decision.text}")
 
