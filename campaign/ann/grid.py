@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from campaign.ann.gain import heldout_gain
 from campaign.errors import ConfigError, DataError
 
 SOLVERS = ("adam", "br-lm")
@@ -638,7 +639,7 @@ def _interruptible(executor, tasks, meter, say):
 
 
 def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_lower=None, q_upper=None,
-             executor=None, progress=None, device="auto", **options):
+             executor=None, progress=None, device="auto", switch_off=True, **options):
     """Cross-validate every size for every prior model and build each prior's network.
 
     q (n, N) training poses (rad, m), N the robot's joints; dz_by_prior: prior name -> residuals
@@ -648,8 +649,12 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
     is the Table 5 block: ``{"sizes": [row...], "best", "folds", "solver", "final": {...}}``.
     options: AdamOptions fields (solver "adam") or ResidualNetwork hyperparameters ("br-lm").
     progress: optional callable receiving :class:`GridProgress` reports and status lines (str).
+    switch_off: a prior whose chosen size shows no significant held-out gain in the cross-validation
+    (campaign.ann.gain: the upper end of the 95 % interval of its RMSE ratio at or above 1) gets a
+    network of zero weights (``switched_off_``: the prior model unchanged), its ``final`` block saying
+    why; no final network is trained for it.
     """
-    from campaign.ann.mlp import joint_limits, joint_mapping
+    from campaign.ann.mlp import MLP, joint_limits, joint_mapping
     from campaign.ann.network import ResidualNetwork
 
     if solver not in SOLVERS:
@@ -705,16 +710,22 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                 for k, _, rk in parts:
                     pred[fold == k] = rk["heldout_pred"][f"{prior}/{k}"]
                 diverged = diverged_folds(dz, pred, fold, scale)
+                infos = [rk["members"][i] for _, i, rk in parts]
                 rows.append({"hidden": list(hidden), **cv_stats(dz, pred, scale),
-                             "epochs": [rk["members"][i]["epochs"] for _, i, rk in parts],
+                             "heldout_gain": heldout_gain(dz, dz - pred, scale),
+                             "epochs": [m["epochs"] for m in infos],
+                             **({"gamma_folds": [float(m["gamma"]) for m in infos]} if solver == "br-lm" else {}),
                              "diverged_folds": diverged,
                              "task": r["id"], "task_wall_s": r["wall_s"], "task_cpu_s": r["cpu_s"]})
                 if say:
                     say(f"[{prior}] {cv_row_text(rows[-1])} ({r['wall_s']:.0f} s)")
             best = best_row(rows, None if say is None else lambda msg: say(f"[{prior}] {msg}"))
-            out[prior] = {"sizes": rows, "best": list(best["hidden"]), "folds": folds, "solver": solver,
+            out[prior] = {"sizes": rows, "best": list(best["hidden"]), "heldout_gain": best["heldout_gain"],
+                          "folds": folds, "solver": solver,
                           "executor": executor.name, "workers": executor.workers, "cv_wall_s": cv_wall,
                           "devices": sorted({r.get("device", "cpu") for r in results})}
+            if switch_off and not best["heldout_gain"]["significant"]:
+                continue  # no network for this prior (below); nothing to retrain
             if solver == "br-lm":
                 members = [{"prior": prior, "fold": None, "train_rows": np.arange(len(q)), "heldout_rows": None,
                             "seed": seed}]
@@ -733,8 +744,10 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                 out[prior]["final"] = {"hidden": out[prior]["best"], "epochs": m["epochs"], "gamma": m["gamma"],
                                        "alpha": m["alpha"], "beta": m["beta"], "n_weights": m["n_weights"],
                                        "stop": m["stop"], "wall_s": r["wall_s"]}
-        else:
+        elif solver == "adam":
             for prior in dz_by_prior:
+                if switch_off and not out[prior]["heldout_gain"]["significant"]:
+                    continue
                 hidden = out[prior]["best"]
                 parts = sorted(where[(prior, tuple(hidden))], key=lambda p: p[0])
                 infos = [rk["members"][i] for _, i, rk in parts]
@@ -746,6 +759,19 @@ def run_grid(q, dz_by_prior: dict, *, sizes, folds=5, seed=0, solver="adam", q_l
                 out[prior]["final"] = {"hidden": list(hidden), "kind": f"ensemble of the {folds} fold networks",
                                        "epochs": [m["epochs"] for m in infos],
                                        "best_epochs": [m["best_epoch"] for m in infos]}
+        for prior in dz_by_prior:
+            if prior not in nets:  # switched off: the cross-validation found no significant held-out gain
+                hidden = out[prior]["best"]
+                n_out = np.shape(dz_by_prior[prior])[1]
+                nets[prior] = ResidualNetwork.from_members(
+                    hidden, np.zeros(MLP(q.shape[1], tuple(hidden), n_out).n_weights), mapping, np.zeros(n_out),
+                    np.ones(n_out), gamma_=0.0, stop_reason_="switched_off", switched_off_=True)
+                best = next(r for r in out[prior]["sizes"] if r["hidden"] == list(hidden))
+                out[prior]["final"] = {"hidden": list(hidden), "switched_off": True,
+                                       "n_weights": nets[prior].net_.n_weights,
+                                       "reason": "no significant held-out gain in the cross-validation: the prior "
+                                                 "model is kept (the network predicts zero)",
+                                       **({"gamma_folds": best["gamma_folds"]} if "gamma_folds" in best else {})}
         return {prior: (nets[prior], out[prior]) for prior in dz_by_prior}
     finally:
         if own:

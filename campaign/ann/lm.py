@@ -3,8 +3,9 @@ loop and its two solver strategies.
 
 The loop (:func:`train_lm`) minimises ``F = β E_D + α E_W`` with LM steps on the Gauss-Newton
 Hessian ``H = 2β JᵀJ + 2α I`` and re-estimates ``γ = N_w − 2α tr(H⁻¹)``, ``α = γ / (2 E_W)``,
-``β = (N_d − γ) / (2 E_D)`` (:func:`br_update`) every ``gamma_every`` epochs. How each LM system
-is solved and how tr(H⁻¹) is obtained is the strategy's:
+``β = (N_d − γ) / (2 E_D)`` (:func:`br_update`) every ``gamma_every`` epochs, the first time after
+``gamma_every`` epochs at a weak prior (:func:`initial_hyperparameters`). How each LM system is
+solved and how tr(H⁻¹) is obtained is the strategy's:
 
 * :class:`MatrixFreeSolver` (``solver="cg"``, the default): J is never formed; conjugate
   gradients on the structured products ``J v`` / ``Jᵀ u`` (:class:`~campaign.ann.mlp.MLP`) in
@@ -49,13 +50,33 @@ class LMWorkspace:
     cg_iterations: int = 0
 
 
+#: the prior's share of the objective at the start, ``α₀ E_W = INITIAL_PRIOR_SHARE · β₀ E_D``: weak,
+#: so that the first ``gamma_every`` epochs fit the data before MacKay's re-estimate judges the fit.
+#: MATLAB trainbr's start (γ = N_w, α₀ = N_w / 2E_W, β₀ = (N_d − N_w) / 2E_D, re-estimated after the
+#: first step) puts α₀/β₀ at 10-40 whatever the data; with N_d ≈ N_w (120 poses, a (16, 16) net:
+#: 720 residuals, 486 weights) that prior outweighs the data, the weights shrink to the w = 0
+#: saddle of every tanh net (all hidden-layer Jacobian columns vanish there), γ → 0, α → ∞, and
+#: no LM step leaves it ("mu_max" after 5 epochs, γ = 1-5): docs/ann.md, "Small campaigns"
+INITIAL_PRIOR_SHARE = 1e-3
+
+
+def initial_hyperparameters(E_D, E_W, n_data):
+    """(α₀, β₀) of a training: β₀ = N_d / (2 E_D) (the noise no larger than the initial misfit),
+    α₀ with α₀ E_W = INITIAL_PRIOR_SHARE · β₀ E_D (a weak prior)."""
+    beta = n_data / (2 * max(E_D, 1e-12))
+    alpha = INITIAL_PRIOR_SHARE * beta * max(E_D, 1e-12) / max(E_W, 1e-12)
+    return alpha, beta
+
+
 def br_update(gamma_trace_inv, n_weights, n_data, alpha, E_D, E_W):
     """One MacKay / Foresee-Hagan update: returns (gamma, alpha, beta).
 
     gamma_trace_inv: tr(H⁻¹) with H = 2β JᵀJ + 2α I at the current point.
     """
     gamma = n_weights - 2.0 * alpha * gamma_trace_inv
-    gamma = float(min(max(gamma, 1e-6), n_weights))
+    # γ ≤ N_d − 1 too: a network with more weights than residuals could otherwise reach γ ≥ N_d, and
+    # β = (N_d − γ) / 2E_D would turn zero or negative (the weights then grow without bound)
+    gamma = float(min(max(gamma, 1e-6), n_weights, max(n_data - 1.0, 1e-6)))
     alpha = gamma / (2.0 * max(E_W, 1e-300))
     beta = (n_data - gamma) / (2.0 * max(E_D, 1e-300))
     return gamma, alpha, beta
@@ -295,10 +316,10 @@ def train_lm(net, w, x, t, solver, gen, *, options: LMOptions = LMOptions(), pro
     y, cache = net.forward(w, x)
     e = y - t
     E_D, E_W = float((e * e).sum()), float((w * w).sum())
-    # MATLAB trainbr's start: γ = N, α and β from the current errors
+    # a weak prior first (INITIAL_PRIOR_SHARE: MATLAB trainbr's start collapses small data sets);
+    # γ = N_w until the first re-estimate
     gamma = float(N)
-    alpha = gamma / (2 * max(E_W, 1e-12))
-    beta = (n_data - gamma) / (2 * max(E_D, 1e-12)) if n_data > gamma else n_data / (2 * max(E_D, 1e-12))
+    alpha, beta = initial_hyperparameters(E_D, E_W, n_data)
     mu = 5e-3
     history = []
     stall = 0
@@ -332,7 +353,7 @@ def train_lm(net, w, x, t, solver, gen, *, options: LMOptions = LMOptions(), pro
         delta = step
         w, cache, e, E_D, E_W = w_new, cache_new, e_new, E_D_new, E_W_new
         mu = max(mu / 10, 1e-20)
-        if epoch % o.gamma_every == 0 or epoch == 1:
+        if epoch % o.gamma_every == 0:  # MacKay's update holds near the minimum of F, not at the start
             tr_inv = solver.trace_inverse(net, w, x, cache, alpha, beta, gen, ws)
             gamma, alpha, beta = br_update(tr_inv, N, n_data, alpha, E_D, E_W)
         history.append((epoch, E_D / n_data, gamma, alpha, beta))
@@ -349,5 +370,8 @@ def train_lm(net, w, x, t, solver, gen, *, options: LMOptions = LMOptions(), pro
                     abs(gamma - gamma_then) < 10 * o.window_rtol * gamma:
                 stop = "plateau"
                 break
+    if not history or epoch < o.gamma_every:  # stopped before any re-estimate: one now, so γ, α, β are estimates
+        tr_inv = solver.trace_inverse(net, w, x, cache, alpha, beta, gen, ws)
+        gamma, alpha, beta = br_update(tr_inv, N, n_data, alpha, E_D, E_W)
     return LMResult(w, float(alpha), float(beta), float(gamma), epoch, stop, float(E_D), float(E_W), int(n_data),
                     np.array(history), ws.cg_iterations)

@@ -121,6 +121,7 @@ class ResidualNetwork:
                               progress_every=self.progress_every)
         self.weights_ = result.weights
         self.alpha_, self.beta_, self.gamma_ = result.alpha, result.beta, result.gamma
+        self.switched_off_ = False
         self.n_epochs_ = result.n_epochs
         self.stop_reason_ = result.stop_reason
         self.mse_normalised_ = result.mse_normalised
@@ -214,6 +215,7 @@ class ResidualNetwork:
         net.target_mapping_ = Mapping(means, scales)
         net.alpha_ = net.beta_ = net.gamma_ = float("nan")
         net.n_epochs_ = 0
+        net.switched_off_ = False
         for k, v in attributes.items():
             setattr(net, k, v)
         return net
@@ -231,6 +233,7 @@ class ResidualNetwork:
             "target_mean": torch.tensor(self.target_mapping_.mean),
             "target_scale": torch.tensor(self.target_mapping_.scale),
             "alpha": self.alpha_, "beta": self.beta_, "gamma": self.gamma_, "n_epochs": self.n_epochs_,
+            "switched_off": bool(getattr(self, "switched_off_", False)),
         }
         torch.save(state, str(path))
 
@@ -250,7 +253,7 @@ class ResidualNetwork:
             means, scales = state["target_mean"].numpy(), state["target_scale"].numpy()
             weights = state["weights"]
             attrs = dict(alpha_=float(state["alpha"]), beta_=float(state["beta"]), gamma_=float(state["gamma"]),
-                         n_epochs_=int(state["n_epochs"]))
+                         n_epochs_=int(state["n_epochs"]), switched_off_=bool(state.get("switched_off", False)))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise DataError(f"{path}: malformed residual network ({exc.__class__.__name__}: {exc})") from None
         if len(hidden) != 2 or mapping.mean.ndim != 1 or mapping.mean.shape != mapping.scale.shape \

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from campaign.errors import DataError
+from campaign.ann.gain import heldout_gain
 from campaign.ann.grid import best_row, cv_row_text, cv_stats, diverged_folds, fold_of
 from campaign.ann.network import ResidualNetwork
 from campaign.model.rotations import rotvec_to_matrix
@@ -98,13 +99,14 @@ def cross_validate(q, dz, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None,
                                   progress=_reporter(progress, hidden, k + 1, folds), **net_options).fit(q[tr], dz[tr])
             pred[te] = net.predict(q[te])
             epochs.append(net.n_epochs_)
-        row = {"hidden": list(hidden), **cv_stats(dz, pred, scale), "epochs": epochs,
+        row = {"hidden": list(hidden), **cv_stats(dz, pred, scale), "heldout_gain": heldout_gain(dz, dz - pred, scale),
+               "epochs": epochs,
                "diverged_folds": diverged_folds(dz, pred, fold, scale), "wall_s": time.perf_counter() - t0}
         rows.append(row)
         if progress:
             progress(cv_row_text(row))
     best = best_row(rows, progress)
-    return {"sizes": rows, "best": list(best["hidden"]), "folds": folds}
+    return {"sizes": rows, "best": list(best["hidden"]), "heldout_gain": best["heldout_gain"], "folds": folds}
 
 
 def fit_ann_stage(q_train, dz_train, *, sizes, folds=5, seed=0, q_lower=None, q_upper=None, progress=None,
@@ -122,5 +124,5 @@ def fit_ann_stage(q_train, dz_train, *, sizes, folds=5, seed=0, q_lower=None, q_
     net = ResidualNetwork(hidden=tuple(cv["best"]), q_lower=q_lower, q_upper=q_upper, seed=seed,
                           progress=_reporter(progress, cv["best"], None, folds), **net_options).fit(q_train, dz_train)
     cv["final"] = {"hidden": list(cv["best"]), "epochs": net.n_epochs_, "gamma": net.gamma_, "alpha": net.alpha_,
-                   "beta": net.beta_, "stop": net.stop_reason_}
+                   "beta": net.beta_, "stop": net.stop_reason_, "switched_off": net.switched_off_}
     return net, cv

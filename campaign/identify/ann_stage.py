@@ -16,7 +16,7 @@ kinematic model.
 from __future__ import annotations
 
 import html
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +28,25 @@ from campaign.model.kinematics import pose_error
 #: hidden sizes tried by default: the paper's four and one beyond
 DEFAULT_SIZES = ((16, 16), (32, 16), (32, 32), (64, 32), (128, 64))
 
+#: sizes tried besides DEFAULT_SIZES on a small campaign (fewer than SMALL_SIZES_BELOW_POSES training
+#: poses): a (16, 16) net has 486 weights against the 720 residuals of 120 poses and over-fits them
+#: (held-out RMSE ratio 1.15-1.4) where a (4, 4)-(8, 8) net removes 10-25 % of a hidden joint
+#: compliance on held-out poses (docs/ann.md, "Small campaigns")
+SMALL_SIZES = ((4, 4), (8, 8))
+SMALL_SIZES_BELOW_POSES = 1000
+
 #: training method by default: "auto" = the paper's BR-LM on small runs (fewer than
 #: AUTO_ADAM_MIN_POSES training poses), where it measured better and faster, and batched Adam
 #: with early stopping and the fold networks' ensemble on larger runs, where it measured better
 #: on the test set and ~10× faster (docs/ann.md: 960 and 11,200 training poses measured)
 DEFAULT_SOLVER = "auto"
 AUTO_ADAM_MIN_POSES = 4000
+
+
+def default_sizes(n_train: int) -> tuple:
+    """The hidden sizes cross-validated when none are given: DEFAULT_SIZES, after SMALL_SIZES on a
+    small campaign (fewer than SMALL_SIZES_BELOW_POSES training poses)."""
+    return (SMALL_SIZES + DEFAULT_SIZES) if n_train < SMALL_SIZES_BELOW_POSES else DEFAULT_SIZES
 
 
 def parse_sizes(text: str) -> tuple:
@@ -82,6 +95,8 @@ def format_table5(cv: dict) -> str:
             lines.append(f"  {variant}: final {tuple(fin['hidden'])} γ = {fin['gamma']:.0f} of "
                          f"{fin.get('n_weights', '?')} weights, α = {fin['alpha']:.4g}, β = {fin['beta']:.4g}, "
                          f"{fin['epochs']} epochs ({fin.get('stop', '')})")
+        elif fin.get("switched_off"):
+            lines.append(f"  {variant}: {tuple(fin['hidden'])} switched off: {fin['reason']}")
     return "\n".join(lines)
 
 
@@ -94,11 +109,21 @@ class AnnStages:
     cross_validation: dict
     files: dict
     table5: str
+    #: stage -> the network's held-out gain over its prior model (metrics.json's ``ann_gain``,
+    #: :func:`stage_gain`)
+    gain: dict = field(default_factory=dict)
+
+    def gain_lines(self) -> list:
+        """One line per neural stage: its held-out gain, or that it has none worth the name."""
+        from campaign.ann.gain import gain_text
+
+        return [gain_text(stage, g) for stage, g in self.gain.items()]
 
     def report_html(self) -> str:
         """The report's Table 5 section."""
+        gain = "".join(f"<p>{html.escape(line)}</p>" for line in self.gain_lines())
         return ("<h2>Cross-validation of the residual network (Table 5)</h2>"
-                f"<pre>{html.escape(self.table5)}</pre>")
+                f"<pre>{html.escape(self.table5)}</pre>{gain}")
 
 
 def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict, progress=None, out_dir=None):
@@ -127,7 +152,7 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
     out.mkdir(parents=True, exist_ok=True)
     tr = ~np.asarray(is_test, dtype=bool)
     options = dict(options)
-    sizes = tuple(options.pop("sizes", DEFAULT_SIZES))
+    sizes = tuple(options.pop("sizes", None) or default_sizes(int(tr.sum())))
     folds = int(options.pop("folds", 5))
     solver = options.pop("solver", None) or DEFAULT_SOLVER
     if solver == "auto":
@@ -155,14 +180,41 @@ def run_ann_stages(run_dir, robot, poses, is_test, T_prior: dict, options: dict,
                           progress=progress, device=device, **options)
     finally:
         executor.close()
-    residuals, cv_all, files = {}, {}, {}
+    residuals, cv_all, files, gain = {}, {}, {}, {}
+    te = ~tr
     for prior, (net, cv) in fitted.items():
         stage = stage_of[prior]
         dz_hat = net.predict(poses.q)
         residuals[stage] = pose_error(compensate_pose(T_prior[prior], dz_hat), poses.T_IE)
         cv_all[prior] = cv
+        gain[stage] = stage_gain(prior, net, cv, dz_by_prior[prior], residuals[stage][:, outputs], tr, te)
         fname = "ann_nominal.pt" if prior == "nominal" else "ann_geometric.pt"
         net.save(out / fname)
         files[stage] = fname
     atomic_write_json(out / "ann_cv.json", cv_all)
-    return residuals, AnnStages(cross_validation=cv_all, files=files, table5=format_table5(cv_all))
+    return residuals, AnnStages(cross_validation=cv_all, files=files, table5=format_table5(cv_all), gain=gain)
+
+
+def stage_gain(prior, net, cv, dz_prior, dz_after, tr, te) -> dict:
+    """A neural stage's held-out gain (metrics.json's ``ann_gain[stage]``): ``prior``, ``solver``,
+    ``hidden``, ``n_weights``, ``gamma`` (BR-LM's final network; None for Adam or when switched
+    off), ``gamma_folds`` (BR-LM: the chosen size's fold networks'), ``switched_off`` (no
+    significant gain in the cross-validation: the network predicts zero, the stage is its prior
+    model), ``cv`` (the chosen size's out-of-fold predictions on the training poses) and ``test``
+    (the test poses) as :func:`campaign.ann.gain.heldout_gain`, and ``significant`` (the
+    cross-validation's: the test set is scored, not used to decide).
+    dz_prior, dz_after: (n, k) residuals of every pose without and with the network."""
+    from campaign.ann.gain import heldout_gain
+
+    scale = dz_prior[tr].std(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    fin = cv.get("final", {})
+    gamma = fin.get("gamma")
+    best = next((r for r in cv.get("sizes", ()) if r["hidden"] == list(cv["best"])), {})
+    cv_gain = cv.get("heldout_gain") or {"ratio": None, "significant": False}
+    return {"prior": prior, "solver": cv.get("solver"), "hidden": list(cv["best"]),
+            "n_weights": int(net.net_.n_weights),
+            "gamma": None if gamma is None or not np.isfinite(gamma) else float(gamma),
+            "gamma_folds": best.get("gamma_folds"),
+            "switched_off": bool(fin.get("switched_off", False)), "cv": cv_gain,
+            "test": heldout_gain(dz_prior[te], dz_after[te], scale), "significant": bool(cv_gain["significant"])}

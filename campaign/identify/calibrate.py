@@ -134,6 +134,7 @@ class CalibrationResult:
             out["tracker"] = self.tracker
         if self.ann is not None:
             out["ann_cross_validation"] = self.ann.cross_validation
+            out["ann_gain"] = self.ann.gain
         if self.noise_floor is not None:
             out["noise_floor"] = self.noise_floor
         if self.drift is not None:
@@ -645,6 +646,8 @@ def summary_text(result: CalibrationResult) -> str:
         lines.append(result.cells["line"])
     if result.ann_skipped:
         lines.append(result.ann_skipped)
+    if result.ann is not None:
+        lines += result.ann.gain_lines()
     if result.model_choice is not None:
         lines.append(choice_text(result.model_choice))
     lines.append(result.floor_line())
