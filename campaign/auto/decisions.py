@@ -70,7 +70,8 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     if best is not None and diagnosis.verdict == "unexplained" and (best.gain < MIN_PARTIAL_GAIN or (
             structure is not None and best.gain < PARTIAL_SHARE * structure.heldout_gain)):
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
-    if best is not None and not leads_to(best, rnd.depends_on):
+    if best is not None and not leads_to(best, rnd.depends_on,
+                                         None if structure is None else float(structure.after.mean())):
         best = None  # it fits part of a structure that depends on something else first: that is missing
     if best is not None and getattr(diagnosis, "time_effects_fail", False) and is_time_effect(best.spec or best.effect):
         best = None  # the poses measured again still move with every effect of time added: none is the answer
