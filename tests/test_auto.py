@@ -482,3 +482,39 @@ def test_a_floor_of_zero_is_stated_as_zero_in_the_round_line_and_the_verdict_not
     none = replace(zero, floor_mm=None)
     assert "(no noise floor)" in none.line()
     assert "the noise floor is 0" not in verdict_text(run, {"rounds": [none.as_json()], "finished": {"reason": "at_floor"}})
+
+
+def test_appended_poses_have_the_drift_checks_motions_checked_over_the_longer_plan(tmp_path):
+    # the driver checks the drift every drift_check_interval(every, len(plan)) stored poses, moving
+    # directly to the reference pose and on; it skips only what summary.json's drift_monitor found
+    # not clear. Poses auto appends change the interval and bring motions the plan never checked
+    # (on the MuJoCo twin: a Panda's hand 0.5 mm into the cabinet on such a return).
+    import json
+
+    from campaign.measure.driver import drift_check_interval, read_plan
+    from campaign.plan.extend import append_tour, plan_space
+    from campaign.plan.repair import check_segments
+    from campaign.run import RunFolder
+
+    run = tmp_path / "r"
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--select", "30", "--quiet"]) == 0
+    folder = RunFolder(run)
+    space = plan_space(folder)
+    ids, _, _ = read_plan(run)
+    before = json.loads((run / "plan" / "summary.json").read_text())["drift_monitor"]
+    free = np.setdiff1d(space.suitable, ids)
+    ext = append_tour(folder, space, free[:: max(1, len(free) // 40)][:40])
+    assert len(ext.added) > 20
+    ids, Q, _ = read_plan(run)
+    dm = json.loads((run / "plan" / "summary.json").read_text())["drift_monitor"]
+    every = drift_check_interval(folder.config.run.drift_check_every, len(ids))
+    assert every != before["every"] and dm["every"] == every
+    after = [k for k in range(len(ids) - 1) if (k + 1) % every == 0]  # the driver's schedule, every pose stored
+    assert dm["checks"] == len(after)
+    step, mc = np.deg2rad(space.motion_sample_deg), space.motion_clearance_m
+    ref = np.repeat(Q[:1], len(after), axis=0)
+    clear = (check_segments(space.robot, space.checker, Q[after], ref, step, mc, ends_clearance=space.clearance_m)
+             & check_segments(space.robot, space.checker, ref, Q[np.array(after) + 1], step, mc,
+                              ends_clearance=space.clearance_m))
+    assert dm["not_clear_after_pose_ids"] == [int(ids[k]) for k, ok in zip(after, clear) if not ok]
+    assert any(int(ids[k]) in set(ext.added) for k in after)  # some checks follow appended poses
