@@ -72,11 +72,14 @@ def _one_line(command, message) -> int:
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    try:
+    try:  # the command modules' imports take seconds on a loaded machine: Ctrl-C there is one line too
+        parser = build_parser()
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a bad argument (1, one line already printed)
         return int(exc.code or 0)
+    except KeyboardInterrupt:
+        print("campaign: interrupted", file=sys.stderr)
+        return 130
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

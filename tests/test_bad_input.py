@@ -461,3 +461,17 @@ def test_the_installed_entry_point_prints_one_line(tmp_path):
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [
         f"campaign plan: {cfg}: plan.clearance_m: must be a finite number >= 0, got nan"]
+
+
+def test_ctrl_c_while_the_commands_are_loaded_is_one_line_not_a_traceback(monkeypatch, capsys):
+    # building the parser imports every command module: seconds on a loaded machine, where a
+    # Ctrl-C printed a 20-line traceback of importlib
+    import campaign.cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign.cli, "build_parser", interrupted)
+    assert campaign.cli.main(["plan", "--run", "r"]) == 130
+    err = capsys.readouterr().err
+    assert err == "campaign: interrupted\n"
