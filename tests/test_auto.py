@@ -518,3 +518,23 @@ def test_appended_poses_have_the_drift_checks_motions_checked_over_the_longer_pl
                               ends_clearance=space.clearance_m))
     assert dm["not_clear_after_pose_ids"] == [int(ids[k]) for k, ok in zip(after, clear) if not ok]
     assert any(int(ids[k]) in set(ext.added) for k in after)  # some checks follow appended poses
+
+
+def test_the_unexplained_verdict_asks_for_an_effect_of_every_input_it_depends_on_time_first_included():
+    # a temperature growth of one link: diagnose ranks time_s, temperature_c, then q3, q2; the
+    # hint named only the joints, and a user would write an effect of the pose alone
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from campaign.auto.report import verdict_text
+
+    run = SimpleNamespace(path="r", config_path="r/campaign.yaml")
+
+    def text(inputs):
+        last = replace(_round(depends_on=inputs), verdict="unexplained")
+        return verdict_text(run, {"rounds": [last.as_json()], "finished": {"reason": "unexplained"}})
+
+    assert "write an effect that depends on time, temperature_c, q3 and q2 (" in text(("time_s", "temperature_c", "q3", "q2"))
+    assert "write an effect that depends on q2 and q3 (" in text(("q2", "q3"))
+    assert "write an effect of time (drift, warm-up) (" in text(("time_s",))
+    assert "write an effect that depends on humidity (" in text(("humidity",))

@@ -24,9 +24,10 @@ def verdict_text(run: RunFolder, state: dict) -> str:
     if reason == "unexplained":
         dep = last.signature or (f"depends on {inputs_text(last.depends_on)}" if last.depends_on else
                                  "no input found on which it depends")
-        joints = [i for i in last.depends_on if i.startswith("q")]
-        hint = (f"an effect that depends on {inputs_text(joints)}" if joints else
-                "an effect of time (drift, warm-up)" if set(last.depends_on) & set(TIME_INPUTS) else "an effect")
+        inputs = list(last.depends_on)  # all of them, ranked: a warm-up of one link is time and joints
+        only_time = bool(inputs) and set(inputs) <= set(TIME_INPUTS)
+        hint = ("an effect of time (drift, warm-up)" if only_time else
+                f"an effect that depends on {inputs_text(inputs)}" if inputs else "an effect")
         return (f"verdict: unexplained — systematic error remains that no candidate explains: {dep}. {head}.\n"
                 f"  next: write {hint} (docs/effects.md, 'Writing an effect'), add it to {run.config_path} "
                 f"(effects: [..., your_file.py:YourEffect]) and run `campaign auto {run.path}` again")
