@@ -307,7 +307,8 @@ def _diagnosis(verdict, ranking=(), depends_on=(), significant=True):
     return SimpleNamespace(verdict=verdict, ranking=tuple(ranking), depends_on=list(depends_on),
                            structure_significant=significant, floor=floor, model_to_noise=3.0, signature=None,
                            at_floor=verdict is None, expected_model_to_noise=1.0, structure=None,
-                           worth_a_round=significant, removal=None, round_off=False, indistinguishable=(), swap=None)
+                           worth_a_round=significant, removal=None, round_off=False, indistinguishable=(), swap=None,
+                           heldout_mean_position_mm=0.2)
 
 
 def _round(decision_kind="stop", verdict="unexplained", depends_on=()):
