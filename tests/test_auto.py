@@ -539,3 +539,30 @@ def test_the_unexplained_verdict_asks_for_an_effect_of_every_input_it_depends_on
     assert "write an effect that depends on q2 and q3 (" in text(("q2", "q3"))
     assert "write an effect of time (drift, warm-up) (" in text(("time_s",))
     assert "write an effect that depends on humidity (" in text(("humidity",))
+
+
+def test_a_revealing_round_the_limit_cuts_to_a_few_poses_is_the_limits_stop():
+    # --max-poses 120 on a link that bends with its load: the first campaign took 119, and auto
+    # measured 1 pose "to reveal it", then stopped "unexplained, and 30 poses chosen to reveal it
+    # did not change the verdict" (reason unexplained, not the limit)
+    from campaign.auto import Limits, decide
+
+    d = _diagnosis("unexplained", depends_on=["q2", "q3"])
+    rnd = _round(verdict="unexplained", depends_on=("q2", "q3"))
+    out = decide(d, rnd, [], Limits(131, None, None), _StubLoop(room=1))
+    assert (out.kind, out.reason) == ("stop", "max_poses") and out.pose_ids == ()
+    assert "the pose limit leaves room for 1 pose, fewer than the 10" in out.text
+
+
+def test_the_stop_after_revealing_rounds_counts_the_poses_they_measured():
+    from dataclasses import replace
+
+    from campaign.auto import Decision, Limits, decide
+
+    d = _diagnosis("unexplained", depends_on=["q2"])
+    reveal = replace(_round(verdict="unexplained", depends_on=("q2",)),
+                     decision=Decision("reveal", "measure 12 poses", pose_ids=tuple(range(12))))
+    out = decide(d, _round(verdict="unexplained", depends_on=("q2",)), [reveal], Limits(312, None, None),
+                 _StubLoop(room=30))
+    assert (out.kind, out.reason) == ("stop", "unexplained")
+    assert "and 12 poses chosen to reveal it did not change the verdict" in out.text

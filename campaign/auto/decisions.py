@@ -19,6 +19,9 @@ DESIGN_MAX_POSES = 60
 DESIGN_MIN_POSES = 8
 #: rounds of revealing poses for one "unexplained" at most
 REVEAL_ROUNDS = 3
+#: a revealing round the limits cut below this is not measured, the limit stops: a few poses cannot
+#: change a verdict fitted on a hundred or more (a third of REVEAL_POSES)
+REVEAL_MIN_POSES = 10
 #: without --target-mm: the model's own predicted error may be this share of the noise floor (its
 #: held-out error is then about √(1 + share²) ≈ 1.1× the floor)
 TARGET_FLOOR_SHARE = 0.5
@@ -126,7 +129,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         top = rnd.depends_on[0]
         last = before[-1] if before else None
         if reveals and last is not None and last.verdict == "unexplained" and last.depends_on[:1] == (top,):
-            return Decision("stop", f"stop: unexplained, and {reveals * REVEAL_POSES if reveals else 0} poses chosen "
+            return Decision("stop", f"stop: unexplained, and {_revealed_poses(before)} poses chosen "
                                     f"to reveal it did not change the verdict (depends on {top} first)",
                             reason="unexplained")
         if reveals >= REVEAL_ROUNDS:
@@ -135,6 +138,11 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         n, limit = loop.room(REVEAL_POSES)
         if n <= 0:
             return _limit_stop(limit, rnd)
+        if limit is not None and n < REVEAL_MIN_POSES:
+            what = "budget" if limit == "budget" else "pose limit"
+            return Decision("stop", f"stop: unexplained, depends on {inputs_text(rnd.depends_on)}; the {what} leaves "
+                                    f"room for {n} pose{'s' if n > 1 else ''}, fewer than the {REVEAL_MIN_POSES} that "
+                                    "could change the verdict", reason=limit)
         d = _reveal(list(rnd.depends_on), diagnosis.signature, loop, n)
         if d is None:
             return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
@@ -373,6 +381,11 @@ def _reveal_rounds(before) -> int:
             break
         n += 1
     return n
+
+
+def _revealed_poses(before) -> int:
+    """Poses measured by the revealing rounds just before this one (:func:`_reveal_rounds`)."""
+    return sum(len(r.decision.pose_ids) for r in before[len(before) - _reveal_rounds(before):])
 
 
 def inputs_text(inputs) -> str:
