@@ -566,3 +566,21 @@ def test_the_stop_after_revealing_rounds_counts_the_poses_they_measured():
                  _StubLoop(room=30))
     assert (out.kind, out.reason) == ("stop", "unexplained")
     assert "and 12 poses chosen to reveal it did not change the verdict" in out.text
+
+
+def test_a_cell_given_once_is_remembered_at_once_even_when_the_session_does_nothing_more(tmp_path):
+    # `auto RUN --cell mujoco --allow-other-cell` measured there, then calibrate stopped (two cells that
+    # are not one robot): state.json still named --sim, so `auto RUN --cell-segment 2`, as the stop
+    # advised, was refused as "another cell (--sim)" than the log's
+    from campaign.auto import AutoOptions, CellSource, auto
+    from campaign.auto.state import AUTO_DIR
+
+    run = tmp_path / "r"
+    (run / AUTO_DIR).mkdir(parents=True)
+    (run / "campaign.yaml").write_text("sim: {seed: 3}\n")
+    state = {"version": 1, "cell": CellSource(controller="127.0.0.1:9", tracker="127.0.0.1:10").as_json(),
+             "options": {}, "plan": {"poses": 10, "estimated_h": 0.1}, "rounds": [_round(verdict=None).as_json()],
+             "pending": None, "calibrated": None, "finished": {"reason": "at_floor", "max_poses": 10, "budget_h": None}}
+    (run / AUTO_DIR / "state.json").write_text(json.dumps(state))
+    auto(run, CellSource(sim=True), AutoOptions(), report=False)
+    assert json.loads((run / AUTO_DIR / "state.json").read_text())["cell"]["sim"] is True

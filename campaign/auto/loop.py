@@ -40,7 +40,10 @@ def auto(run_dir, cell: CellSource | None = None, options: AutoOptions | None = 
         cell = _resolve_cell(run, state, cell)
         _check_cell(run, cell, allow_other_cell, say)  # before the state records the cell
         opts = _resolve_options(state, options)
+        moved = state.get("cell") not in (None, cell.as_json())
         state["cell"], state["options"] = cell.as_json(), asdict(opts)
+        if moved:  # another cell, allowed: remembered at once, so `auto RUN` alone resumes there even if
+            save_state(run, state)  # this session stops before its first step (a refused calibration)
         if cell_segment is not None:
             state["cell_segment"] = cell_segment
         if cell.cell is not None and cell.cell != "sim":  # a bad spec in one line, before anything is planned
