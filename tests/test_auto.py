@@ -416,6 +416,11 @@ def test_decide_takes_out_an_effect_that_does_not_earn_its_place_before_adding_a
     out = decide(d, _round(), [], Limits(312, None, None), _StubLoop(room=30))
     assert (out.kind, out.effects, out.effect) == ("remove_effect", ("joint_compliance:4",), "backlash of joint 4")
     assert out.text.startswith("take out backlash of joint 4") and "-0.1 ± 0.2 µm" in out.text
+    # an effect whose removal lowers the held-out mean by more than its standard error did harm: said so
+    # (qa31b: "-8.0 ± 1.8 µm (within its standard error)" for 4.4 standard errors better without it)
+    d.removal = Contribution("backlash:4", None, 0.0300, 0.0220, -0.0080, 0.0018, None)
+    out = decide(d, _round(), [], Limits(312, None, None), _StubLoop(room=30))
+    assert "is 8.0 ± 1.8 µm lower (4.4 standard errors" in out.text and "within" not in out.text, out.text
 
 
 def test_decide_stops_at_once_on_a_noise_free_cell_fitted_to_round_off():

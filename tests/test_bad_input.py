@@ -384,9 +384,9 @@ def measured_run(tmp_path_factory, robot):
 def test_bad_command_options_are_one_line_and_change_nothing(measured_run, capsys, argv, match):
     import time
 
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # CPU, not wall: a loaded machine stretches the imports' wall time, not the work
     refused(capsys, [a.format(run=measured_run) for a in argv], match, measured_run)
-    assert time.perf_counter() - t0 < 20.0  # refused before the fits
+    assert time.process_time() - t0 < 20.0  # refused before the fits
 
 
 @pytest.mark.parametrize("argv", [["demo", "--run", "{run}"], ["plan", "--run", "{run}", "--quiet"],

@@ -57,9 +57,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                         reason="at_floor")
     removal = diagnosis.removal
     if removal is not None:  # every round re-earns the model: take out before adding
-        return Decision("remove_effect", f"take out {removal.label}: without it the held-out mean on the folds "
-                                         f"changes by {1e3 * removal.gain_mm:+.1f} ± {1e3 * removal.gain_se_mm:.1f} µm "
-                                         "(within its standard error)",
+        return Decision("remove_effect", f"take out {removal.label}: {removal_words(removal)}",
                         effect=removal.label, effects=tuple(diagnosis.effects_after_removal()))
     earlier = {tuple(sorted(r.effects)) for r in before}
     if diagnosis.swap is not None and tuple(sorted(diagnosis.swap[1])) not in earlier:
@@ -319,6 +317,16 @@ def _test_first(diagnosis, best, before, loop) -> Decision | None:
                               f"({best.heldout_mean_position_mm_after / floor.mean_position_mm:.0f}× the floor) and the "
                               f"model-free test cannot yet say on what the rest depends: measure {len(pose_ids)} poses "
                               "spread over the joints before adding it", pose_ids=tuple(pose_ids), reason="test")
+
+
+def removal_words(removal) -> str:
+    """What taking out an effect that does not earn its place does to the held-out mean on the folds:
+    lower by more than its standard error (it did harm), or a change within it (it did nothing)."""
+    gain, se = 1e3 * removal.gain_mm, 1e3 * removal.gain_se_mm
+    if se > 0 and -gain > se:
+        return (f"without it the held-out mean on the folds is {-gain:.1f} ± {se:.1f} µm lower ({-gain / se:.1f} "
+                "standard errors: it fits the folds' noise, not the robot)")
+    return f"without it the held-out mean on the folds changes by {gain:+.1f} ± {se:.1f} µm (within its standard error)"
 
 
 def worth_separating(diagnosis) -> tuple:
