@@ -72,6 +72,16 @@ def _one_line(command, message) -> int:
 
 
 def main(argv=None) -> int:
+    from campaign import interrupt
+
+    interrupt.install()  # a Ctrl-C that a library swallows is raised again at the next stage boundary
+    try:
+        return _main(argv)
+    finally:
+        interrupt.uninstall()
+
+
+def _main(argv) -> int:
     try:  # the command modules' imports take seconds on a loaded machine: Ctrl-C there is one line too
         parser = build_parser()
         args = parser.parse_args(argv)

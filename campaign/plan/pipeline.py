@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from campaign import interrupt
 from campaign.config import CampaignConfig, load_config
 from campaign.errors import ConfigError, PlanError
 from campaign.fileio import atomic_write_json
@@ -258,6 +259,7 @@ def _plan(run: RunFolder, cfg: CampaignConfig, robot, scene, grid: Grid, progres
     clock = [t_start]
 
     def lap(stage):  # a stage run again (the rounds of a chosen campaign) adds up
+        interrupt.check()  # a Ctrl-C a library swallowed during the stage (campaign.interrupt)
         now = time.perf_counter()
         timing[stage] = timing.get(stage, 0.0) + now - clock[0]
         clock[0] = now
