@@ -285,13 +285,20 @@ def test_the_poses_between_a_d_optimal_plans_extremes_are_inside(robot):
 def test_a_fold_ensembles_rows_add_the_spread_of_its_members(robot, tmp_path, capsys):
     from campaign.identify.use import CalibratedRobot
 
-    truth = make_truth(robot, seed=7)
+    from campaign.effects import make_effect
+    from campaign.sim.truth import hidden_effect_params
+
+    # something for the network to learn (compliant joints): a network with no significant held-out
+    # gain is switched off and has no members (campaign.ann.gain)
+    compliance = make_effect("joint_compliance", robot)
+    truth = make_truth(robot, seed=7, effects={"joint_compliance": hidden_effect_params(compliance, 7)})
     poses = synthesize(truth, random_joint_poses(robot, 300, seed=8), seed=9)
     write_measured_csv(tmp_path / "m.csv", poses, robot)
     run = tmp_path / "run"
     assert main(["import", str(tmp_path / "m.csv"), "--run", str(run), "--quiet"]) == 0
     assert main(["calibrate", str(run), "--ann", "--ann-solver", "adam", "--sizes", "8x8", "--folds", "3",
-                 "--epochs", "20", "--quiet", "--no-report"]) == 0
+                 "--epochs", "100", "--quiet", "--no-report"]) == 0
+    assert not json.loads((run / "calibration" / "metrics.json").read_text())["ann_gain"]["geometric+ann"]["switched_off"]
     q = random_joint_poses(robot, 6, seed=10)
     _joint_csv(tmp_path / "q.csv", q)
     capsys.readouterr()
