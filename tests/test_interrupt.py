@@ -11,6 +11,15 @@ import pytest
 from campaign import interrupt
 
 
+@pytest.fixture(autouse=True)
+def python_default_sigint():
+    """Python's own SIGINT handler, whatever this process inherited (a job started in the background
+    of a shell without job control ignores SIGINT, and Python then installs no handler)."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def swallowing_stage():
     try:
         os.kill(os.getpid(), signal.SIGINT)
