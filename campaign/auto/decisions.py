@@ -159,11 +159,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     n, limit = loop.room(REVEAL_POSES)
     if n <= 0:
         return _limit_stop(limit, rnd)
-    from campaign.plan.extend import spread_poses
-
-    ids_train, _ = loop.training()
-    ids, _ = loop.planned()
-    pose_ids = spread_poses(loop.space, ids_train, ids, [f"q{j + 1}" for j in range(loop.space.robot.n_joints)], n)
+    pose_ids = _spread(loop, None, n)
     if len(pose_ids) == 0:
         return Decision("stop", "stop: unexplained, and no suitable pose is left to measure", reason="no_poses")
     return Decision("reveal", f"above the floor, and no input found for it: measure {len(pose_ids)} poses spread over "
@@ -225,20 +221,17 @@ def _reveal(inputs, signature, loop, n: int) -> Decision | None:
     """``n`` poses that reveal a structure depending on ``inputs``: measured poses again now when
     time (or temperature) comes first, else new poses spread over the joints among the inputs (and
     the gravity load when the signature says it grows with it). None when no pose is left."""
-    ids_train, times = loop.training()
     if inputs and inputs[0] in TIME_INPUTS:
         from campaign.plan.extend import remeasure_poses
 
+        ids_train, times = loop.training()
         pose_ids = remeasure_poses(loop.space, ids_train, times, n)
         return Decision("remeasure", f"measure {len(pose_ids)} of the oldest poses again now",
                         pose_ids=tuple(int(p) for p in pose_ids))
-    from campaign.plan.extend import spread_poses
-
     chosen = [i for i in inputs if i not in TIME_INPUTS]
     if signature is not None and any(k != "time_s" for k in signature.growth):
         chosen.append("gravity load")
-    ids, _ = loop.planned()
-    pose_ids = spread_poses(loop.space, ids_train, ids, chosen, n)
+    pose_ids = _spread(loop, chosen, n)
     if len(pose_ids) == 0:
         return None
     return Decision("reveal", f"measure {len(pose_ids)} poses spread over {', '.join(chosen) or 'the joints'}",
@@ -306,11 +299,7 @@ def _test_first(diagnosis, best, before, loop) -> Decision | None:
     n, _ = loop.room(REVEAL_POSES)
     if n <= 0:
         return None
-    from campaign.plan.extend import spread_poses
-
-    ids_train, _ = loop.training()
-    ids, _ = loop.planned()
-    pose_ids = spread_poses(loop.space, ids_train, ids, [f"q{j + 1}" for j in range(loop.space.robot.n_joints)], n)
+    pose_ids = _spread(loop, None, n)
     if len(pose_ids) == 0:
         return None
     return Decision("reveal", f"{best.label} is significant but leaves {best.heldout_mean_position_mm_after:.3f} mm "
@@ -401,17 +390,25 @@ def inputs_text(inputs) -> str:
     return inputs[0] if len(inputs) == 1 else ", ".join(inputs[:-1]) + " and " + inputs[-1]
 
 
+def _spread(loop, inputs, n: int):
+    """``n`` new poses (grid indices) that fill the largest gaps the training poses leave over
+    ``inputs`` (None: every joint), none of them planned already (campaign.plan.extend.spread_poses)."""
+    from campaign.plan.extend import spread_poses
+
+    if inputs is None:
+        inputs = [f"q{j + 1}" for j in range(loop.space.robot.n_joints)]
+    ids_train, _ = loop.training()
+    ids, _ = loop.planned()
+    return spread_poses(loop.space, ids_train, ids, inputs, n)
+
+
 def _spread_sparse(tested, loop) -> Decision | None:
     """Poses spread over the joints the training poses leave sparse, when the test set says the
     model does not hold beyond them (campaign.diagnose.testset), or None without room or poses."""
-    from campaign.plan.extend import spread_poses
-
-    n, limit = loop.room(REVEAL_POSES)
+    n, _ = loop.room(REVEAL_POSES)
     if n <= 0:
         return None
-    ids_train, _ = loop.training()
-    ids, _ = loop.planned()
-    pose_ids = spread_poses(loop.space, ids_train, ids, tested.sparse_joints, n)
+    pose_ids = _spread(loop, tested.sparse_joints, n)
     if len(pose_ids) == 0:
         return None
     return Decision("reveal", f"the test set is {tested.ratio:.1f}× the folds (p = {tested.p_value:.2g}) and the "

@@ -31,9 +31,8 @@ class JointCoverage:
     gap_share: float
 
     def text(self) -> str:
-        held = f"at {self.distinct} value{'s' if self.distinct != 1 else ''}" if self.distinct <= 5 else \
-            f"at {self.distinct} values"
-        return f"{self.joint} {held} (the test poses lie a median {100 * self.gap_share:.0f} % of its range from them)"
+        return (f"{self.joint} at {self.distinct} value{'s' if self.distinct != 1 else ''} (the test poses lie a "
+                f"median {100 * self.gap_share:.0f} % of its range from them)")
 
 
 @dataclass(frozen=True)
