@@ -177,9 +177,13 @@ class CellDecision:
                               "alpha": CELL_AGREEMENT_ALPHA, "margin": CELL_AGREEMENT_MARGIN,
                               "agree": self.agree, "tests": [t.as_json() for t in self.tests]}}
 
+    def _names(self) -> str:
+        """Each segment described (its cell, its poses), "; "-separated."""
+        return "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
+
     def line(self) -> str:
         """One line: what was decided, and why."""
-        names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
+        names = self._names()
         tests = "; ".join(t.text() for t in self.tests) or "no segment could be tested"
         out = "".join(f"; {self.segments.label(s)} left out: {why}" for s, why in sorted(self.left_out.items()))
         if self.decision == "mixed":
@@ -192,7 +196,7 @@ class CellDecision:
                 f"({tests}){out}")
 
     def refusal(self, run_dir) -> str:
-        names = "; ".join(self.segments.describe(s, self.pose_ids) for s in range(self.segments.n))
+        names = self._names()
         bad = "; ".join(t.text() for t in self.tests if t.disagrees and t.decisive)
         if not any(t.test == "repeat" for t in self.tests):  # the model alone: say what else it can be
             bad += ("; no pose was measured on both cells in their own set-ups, so this rests on the model, which "
