@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from campaign.identify.solver import hat_inverse
 from campaign.measure.plausibility import Finding
 from campaign.tolerances import OUTLIER_ALPHA, OUTLIER_FACTOR, OUTLIER_MAX_SHARE, TRACKER_NOISE_MIN_M
 
@@ -107,9 +108,8 @@ def studentized(model) -> tuple:
     rows' residual degrees of freedom (their count less their leverage), on which their σ rests."""
     J, e, P = model.fit_jacobian_, model.fit_residual_, model.fit_prior_precision_
     rows = _position_rows(model)
-    n, m, f = J.shape
-    J2 = J.reshape(-1, f)
-    A_inv = np.linalg.pinv(J2.T @ J2 + P, hermitian=True)
+    n = len(J)
+    A_inv = hat_inverse(J, P)  # the same hat matrix as the solver's leverage
     Jp = J[:, rows, :]
     H = np.einsum("nif,fg,njg->nij", Jp, A_inv, Jp)
     ep = e[:, rows]

@@ -210,13 +210,18 @@ def levenberg_marquardt(problem, x, res, cost, sig, free, prior, *, max_iter):
     return x, res, cost, history, n_iter
 
 
+def hat_inverse(J, P) -> np.ndarray:
+    """(f, f): ``(JᵀJ + P)⁺`` of the whitened Jacobian J (n, m, f) and the prior's precision P (f, f),
+    the middle of the hat matrix ``J (JᵀJ + P)⁺ Jᵀ``."""
+    H, _ = _normal_equations(J, np.zeros(J.shape[:2]))
+    return np.linalg.pinv(H + P, hermitian=True)
+
+
 def row_leverage(J, P) -> np.ndarray:
     """(n, m): each row's share of the unknowns the data determine, the diagonal of the hat matrix
     ``J (JᵀJ + P)⁺ Jᵀ`` of the whitened Jacobian J (n, m, f) (P (f, f): the prior's precision, zeros
     for least squares). The shares sum to tr H (H + P)⁻¹, the effective unknowns."""
-    H, _ = _normal_equations(J, np.zeros(J.shape[:2]))
-    A_inv = np.linalg.pinv(H + P, hermitian=True)
-    return np.sum((J @ A_inv) * J, axis=-1)
+    return np.sum((J @ hat_inverse(J, P)) * J, axis=-1)
 
 
 def variance_components(res, sig, layout: RowLayout, leverage) -> np.ndarray:
