@@ -362,6 +362,13 @@ PLAN_MATCH_TOL_RAD = 1e-3
 #: Diagnose searches every joint whatever this default (the default only fills a bare name).
 GRAVITY_JOINT_MIN_SHARE = 0.02
 
+#: A gravity torque at most this share of the arm's weight times 1 m (N·m) is the round-off of
+#: Pinocchio's recursion, and is 0: a joint whose axis lies along gravity (a vertical joint 1)
+#: carries ~1e-14 N·m of it, to which a compliance or backlash of that joint was fitted
+#: (c1 = -2.1e9 rad/(N·m), σ 1.5e-20) instead of being held at 0 as not identifiable. The
+#: smallest real torque of the arms known here (the Z1's joint 6) is 7e-3 N·m, 1e9 times more.
+GRAVITY_TORQUE_ROUND_OFF = 1e-12
+
 #: Poses over which a robot's default loaded joints are judged (random, inside the limits):
 #: the RMS torque of each joint is known to a few per cent from 200.
 GRAVITY_JOINT_POSES = 200

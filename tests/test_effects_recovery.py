@@ -108,3 +108,16 @@ def test_diagnose_json_has_the_contract_shape(tmp_path, robot, capsys):
         assert {"effect", "heldout_mean_position_mm_before", "heldout_mean_position_mm_after", "significant"} <= set(item)
     assert (run / "diagnose" / "report.html").is_file()
     assert (run / "diagnose" / "residual_joints.svg").is_file()
+
+
+@pytest.mark.parametrize("spec", ["joint_compliance:1", "backlash:1"])
+def test_a_joint_that_carries_no_gravity_torque_is_held_at_0_not_fitted_to_round_off(tmp_path, robot, spec):
+    # the COMAU's joint 1 is vertical: Pinocchio's recursion leaves it ~1e-14 N·m of round-off, to
+    # which the fit gave c1 = -2.1e9 rad/(N·m), σ 1.5e-20 (qa31c, the xArm7's `calibrate --effects`)
+    run, _, _ = make_run(tmp_path, robot, {}, n=200, seed=5)
+    result = calibrate(run, effects=[spec], write=False)
+    model = result.model
+    name = "c1" if spec.startswith("joint") else "beta1"
+    absorbed = [model.unknown_names_[i] for i in model.absorbed_]
+    assert [n for n in absorbed if n.endswith(name)], absorbed
+    assert np.all(model.effect_params_ == 0.0), model.effect_params_

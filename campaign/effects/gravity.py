@@ -68,14 +68,20 @@ def _pin_q(robot, q):
 
 
 def gravity_torques(robot, q) -> np.ndarray:
-    """Joint torques τ (n, 6) N·m that hold the arm against gravity (Pinocchio, URDF inertias)."""
+    """Joint torques τ (n, 6) N·m that hold the arm against gravity (Pinocchio, URDF inertias); the
+    recursion's round-off is 0 (a joint whose axis lies along gravity carries exactly none)."""
     import pinocchio as pin
+
+    from campaign.tolerances import GRAVITY_TORQUE_ROUND_OFF
 
     def compute(q):
         model = robot.pinocchio_model
         data = model.createData()
         qq = _pin_q(robot, q)
-        return np.array([pin.computeGeneralizedGravity(model, data, qi) for qi in qq])
+        tau = np.array([pin.computeGeneralizedGravity(model, data, qi) for qi in qq])
+        scale = moving_mass(robot) * float(np.linalg.norm(model.gravity.linear)) * 1.0  # N·m: the weight at 1 m
+        tau[np.abs(tau) <= GRAVITY_TORQUE_ROUND_OFF * scale] = 0.0
+        return tau
 
     return _cached(robot, q, "tau", compute)
 

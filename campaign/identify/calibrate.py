@@ -633,8 +633,8 @@ def summary_text(result: CalibrationResult) -> str:
                                         "(a fold ensemble; a single network's own uncertainty is not estimated)"
                                         if result.ann is not None else ""))
     if m.absorbed_:
-        lines.append("absorbed by the geometric parameters (held at 0, not identifiable): "
-                     + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
+        lines.append("absorbed by the geometric parameters, or moving nothing on these poses (held at 0, not "
+                     "identifiable): " + ", ".join(m.unknown_names_[i] for i in m.absorbed_))
     if m.correlated_pairs_:
         worst = sorted(m.correlated_pairs_, key=lambda t: -abs(t[2]))[:5]
         more = len(m.correlated_pairs_) - len(worst)
