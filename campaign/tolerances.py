@@ -362,6 +362,12 @@ PLAN_MATCH_TOL_RAD = 1e-3
 #: Diagnose searches every joint whatever this default (the default only fills a bare name).
 GRAVITY_JOINT_MIN_SHARE = 0.02
 
+#: The simulator draws a hidden effect's typical size from the tool point's displacement; a
+#: parameter that moves the tool point less than this share of what it moves the reflectors
+#: (a turn about the tool's own origin: round-off, 1e-17 m) is sized by the reflectors instead.
+#: Before, a joint-6 offset of the UR3 (tool0 on joint 6's axis) was drawn as 3e290 rad.
+SIM_UNMOVED_RTOL = 1e-6
+
 #: A gravity torque at most this share of the arm's weight times 1 m (N·m) is the round-off of
 #: Pinocchio's recursion, and is 0: a joint whose axis lies along gravity (a vertical joint 1)
 #: carries ~1e-14 N·m of it, to which a compliance or backlash of that joint was fitted

@@ -314,3 +314,53 @@ def test_the_harmonic_order_of_a_periodic_residual_is_named_and_a_trend_is_not_p
         assert harmonic_order(x, Y) == k
     assert harmonic_order(x, np.stack([0.3 * x, 0.1 * x ** 2], axis=1) + rng.normal(0, 0.3, (800, 2))) is None
     assert harmonic_order(x, rng.normal(0, 0.3, (800, 2))) is None
+
+
+class _TurnAboutTheTool(Effect):
+    """The tool turns about its own z axis by θ: the tool point stays, the reflectors move."""
+
+    name = "turn_about_the_tool"
+    description = "a turn about the tool's own z axis"
+    param_names = ("theta",)
+    param_units = ("rad",)
+
+    def pose_map(self, params, T, q, context):
+        c, s = np.cos(params[0]), np.sin(params[0])
+        return np.asarray(T, dtype=float) @ np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+class _TemperatureOffset(Effect):
+    """Joint 3's zero moves with the temperature: nothing moves at 20 °C."""
+
+    name = "temperature_offset"
+    description = "joint 3 offset k (T - 20 °C)"
+    param_names = ("k",)
+    param_units = ("rad/K",)
+    context_keys = ("temperature_c",)
+
+    def joint_offset(self, params, q, context):
+        dq = np.zeros_like(q, dtype=float)
+        dq[:, 2] = params[0] * (np.asarray(context["temperature_c"], dtype=float) - 20.0)
+        return dq
+
+
+def test_a_hidden_turn_about_the_tools_own_origin_is_sized_by_what_the_reflectors_see(robot):
+    from campaign.sim.truth import DEFAULT_EFFECT_DISPLACEMENT_M, _unit_displacement_scale, tool_points
+
+    # qa31c: a joint-6 offset of the UR3 (tool0 on joint 6's axis) was drawn as 3e290 rad, the tool
+    # point's displacement being round-off; a turn θ about z moves each reflector by θ times its radius
+    points = tool_points(robot)
+    radius = np.hypot(points[:, 0], points[:, 1]).mean()
+    assert radius > 0.01
+    scale = _unit_displacement_scale(_TurnAboutTheTool(robot), np.random.default_rng(3))
+    np.testing.assert_allclose(scale, DEFAULT_EFFECT_DISPLACEMENT_M / radius, rtol=1e-3)
+
+
+def test_a_hidden_effect_that_moves_nothing_where_it_is_sized_asks_for_its_params(robot):
+    from campaign.sim.truth import hidden_effect_params
+
+    with pytest.raises(ConfigError, match=r"sim\.hidden_effects: effect 'temperature_offset': its parameter k moves "
+                                          r"neither the tool point nor its reflectors .* at temperature_c = 20, .*"
+                                          r"state its params"):
+        hidden_effect_params(_TemperatureOffset(robot), seed=1)
+    np.testing.assert_array_equal(hidden_effect_params(_TemperatureOffset(robot), seed=1, params=[2e-4]), [2e-4])

@@ -198,7 +198,12 @@ def hidden_effect_params(effect, seed: int = 0, params=None) -> np.ndarray:
 
 def _unit_displacement_scale(effect, rng, n_poses: int = 64, step: float = 1e-6) -> np.ndarray:
     """(p,) scale per parameter: ``step`` times the ratio of DEFAULT_EFFECT_DISPLACEMENT_M to the
-    mean tool displacement a parameter of ``step`` causes over random poses, over √p."""
+    mean tool displacement a parameter of ``step`` causes over random poses, over √p. A parameter
+    that leaves the tool point where it is (a turn about the tool's own origin) is scaled by what
+    the reflectors see; one that moves neither is a ConfigError asking for its ``params``."""
+    from campaign.errors import ConfigError
+    from campaign.tolerances import SIM_UNMOVED_RTOL
+
     robot = effect.robot
     q = random_joint_poses(robot, n_poses, seed=int(rng.integers(1 << 31)))
     es = EffectSet((effect,))
@@ -206,12 +211,23 @@ def _unit_displacement_scale(effect, rng, n_poses: int = 64, step: float = 1e-6)
                              np.linspace(0.0, 3600.0, n_poses))
     theta0 = effect.initial_params()
     T0 = model_pose(robot, q, None, es, theta0, context)
+    points = tool_points(robot)
     out = np.empty(effect.n_params)
     for i in range(effect.n_params):
         th = theta0.copy()
         th[i] += step
-        moved = np.mean(np.linalg.norm(model_pose(robot, q, None, es, th, context)[:, :3, 3] - T0[:, :3, 3], axis=1))
-        out[i] = step * DEFAULT_EFFECT_DISPLACEMENT_M / max(moved, 1e-300)
+        T = model_pose(robot, q, None, es, th, context)
+        moved = np.mean(np.linalg.norm(T[:, :3, 3] - T0[:, :3, 3], axis=1))
+        seen = np.mean(np.linalg.norm(transform_points(T, points) - transform_points(T0, points), axis=-1))
+        if not moved > SIM_UNMOVED_RTOL * seen:
+            moved = seen
+        if not moved > 0:
+            at = ", ".join(f"{k} = 20" for k in effect.context_keys if k != "time_s")
+            raise ConfigError(f"sim.hidden_effects: effect '{effect.spec}': its parameter {effect.param_names[i]} "
+                              f"moves neither the tool point nor its reflectors on {n_poses} random poses"
+                              f"{' at ' + at if at else ''}, so no typical size can be drawn: state its params "
+                              "({effect: ..., params: [...]})")
+        out[i] = step * DEFAULT_EFFECT_DISPLACEMENT_M / moved
     return out / np.sqrt(max(effect.n_params, 1))
 
 
