@@ -160,6 +160,57 @@ def test_an_unknown_hidden_effect_is_refused_before_the_simulated_cell_starts(tm
     assert not (run / "sim").exists()
 
 
+HOOK_RAISES = """
+import numpy as np
+from campaign.effects import Effect
+
+
+class Boom(Effect):
+    name = "boom"
+    description = "a hook that raises"
+    param_names = ("a",)
+    param_units = ("rad",)
+
+    def joint_twist(self, params, q, context):
+        raise ValueError("boom from my effect")
+"""
+
+
+def test_a_hidden_effect_whose_hook_raises_is_refused_before_the_simulated_cell_starts(tmp_path, robot, capsys):
+    # qa31c: the cell started, and auto stopped on "tracker: answered 'error' to the set-up measurement",
+    # the reason left in RUN/sim/cell.log
+    (tmp_path / "boom.py").write_text(HOOK_RAISES)
+    run = planned_run(tmp_path, robot, sim={"hidden_effects": [{"effect": str(tmp_path / "boom.py") + ":Boom",
+                                                                "params": [1e-3]}]})
+    line = refused(capsys, ["run", run, "--sim", "--quiet"],
+                   r"campaign\.yaml: sim\.hidden_effects\[0\]: effect .*boom\.py:Boom\.joint_twist\(params, q, "
+                   r"context\) raised ValueError: boom from my effect", run)
+    assert "set-up" not in line
+    assert not (run / "sim").exists()
+
+
+FAILING_TRACKER = """
+class Controller:
+    def __init__(self, robot, options): pass
+    def move(self, q): pass
+
+
+class Tracker:
+    def __init__(self, robot, options): pass
+    def measure(self, aims): raise LookupError("the SDK lost its licence")
+"""
+
+
+def test_a_tracker_that_fails_the_set_up_says_why_in_the_one_line(tmp_path, robot, capsys):
+    (tmp_path / "cell.py").write_text(FAILING_TRACKER)
+    run = planned_run(tmp_path, robot)
+    rc = main(["run", str(run), "--cell", str(tmp_path / "cell.py"), "--quiet"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(lines) == 1, lines
+    assert re.search(r"tracker: answered 'error' to the set-up measurement: tracker adapter: LookupError: the SDK "
+                     r"lost its licence$", lines[0]), lines[0]
+
+
 @pytest.mark.parametrize("argv,match", [
     (["model", "base-params", "--poses", "0"], r"--poses: must be an integer >= 8, got 0"),
     (["model", "base-params", "--poses", "15", "--position-only"], r"--poses: must be an integer >= 16, got 15"),

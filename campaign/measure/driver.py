@@ -411,7 +411,8 @@ def _setup(store, trk, opts, base, cell=None):
     for k in range(opts.setup_repeats):
         reply = trk.request(P.Measure(first + k, P.SETUP_TARGETS), opts.timeout_s)
         if not isinstance(reply, P.Measurement):
-            raise PeerError(f"tracker: answered '{reply.type}' to the set-up measurement")
+            why = f": {reply.message}" if isinstance(reply, P.ErrorReply) else ""
+            raise PeerError(f"tracker: answered '{reply.type}' to the set-up measurement{why}")
         for r in reply.readings:
             if r.status == "ok" and r.target in pts:
                 pts[r.target].append(r.xyz_m)

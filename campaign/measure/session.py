@@ -13,8 +13,12 @@ from campaign.run import RunFolder
 
 def check_simulated_cell(cfg, robot) -> None:
     """ConfigError (one line) for what the simulated cell of ``cfg`` would refuse: an unknown
-    hidden effect, or hidden parameters that do not fit it."""
-    from campaign.effects.base import make_effect
+    hidden effect, hidden parameters that do not fit it, or a hook of it that fails at the robot's
+    middle pose with the context the cell gives (time and temperature), which the cell would
+    otherwise meet at its first measurement, as an error reply to the set-up."""
+    import numpy as np
+
+    from campaign.effects.base import EffectSet, effect_context, make_effect, model_pose
     from campaign.sim.truth import hidden_effect_params
 
     for i, (spec, params) in enumerate(cfg.hidden_effects()):
@@ -22,7 +26,12 @@ def check_simulated_cell(cfg, robot) -> None:
             effect = make_effect(spec, robot)
         except ConfigError as exc:  # a joint the robot lacks: the file and the entry named
             raise ConfigError(f"{cfg.path}: sim.hidden_effects[{i}]: {exc}") from None
-        hidden_effect_params(effect, cfg.sim.seed, params)
+        theta = hidden_effect_params(effect, cfg.sim.seed, params)
+        try:
+            model_pose(robot, np.array([robot.q_mid], dtype=float), None, EffectSet((effect,)), theta,
+                       effect_context({"temperature_c": np.array([20.0])}, np.array([0.0])))
+        except CampaignError as exc:  # the user's hook: what it raised, named by the entry
+            raise ConfigError(f"{cfg.path}: sim.hidden_effects[{i}]: {exc}") from None
 
 
 def measure_run(run_dir, *, sim: bool = False, controller=None, tracker=None, config=None, progress: bool = False,
