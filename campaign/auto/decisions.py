@@ -287,7 +287,8 @@ def _test_first(diagnosis, best, before, loop) -> Decision | None:
     model-free test finds the rest, or the candidate explains it). Once after each effect added;
     None otherwise."""
     floor = diagnosis.floor
-    if diagnosis.structure_significant or not floor.known or not floor.mean_position_mm > 0:
+    if diagnosis.structure_significant or getattr(diagnosis, "chain_significant", False) or not floor.known \
+            or not floor.mean_position_mm > 0:
         return None
     if best.heldout_mean_position_mm_after <= PARTIAL_FLOOR_FACTOR * floor.mean_position_mm:
         return None

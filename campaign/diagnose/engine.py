@@ -104,6 +104,11 @@ class CandidateScore:
     #: its joints against the other joint-indexed candidates on them (campaign.diagnose.joints.Rival);
     #: None when not compared (only the leading candidate is)
     rivals: tuple | None = None
+    #: the held-out mean rotation error, mrad, of the current model and with the candidate (NaN: position only)
+    heldout_mean_rotation_mrad_before: float = float("nan")
+    heldout_mean_rotation_mrad_after: float = float("nan")
+    #: one-sided paired p of "the candidate makes the held-out rotation error larger" (NaN: position only)
+    rotation_p_worse: float = float("nan")
 
     @property
     def joints(self):
@@ -119,9 +124,18 @@ class CandidateScore:
     def gain(self) -> float:
         return 1 - self.heldout_mean_position_mm_after / max(self.heldout_mean_position_mm_before, 1e-300)
 
+    @property
+    def rotation_gain(self) -> float:
+        """The share of the held-out rotation error it takes away (NaN: position only)."""
+        return 1 - self.heldout_mean_rotation_mrad_after / max(self.heldout_mean_rotation_mrad_before, 1e-300)
+
     def as_json(self) -> dict:
+        finite = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731
         return {
             "effect": self.effect,
+            "heldout_mean_rotation_mrad_before": finite(self.heldout_mean_rotation_mrad_before),
+            "heldout_mean_rotation_mrad_after": finite(self.heldout_mean_rotation_mrad_after),
+            "rotation_p_worse": finite(self.rotation_p_worse),
             "spec": self.spec or self.effect,
             "heldout_mean_position_mm_before": self.heldout_mean_position_mm_before,
             "heldout_mean_position_mm_after": self.heldout_mean_position_mm_after,
@@ -192,6 +206,13 @@ class Diagnosis:
     #: the time test on the residuals of the current model with every candidate effect of time added
     #: (thermal, drift, a user's), when the best candidate is one; None otherwise (:func:`time_effects_test`)
     time_effects_test: object = None
+    #: the model-free test on the rotation error in the frame after each joint
+    #: (campaign.diagnose.chain.ChainStructure), or None (not run, or position only)
+    chain: object = None
+
+    @property
+    def chain_significant(self) -> bool:
+        return bool(self.chain is not None and self.chain.significant)
 
     @property
     def time_effects_fail(self) -> bool:
@@ -235,7 +256,8 @@ class Diagnosis:
         """Structure significant and above MIN_ROUND_SHARE of the held-out error, or the same poses
         moved over time in a way the model does not predict: worth measuring for."""
         return bool((self.structure_significant and self.structure is not None
-                     and self.structure.heldout_gain >= MIN_ROUND_SHARE) or self.time_moved)
+                     and self.structure.heldout_gain >= MIN_ROUND_SHARE) or self.time_moved
+                    or (self.chain_significant and self.chain.heldout_gain >= MIN_ROUND_SHARE))
 
     @property
     def model_to_noise(self) -> float | None:
@@ -251,7 +273,7 @@ class Diagnosis:
     @property
     def depends_on(self) -> list:
         """The inputs the error left depends on, most important first (:func:`ranked_inputs`)."""
-        return ranked_inputs(self.structure, self.structure_significant, self.time_test)
+        return ranked_inputs(self.structure, self.structure_significant, self.time_test, self.chain)
 
     @property
     def time_tested(self):
@@ -286,6 +308,7 @@ class Diagnosis:
                 "importance": {} if s is None else dict(sorted(s.importance.items(), key=lambda kv: -kv[1])),
                 "signature": None if self.signature is None else self.signature.as_json(),
                 "regressor_fit_time_s": None if s is None else s.fit_time_s,
+                "rotation": None if self.chain is None else self.chain.as_json(),
             },
             "current_effects": list(self.current_effects),
             "model_note": self.model_note,
@@ -338,7 +361,12 @@ class Diagnosis:
         out = (f"model-free test: a flexible regressor on {inputs} predicts {100 * s.heldout_gain:.1f} % of the "
                f"held-out error (p = {s.p_value:.2g}; detection limit {100 * self.detection_limit:.1f} %): {verdict}")
         if self.structure_significant:
-            out += "\n  depends on " + ", ".join(f"{k} ({100 * s.importance[k]:.0f} %)" for k in self.depends_on)
+            out += "\n  depends on " + ", ".join(f"{k} ({100 * s.importance[k]:.0f} %)"
+                                                for k in s.depends_on(MIN_IMPORTANCE_SHARE))
+        if self.chain is not None:
+            out += "\n  " + self.chain.text(MIN_IMPORTANCE_SHARE)
+        if self.structure_significant or self.chain_significant:
+            out += "\n  depends on, ranked: " + ", ".join(self.depends_on)
         return out
 
     def text(self) -> str:
@@ -350,6 +378,9 @@ class Diagnosis:
                  f"{'effect':<20}{'before mm':>11}{'after mm':>11}{'gain':>8}{'R²':>7}{'p':>10}  significant"]
         for c in self.ranking:
             note = " (absorbed: " + ", ".join(c.absorbed) + ")" if c.absorbed else ""
+            note += (f" (the rotation error {c.heldout_mean_rotation_mrad_before:.3f} → "
+                     f"{c.heldout_mean_rotation_mrad_after:.3f} mrad, larger with p = {c.rotation_p_worse:.2g}: it fits "
+                     "the position at the rotation's expense)") if c.rotation_p_worse < ALPHA else ""
             note += (f" (joints {','.join(map(str, c.joints))}: forward search, {len(c.joint_steps)} "
                      f"step{'s' if len(c.joint_steps) > 1 else ''})") if c.joint_steps else ""
             lines.append(f"{c.effect:<20}{c.heldout_mean_position_mm_before:>11.4f}{c.heldout_mean_position_mm_after:>11.4f}"
@@ -424,6 +455,13 @@ def verdict_text(d: Diagnosis) -> str:
             extra = (f"\n  {partial[0].effect} explains only part of it ({100 * partial[0].gain:.0f} % vs the regressor's "
                      f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
             return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
+                    f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
+        if d.chain_significant:
+            words = ", ".join(d.depends_on)
+            return (f"verdict: unexplained — systematic rotation error remains that no candidate explains: in the "
+                    f"frame after joint {d.chain.joint} a regressor predicts {100 * d.chain.heldout_gain:.0f} % of it, "
+                    f"on {words} (the position test alone finds {100 * max(d.structure.heldout_gain, 0.0):.0f} %: the "
+                    "lever to the tool turns with every joint after the error).\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
         if d.time_moved:
             return (f"verdict: unexplained — the same poses, measured at different times, moved in a way the model "
@@ -675,6 +713,9 @@ class CurrentFits:
     fit_residuals: dict
     heldout_jacobians: dict
     model_var: np.ndarray
+    #: the held-out rotation residual (n, 3) rad and each fold model's at its fitting poses (None: position only)
+    dphi: np.ndarray | None = None
+    fit_rotation: dict | None = None
 
     @property
     def heldout_mean_mm(self) -> float:
@@ -691,7 +732,8 @@ def fit_current(data: DiagnosisData, say) -> CurrentFits:
     say(f"current model on {data.folds} folds")
     n = len(data.tr)
     before, dz_before, model_var = np.empty(n), np.empty((n, 3)), np.zeros(n)
-    models, fit_res, jac = {}, {}, {}
+    dphi = None if data.position_only else np.empty((n, 3))
+    models, fit_res, jac, fit_rot = {}, {}, {}, {}
     for k in range(data.folds):
         q_fit, T_fit, ctx_fit, q_out, T_out, ctx_out = data.fold_data(k)
         m = CalibrationModel(robot=data.robot, effects=list(data.current), estimate_noise=False,
@@ -704,12 +746,16 @@ def fit_current(data: DiagnosisData, say) -> CurrentFits:
         before[out] = np.linalg.norm(dz[:, :3], axis=1) * 1e3
         dz_before[out] = dz[:, :3]
         fit_res[k] = m.residual_at_fit_[:, :3]  # m.residuals(q_fit, T_fit, ctx_fit), kept by the fit
+        if dphi is not None:
+            dphi[out] = dz[:, 3:6]
+            fit_rot[k] = m.residual_at_fit_[:, 3:6]
         models[k] = m
         J = m.jacobian(q_out, T_out, ctx_out)[:, :3, :]
         jac[k] = J
         C = m.covariance_ / max(m.variance_factor_, 1e-300)  # the covariance of the fit's own weights
         model_var[out] = np.einsum("nap,pq,naq->n", J, C, J)
-    return CurrentFits(full, models, before, dz_before, fit_res, jac, model_var)
+    return CurrentFits(full, models, before, dz_before, fit_res, jac, model_var, dphi,
+                       None if dphi is None else fit_rot)
 
 
 @dataclass(frozen=True)
@@ -770,6 +816,23 @@ def find_structure(data: DiagnosisData, fits: CurrentFits, detection: float, run
                                                                [(r_fit, r_out), (r_fit_E, r_out_E)])
 
 
+def find_chain(data: DiagnosisData, fits: CurrentFits, X, input_names, detection: float, run: bool, say):
+    """Where in the chain the error arises: the model-free test on the held-out rotation residual in
+    the frame after each joint (:mod:`campaign.diagnose.chain`), or None (not run, or no rotation:
+    fewer than three reflectors per pose)."""
+    if not run or fits.dphi is None:
+        return None
+    from campaign.diagnose.chain import chain_structure
+    from campaign.model.kinematics import frames
+
+    say("model-free test on the rotation error, in the frame after each joint")
+    q_tr = data.poses.q[data.tr]
+    R, _ = frames(data.robot, q_tr)
+    R_joints = R[:, list(data.robot.joint_frame_index)]
+    return chain_structure(R_joints, X, input_names, q_tr.shape[1], data.fold, fits.fit_rotation, fits.dphi,
+                           alpha=ALPHA, detection=detection)
+
+
 def pose_or_all_structure(X, input_names, n_joints: int, fold, residuals):
     """The model-free test on every input and on the joint angles alone, for the residuals in each
     frame of ``residuals`` ([(fold fits' residuals, held-out residual)], the frame after joint 1 and
@@ -805,21 +868,25 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
     scores, skipped, errors = [], [], {}
     n_cand = max(len(specs), 1)
     ss_before = float(np.sum((fits.dz - fits.dz.mean(axis=0)) ** 2))
+    rot_before = None if fits.dphi is None else np.linalg.norm(fits.dphi, axis=1) * 1e3
     lins = {}
 
     def fit_spec(spec, effect=None):
-        """(after (n,) mm, dz_after (n, 3), absorbed names, fully absorbed) of one spec (or ``effect``)
-        on the folds."""
+        """(after (n,) mm, dz_after (n, 3), absorbed names, fully absorbed, rotation error after (n,) mrad
+        or None) of one spec (or ``effect``) on the folds."""
         if not lins:  # the current model linearised at each fold's optimum, shared by every candidate
             lins.update({k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)})
         effect = effect or make_effect(spec, data.robot)
         after, dz_after, absorbed = np.empty(len(data.tr)), np.empty((len(data.tr), 3)), set()
+        rot_after = None if data.position_only else np.empty(len(data.tr))
         for k in range(data.folds):
             fit = fit_candidate(lins[k], effect, *data.fold_data(k))
             after[data.fold == k] = np.linalg.norm(fit.heldout_dz[:, :3], axis=1) * 1e3
             dz_after[data.fold == k] = fit.heldout_dz[:, :3]
+            if rot_after is not None:
+                rot_after[data.fold == k] = np.linalg.norm(fit.heldout_dz[:, 3:6], axis=1) * 1e3
             absorbed |= set(fit.absorbed)
-        return after, dz_after, tuple(sorted(absorbed)), len(absorbed) >= effect.n_params > 0
+        return after, dz_after, tuple(sorted(absorbed)), len(absorbed) >= effect.n_params > 0, rot_after
 
     def one_candidate(i, spec):
         cls = effect_class(spec)
@@ -844,14 +911,21 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
             rivals.append(split_joints(spec)[0])
 
     def score(spec, cls, steps, tried) -> CandidateScore:
-        after, dz_after, absorbed, fully = fit_spec(spec)
+        after, dz_after, absorbed, fully, rot_after = fit_spec(spec)
         p = paired_p(fits.before, after)
         gain = 1 - after.mean() / max(fits.before.mean(), 1e-300)
         r2 = 1 - float(np.sum((dz_after - dz_after.mean(axis=0)) ** 2)) / max(ss_before, 1e-300)
-        significant = (p < ALPHA / (n_cand * tried)) and gain >= detection and not fully
+        rot_p_worse = np.nan if rot_after is None else paired_p(rot_after, rot_before)
+        # a candidate that makes the rotation error larger fits the position at the rotation's expense:
+        # a rotation where the robot has none (cyclic of the UR10's joint 3 on a tilt of its axis:
+        # 16 % of the position, the rotation 1.1 % worse, p = 0.0004), not a cause of the error
+        significant = (p < ALPHA / (n_cand * tried)) and gain >= detection and not fully and not rot_p_worse < ALPHA
         errors[spec] = (after, make_effect(spec, data.robot).n_params - len(absorbed), max(len(steps), 1))
         return CandidateScore(cls.name, float(fits.before.mean()), float(after.mean()), p, bool(significant),
-                              float(r2), absorbed, _describe(cls, spec), spec, steps)
+                              float(r2), absorbed, _describe(cls, spec), spec, steps,
+                              heldout_mean_rotation_mrad_before=float(rot_before.mean()) if rot_after is not None else np.nan,
+                              heldout_mean_rotation_mrad_after=np.nan if rot_after is None else float(rot_after.mean()),
+                              rotation_p_worse=rot_p_worse)
 
     def score_with(rest, rival):
         """Held-out errors (n,) mm of the candidate over ``rest`` with ``rival`` fitted beside it, or
@@ -863,7 +937,7 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
             parts = [make_effect(s, data.robot) for s in (rest, rival) if s is not None]
         except ConfigError:
             return None
-        after, _, _, fully = fit_spec(None, combined_effect(data.robot, parts) if len(parts) > 1 else parts[0])
+        after, _, _, fully, _ = fit_spec(None, combined_effect(data.robot, parts) if len(parts) > 1 else parts[0])
         return None if fully else after
 
     rivals, tries = [], {}
@@ -945,13 +1019,17 @@ def _describe(cls, spec) -> str:
     return f"{cls.description}, on joint{'s' if len(joints) > 1 else ''} {', '.join(map(str, joints))}"
 
 
-def ranked_inputs(struct, struct_sig: bool, test) -> list:
+def ranked_inputs(struct, struct_sig: bool, test, chain=None) -> list:
     """The inputs the error left depends on, most important first: the flexible regressor's (when
-    its structure is significant), time and temperature ranked by the time test on the model's
-    residuals (campaign.diagnose.timing.rank_by_time_test: first when the same poses moved, out
-    when they did not; time alone when only the test found it). Diagnose's and auto's alike."""
+    its structure is significant), the rotation test's in front of them (when significant: where
+    in the chain the error arises, campaign.diagnose.chain), time and temperature ranked by the
+    time test on the model's residuals (campaign.diagnose.timing.rank_by_time_test: first when the
+    same poses moved, out when they did not; time alone when only the test found it). Diagnose's
+    and auto's alike."""
+    from campaign.diagnose.chain import with_rotation_first
+
     inputs = struct.depends_on(MIN_IMPORTANCE_SHARE) if struct is not None and struct_sig else []
-    return rank_by_time_test(inputs, test)
+    return rank_by_time_test(with_rotation_first(inputs, chain, MIN_IMPORTANCE_SHARE), test)
 
 
 #: the inputs a catalogued effect depends on alone, when that is one kind: the harmonics of cyclic
@@ -985,22 +1063,28 @@ def leads_to(best, depends_on, structure_after_mm: float | None = None) -> bool:
 
 
 def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), time_moved: bool = False,
-                   time_effects_fail: bool = False):
+                   time_effects_fail: bool = False, chain=None):
     """The best significant candidate when it explains the structure (and the structure, when
     significant, depends first on an input the candidate can depend on: :func:`leads_to`), else
     "unexplained" when systematic error remains (the regressor finds it, the same poses moved over
     time as the model does not predict: ``time_moved``, or the model is above the floor), else None
     (module docstring). An effect of time is not the verdict when the same poses still move with
-    every candidate effect of time added (``time_effects_fail``)."""
+    every candidate effect of time added (``time_effects_fail``). With the rotation test significant
+    (``chain``, campaign.diagnose.chain), the candidate must explain the rotation error as well: its
+    held-out rotation error within EXPLAINS_FACTOR of that regressor's."""
     best = scores[0] if scores and scores[0].significant else None
     if best is not None and time_effects_fail and is_time_effect(best.spec or best.effect):
         return "unexplained"
+    chain_sig = bool(chain is not None and chain.significant)
     if best is not None:
         reg_after = struct.after.mean() if struct is not None else np.inf
-        explains = not struct_sig or (best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
-                                      and leads_to(best, depends_on, reg_after))
+        explains = not struct_sig or best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
+        if chain_sig:  # a rotation error the candidate leaves is not explained (NaN: not fitted, not explained)
+            explains = explains and best.heldout_mean_rotation_mrad_after <= EXPLAINS_FACTOR * chain.after_mrad
+        if struct_sig or chain_sig:
+            explains = explains and leads_to(best, depends_on, reg_after)
         return best.effect if explains else "unexplained"
-    if struct_sig or time_moved or (fv.floor.known and not fv.at_floor):
+    if struct_sig or chain_sig or time_moved or (fv.floor.known and not fv.at_floor):
         return "unexplained"
     return None
 
@@ -1191,10 +1275,12 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
     fv = judge_floor(data, fits)
     X, input_names, r_out, r_fit, struct = find_structure(data, fits, fv.detection, structure and not fv.round_off, say)
     struct_sig = bool(struct is not None and struct.p_value < ALPHA and struct.heldout_gain >= fv.detection)
+    chain = find_chain(data, fits, X, input_names, fv.detection, structure and not fv.round_off, say)
+    chain_sig = bool(chain is not None and chain.significant)
     timed = run_time_test(data, fv.floor, fits.full, struct if struct_sig else None)
     time_moved = bool(timed is not None and timed.moved)
     # structure found, or poses that moved as the model does not predict, are above the noise
-    at_floor = False if ((struct_sig or time_moved) and fv.at_floor) else fv.at_floor
+    at_floor = False if ((struct_sig or chain_sig or time_moved) and fv.at_floor) else fv.at_floor
     residuals = fits.full.residuals(data.poses.q, data.poses.T_IE, data.context)
     tested = test_set_check(data, fits, residuals)
     if tested is not None and not tested.holds and fv.at_floor:  # at the floor on the folds only
@@ -1218,7 +1304,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         model_rivals, swap = compare_model_joints(data, fits, lins)
     else:
         contrib, model_rivals, swap = (), (), None
-    depends = ranked_inputs(struct, struct_sig, timed)  # time and temperature as the time test ranks them
+    depends = ranked_inputs(struct, struct_sig, timed, chain)  # time and temperature as the time test ranks them
     signature = None
     if struct_sig:
         from campaign.diagnose.signature import describe
@@ -1228,14 +1314,14 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
                              data.poses.time_s[data.tr], residual_fit=r_fit)
     return Diagnosis(data.run_dir, data.current, scores,
                      choose_verdict(scores, struct, struct_sig, fv, depends, time_moved,
-                                    bool(timed_all is not None and timed_all.moved)),
+                                    bool(timed_all is not None and timed_all.moved), chain),
                      len(data.tr),
                      data.folds, residuals, data.is_test, fv.floor, fits.heldout_mean_mm, struct, struct_sig,
                      fv.detection, at_floor, signature, data.tr, X, r_out, data.rule, skipped, fv.expected,
                      fold_pose_ids(data.poses.pose_id[data.tr], data.fold, data.folds),
                      measured_drift(data.run_dir, data.poses, fv.floor, data.tracker_to_robot, data.cells),
                      data.model_note, contrib, timed, fv.round_off, data.cells, model_rivals, swap, tested,
-                     data.poses.pose_id, timed_all)
+                     data.poses.pose_id, timed_all, chain)
 
 
 def test_set_check(data: DiagnosisData, fits: CurrentFits, residuals):

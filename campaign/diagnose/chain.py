@@ -1,0 +1,128 @@
+"""Where in the chain an error arises: the model's rotation error in each joint's frame.
+
+The model-free test (:mod:`campaign.diagnose.structure`) reads the *position* residual, and a
+position error at the tool is a rotation somewhere in the arm times the lever from there to the
+tool. The lever turns with every joint after the one that errs, so for a tilt of a wrist joint's
+axis the joints after it (q6) carry as much of the position error as the joint that tilts (q4 or
+q5), and permutation importance ranks the wrong one first.
+
+The rotation error has no lever. An error that arises at joint j and depends on its own angle (a
+bearing's run-out, a cyclic error of its gear) rotates the links after j by the same small angle,
+whatever the joints after j do: expressed in the frame after joint j, the measured rotation
+residual is a function of the joints up to j alone, and of q_j alone for a run-out of joint j.
+In the frame after joint 1 the same residual turns with q2 ... q_j, in the tool frame with
+q_{j+1} ... q_N. So the test is run on the rotation residual in the frame after each joint; the
+frame where the regressor predicts most of it is where the error arises, and its inputs are
+what the error depends on (a run-out of the COMAU's joint 4: q4 alone there, against q6 0.47, q4
+0.45 on the position residual in the tool frame).
+
+It needs the rotation: a run measured with fewer than three reflectors per pose has none, and the
+position test alone speaks. A pure translation (a link that grows as it warms) has no rotation
+error, and the test finds nothing there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from campaign.diagnose.structure import StructureResult, structure_test
+
+
+@dataclass(frozen=True)
+class ChainStructure:
+    """The model-free test on the held-out rotation residual (errors in mrad), in the frame after
+    the joint where it predicts most: ``joint`` (1-based), its ``result`` (importance computed);
+    ``gains``: each joint frame's held-out gain, in the order of the joints; ``p_value``: the
+    best frame's, times the number of tests (Bonferroni); ``significant``: p < α and the gain
+    reaches the detection limit."""
+
+    joint: int
+    result: StructureResult = field(repr=False)
+    gains: tuple
+    p_value: float
+    significant: bool
+    time_inputs: bool = False
+    n_joints: int = 6
+
+    @property
+    def heldout_gain(self) -> float:
+        return self.result.heldout_gain
+
+    @property
+    def after_mrad(self) -> float:
+        """The regressor's held-out mean rotation error, mrad."""
+        return float(self.result.after.mean())
+
+    @property
+    def before_mrad(self) -> float:
+        """The current model's held-out mean rotation error, mrad."""
+        return float(self.result.before.mean())
+
+    def depends_on(self, min_share: float) -> list:
+        return self.result.depends_on(min_share)
+
+    def text(self, min_share: float) -> str:
+        verdict = "significant" if self.significant else "not significant"
+        out = (f"rotation error in the frame after joint {self.joint}: a flexible regressor predicts "
+               f"{100 * self.heldout_gain:.1f} % of it ({self.before_mrad:.3f} → {self.after_mrad:.3f} mrad; "
+               f"p = {self.p_value:.2g}): {verdict}")
+        if self.significant:
+            inputs = self.depends_on(min_share)
+            out += "\n    depends on " + ", ".join(f"{k} ({100 * self.result.importance[k]:.0f} %)" for k in inputs)
+            last = max((int(k[1:]) for k in inputs if k[:1] == "q" and k[1:].isdigit()), default=None)
+            if last is not None and last < self.n_joints:
+                out += (f"; no joint after joint {last} changes it there: it arises at joint {last} or before it "
+                        "(a rotation there turns every link after it alike, without a lever)")
+        return out
+
+    def as_json(self) -> dict:
+        return {"joint": self.joint, "heldout_gain": self.heldout_gain, "p_value": self.p_value,
+                "significant": bool(self.significant), "heldout_mean_mrad_before": self.before_mrad,
+                "heldout_mean_mrad_after": self.after_mrad,
+                "importance": dict(sorted(self.result.importance.items(), key=lambda kv: -kv[1])),
+                "gain_by_joint_frame": {f"J{j + 1}": float(g) for j, g in enumerate(self.gains)}}
+
+
+def chain_structure(R_joints, X, input_names, n_joints: int, fold, rot_fit, rot_out, *, alpha: float,
+                    detection: float) -> ChainStructure:
+    """The model-free test on the held-out rotation residual in the frame after each joint.
+
+    R_joints (n, N, 3, 3): each training pose's frame after each joint (nominal); X (n, d) the
+    regressor's inputs (joints first); fold (n,); rot_fit: fold -> the fold model's rotation
+    residual (n_fit, 3) rad at its fitting poses (fold != k, in order); rot_out (n, 3) rad: the
+    held-out rotation residual, both in the robot's base frame. Each frame is tested on the
+    joints alone and, when X has more columns (time, temperature), on every input: the best of
+    the 2 N tests (lowest held-out error), its p times their number."""
+    X = np.asarray(X, dtype=float)
+    X_q = None
+    if X.shape[1] > n_joints:
+        X_q = X.copy()
+        X_q[:, n_joints:] = 0.0
+    inputs = [X] if X_q is None else [X_q, X]
+    gains, tests = [], []
+    for j in range(n_joints):
+        R = R_joints[:, j]
+        out_j = np.einsum("nji,nj->ni", R, rot_out)
+        fit_j = {k: np.einsum("nji,nj->ni", R[fold != k], r) for k, r in rot_fit.items()}
+        here = [(structure_test(Xi, input_names, fold, fit_j, out_j, importance=False), i, fit_j, out_j)
+                for i, Xi in enumerate(inputs)]
+        gains.append(max(t[0].heldout_gain for t in here))
+        tests += [(t, j, i, fit_j, out_j) for t, i, fit_j, out_j in here]
+    best, j, i, fit_j, out_j = min(tests, key=lambda t: t[0].after.mean())
+    result = structure_test(inputs[i], input_names, fold, fit_j, out_j)  # the same fits, now with importance
+    p = min(1.0, len(tests) * result.p_value)
+    significant = bool(p < alpha and result.heldout_gain >= detection)
+    return ChainStructure(j + 1, result, tuple(gains), p, significant, time_inputs=X_q is not None and i == 1,
+                          n_joints=n_joints)
+
+
+def with_rotation_first(depends_on, chain: ChainStructure | None, min_share: float) -> list:
+    """The inputs ``depends_on`` (the position test's) with the rotation test's in front, when it is
+    significant: where the error arises says which joint it depends on (module docstring)."""
+    if chain is None or not chain.significant:
+        return list(depends_on)
+    first = chain.depends_on(min_share)
+    return first + [k for k in depends_on if k not in first]
+
