@@ -75,10 +75,11 @@ class HumidityTool(Effect):
 
 
 def make_open_run(tmp_path, robot, effects=(), theta=(), *, n=420, seed=3, context=None, bursts=15,
-                  repeats=3, tracker_noise_m=None, truth_robot=None):
+                  repeats=3, tracker_noise_m=None, truth_robot=None, robot_name=None):
     """A run whose truth hides ``effects`` (Effect objects, parameters ``theta``); ``bursts`` poses
     are measured ``repeats`` times back to back (sharing their context); ``truth_robot``: the
-    generator's robot when it differs from the run's (e.g. other link masses). Returns (run, truth, poses)."""
+    generator's robot when it differs from the run's (e.g. other link masses); ``robot_name``: the
+    run's robot when it is not the default (`import --robot`). Returns (run, truth, poses)."""
     base = make_truth(truth_robot or robot, seed=seed)
     truth = base.__class__(base.robot, base.p_e, base.T_LI, base.noise_m, base.resolution_m,
                            EffectSet(tuple(effects)), np.asarray(theta, dtype=float))
@@ -92,7 +93,7 @@ def make_open_run(tmp_path, robot, effects=(), theta=(), *, n=420, seed=3, conte
     csv = tmp_path / "m.csv"
     write_measured_csv(csv, poses)
     run = tmp_path / "run"
-    assert main(["import", str(csv), "--run", str(run)]) == 0
+    assert main(["import", str(csv), "--run", str(run), *(["--robot", robot_name] if robot_name else [])]) == 0
     if tracker_noise_m is not None:
         (run / "campaign.yaml").write_text(yaml.safe_dump({"tracker": {"noise_m": tracker_noise_m}}))
     return run, truth, poses

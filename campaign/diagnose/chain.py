@@ -45,6 +45,10 @@ class ChainStructure:
     significant: bool
     time_inputs: bool = False
     n_joints: int = 6
+    #: the held-out rotation residual (n, 3) rad resolved in the frame after ``joint``, and the
+    #: regressor's inputs (n, d) it was tested on, in the order of the training poses
+    residual: np.ndarray = field(repr=False, default=None)
+    inputs: np.ndarray = field(repr=False, default=None)
 
     @property
     def heldout_gain(self) -> float:
@@ -115,7 +119,7 @@ def chain_structure(R_joints, X, input_names, n_joints: int, fold, rot_fit, rot_
     p = min(1.0, len(tests) * result.p_value)
     significant = bool(p < alpha and result.heldout_gain >= detection)
     return ChainStructure(j + 1, result, tuple(gains), p, significant, time_inputs=X_q is not None and i == 1,
-                          n_joints=n_joints)
+                          n_joints=n_joints, residual=out_j, inputs=X)
 
 
 def with_rotation_first(depends_on, chain: ChainStructure | None, min_share: float) -> list:

@@ -38,13 +38,13 @@ def _wrap(text: str, width_px: float, size_px: float) -> str:
 
 
 def svg_signed_against(series: dict, r_um, components, title: str, out: Path, name: str,
-                       column_titles=None, is_test=None) -> str:
+                       column_titles=None, is_test=None, unit: str = "µm") -> str:
     """A grid of the signed residual components (rows) against each input (columns): per bin of
     the input, the mean (line with dots) and the 90 % band (5 %–95 % quantiles) of all poses
     given; with ``is_test`` (n,) bool, also the test set's own bin means (dashed line).
 
     series: column label (with its unit) -> x values (n,); r_um (n, k) residual components in
-    µm; components: their k labels; column_titles: optional title per column."""
+    µm (or ``unit``); components: their k labels; column_titles: optional title per column."""
     labels = list(series)
     r_um = np.asarray(r_um, dtype=float)
     n_cols = len(labels)
@@ -73,7 +73,7 @@ def svg_signed_against(series: dict, r_um, components, title: str, out: Path, na
         if col_titles:
             grid.title(0, c, col_titles[c])
     svg = Svg(grid.width, grid.height)
-    grid.finish(svg, xlabels=xlabels, ylabels=[f"{comp} [µm]" for comp in components])
+    grid.finish(svg, xlabels=xlabels, ylabels=[f"{comp} [{unit}]" for comp in components])
     svg.text(grid.width / 2, 20, title, size=SUPTITLE_PX, anchor="middle")
     return svg.save(Path(out) / name)
 
@@ -133,6 +133,26 @@ def svg_signature(diagnosis, out: Path, name: str = "signature.svg", max_inputs:
                               f"signed held-out residual of the current model against {what}\n"
                               "bin mean (line with dots) and 90 % band (5–95 % quantiles); components in the frame "
                               "after joint 1", out, name, column_titles=titles)
+
+
+def svg_rotation(diagnosis, out: Path, name: str = "rotation.svg", max_inputs: int = 4) -> str | None:
+    """The signed held-out rotation residual (µrad), resolved in the frame after the joint where the
+    rotation test found most (campaign.diagnose.chain), against each input it depends on: per bin,
+    the mean and the 90 % band; None when that test is not significant."""
+    c = getattr(diagnosis, "chain", None)
+    if c is None or not c.significant or c.residual is None:
+        return None
+    names = c.depends_on(0.05)[:max_inputs] or list(c.result.input_names)[:max_inputs]
+    series, titles = {}, []
+    for label in names:
+        x, xlabel = _axis(label, c.inputs[:, c.result.input_names.index(label)])
+        series[xlabel] = x
+        titles.append(f"{label}: {100 * c.result.importance.get(label, 0):.0f} % of the importance")
+    j = c.joint
+    return svg_signed_against(series, c.residual * 1e6, (f"δφx{j}", f"δφy{j}", f"δφz{j}"),
+                              f"signed held-out rotation residual of the current model in the frame after joint {j} "
+                              "against the inputs it depends on\nbin mean (line with dots) and 90 % band (5–95 % "
+                              "quantiles)", out, name, column_titles=titles, unit="µrad")
 
 
 def svg_ranking(diagnosis, out: Path, name: str = "ranking.svg") -> str:
@@ -235,6 +255,7 @@ def write_report(diagnosis, poses, robot, *, out=None, diagnosis_id: str | None 
         series[f"gravity torque τ{j + 1} [N·m]"] = tau[:, j]
     imgs.append(svg_against_context(res, series, is_test, out))
     signature = svg_signature(diagnosis, out)
+    rotation = svg_rotation(diagnosis, out)
     hist = svg_history(Path(diagnosis.run_dir) / "calibration" / "history.json", out,
                        noise_floor=tracker_noise_floor(diagnosis.run_dir, poses, robot))  # the poses read once
     atomic_write_json(out / "diagnosis.json", diagnosis_doc(diagnosis, diagnosis_id))
@@ -248,6 +269,9 @@ def write_report(diagnosis, poses, robot, *, out=None, diagnosis_id: str | None 
         parts += ["<h2>Watch the error fall (calibrate history)</h2>", f"<img src='{hist}'>"]
     if signature:
         parts += ["<h2>What is left, and on what it depends</h2>", f"<img src='{signature}'>"]
+    if rotation:
+        parts += [f"<h2>Where in the chain it arises: the rotation error after joint {diagnosis.chain.joint}</h2>",
+                  f"<img src='{rotation}'>"]
     parts += ["<h2>Candidates</h2>", f"<img src='{imgs[0]}'>",
               "<h2>Where the current model fails</h2>"] + [f"<img src='{f}'>" for f in imgs[1:]]
     return atomic_write(out / "report.html", "\n".join(parts))
