@@ -191,13 +191,14 @@ class StructureResult:
 
 
 def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_state=0, n_permutations=2,
-                   importance=True):
+                   importance=True, max_fit_poses=MAX_FIT_POSES):
     """Fit the regressor on each fold's training residuals and score it on the held-out fold.
 
     X (n, d) inputs of the n training poses; fold (n,) fold index; residual_fit: fold ->
     residuals (n_fit, m) m of the fold's model at its own fitting poses (fold != k, in order);
     residual_out (n, m) m: each pose's held-out residual; importance: compute the permutation
-    importance (else every input's share is 0). Returns a :class:`StructureResult`.
+    importance (else every input's share is 0); max_fit_poses: the regressor's poses per fold at
+    most (a random subset beyond that). Returns a :class:`StructureResult`.
     """
     import time
 
@@ -210,7 +211,7 @@ def structure_test(X, input_names, fold, residual_fit, residual_out, *, random_s
     n_fit = 0
     for k in np.unique(fold):
         tr, out = fold != k, fold == k
-        m = FourierRidge(random_state=random_state + int(k)).fit(X[tr], residual_fit[k])
+        m = FourierRidge(random_state=random_state + int(k), max_fit_poses=max_fit_poses).fit(X[tr], residual_fit[k])
         n_fit = max(n_fit, min(int(tr.sum()), m.max_fit_poses))
         models[k] = m
         pred[out] = m.predict(X[out])
