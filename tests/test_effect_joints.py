@@ -99,6 +99,10 @@ def test_campaign_yaml_joints_as_a_string_a_repeat_an_unknown_field_and_a_joint_
         config({"effect": "joint_compliance", "joints": [2, 2]})
     with pytest.raises(ConfigError, match=r"effects\[0\]: 'harmonics' is not a field of an effect entry"):
         config({"effect": "cyclic", "joints": [1], "harmonics": [1, 2, 3]})
+    # qa31c: this said "joints '2' are not joint numbers", the 2 being one
+    with pytest.raises(ConfigError, match=r"campaign.yaml: effects\[0\]: joint_compliance:2: joints given twice, in the "
+                                          r"name and as joints: \[3\] \(write \{effect: joint_compliance, joints"):
+        config({"effect": "joint_compliance:2", "joints": [3]})
     config({"effect": "joint_compliance", "joints": [7]})  # the robot is not known to the file alone
     with pytest.raises(ConfigError, match=r"campaign.yaml: effects: .*joint 7 is not a joint of COMAU"):
         RunFolder(tmp_path).effects

@@ -251,6 +251,10 @@ def effect_entry(value: dict, where: str) -> str:
     joints = value.get("joints")
     if joints is None:
         return value["effect"].strip()
+    named, in_name = split_joints(value["effect"].strip())
+    if in_name is not None:
+        raise ConfigError(f"{where}: {value['effect'].strip()}: joints given twice, in the name and as joints: "
+                          f"{joints!r} (write {{effect: {named}, joints: [...]}})")
     if isinstance(joints, int) and not isinstance(joints, bool):
         joints = [joints]
     if isinstance(joints, str) and re.fullmatch(r"\s*\d+\s*(,\s*\d+\s*)*", joints):  # "2,3,4" as on the command line
