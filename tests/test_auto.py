@@ -589,3 +589,27 @@ def test_a_cell_given_once_is_remembered_at_once_even_when_the_session_does_noth
     (run / AUTO_DIR / "state.json").write_text(json.dumps(state))
     auto(run, CellSource(sim=True), AutoOptions(), report=False)
     assert json.loads((run / AUTO_DIR / "state.json").read_text())["cell"]["sim"] is True
+
+
+def test_a_round_asking_again_for_poses_the_plan_could_not_reach_stops_instead_of_repeating_for_ever():
+    # qa31c: a UR3 at 3 µm noise, nothing hidden: "measure the 50 most informative poses" → "0 poses
+    # appended; 50 dropped (no collision-free motion)", the same round again, sixteen times on 268 poses
+    from dataclasses import replace
+
+    from campaign.auto import Decision
+    from campaign.auto.loop import unreached_again
+
+    ask = Decision("design", "at the measurement noise, but the model poorly determined: measure the 50 most "
+                             "informative poses", pose_ids=tuple(range(900, 950)))
+    last = replace(_round(verdict=None), decision=ask)
+    now = _round(verdict=None)  # the same 150 poses measured
+    out = unreached_again(ask, now, [last])
+    assert (out.kind, out.reason, out.pose_ids) == ("stop", "no_poses", ())
+    assert "the plan reached none of these 50 poses when last asked (no collision-free motion)" in out.text
+    # poses measured since, other poses asked for, or another kind of round: the decision stands
+    assert unreached_again(ask, replace(now, poses=151), [last]) is ask
+    other = replace(ask, pose_ids=tuple(range(901, 951)))
+    assert unreached_again(other, now, [last]) is other
+    floor = replace(ask, kind="floor")
+    assert unreached_again(floor, now, [last]) is floor
+    assert unreached_again(ask, now, []) is ask

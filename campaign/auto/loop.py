@@ -227,6 +227,20 @@ def _reopen(run, state, limits, retry_failed: bool = False) -> bool:
     return True
 
 
+def unreached_again(decision: Decision, rnd: Round, before) -> Decision:
+    """``decision``, or a stop (reason ``no_poses``) when it asks again for the very poses the last
+    round asked for and nothing was measured since: the plan dropped them all (no collision-free
+    motion reaches them), and asking once more would repeat the round for ever (a UR3 at 3 µm
+    noise asked 60 poses, then 50, sixteen rounds on the same 268 poses)."""
+    last = before[-1] if before else None
+    if not decision.pose_ids or last is None or last.decision.kind != decision.kind \
+            or set(last.decision.pose_ids) != set(decision.pose_ids) or last.poses != rnd.poses:
+        return decision
+    return Decision("stop", f"stop: {decision.text}; the plan reached none of these {len(decision.pose_ids)} poses "
+                            "when last asked (no collision-free motion): nothing more this cell can measure",
+                    reason="no_poses")
+
+
 def _failed_count(run) -> int:
     """Poses stored as failed (0 without a log)."""
     if not run.measurements_path.is_file():
@@ -368,7 +382,7 @@ class _Loop:
         base = Round(len(before) + 1, self.measured_count(), len(ids), self.run.clock_s() / 3600, model,
                      tuple(self.run.effects), float(metrics["stages"][model]["test"]["position_mm"]["mean"]), floor,
                      diagnosis.verdict, diagnosis.at_floor, depends_on, sig, Decision("stop", ""), importance)
-        return replace(base, decision=decide(diagnosis, base, before, self.limits, self))
+        return replace(base, decision=unreached_again(decide(diagnosis, base, before, self.limits, self), base, before))
 
     def measure_cap(self) -> tuple:
         """(poses the limits let this round measure, or None for all; the limit that cuts them,
