@@ -149,5 +149,5 @@ def test_an_effect_of_time_is_named_only_when_the_poses_measured_again_move_as_i
     assert d.time_effects_fail and d.verdict == "unexplained" and d.depends_on[0] in ("time_s", "temperature_c")
     out = d.as_json()
     assert out["time_effects_test"]["moved"] and out["time_effects_test"]["poses_used"] == 24
-    assert "with every candidate effect of time added" in d.text()
+    assert "with every effect of time the folds find (thermal added" in d.text()
     assert [type(e).__name__ for e in truth.effects.effects] == ["ForearmWarmUp"]

@@ -42,6 +42,9 @@ PARTIAL_SHARE = 0.5
 PARTIAL_FLOOR_FACTOR = 3.0
 FLOOR_POSES = 8
 FLOOR_TIMES = 4
+#: the reason of a decision that takes effects of time out of the model: with all of them the same
+#: poses, measured again, still move (campaign.diagnose.engine.Diagnosis.time_removal)
+TIME_REMOVAL = "time"
 #: rounds of poses chosen to separate two effects that the poses cannot tell apart on one joint
 #: (diagnose's ``indistinguishable``), at most, in a run
 SEPARATE_ROUNDS = 2
@@ -59,6 +62,12 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     if removal is not None:  # every round re-earns the model: take out before adding
         return Decision("remove_effect", f"take out {removal.label}: {removal_words(removal)}",
                         effect=removal.label, effects=tuple(diagnosis.effects_after_removal()))
+    timed_out = getattr(diagnosis, "time_removal", ())
+    if timed_out:  # effects of time with which the same poses still move: none is the answer, each goes
+        return Decision("remove_effect", f"take out {' and '.join(c.label for c in timed_out)}: "
+                                         f"{diagnosis.time_removal_text()}",
+                        effect=", ".join(c.label for c in timed_out),
+                        effects=tuple(diagnosis.effects_after_time_removal()), reason=TIME_REMOVAL)
     earlier = {tuple(sorted(r.effects)) for r in before}
     if diagnosis.swap is not None and tuple(sorted(diagnosis.swap[1])) not in earlier:
         # a joint of the model that another effect fits better in its place (never back to a model
@@ -76,6 +85,8 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
         best = None  # it fits part of a structure that depends on something else first: that is missing
     if best is not None and getattr(diagnosis, "time_effects_fail", False) and is_time_effect(best.spec or best.effect):
         best = None  # the poses measured again still move with every effect of time added: none is the answer
+    if best is not None and (best.spec or best.effect) in _taken_out_for_time(before):
+        best = None  # taken out because the poses still moved with it: not added back on a change of significance
     if best is None and worth_separating(diagnosis):
         separate = _separate(diagnosis, before, loop)
         if separate is not None:
@@ -109,7 +120,7 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
             what = (f"the model-free test finds {100 * s.heldout_gain:.0f} % of the held-out error on "
                     f"{inputs_text(list(rnd.depends_on) or weak)} (p = {s.p_value:.2g}), below what the floor's "
                     "uncertainty lets it call significant")
-            if before and before[-1].decision.reason == "probe":
+            if _measuring(before) and _measuring(before)[-1].decision.reason == "probe":
                 from campaign.diagnose.engine import ALPHA
 
                 if s.p_value < ALPHA:
@@ -125,8 +136,11 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
     reveals = _reveal_rounds(before)
     if diagnosis.worth_a_round and rnd.depends_on:
         top = rnd.depends_on[0]
-        last = before[-1] if before else None
-        if reveals and last is not None and last.verdict == "unexplained" and last.depends_on[:1] == (top,):
+        last = _measuring(before)[-1] if _measuring(before) else None
+        if reveals and last is not None and last.verdict == "unexplained" and last.depends_on[:1] and (
+                last.depends_on[0] == top or {last.depends_on[0], top} <= set(TIME_INPUTS)):
+            # time and a temperature that follows it swap places on the noise: the same poses measured again
+            # reveal either
             return Decision("stop", f"stop: unexplained, and {_revealed_poses(before)} poses chosen "
                                     f"to reveal it did not change the verdict (depends on {top} first)",
                             reason="unexplained")
@@ -371,10 +385,24 @@ def _separate(diagnosis, before, loop) -> Decision | None:
                     pose_ids=tuple(chosen), reason="separate")
 
 
+def _taken_out_for_time(before) -> set:
+    """The specs that rounds ``before`` took out as effects of time (TIME_REMOVAL)."""
+    return {s for r in before if r.decision.kind == "remove_effect" and r.decision.reason == TIME_REMOVAL
+            for s in set(r.effects) - set(r.decision.effects)}
+
+
+def _measuring(before) -> list:
+    """The rounds ``before`` without those that took effects of time out (TIME_REMOVAL): such a
+    round measures nothing and follows a revealing round on the same poses, whose count it must
+    not reset (the revealing rounds would start over after it)."""
+    return [r for r in before if not (r.decision.kind == "remove_effect" and r.decision.reason == TIME_REMOVAL)]
+
+
 def _reveal_rounds(before) -> int:
-    """Rounds just before this one that measured poses to reveal an "unexplained" (consecutive)."""
+    """Rounds just before this one that measured poses to reveal an "unexplained" (consecutive;
+    those that took effects of time out between them are passed over: :func:`_measuring`)."""
     n = 0
-    for r in reversed(before):
+    for r in reversed(_measuring(before)):
         if r.decision.kind not in ("reveal", "remeasure"):
             break
         n += 1
@@ -383,7 +411,8 @@ def _reveal_rounds(before) -> int:
 
 def _revealed_poses(before) -> int:
     """Poses measured by the revealing rounds just before this one (:func:`_reveal_rounds`)."""
-    return sum(len(r.decision.pose_ids) for r in before[len(before) - _reveal_rounds(before):])
+    measuring = _measuring(before)
+    return sum(len(r.decision.pose_ids) for r in measuring[len(measuring) - _reveal_rounds(before):])
 
 
 def inputs_text(inputs) -> str:

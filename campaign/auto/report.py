@@ -5,14 +5,26 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
-from campaign.auto.decisions import TIME_INPUTS, inputs_text
+from campaign.auto.decisions import TIME_INPUTS, TIME_REMOVAL, inputs_text
 from campaign.auto.state import AUTO_DIR, AutoResult, Round, calibrated_key, save_state
 from campaign.fileio import atomic_write
 from campaign.run import RunFolder
 
 
 def verdict_text(run: RunFolder, state: dict) -> str:
-    """The final verdict and what the user can do next, in a few lines."""
+    """The final verdict and what the user can do next, in a few lines; then each effect of time a
+    round took out (campaign.auto.decisions.TIME_REMOVAL), with what it explained, unless it is in
+    the final model again."""
+    text = _verdict_words(run, state)
+    final = set(Round.from_json(state["rounds"][-1]).effects)
+    for r in map(Round.from_json, state["rounds"]):
+        d = r.decision
+        if d.kind == "remove_effect" and d.reason == TIME_REMOVAL and not set(r.effects) - set(d.effects) <= final:
+            text += f"\n  round {r.number} took {d.effect} out: {d.text.split(': ', 1)[-1]}"
+    return text
+
+
+def _verdict_words(run: RunFolder, state: dict) -> str:
     last = Round.from_json(state["rounds"][-1])
     reason = (state.get("finished") or {}).get("reason")
     head = (f"{last.model} on {last.poses} poses ({last.hours:.2f} h): test-set mean {last.heldout_mm:.4f} mm "

@@ -89,7 +89,8 @@ class CellSource:
 @dataclass(frozen=True)
 class Decision:
     """What a round decided. kind: ``add_effect`` (``effect``), ``remove_effect`` (``effect`` taken
-    out, or one of its joints: ``effects`` the model's effects after it), ``design``, ``reveal``, ``floor``
+    out, or one of its joints: ``effects`` the model's effects after it; ``reason`` ``time`` for the
+    effects of time with which the same poses still move), ``design``, ``reveal``, ``floor``
     or ``remeasure`` (``pose_ids`` to append and measure; ``reason`` ``probe`` for poses that
     test a structure found below the detection limit at the floor; ``separate`` for poses that separate two
     effects indistinguishable on one joint), or ``stop`` (``reason``: ``at_floor``, ``unexplained``,

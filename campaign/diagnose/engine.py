@@ -203,8 +203,9 @@ class Diagnosis:
     #: the ids of the poses diagnosed (n,), in the order of ``residuals``: without the reading faults the
     #: last calibration left out, and the poses with fewer than three reflectors seen
     pose_ids: np.ndarray = field(repr=False, default=None)
-    #: the time test on the residuals of the current model with every candidate effect of time added
-    #: (thermal, drift, a user's), when the best candidate is one; None otherwise (:func:`time_effects_test`)
+    #: the time test on the residuals of the current model with every significant candidate effect of
+    #: time added (thermal, drift, a user's), when the best candidate is one or the model holds one and
+    #: its poses moved; None otherwise (:func:`time_effects_test`)
     time_effects_test: object = None
     #: the model-free test on the rotation error in the frame after each joint
     #: (campaign.diagnose.chain.ChainStructure), or None (not run, or position only)
@@ -216,8 +217,9 @@ class Diagnosis:
 
     @property
     def time_effects_fail(self) -> bool:
-        """Every candidate effect of time added, the same poses still move as the model does not
-        predict: none of them is the answer (a warm-up of one link moves each pose its own way)."""
+        """With the model's effects of time and every significant candidate one added, the same poses
+        still move as the model does not predict: none of them is the answer (a warm-up of one link
+        moves each pose its own way)."""
         return bool(self.time_effects_test is not None and self.time_effects_test.moved)
 
     @property
@@ -228,6 +230,46 @@ class Diagnosis:
         if not weak:
             return None
         return min(weak, key=lambda c: (c.gain_mm - c.gain_se_mm, c.joint is not None))
+
+    @property
+    def time_removal(self) -> tuple:
+        """The contributions (campaign.diagnose.contribution.Contribution) of the current model's
+        effects of time (thermal, drift, a user's of time or temperature alone) when the same poses,
+        measured again, still move with them and every significant candidate effect of time added
+        (:attr:`time_effects_fail`):
+        each fits part of an error of time it does not cause, and all are taken out together (after
+        :attr:`removal`, which goes first). Empty otherwise."""
+        if not self.time_effects_fail:
+            return ()
+        return tuple(c for c in self.contributions if c.joint is None and is_time_effect(c.spec))
+
+    def effects_after_time_removal(self) -> tuple:
+        """The current effects once :attr:`time_removal`'s are taken out."""
+        out = {c.spec for c in self.time_removal}
+        return tuple(s for s in self.current_effects if s not in out)
+
+    def time_effects_words(self) -> str:
+        """The effects of time :attr:`time_effects_test` held, in words: "thermal in the model and
+        drift added"."""
+        held = [effect_label(s) for s in self.current_effects if is_time_effect(s)]
+        added = [effect_label(s) for s in time_effects_added(self.ranking)]
+        out = " and ".join([*([f"{', '.join(held)} in the model"] if held else []),
+                            *([f"{', '.join(added)} added"] if added else [])])
+        return f"every effect of time the folds find ({out or 'none'})"
+
+    def time_removal_text(self) -> str:
+        """Why :attr:`time_removal`'s effects go, with what each explains (its cross-validated gain
+        ± its standard error); "" when none does."""
+        out = self.time_removal
+        if not out:
+            return ""
+        t = self.time_effects_test
+        each = "; ".join(f"{c.label} takes {1e3 * c.gain_mm:.1f} ± {1e3 * c.gain_se_mm:.1f} µm off the held-out "
+                         f"mean on the folds ({c.heldout_mean_position_mm_without:.4f} → "
+                         f"{c.heldout_mean_position_mm_with:.4f} mm)" for c in out)
+        return (f"with {self.time_effects_words()}, the same poses measured again still "
+                f"move ({t.poses} pose{'' if t.poses == 1 else 's'} over {t.span_h:.2g} h, p = {t.p_value:.2g}): "
+                f"{each}, part of an error of time {'it does' if len(out) == 1 else 'they do'} not cause")
 
     def effects_after_removal(self) -> tuple | None:
         """The current effects once :attr:`removal` is taken out, or None when nothing is."""
@@ -322,6 +364,9 @@ class Diagnosis:
             "remove": None if self.removal is None else {**self.removal.as_json(),
                                                           "effects_after": list(self.effects_after_removal())},
             "time_effects_test": None if self.time_effects_test is None else self.time_effects_test.as_json(),
+            "remove_time": None if not self.time_removal else {
+                "effects": [c.spec for c in self.time_removal], "contributions": [c.as_json() for c in self.time_removal],
+                "effects_after": list(self.effects_after_time_removal()), "reason": self.time_removal_text()},
             "time_test": None if self.time_test is None else {**self.time_test.as_json(),
                                                               "ranks_inputs": self.time_tested is not None},
             "noise_free_round_off": self.round_off,
@@ -396,7 +441,7 @@ class Diagnosis:
         if shown is not None:
             lines.append("  " + shown.text())
         if self.time_effects_fail:
-            lines.append("  with every candidate effect of time added (thermal, drift, ...): "
+            lines.append(f"  with {self.time_effects_words()}: "
                          + self.time_effects_test.text().removeprefix("time test: "))
         if self.signature is not None and self.structure_significant:
             lines.append("  signature: " + self.signature.text())
@@ -414,6 +459,9 @@ class Diagnosis:
         elif self.swap is not None:
             r, after = self.swap
             lines.append(f"  replace {effect_label(r.own)} by {effect_label(r.rival)}: effects: [{', '.join(after)}]")
+        elif self.time_removal:
+            lines.append(f"  take out {' and '.join(c.label for c in self.time_removal)}: effects: "
+                         f"[{', '.join(self.effects_after_time_removal())}]")
         lines += ["", verdict_text(self)]
         return "\n".join(lines)
 
@@ -440,6 +488,16 @@ AT_NOISE_TEXT = "verdict: at the measurement noise: nothing left to find."
 
 
 def verdict_text(d: Diagnosis) -> str:
+    """The verdict in words; when the model's effects of time go (:attr:`Diagnosis.time_removal`),
+    a last line says what each explained and why it goes all the same."""
+    text = _verdict_words(d)
+    if d.time_removal:
+        text += (f"\n  take {' and '.join(c.label for c in d.time_removal)} out of the model "
+                 f"(effects: [{', '.join(d.effects_after_time_removal())}]): {d.time_removal_text()}")
+    return text
+
+
+def _verdict_words(d: Diagnosis) -> str:
     if d.round_off:
         return (f"verdict: noise-free measurements, and the model fits them to round-off (held-out mean "
                 f"{d.heldout_mean_position_mm:.2g} mm): nothing left to find, nothing to measure for.")
@@ -1095,17 +1153,32 @@ def is_time_effect(spec) -> bool:
     return bool(keys) and set(keys) <= set(TIME_INPUTS)
 
 
-def time_effects_test(data: DiagnosisData, floor: NoiseFloor, specs, scores, say):
-    """When the best significant candidate is an effect of time: the time test (:func:`run_time_test`)
-    on the residuals of the current model with every candidate effect of time in ``specs`` added,
-    fitted on the training poses. A drift, a thermal expansion or both move the poses measured again
-    as they say; when the poses still move with all of them, none is the answer. None otherwise."""
+def time_effects_added(scores) -> list:
+    """The specs of the significant candidate effects of time (thermal, drift, a user's), best first:
+    those a round would add to the model (:func:`time_effects_test`)."""
+    return [c.spec or c.effect for c in scores if c.significant and is_time_effect(c.spec or c.effect)]
+
+
+def time_effects_test(data: DiagnosisData, floor: NoiseFloor, scores, say, timed=None):
+    """When the best significant candidate is an effect of time, or the current model holds one and
+    the same poses still move with it (``timed``: the time test on the current model's residuals):
+    the time test (:func:`run_time_test`) on the residuals of the current model with every
+    significant candidate effect of time added (:func:`time_effects_added`), fitted on the training
+    poses (``timed`` itself when none is). A drift, a thermal expansion or both move the poses
+    measured again as they say; when the poses still move with those the model holds and those it
+    would add, none is the answer: not added, and those it holds are taken out
+    (:attr:`Diagnosis.time_removal`). Only significant candidates count: a thermal kept because a
+    drift that the folds do not find would stop the poses moving stays in a model whose poses move
+    (a forearm's warm-up: thermal alone p = 1e-4, with drift p = 0.03). None otherwise."""
     best = scores[0] if scores and scores[0].significant else None
-    if best is None or not is_time_effect(best.spec or best.effect):
+    held = any(is_time_effect(s) for s in data.current) and timed is not None and timed.moved
+    if not held and (best is None or not is_time_effect(best.spec or best.effect)):
         return None
-    timed = [s for s in specs if is_time_effect(s)]
-    say(f"the poses measured again, with {', '.join(effect_class(s).name for s in timed)} added")
-    model = CalibrationModel(robot=data.robot, effects=[*data.current, *timed], position_only=data.position_only)
+    added = time_effects_added(scores)
+    if not added:
+        return timed if held else None
+    say(f"the poses measured again, with {', '.join(effect_class(s).name for s in added)} added")
+    model = CalibrationModel(robot=data.robot, effects=[*data.current, *added], position_only=data.position_only)
     model.fit(*data.subset(data.tr), base=data.base)
     return run_time_test(data, floor, model)
 
@@ -1291,8 +1364,7 @@ def diagnose(run_dir, *, effects=None, candidates=None, folds: int | None = None
         say(f"{name}: {reason}")
     scores, skipped, lins = score_candidates(data, fits, specs, fv.detection, say)
     skipped = absent + skipped
-    scored = {c.spec for c in scores}
-    timed_all = time_effects_test(data, fv.floor, [s for s in specs if s in scored], scores, say)
+    timed_all = time_effects_test(data, fv.floor, scores, say, timed)
     if data.current and not fv.round_off:
         if lins is None:
             lins = {k: linearise(fits.models[k], *data.fold_data(k)[:3]) for k in range(data.folds)}
