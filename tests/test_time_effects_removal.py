@@ -37,6 +37,12 @@ def test_thermal_and_drift_under_a_warm_up_are_taken_out_with_what_each_explaine
         assert f"{c.label} takes {1e3 * c.gain_mm:.1f} ± {1e3 * c.gain_se_mm:.1f} µm" in d.text()
     assert "part of an error of time they do not cause" in d.text().splitlines()[-1]
     assert d.verdict == "unexplained" and d.depends_on[0] == "time_s"
+    # taken out: thermal is significant again, and the verdict says why it is not the answer
+    cfg = yaml.safe_load((run / "campaign.yaml").read_text())
+    (run / "campaign.yaml").write_text(yaml.safe_dump({**cfg, "effects": list(d.effects_after_time_removal())}))
+    d = diagnose(run, folds=3, candidates="thermal,drift")
+    assert d.ranking[0].effect == "thermal" and d.ranking[0].significant and d.verdict == "unexplained", d.text()
+    assert "thermal explains only part of it" in d.text() and "part of an error of time it does not cause" in d.text()
     # only now the truth: a warm-up of one link, no catalogued effect of time
     assert [type(e).__name__ for e in truth.effects.effects] == ["ForearmWarmUp"]
 

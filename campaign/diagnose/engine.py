@@ -512,6 +512,9 @@ def _verdict_words(d: Diagnosis) -> str:
             partial = [c for c in d.ranking if c.significant]
             extra = (f"\n  {partial[0].effect} explains only part of it ({100 * partial[0].gain:.0f} % vs the regressor's "
                      f"{100 * d.structure.heldout_gain:.0f} %)") if partial else ""
+            if partial and d.time_effects_fail and is_time_effect(partial[0].spec or partial[0].effect):
+                extra += (f", and with {d.time_effects_words()} the same poses measured again still move: part of "
+                          "an error of time it does not cause")
             return (f"verdict: unexplained — systematic error remains that no candidate explains: {words}.{extra}\n"
                     f"  write an effect for it (docs/effects.md) and add it to {d.run_dir}/campaign.yaml")
         if d.chain_significant:
