@@ -1155,8 +1155,8 @@ def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), 
     time as the model does not predict: ``time_moved``, or the model is above the floor), else None
     (module docstring). An effect of time is not the verdict when the same poses still move with
     every candidate effect of time added (``time_effects_fail``). With the rotation test significant
-    (``chain``, campaign.diagnose.chain), the candidate must explain the rotation error as well: its
-    held-out rotation error within EXPLAINS_FACTOR of that regressor's."""
+    (``chain``, campaign.diagnose.chain) and the position test not, the candidate must explain the
+    rotation error: its held-out rotation error within EXPLAINS_FACTOR of that regressor's."""
     best = scores[0] if scores and scores[0].significant else None
     if best is not None and time_effects_fail and is_time_effect(best.spec or best.effect):
         return "unexplained"
@@ -1164,8 +1164,10 @@ def choose_verdict(scores, struct, struct_sig, fv: FloorVerdict, depends_on=(), 
     if best is not None:
         reg_after = struct.after.mean() if struct is not None else np.inf
         explains = not struct_sig or best.heldout_mean_position_mm_after <= EXPLAINS_FACTOR * reg_after
-        if chain_sig:  # a rotation error the candidate leaves is not explained (NaN: not fitted, not explained)
-            explains = explains and best.heldout_mean_rotation_mrad_after <= EXPLAINS_FACTOR * chain.after_mrad
+        if chain_sig and not struct_sig:  # the rotation test alone finds it: the rotation error must be
+            # explained (NaN: not fitted, not explained). With both, the position test decides, as
+            # it did alone: two effects hidden at once are named one after the other
+            explains = best.heldout_mean_rotation_mrad_after <= EXPLAINS_FACTOR * chain.after_mrad
         if struct_sig or chain_sig:
             explains = explains and leads_to(best, depends_on, reg_after)
         return best.effect if explains else "unexplained"
