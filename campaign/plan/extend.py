@@ -142,6 +142,22 @@ def design_poses(space: PlanSpace, measured_ids, planned_ids, effects, *, n_max:
     return space.suitable[np.array(chosen, dtype=np.int64)], before, after
 
 
+def reflector_noise_for_floor(robot, floor_mm) -> float | None:
+    """The tracker noise σ (m per coordinate of each reflector centre) whose noise floor, carried
+    through the rigid fit of ``robot``'s reflectors as campaign.measure.floor carries a stated
+    noise, is ``floor_mm`` (a floor's E‖e‖ grows linearly with σ): what :func:`design_poses` takes
+    as ``noise_m`` to predict on the run's own noise. None without a floor or for a floor of 0."""
+    from campaign.measure.floor import floor_from_stated, mean_norm_mm
+    from campaign.plan.selection import TRACKER_NOISE_M
+
+    if floor_mm is None or not floor_mm > 0:
+        return None
+    P_E = getattr(robot, "reflector_positions_in_E", None)
+    unit = floor_from_stated(TRACKER_NOISE_M, P_E).mean_position_mm if P_E is not None and len(P_E) >= 3 \
+        else mean_norm_mm(np.full(3, TRACKER_NOISE_M))
+    return TRACKER_NOISE_M * float(floor_mm) / unit
+
+
 def _information(space: PlanSpace, effects, noise_m):
     """The plan's information model of the suitable poses for the geometry and ``effects``,
     leaving out the effects no pose informs (of time or a measured context, which a plan cannot
