@@ -567,10 +567,22 @@ def test_the_stop_after_revealing_rounds_counts_the_poses_they_measured():
     d = _diagnosis("unexplained", depends_on=["q2"])
     reveal = replace(_round(verdict="unexplained", depends_on=("q2",)),
                      decision=Decision("reveal", "measure 12 poses", pose_ids=tuple(range(12))))
-    out = decide(d, _round(verdict="unexplained", depends_on=("q2",)), [reveal], Limits(312, None, None),
-                 _StubLoop(room=30))
+    now = replace(_round(verdict="unexplained", depends_on=("q2",)), poses=reveal.poses + 12)
+    out = decide(d, now, [reveal], Limits(312, None, None), _StubLoop(room=30))
     assert (out.kind, out.reason) == ("stop", "unexplained")
-    assert "and 12 poses chosen to reveal it did not change the verdict" in out.text
+    assert "and the 12 poses measured to reveal it did not change the verdict" in out.text
+    # qa31c: "90 poses chosen to reveal it did not change the verdict" after 6 measured (3 + 2 + 1): the
+    # plan reached few of them. The poses measured count, and both are said when they differ.
+    rounds = [replace(reveal, poses=150 + k, decision=Decision("reveal", "measure 30 poses",
+                                                               pose_ids=tuple(range(30 * k, 30 * k + 30))))
+              for k in (0, 3, 5)]
+    out = decide(d, replace(now, poses=156), rounds[:2], Limits(312, None, None), _StubLoop(room=30))
+    assert "the 6 poses measured to reveal it (of 60 chosen, the rest not measured)" in out.text
+    out = decide(d, replace(now, poses=150), [rounds[0]], Limits(312, None, None), _StubLoop(room=30))
+    assert out.reason == "unexplained" and "none of the 30 poses chosen to reveal it was measured" in out.text
+    rounds[2] = replace(rounds[2], depends_on=("q1",))  # a first input that changed: the third round stops
+    three = decide(d, replace(now, poses=156), rounds, Limits(312, None, None), _StubLoop(room=30))
+    assert "after 3 rounds of poses chosen to reveal it (6 of the 90 chosen measured)" in three.text
 
 
 def test_a_cell_given_once_is_remembered_at_once_even_when_the_session_does_nothing_more(tmp_path):

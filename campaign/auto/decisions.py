@@ -141,12 +141,13 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                 last.depends_on[0] == top or {last.depends_on[0], top} <= set(TIME_INPUTS)):
             # time and a temperature that follows it swap places on the noise: the same poses measured again
             # reveal either
-            return Decision("stop", f"stop: unexplained, and {_revealed_poses(before)} poses chosen "
-                                    f"to reveal it did not change the verdict (depends on {top} first)",
-                            reason="unexplained")
+            return Decision("stop", f"stop: unexplained, and {_revealed_text(before, rnd)} (depends on {top} "
+                                    "first)", reason="unexplained")
         if reveals >= REVEAL_ROUNDS:
-            return Decision("stop", f"stop: unexplained after {reveals} rounds of poses chosen to reveal it",
-                            reason="unexplained")
+            chosen, measured = _revealed_poses(before, rnd)
+            return Decision("stop", f"stop: unexplained after {reveals} rounds of poses chosen to reveal it ("
+                                    + (f"{measured} measured)" if measured == chosen else
+                                       f"{measured} of the {chosen} chosen measured)"), reason="unexplained")
         n, limit = loop.room(REVEAL_POSES)
         if n <= 0:
             return _limit_stop(limit, rnd)
@@ -424,10 +425,29 @@ def _reveal_rounds(before) -> int:
     return n
 
 
-def _revealed_poses(before) -> int:
-    """Poses measured by the revealing rounds just before this one (:func:`_reveal_rounds`)."""
+def _revealed_poses(before, rnd) -> tuple:
+    """(poses chosen, poses measured) by the revealing rounds just before ``rnd``
+    (:func:`_reveal_rounds`): what they chose, and the readings the run gained since the first of
+    them (the store's count each round holds, :attr:`Round.poses`). The two differ when the plan
+    reached only some of the chosen poses (no collision-free motion) or the limits cut them."""
     measuring = _measuring(before)
-    return sum(len(r.decision.pose_ids) for r in measuring[len(measuring) - _reveal_rounds(before):])
+    revealing = measuring[len(measuring) - _reveal_rounds(before):]
+    if not revealing:
+        return 0, 0
+    return sum(len(r.decision.pose_ids) for r in revealing), max(int(rnd.poses) - int(revealing[0].poses), 0)
+
+
+def _revealed_text(before, rnd) -> str:
+    """What the revealing rounds before ``rnd`` measured, for a stop that says they did not change
+    the verdict: the poses measured, and the poses chosen when these differ (qa31c: "90 poses
+    chosen to reveal it did not change the verdict" after 6 measured)."""
+    chosen, measured = _revealed_poses(before, rnd)
+    if measured == 0:
+        return f"none of the {chosen} poses chosen to reveal it was measured: the verdict stands"
+    if measured == chosen:
+        return f"the {measured} poses measured to reveal it did not change the verdict"
+    return (f"the {measured} poses measured to reveal it (of {chosen} chosen, the rest not measured) "
+            "did not change the verdict")
 
 
 def inputs_text(inputs) -> str:
