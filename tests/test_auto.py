@@ -294,6 +294,9 @@ class _StubLoop:
     def planned(self):
         return np.arange(130), None
 
+    def unreached(self):
+        return np.zeros(0, dtype=np.int64)
+
     def measure_cap(self):
         return (None, None) if self._room else (0, "max_poses")
 
@@ -648,6 +651,9 @@ class _PlanLoop:
     def planned(self):
         return self.ids, None
 
+    def unreached(self):
+        return np.zeros(0, dtype=np.int64)
+
     def design_effects(self):
         return ()
 
@@ -690,3 +696,51 @@ def test_the_predicted_model_error_is_on_the_runs_own_noise_not_the_default_10_u
     stop = decide(d, rnd, [_round("reveal")] * 3, Limits(312, None, 1.0), loop)
     assert (stop.kind, stop.reason) == ("stop", "unexplained")
     assert "the test set is 8.0× the floor" in stop.text and "an effect the model lacks" in stop.text
+
+
+@pytest.fixture(scope="module")
+def ur10_plan(tmp_path_factory):
+    run = tmp_path_factory.mktemp("ur10") / "r"
+    run.mkdir()
+    (run / "campaign.yaml").write_text("robot: ur10\n")
+    assert main(["plan", "--run", str(run), "--grid-scale", "0.6", "--select", "30", "--quiet"]) == 0
+    return run
+
+
+def test_poses_auto_appends_on_a_ur10_are_chosen_among_those_a_motion_reaches_and_the_dropped_never_again(
+        ur10_plan, tmp_path):
+    # qa31c: on the UR arms (joints ±2π) the revealing rounds' poses were mostly dropped, "N poses appended;
+    # M dropped (no collision-free motion)": UR10 3 + 27, 2 + 28, 1 + 29, UR5 0 + 30; the next round chose
+    # the same poses again, and the reasons were written nowhere. Half the UR10's suitable poses lie behind
+    # the barrier of joint 2 that the plan's reachable set (summary.json) keeps out.
+    import json
+    import shutil
+
+    from campaign.auto.decisions import _spread
+    from campaign.measure.driver import read_plan
+    from campaign.plan.extend import append_tour, dropped_ids
+    from campaign.run import RunFolder
+
+    run = tmp_path / "r"
+    shutil.copytree(ur10_plan, run)
+    reach = json.loads((run / "plan" / "summary.json").read_text())["reachable"]
+    assert reach["outside"] > 0.3 * reach["suitable"]  # the case: a barrier keeps many suitable poses out
+    loop = _PlanLoop(run)
+    loop.unreached = lambda: dropped_ids(RunFolder(run))
+    chosen = _spread(loop, ["q3"], 30)
+    assert len(chosen) == 30
+    ext = append_tour(RunFolder(run), loop.space, chosen)
+    assert len(ext.added) >= 27, (len(ext.added), len(ext.dropped))  # before: 0 of 30 (30 dropped)
+    # a pose no motion reaches is written to plan/dropped.csv with its reason and never chosen again
+    plan_ids = set(read_plan(run)[0].tolist())
+    outside = [int(p) for p in loop.space.suitable[~loop.space.reachable] if int(p) not in plan_ids][:40]
+    ext = append_tour(RunFolder(run), loop.space, outside)
+    assert len(ext.dropped) > 0
+    rows = (run / "plan" / "dropped.csv").read_text().splitlines()
+    written = {int(r.split(",", 1)[0]): r.split(",", 1)[1] for r in rows[1:]}
+    assert {p: r for p, r in ext.dropped} == {p: written[p] for p, _ in ext.dropped}
+    assert all("collision-free" in r or "reach" in r for _, r in ext.dropped)
+    assert append_tour(RunFolder(run), loop.space, outside) == type(ext)((), (), 0, 0.0)  # tried once, not again
+    loop.ids = read_plan(run)[0]
+    again = _spread(loop, ["q3"], 60)
+    assert not set(again.tolist()) & {p for p, _ in ext.dropped}

@@ -203,7 +203,7 @@ def _floor_round(diagnosis, before, loop) -> Decision | None:
     if n < 2 * FLOOR_TIMES:
         return None
     ids_train, _ = loop.training()
-    ids, _ = loop.planned()
+    ids = _not_again(loop)
     chosen, _, _ = design_poses(loop.space, ids_train, ids, loop.design_effects(), n_max=n // FLOOR_TIMES,
                                 noise_m=design_noise_m(loop, floor.mean_position_mm))
     pose_ids = tuple(int(p) + r * REPEAT_ID_STRIDE for p in chosen for r in range(FLOOR_TIMES))
@@ -269,7 +269,7 @@ def _design_or_stop(rnd, limits, loop, target, *, at_floor: bool) -> Decision:
     from campaign.plan.extend import design_poses
 
     ids_train, _ = loop.training()
-    ids, _ = loop.planned()
+    ids = _not_again(loop)
     n, limit = loop.room(DESIGN_MAX_POSES)
     effects = loop.design_effects()
     noise_m = design_noise_m(loop, rnd.floor_mm)
@@ -389,7 +389,7 @@ def _separate(diagnosis, before, loop) -> Decision | None:
     if n <= 0:
         return None
     ids_train, _ = loop.training()
-    ids, _ = loop.planned()
+    ids = _not_again(loop)
     chosen = []
     for k, r in enumerate(pairs):
         share = (n - len(chosen)) // (len(pairs) - k)
@@ -450,6 +450,16 @@ def _revealed_text(before, rnd) -> str:
             "did not change the verdict")
 
 
+def _not_again(loop) -> np.ndarray:
+    """Pose ids not to choose again: those the plan holds and those it dropped before (no
+    collision-free motion reached them; RUN/plan/dropped.csv). A UR10 chose the same unreachable
+    poses round after round."""
+    ids, _ = loop.planned()
+    unreached = getattr(loop, "unreached", None)  # a loop that knows of no dropped pose (a test's) has none
+    dropped = np.zeros(0) if unreached is None else unreached()
+    return np.concatenate([np.asarray(ids, dtype=np.int64), np.asarray(dropped, dtype=np.int64)])
+
+
 def inputs_text(inputs) -> str:
     inputs = ["time" if i == "time_s" else i for i in inputs]
     return inputs[0] if len(inputs) == 1 else ", ".join(inputs[:-1]) + " and " + inputs[-1]
@@ -463,7 +473,7 @@ def _spread(loop, inputs, n: int):
     if inputs is None:
         inputs = [f"q{j + 1}" for j in range(loop.space.robot.n_joints)]
     ids_train, _ = loop.training()
-    ids, _ = loop.planned()
+    ids = _not_again(loop)
     return spread_poses(loop.space, ids_train, ids, inputs, n)
 
 

@@ -304,7 +304,8 @@ class _Loop:
             if ext.added or ext.dropped:
                 self.say(f"  plan: {len(ext.added)} poses appended to {self.run.poses_csv}"
                          + (f" ({ext.via_poses} via poses)" if ext.via_poses else "")
-                         + (f"; {len(ext.dropped)} dropped (no collision-free motion)" if ext.dropped else ""))
+                         + (f"; {len(ext.dropped)} dropped (no collision-free motion; reasons in "
+                            f"{self.run.plan_dir / 'dropped.csv'})" if ext.dropped else ""))
 
     def measure(self):
         from campaign.measure.session import measure_run
@@ -408,6 +409,13 @@ class _Loop:
 
         ids, Q, _ = read_plan(self.run.path)
         return ids, Q
+
+    def unreached(self):
+        """Pose ids the plan dropped (RUN/plan/dropped.csv: its own, and those appended poses no
+        collision-free motion reached): not chosen again."""
+        from campaign.plan.extend import dropped_ids
+
+        return dropped_ids(self.run)
 
     def measured_count(self) -> int:
         with self.run.store() as store:

@@ -60,6 +60,26 @@ class PlanSpace:
     motion_clearance_m: float
     motion_sample_deg: float
     seconds_per_pose: float
+    #: choose among the poses one tour can visit (the plan's own ``reachable`` set), as the plan did
+    reachable_only: bool = False
+
+    @cached_property
+    def reachable(self) -> np.ndarray:
+        """(m,) bool over ``suitable``: the poses new ones are chosen among. With ``reachable_only``,
+        those of the largest set that collision-free motions join (campaign.plan.region, as the
+        plan chose among: the poses of its random pool inside it; a few seconds), else all. On a UR
+        arm (joints ±2π) half the suitable poses lie behind a barrier of joints 2 and 3: chosen
+        among every suitable pose, 27 to 30 of 30 poses a round were dropped as unreachable."""
+        if not self.reachable_only:
+            return np.ones(len(self.suitable), dtype=bool)
+        from campaign.plan.region import reachable_region
+
+        region = reachable_region(self.robot, self.checker, self.grid, self.suitable,
+                                  np.deg2rad(self.motion_sample_deg), self.motion_clearance_m,
+                                  pose_clearance=self.clearance_m)
+        inside = np.zeros(len(self.suitable), dtype=bool)
+        inside[region.pool[region.in_pool]] = True
+        return inside
 
     @cached_property
     def checker(self):
@@ -96,13 +116,36 @@ def plan_space(run) -> PlanSpace:
     est = summary.get("estimated_campaign", {})
     per_pose = est.get("seconds_per_pose") or \
         (pc.settle_time_s + len(robot.reflectors) * pc.tracker_time_per_reflector_s)
+    reachable = (summary.get("reachable") or {}).get("chosen_among") == "reachable"
     return PlanSpace(robot, scene, grid, suitable, pc.clearance_m, pc.motion_clearance_m, pc.motion_sample_deg,
-                     float(per_pose))
+                     float(per_pose), reachable)
 
 
 def _free(space: PlanSpace, planned_ids) -> np.ndarray:
-    """(m,) bool over ``space.suitable``: poses the plan does not hold (in any repeat)."""
-    return ~np.isin(space.suitable, base_pose_id(planned_ids))
+    """(m,) bool over ``space.suitable``: poses to choose among, those of its reachable set
+    (:attr:`PlanSpace.reachable`) that ``planned_ids`` do not hold (in any repeat; pass the poses
+    the plan dropped too, :func:`dropped_ids`, so that none is chosen again)."""
+    return ~np.isin(space.suitable, base_pose_id(np.asarray(planned_ids, dtype=np.int64))) & space.reachable
+
+
+DROPPED_HEADER = "pose_id,reason"
+
+
+def dropped_ids(run) -> np.ndarray:
+    """The pose ids RUN/plan/dropped.csv lists (the plan's own and those :func:`append_tour`
+    dropped since): poses no collision-free motion reached, not to be chosen again."""
+    path = run.plan_dir / "dropped.csv"
+    if not path.is_file():
+        return np.zeros(0, dtype=np.int64)
+    out = []
+    for ln in path.read_text().splitlines()[1:]:
+        head = ln.split(",", 1)[0].strip()
+        if head:
+            try:
+                out.append(int(float(head)))
+            except ValueError:
+                raise DataError(f"{path}: pose id {head!r} is not a number") from None
+    return np.array(out, dtype=np.int64)
 
 
 def design_poses(space: PlanSpace, measured_ids, planned_ids, effects, *, n_max: int, target_mm: float | None = None,
@@ -332,8 +375,9 @@ def append_tour(run, space: PlanSpace, pose_ids, *, offset_repeats: bool = False
     tour from the plan's last pose (front-of-wall and behind-wall groups, as `campaign plan`),
     every motion checked at the plan's motion clearance and repaired through via postures or
     the pose dropped (campaign.plan.repair), then written to RUN/plan/vias.csv and poses.csv
-    (atomically, vias first). Ids the plan holds already are skipped, so a call repeated after
-    an interruption appends nothing twice. ``offset_repeats``: repeat ids r are commanded
+    (atomically, vias first), the poses dropped with their reasons to RUN/plan/dropped.csv. Ids
+    the plan holds or dropped already are skipped, so a call repeated after an interruption
+    appends nothing twice and tries no dropped pose again. ``offset_repeats``: repeat ids r are commanded
     r·REMEASURE_OFFSET_RAD further on the last joint (:func:`remeasure_poses`)."""
     from campaign.measure.driver import read_plan
     from campaign.plan.pipeline import _order_tour
@@ -341,7 +385,8 @@ def append_tour(run, space: PlanSpace, pose_ids, *, offset_repeats: bool = False
     from campaign.plan.timing import path_time
 
     ids, Q, _ = read_plan(run.path)
-    pose_ids = np.array([int(p) for p in pose_ids if int(p) not in set(ids.tolist())], dtype=np.int64)
+    tried = set(ids.tolist()) | set(dropped_ids(run).tolist())
+    pose_ids = np.array([int(p) for p in pose_ids if int(p) not in tried], dtype=np.int64)
     if len(pose_ids) == 0:
         return Extension((), (), 0, 0.0)
     grid, robot = space.grid, space.robot
@@ -364,6 +409,7 @@ def append_tour(run, space: PlanSpace, pose_ids, *, offset_repeats: bool = False
     if offset_repeats:
         new_Q[:, -1] += (new_ids // REPEAT_ID_STRIDE) * REMEASURE_OFFSET_RAD
     vias = {p: v for p, v in repair.vias.items() if p in set(new_ids.tolist())}
+    _append_dropped(run.plan_dir, repair.dropped)
     _append_rows(run.plan_dir, new_ids, new_Q, vias)
     _drift_monitor_again(run, space)
     path = tour_path(seq[repair.keep], Qs[repair.keep], repair.vias)
@@ -391,6 +437,17 @@ def _drift_monitor_again(run, space: PlanSpace) -> None:
                                               np.deg2rad(space.motion_sample_deg), space.motion_clearance_m,
                                               pose_clearance=space.clearance_m)
     atomic_write_json(path, summary)
+
+
+def _append_dropped(plan_dir, dropped) -> None:
+    """Add (pose_id, reason) rows to dropped.csv (the plan's format), each pose once."""
+    if not dropped:
+        return
+    path = plan_dir / "dropped.csv"
+    lines = path.read_text().splitlines() if path.is_file() else [DROPPED_HEADER]
+    have = {ln.split(",", 1)[0].strip() for ln in lines[1:]}
+    lines += [f"{int(p)},{r}" for p, r in dropped if str(int(p)) not in have]
+    atomic_write(path, "\n".join(lines) + "\n")
 
 
 def _append_rows(plan_dir, ids, Q, vias) -> None:
