@@ -13,7 +13,7 @@ import pytest
 
 from campaign.cli import main
 from campaign.diagnose import diagnose
-from campaign.diagnose.chain import chain_structure
+from campaign.diagnose.chain import ChainStructure, chain_structure, with_rotation_first
 from campaign.effects import Effect
 from campaign.model.robot import RobotModel
 from test_diagnose_open_world import make_open_run
@@ -133,3 +133,18 @@ def test_a_candidate_that_makes_the_rotation_worse_is_not_named(tmp_path):
     assert cyclic.p_value < 1e-6 and cyclic.gain > 0.1, d.text()  # it fits the position ...
     assert cyclic.rotation_p_worse < 0.01, d.text()  # ... and the rotation says no
     assert "at the rotation's expense" in d.text()
+
+
+def test_a_weak_rotation_beside_a_strong_position_structure_does_not_lead():
+    """The rotation test's inputs come first only when it predicts at least half the share of its
+    own error that the position test predicts of the position error."""
+    robot = RobotModel.load()
+    rng = np.random.default_rng(4)
+    R, X, names, fold, fit, out, _ = rotation_data(robot, 300, rng, 1e-3, 1e-4)
+    c = chain_structure(R, X, names, 6, fold, fit, out, alpha=0.01, detection=0.02)
+    assert isinstance(c, ChainStructure) and c.significant and c.depends_on(0.05)[0] == "q4"
+    position = ["q2", "q3", "q1"]
+    assert with_rotation_first(position, c, 0.05)[0] == "q4"  # no position test: the rotation leads
+    assert with_rotation_first(position, c, 0.05, position_gain=c.heldout_gain)[0] == "q4"
+    assert with_rotation_first(position, c, 0.05, position_gain=1.9 * c.heldout_gain)[0] == "q4"
+    assert with_rotation_first(position, c, 0.05, position_gain=2.1 * c.heldout_gain) == position

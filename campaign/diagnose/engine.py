@@ -1106,15 +1106,18 @@ def _describe(cls, spec) -> str:
 
 def ranked_inputs(struct, struct_sig: bool, test, chain=None) -> list:
     """The inputs the error left depends on, most important first: the flexible regressor's (when
-    its structure is significant), the rotation test's in front of them (when significant: where
-    in the chain the error arises, campaign.diagnose.chain), time and temperature ranked by the
+    its structure is significant), the rotation test's in front of them (when significant and not
+    much weaker than the position test: where in the chain the error arises,
+    campaign.diagnose.chain.with_rotation_first), time and temperature ranked by the
     time test on the model's residuals (campaign.diagnose.timing.rank_by_time_test: first when the
     same poses moved, out when they did not; time alone when only the test found it). Diagnose's
     and auto's alike."""
     from campaign.diagnose.chain import with_rotation_first
 
-    inputs = struct.depends_on(MIN_IMPORTANCE_SHARE) if struct is not None and struct_sig else []
-    return rank_by_time_test(with_rotation_first(inputs, chain, MIN_IMPORTANCE_SHARE), test)
+    sig = struct is not None and struct_sig
+    inputs = struct.depends_on(MIN_IMPORTANCE_SHARE) if sig else []
+    return rank_by_time_test(with_rotation_first(inputs, chain, MIN_IMPORTANCE_SHARE,
+                                                 struct.heldout_gain if sig else None), test)
 
 
 #: the inputs a catalogued effect depends on alone, when that is one kind: the harmonics of cyclic
