@@ -337,6 +337,29 @@ def test_decide_adds_a_significant_candidate_by_its_spec_even_when_it_explains_o
     assert (d.kind, d.reason) == ("stop", "max_poses")
 
 
+def test_decide_adds_no_part_of_a_rotation_error_that_the_candidate_does_not_take():
+    """A tilt of the UR10's elbow axis (bench_explain ur10_elbow_runout, seed 1): the position test
+    finds nothing (0.8 %), the rotation test 18 % on q3 in the frame after joint 3; cyclic of joint
+    3 takes 17 % of the position error and nothing of the rotation error: not added as a part."""
+    from types import SimpleNamespace
+
+    from campaign.auto import Limits, decide
+
+    c = SimpleNamespace(effect="cyclic", spec="cyclic:3", joints=(3,), label="cyclic of joint 3", significant=True,
+                        description="d", heldout_mean_position_mm_before=0.0310, heldout_mean_position_mm_after=0.0258,
+                        gain=0.169, rotation_gain=-0.001)
+    d = _diagnosis("unexplained", [c], ["q3"], significant=False)
+    d.worth_a_round = True
+    d.chain, d.chain_significant = SimpleNamespace(heldout_gain=0.179, significant=True), True
+    out = decide(d, _round(depends_on=("q3",)), [], Limits(130, None, None), _StubLoop(room=0))
+    assert (out.kind, out.reason) == ("stop", "max_poses"), out  # not added: poses for it, none left here
+    # one that takes its share of the rotation error is a part of it
+    part = SimpleNamespace(**{**c.__dict__, "rotation_gain": 0.12})
+    out = decide(d.__class__(**{**d.__dict__, "ranking": (part,)}), _round(depends_on=("q3",)), [],
+                 Limits(312, None, None), _StubLoop())
+    assert (out.kind, out.effect) == ("add_effect", "cyclic:3") and "part" in out.text
+
+
 def test_decide_adds_cyclic_only_when_the_structure_depends_on_its_joint_first():
     from types import SimpleNamespace
 

@@ -77,8 +77,13 @@ def decide(diagnosis, rnd: Round, before: list, limits: Limits, loop) -> Decisio
                                          f"{rival.text()}", effect=effect_label(rival.own), effects=tuple(after))
     best = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
     structure = diagnosis.structure
+    # where the rotation test alone finds the error (campaign.diagnose.chain: the position test finds
+    # nothing), a part of it is a part of the rotation error
+    chain = getattr(diagnosis, "chain", None)
+    rotation_decides = bool(getattr(diagnosis, "chain_significant", False) and not diagnosis.structure_significant)
     if best is not None and diagnosis.verdict == "unexplained" and (best.gain < MIN_PARTIAL_GAIN or (
-            structure is not None and best.gain < PARTIAL_SHARE * structure.heldout_gain)):
+            structure is not None and best.gain < PARTIAL_SHARE * structure.heldout_gain) or (
+            rotation_decides and not best.rotation_gain >= PARTIAL_SHARE * chain.heldout_gain)):
         best = None  # a small part of an unexplained error: the effect that explains it is more likely missing
     if best is not None and not leads_to(best, rnd.depends_on,
                                          None if structure is None else float(structure.after.mean())):
