@@ -148,3 +148,25 @@ def test_a_weak_rotation_beside_a_strong_position_structure_does_not_lead():
     assert with_rotation_first(position, c, 0.05, position_gain=c.heldout_gain)[0] == "q4"
     assert with_rotation_first(position, c, 0.05, position_gain=1.9 * c.heldout_gain)[0] == "q4"
     assert with_rotation_first(position, c, 0.05, position_gain=2.1 * c.heldout_gain) == position
+
+
+def test_the_rotation_veto_holds_unless_a_candidate_explains_the_rotation_error():
+    """A candidate that makes the rotation worse (p < 0.01) is not significant, with or without a
+    rotation structure; except when the rotation test finds one that another candidate takes half of."""
+    from dataclasses import replace
+
+    from campaign.diagnose.engine import CandidateScore, rotation_veto
+
+    worse = CandidateScore("joint_compliance", 0.0766, 0.0570, 1e-9, True, 0.4, spec="joint_compliance:3,4",
+                           heldout_mean_rotation_mrad_before=0.304, heldout_mean_rotation_mrad_after=0.322,
+                           rotation_p_worse=0.0048)
+    other = replace(worse, effect="ground_compliance", spec="ground_compliance", heldout_mean_rotation_mrad_after=0.30,
+                    rotation_p_worse=0.9)
+    for chain in (None, ChainStructure(2, None, (0.0,) * 6, 1.0, False)):
+        out = rotation_veto([worse, other], chain)
+        assert not out[0].significant and out[0].rotation_veto and out[1].significant
+    rot = type("R", (), {"heldout_gain": 0.6})()
+    chain = ChainStructure(4, rot, (0.6,) * 6, 1e-20, True)
+    assert rotation_veto([worse, other], chain)[0].rotation_veto  # none takes half of it: vetoed
+    explains = replace(other, heldout_mean_rotation_mrad_after=0.12)  # 61 % of the rotation error
+    assert not rotation_veto([worse, explains], chain)[0].rotation_veto
