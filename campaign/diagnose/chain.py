@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from campaign.diagnose.structure import StructureResult, structure_test
+from campaign.diagnose.structure import StructureResult, joints_only, pose_or_all_structure, structure_test
 
 #: the screen of the joint frames fits the regressor on at most this many poses per fold (the full
 #: test on the chosen frame on MAX_FIT_POSES): 12 fits of 1,500 poses cost about 40 s on 14,000 poses
@@ -50,7 +50,6 @@ class ChainStructure:
     gains: tuple
     p_value: float
     significant: bool
-    time_inputs: bool = False
     n_joints: int = 6
     #: the held-out rotation residual (n, 3) rad resolved in the frame after ``joint``, and the
     #: regressor's inputs (n, d) it was tested on, in the order of the training poses
@@ -109,28 +108,21 @@ def chain_structure(R_joints, X, input_names, n_joints: int, fold, rot_fit, rot_
     temperature), on every input: the better of the two (lower held-out error), its p times the
     number of frames and input sets (Bonferroni over the 2 N tests the screen chose among)."""
     X = np.asarray(X, dtype=float)
-    X_q = None
-    if X.shape[1] > n_joints:
-        X_q = X.copy()
-        X_q[:, n_joints:] = 0.0
-    inputs = [X] if X_q is None else [X_q, X]
+    X_q = joints_only(X, n_joints)
     framed = []
     for j in range(n_joints):
         R = R_joints[:, j]
         out_j = np.einsum("nji,nj->ni", R, rot_out)
         fit_j = {k: np.einsum("nji,nj->ni", R[fold != k], r) for k, r in rot_fit.items()}
         framed.append((fit_j, out_j))
-    gains = [structure_test(inputs[0], input_names, fold, fit_j, out_j, importance=False,
+    gains = [structure_test(X if X_q is None else X_q, input_names, fold, fit_j, out_j, importance=False,
                             max_fit_poses=SCREEN_FIT_POSES).heldout_gain for fit_j, out_j in framed]
     j = int(np.argmax(gains))
     fit_j, out_j = framed[j]
-    tests = [structure_test(Xi, input_names, fold, fit_j, out_j, importance=False) for Xi in inputs]
-    i = min(range(len(tests)), key=lambda t: tests[t].after.mean())
-    result = structure_test(inputs[i], input_names, fold, fit_j, out_j)  # the same fits, now with importance
-    p = min(1.0, n_joints * len(inputs) * result.p_value)
+    result = pose_or_all_structure(X, input_names, n_joints, fold, [(fit_j, out_j)])  # p × its input sets
+    p = min(1.0, n_joints * result.p_value)
     significant = bool(p < alpha and result.heldout_gain >= detection)
-    return ChainStructure(j + 1, result, tuple(gains), p, significant, time_inputs=X_q is not None and i == 1,
-                          n_joints=n_joints, residual=out_j, inputs=X)
+    return ChainStructure(j + 1, result, tuple(gains), p, significant, n_joints=n_joints, residual=out_j, inputs=X)
 
 
 def with_rotation_first(depends_on, chain: ChainStructure | None, min_share: float,

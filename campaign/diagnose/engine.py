@@ -52,6 +52,7 @@ from campaign.diagnose.candidates import combined_effect, fit_candidate, lineari
 from campaign.diagnose.contribution import contributions, joint_swaps, param_index
 from campaign.diagnose.joints import (Rival, contested_joints, model_joints, paired_p, search_joints,
                                       searches_joints, shared_joint_rivals)
+from campaign.diagnose.structure import pose_or_all_structure
 from campaign.diagnose.timing import TIME_INPUTS, rank_by_time_test, time_test
 from campaign.effects.base import (available, effect_class, effect_context, effect_label,
                                    entry_point_effects, joint_spec, make_effect, merge_effects, parse_effect_list,
@@ -112,7 +113,7 @@ class CandidateScore:
     heldout_mean_rotation_mrad_after: float = float("nan")
     #: one-sided paired p of "the candidate makes the held-out rotation error larger" (NaN: position only)
     rotation_p_worse: float = float("nan")
-    #: not significant because it makes larger a rotation error that no candidate explains (:func:`rotation_veto`)
+    #: not significant because it makes the held-out rotation error larger (:func:`rotation_veto`)
     rotation_veto: bool = False
 
     @property
@@ -900,34 +901,6 @@ def find_chain(data: DiagnosisData, fits: CurrentFits, X, input_names, detection
                            alpha=ALPHA, detection=detection)
 
 
-def pose_or_all_structure(X, input_names, n_joints: int, fold, residuals):
-    """The model-free test on every input and on the joint angles alone, for the residuals in each
-    frame of ``residuals`` ([(fold fits' residuals, held-out residual)], the frame after joint 1 and
-    the tool frame): the one whose held-out error is lower, its p-value times the number of tests
-    (Bonferroni: the best of several). The time and the temperature follow the order the poses were
-    measured in, itself a path through the joint space: given them, the regressor (one length scale
-    for all inputs) spreads over proxies of the pose and misses a structure of the pose alone (a
-    bearing run-out of joint 4: 10 % of the held-out error on every input, 24 % on the joints, with
-    q4 first). On the joints alone the time columns are held constant: the regressor leaves them out
-    and their importance is 0. The frame: an effect near the base (joints 2-3) is a smooth function
-    of few joints in the frame after joint 1; one in the wrist moves the tool point along a
-    direction fixed in the tool frame, scaled by a function of the wrist joints alone (a run-out of
-    joint 6: one input there, all six and their products in the frame after joint 1)."""
-    from campaign.diagnose.structure import structure_test
-
-    X_q = None
-    if X.shape[1] > n_joints:
-        X_q = X.copy()
-        X_q[:, n_joints:] = 0.0
-    tests = []
-    for r_fit, r_out in residuals:
-        tests.append(structure_test(X, input_names, fold, r_fit, r_out))
-        if X_q is not None:
-            tests.append(structure_test(X_q, input_names, fold, r_fit, r_out))
-    best = min(tests, key=lambda t: t.after.mean())
-    return replace(best, p_value=min(1.0, len(tests) * best.p_value))
-
-
 def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: float, say, chain=None) -> tuple:
     """Every candidate fitted with the current model on the folds, scored on the held-out poses
     (joint-indexed ones over the joints :func:`campaign.diagnose.joints.search_joints` finds; those
@@ -937,6 +910,7 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
     n_cand = max(len(specs), 1)
     ss_before = float(np.sum((fits.dz - fits.dz.mean(axis=0)) ** 2))
     rot_before = None if fits.dphi is None else np.linalg.norm(fits.dphi, axis=1) * 1e3
+    rot_before_mean = np.nan if rot_before is None else float(rot_before.mean())
     lins = {}
 
     def fit_spec(spec, effect=None):
@@ -988,7 +962,7 @@ def score_candidates(data: DiagnosisData, fits: CurrentFits, specs, detection: f
         errors[spec] = (after, make_effect(spec, data.robot).n_params - len(absorbed), max(len(steps), 1))
         return CandidateScore(cls.name, float(fits.before.mean()), float(after.mean()), p, bool(significant),
                               float(r2), absorbed, _describe(cls, spec), spec, steps,
-                              heldout_mean_rotation_mrad_before=float(rot_before.mean()) if rot_after is not None else np.nan,
+                              heldout_mean_rotation_mrad_before=rot_before_mean,
                               heldout_mean_rotation_mrad_after=np.nan if rot_after is None else float(rot_after.mean()),
                               rotation_p_worse=rot_p_worse)
 
