@@ -170,3 +170,16 @@ def test_the_rotation_veto_holds_unless_a_candidate_explains_the_rotation_error(
     assert rotation_veto([worse, other], chain)[0].rotation_veto  # none takes half of it: vetoed
     explains = replace(other, heldout_mean_rotation_mrad_after=0.12)  # 61 % of the rotation error
     assert not rotation_veto([worse, explains], chain)[0].rotation_veto
+
+
+def test_without_a_measured_rotation_the_rotation_test_says_it_did_not_run(tmp_path, capsys):
+    """One reflector per pose (a point, no rotation): diagnose says the rotation test did not run and
+    what that leaves untold, rather than passing the position test's ranking on as the whole answer."""
+    csv = tmp_path / "p.csv"
+    assert main(["synth", "--csv", str(csv), "--robot", "ur10", "--poses", "120", "--seed", "1", "--kind", "point",
+                 "--frame", "tracker"]) == 0
+    assert main(["import", str(csv), "--run", str(tmp_path / "r"), "--robot", "ur10", "--frame", "tracker"]) == 0
+    d = diagnose(tmp_path / "r", folds=4, candidates="cyclic")
+    assert d.chain is None and d.structure is not None
+    assert "rotation test: not run (fewer than three reflectors per pose" in d.text()
+    assert d.as_json()["unexplained"]["rotation"] is None

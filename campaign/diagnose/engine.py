@@ -417,6 +417,10 @@ class Diagnosis:
                                                 for k in s.depends_on(MIN_IMPORTANCE_SHARE))
         if self.chain is not None:
             out += "\n  " + self.chain.text(MIN_IMPORTANCE_SHARE)
+        else:  # the structure test ran, the rotation test needs a rotation (campaign.diagnose.chain)
+            out += ("\n  rotation test: not run (fewer than three reflectors per pose: no rotation measured), so "
+                    "where in the chain the error arises is not told, and a tilt in the wrist may rank the joints "
+                    "after it first")
         if self.structure_significant or self.chain_significant:
             out += "\n  depends on, ranked: " + ", ".join(self.depends_on)
         return out
